@@ -1,0 +1,35 @@
+# Setup is folded into the targets: `make demo` and `make test` each install what they need.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+DEMO   ?= /tmp/ncore-convert-demo
+
+.PHONY: install demo test bench clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	# nvidia-ncore depends on torch; the conversion never imports it, so take the CPU build
+	# (a local wheel on these machines, the PyTorch CPU index elsewhere) instead of the CUDA one.
+	$(PY) -m pip install -q "torch==2.13.0" || \
+	  $(PY) -m pip install -q torch --index-url https://download.pytorch.org/whl/cpu
+	$(PY) -m pip install -q -e ".[test]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	rm -rf $(DEMO)
+	$(VENV)/bin/ncore-convert synth argoverse2 --out $(DEMO)/source/val --seconds 2 --seed 0
+	$(VENV)/bin/ncore-convert --root-dir $(DEMO)/source --output-dir $(DEMO)/out argoverse2-v4 --split val
+	@echo "demo output: $(DEMO)/out"
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) bench/bench_argoverse2.py
+
+clean:
+	rm -rf $(VENV) build src/*.egg-info
