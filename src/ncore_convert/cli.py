@@ -1,0 +1,150 @@
+"""Command line: ``ncore-convert [GROUP OPTIONS] COMMAND [OPTIONS]``.
+
+Group options (input/output roots, sensor selection) come before the dataset command, as in the
+NCore converters. Tool commands (``synth``) need no ``--root-dir/--output-dir``.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from dataclasses import dataclass
+
+import click
+from upath import UPath
+
+from ncore_convert import __version__
+
+
+@dataclass(frozen=True)
+class GroupOptions:
+    root_dir: str | None
+    output_dir: str | None
+    camera_ids: tuple[str, ...] | None
+    lidar_ids: tuple[str, ...] | None
+    progress: bool
+
+    def require_paths(self) -> tuple[UPath, UPath]:
+        if not self.root_dir:
+            raise click.UsageError("--root-dir is required for conversion commands (give it before the command)")
+        if not self.output_dir:
+            raise click.UsageError("--output-dir is required for conversion commands (give it before the command)")
+        root = UPath(self.root_dir)
+        if not root.is_dir():
+            raise click.UsageError(f"--root-dir {self.root_dir}: directory not found")
+        return root, UPath(self.output_dir)
+
+
+def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
+    if disabled:
+        return ()
+    return ids or None
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "show_default": True})
+@click.version_option(__version__, prog_name="ncore-convert")
+@click.option("--root-dir", type=str, default=None, help="Dataset root (local path or fsspec URL).")
+@click.option("--output-dir", type=str, default=None, help="Where sequences are written, one folder per log.")
+@click.option("--camera-id", "camera_ids", multiple=True, help="Convert only this camera (repeatable). Default: all.")
+@click.option("--no-cameras", is_flag=True, default=False, help="Convert no cameras.")
+@click.option("--lidar-id", "lidar_ids", multiple=True, help="Convert only this lidar (repeatable). Default: all.")
+@click.option("--no-lidars", is_flag=True, default=False, help="Convert no lidars.")
+@click.option("--progress/--no-progress", default=True, help="Show per-log progress bars.")
+@click.pass_context
+def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars, progress):
+    """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences."""
+    ctx.obj = GroupOptions(
+        root_dir=root_dir,
+        output_dir=output_dir,
+        camera_ids=_selection(camera_ids, no_cameras),
+        lidar_ids=_selection(lidar_ids, no_lidars),
+        progress=progress,
+    )
+
+
+@cli.command("argoverse2-v4")
+@click.option("--split", type=click.Choice(["train", "val", "test"]), required=True, help="Dataset split folder.")
+@click.option("--log-id", "log_ids", multiple=True, help="Convert only this log (repeatable). Default: every log of the split.")
+@click.option("--store-type", type=click.Choice(["itar", "directory"]), default="itar", help="Zarr store container.")
+@click.option(
+    "--profile",
+    type=click.Choice(["default", "separate-sensors", "separate-all"]),
+    default="separate-sensors",
+    help="Component group layout: one store, one store per sensor, or also separate poses/intrinsics/masks/cuboids.",
+)
+@click.option("--sequence-meta/--no-sequence-meta", default=True, help="Write <log_id>.json (sequence meta).")
+@click.option(
+    "--lidar-model-source",
+    type=click.Choice(["none"]),
+    default="none",
+    help="Structured lidar model: 'none' stores raw per-point-time ray bundles only.",
+)
+@click.pass_obj
+def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequence_meta, lidar_model_source):
+    """Argoverse 2 Sensor (<root>/<split>/<log_id>) to NCore V4."""
+    from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
+    from ncore_convert.runner import run_logs
+    from ncore_convert.sources import argoverse2 as av2
+
+    root, out = obj.require_paths()
+    options = Argoverse2Options(
+        split=split,
+        store_type=store_type,
+        profile=profile,
+        sequence_meta=sequence_meta,
+        lidar_model_source=lidar_model_source,
+        camera_ids=obj.camera_ids,
+        lidar_ids=obj.lidar_ids,
+    )
+    try:
+        select_sensors(options.camera_ids, av2.CAMERAS, "camera")
+        select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
+        available = av2.list_log_ids(root, split)
+    except (ValueError, av2.SourceError) as err:
+        raise click.UsageError(str(err)) from None
+    if log_ids:
+        unknown = [log for log in log_ids if log not in available]
+        if unknown:
+            raise click.UsageError(f"log(s) not found under {root / split}: {', '.join(unknown)}")
+        todo = list(dict.fromkeys(log_ids))
+    else:
+        todo = available
+    if not todo:
+        raise click.UsageError(f"no logs under {root / split}")
+
+    def convert(seq_dir, log_id, on_frame, on_total):
+        return convert_log(root, seq_dir, log_id, options, on_frame=on_frame, on_total=on_total)
+
+    results = run_logs(out, todo, convert, echo=functools.partial(click.echo, err=False), show_progress=obj.progress)
+    failed = sum(not r.ok for r in results)
+    click.echo(f"{len(results) - failed}/{len(results)} logs converted to {out}")
+    sys.exit(1 if failed else 0)
+
+
+@cli.group()
+def synth():
+    """Write synthetic source logs with known ground truth (test data and demo source)."""
+
+
+@synth.command("argoverse2")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Split folder to write the log into.")
+@click.option("--seconds", type=click.FloatRange(min=0.1), default=2.0, help="Log duration (10 sweeps per second).")
+@click.option("--seed", type=int, default=0, help="Random seed (scene, trajectory, log id).")
+@click.option("--swap-lidar-halves", is_flag=True, default=False, help="Give up_lidar the laser_number half >= 32.")
+@click.option("--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none).")
+def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps):
+    """A synthetic Argoverse 2 Sensor log: real schemas, two simulated VLP-32C units, cameras, cuboids."""
+    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+    truth = write_log(
+        UPath(out_dir),
+        SynthConfig(seconds=seconds, seed=seed, swap_lidar_halves=swap_lidar_halves, camera_fps=camera_fps),
+    )
+    click.echo(
+        f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
+        f" {sum(len(s.offset_ns) for s in truth.sweeps)} points, {truth.n_images} images, {truth.n_cuboids} cuboids"
+    )
+
+
+def main() -> None:
+    cli(auto_envvar_prefix="NCORE_CONVERT")

@@ -1,0 +1,254 @@
+"""Lidar transforms shared by the converters: pure, vectorised numpy functions.
+
+Frames: ``rig`` is the ego/vehicle frame, ``world`` the sequence-local frame of the ``T_rig_world``
+trajectory, ``sensor`` a lidar unit's own frame. Point times are passed as integer nanoseconds so
+decompensation uses each point's exact firing time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ncore_convert.geometry import Trajectory, invert_se3, rotation_matrices_from_quats
+
+#: Points closer than this to the sensor origin have no defined direction and cannot be stored.
+MIN_RANGE_M = 1e-3
+
+
+def unique_times(times_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique values and the inverse index of int64 times [N]; O(N) when already sorted (AV2 sweeps are).
+
+    Lidar points share firing times (paired firings), so poses are interpolated once per time.
+    """
+    if len(times_ns) and np.all(times_ns[1:] >= times_ns[:-1]):
+        starts = np.flatnonzero(np.concatenate([[True], times_ns[1:] != times_ns[:-1]]))
+        inverse = np.cumsum(np.concatenate([[False], times_ns[1:] != times_ns[:-1]]))
+        return times_ns[starts], inverse
+    return np.unique(times_ns, return_inverse=True)
+
+
+def _per_time_transforms(
+    T_rig_world: Trajectory, point_times_ns: np.ndarray, ref_time_ns: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotations and translations of T_rig_world at each unique point time (column-wise) plus the
+    reference pose: R [3,3,U], t [3,U], T_ref [4,4], and the point -> unique-time index [N]."""
+    times_ns, inverse = unique_times(point_times_ns)
+    quat, t = T_rig_world.interpolate_columns(T_rig_world.relative_seconds(times_ns))
+    T_ref = T_rig_world.interpolate(T_rig_world.relative_seconds(np.array([ref_time_ns])))[0]
+    return rotation_matrices_from_quats(quat), t, T_ref, inverse
+
+
+def _apply_columns(M: np.ndarray, b: np.ndarray, inverse: np.ndarray, xyz_m: np.ndarray) -> np.ndarray:
+    """p'_n = M[:, :, inverse[n]] p_n + b[:, inverse[n]] for points xyz_m [N,3] -> [N,3] (F-ordered).
+
+    M and b are composed in float64; the per-point step runs in the points' dtype. For float32
+    points (AV2's float16 coordinates are exact in float32) the result is accurate to ~1e-5 m at
+    200 m, far below the source quantisation.
+    """
+    dtype = xyz_m.dtype
+    M = M.astype(dtype)[:, :, inverse]
+    b = b.astype(dtype)[:, inverse]
+    x, y, z = xyz_m[:, 0], xyz_m[:, 1], xyz_m[:, 2]
+    out = np.empty((len(inverse), 3), dtype=dtype, order="F")
+    for k in range(3):
+        out[:, k] = M[k, 0] * x + M[k, 1] * y + M[k, 2] * z + b[k]
+    return out
+
+
+def decompensate(
+    xyz_rig_ref_m: np.ndarray,
+    point_times_ns: np.ndarray,
+    ref_time_ns: int,
+    T_rig_world: Trajectory,
+    T_sensor_rig: np.ndarray,
+) -> np.ndarray:
+    """Undo ego-motion compensation: rig-frame points at a reference time -> sensor frame at each point's time.
+
+    p_sensor(t_i) = T_sensor_rig^-1 · T_rig_world(t_i)^-1 · T_rig_world(t_ref) · p_rig_ref
+
+    Args:
+        xyz_rig_ref_m: points in the rig frame at the reference time, float64 [N,3], metres.
+        point_times_ns: absolute per-point times, int64 [N], nanoseconds.
+        ref_time_ns: absolute time the input points are compensated to, nanoseconds.
+        T_rig_world: ego trajectory, must cover all times.
+        T_sensor_rig: static sensor->rig extrinsic [4,4].
+
+    Returns:
+        points in the sensor frame at their own time, float64 [N,3], metres.
+    """
+    if len(point_times_ns) == 0:
+        return np.zeros((0, 3))
+    R, t, T_ref, inverse = _per_time_transforms(T_rig_world, point_times_ns, ref_time_ns)
+    T_rig_sensor = invert_se3(T_sensor_rig)
+    A, a = T_rig_sensor[:3, :3], T_rig_sensor[:3, 3]
+    # sensor(t) <- rig(t) <- world <- rig(ref):  A R(t)^T (R_ref p + t_ref - t(t)) + a
+    ARt = np.einsum("ij,kju->iku", A, R)
+    M = np.einsum("iku,kl->ilu", ARt, T_ref[:3, :3])
+    b = np.einsum("iku,ku->iu", ARt, T_ref[:3, 3][:, None] - t) + a[:, None]
+    return _apply_columns(M, b, inverse, xyz_rig_ref_m)
+
+
+def compensate(
+    xyz_sensor_m: np.ndarray,
+    point_times_ns: np.ndarray,
+    ref_time_ns: int,
+    T_rig_world: Trajectory,
+    T_sensor_rig: np.ndarray,
+) -> np.ndarray:
+    """Inverse of :func:`decompensate`: sensor frame at point times -> rig frame at the reference time.
+
+    Same argument frames and units as :func:`decompensate`, with input and output swapped.
+    """
+    if len(point_times_ns) == 0:
+        return np.zeros((0, 3))
+    R, t, T_ref, inverse = _per_time_transforms(T_rig_world, point_times_ns, ref_time_ns)
+    S, s = T_sensor_rig[:3, :3], T_sensor_rig[:3, 3]
+    R_ref_T = T_ref[:3, :3].T
+    # rig(ref) <- world <- rig(t) <- sensor:  R_ref^T (R(t) (S p + s) + t(t) - t_ref)
+    RrR = np.einsum("ik,kju->iju", R_ref_T, R)
+    M = np.einsum("iju,jl->ilu", RrR, S)
+    b = np.einsum("iju,j->iu", RrR, s) + R_ref_T @ (t - T_ref[:3, 3][:, None])
+    return _apply_columns(M, b, inverse, xyz_sensor_m)
+
+
+def beam_elevation_spread_rad(xyz_sensor_m: np.ndarray, beam: np.ndarray, n_beams: int = 32) -> float:
+    """Flatness score of a spinning lidar: median over beams of the per-beam elevation std (radians).
+
+    A beam traces a constant-elevation cone only in its own sensor frame, so a wrong extrinsic
+    inflates this score.
+
+    Args:
+        xyz_sensor_m: points in the candidate sensor frame, float64 [N,3].
+        beam: beam index per point, int [N], in 0..n_beams-1.
+    """
+    elevation = np.arctan2(xyz_sensor_m[:, 2], np.hypot(xyz_sensor_m[:, 0], xyz_sensor_m[:, 1]))
+    count = np.bincount(beam, minlength=n_beams).astype(np.float64)
+    total = np.bincount(beam, weights=elevation, minlength=n_beams)
+    total_sq = np.bincount(beam, weights=elevation**2, minlength=n_beams)
+    used = count >= 10
+    if not np.any(used):
+        return float("nan")
+    mean = total[used] / count[used]
+    var = np.maximum(total_sq[used] / count[used] - mean**2, 0.0)
+    return float(np.median(np.sqrt(var)))
+
+
+@dataclass(frozen=True)
+class RayBundle:
+    """Raw per-point-time rays of one lidar frame, ready for NCore.
+
+    Attributes:
+        direction: unit directions in the sensor frame at each ray's own time, float32 [N,3].
+        distance_m: range along the ray, float32 [N].
+        timestamp_us: per-ray time, uint64 [N], microseconds (floor of the ns time).
+        intensity: normalised to [0,1], float32 [N].
+        frame_timestamps_us: (start, end) of the frame, uint64 [2].
+        source_index: index of each ray in the source point array, int64 [N].
+        n_zero_range: source points not stored because their range is below ``MIN_RANGE_M``.
+        n_non_finite: source points not stored because a coordinate is NaN or infinite.
+    """
+
+    direction: np.ndarray
+    distance_m: np.ndarray
+    timestamp_us: np.ndarray
+    intensity: np.ndarray
+    frame_timestamps_us: np.ndarray
+    source_index: np.ndarray
+    n_zero_range: int
+    n_non_finite: int
+
+    def __len__(self) -> int:
+        return len(self.distance_m)
+
+
+def ray_bundle(
+    xyz_sensor_m: np.ndarray,
+    point_times_ns: np.ndarray,
+    intensity_u8: np.ndarray,
+    frame_start_us: int,
+) -> RayBundle:
+    """Turn sensor-frame points at their own times into a ray bundle.
+
+    Args:
+        xyz_sensor_m: float64 [N,3] points in the sensor frame at their own times.
+        point_times_ns: int64 [N] absolute point times (ns).
+        intensity_u8: uint8 [N] raw intensity (0..255).
+        frame_start_us: frame start (µs); the frame spans [min(start, first ray), last ray].
+
+    Points with a non-finite coordinate or a range below ``MIN_RANGE_M`` have no direction and are
+    counted in ``n_non_finite`` / ``n_zero_range`` instead of stored.
+    """
+    x, y, z = xyz_sensor_m[:, 0], xyz_sensor_m[:, 1], xyz_sensor_m[:, 2]
+    distance = np.sqrt(x * x + y * y + z * z)
+    finite = np.isfinite(distance)
+    keep = finite & (distance >= MIN_RANGE_M)
+    index = np.flatnonzero(keep)
+    dist = distance[index]
+    inv = 1.0 / dist
+    direction = np.empty((len(index), 3), dtype=np.float32)
+    for k, c in enumerate((x, y, z)):
+        direction[:, k] = c[index] * inv
+    timestamp_us = (point_times_ns[index] // 1000).astype(np.uint64)
+    start = frame_start_us if len(index) == 0 else min(frame_start_us, int(timestamp_us.min()))
+    end = start if len(index) == 0 else int(timestamp_us.max())
+    return RayBundle(
+        direction=direction,
+        distance_m=dist.astype(np.float32),
+        timestamp_us=timestamp_us,
+        intensity=(intensity_u8[index].astype(np.float32) / np.float32(255.0)),
+        frame_timestamps_us=np.array([start, end], dtype=np.uint64),
+        source_index=index,
+        n_zero_range=int(np.count_nonzero(finite & ~keep)),
+        n_non_finite=int(np.count_nonzero(~finite)),
+    )
+
+
+@dataclass(frozen=True)
+class UnitSplit:
+    """Which laser-number half belongs to which unit, decided from the data.
+
+    Attributes:
+        low_half_unit: unit that owns the low half (laser_number < 32).
+        high_half_unit: unit that owns the high half.
+        cost_chosen, cost_rejected: summed beam elevation spread (radians) under each hypothesis.
+        margin: cost_rejected / cost_chosen (how decisive the choice is; > 1).
+    """
+
+    low_half_unit: str
+    high_half_unit: str
+    cost_chosen: float
+    cost_rejected: float
+
+    @property
+    def margin(self) -> float:
+        return self.cost_rejected / self.cost_chosen if self.cost_chosen > 0 else float("inf")
+
+    def to_meta(self) -> dict:
+        return {
+            "method": "per-beam elevation flatness of decompensated points in each candidate sensor frame",
+            "laser_number_lt_32": self.low_half_unit,
+            "laser_number_ge_32": self.high_half_unit,
+            "cost_chosen_deg": float(np.degrees(self.cost_chosen)),
+            "cost_rejected_deg": float(np.degrees(self.cost_rejected)),
+            "margin": float(self.margin),
+        }
+
+
+def decide_unit_split(spread_rad: dict[tuple[str, str], float]) -> UnitSplit:
+    """Choose the half->unit assignment with the lower total beam elevation spread.
+
+    Args:
+        spread_rad: flatness score (see :func:`beam_elevation_spread_rad`) for each
+            (half, unit) with half in {"low", "high"} and exactly two unit names.
+    """
+    units = sorted({unit for _, unit in spread_rad})
+    if len(units) != 2:
+        raise ValueError(f"expected two candidate units, got {units}")
+    a, b = units
+    cost_ab = spread_rad[("low", a)] + spread_rad[("high", b)]
+    cost_ba = spread_rad[("low", b)] + spread_rad[("high", a)]
+    if cost_ab <= cost_ba:
+        return UnitSplit(a, b, cost_ab, cost_ba)
+    return UnitSplit(b, a, cost_ba, cost_ab)

@@ -1,0 +1,294 @@
+"""Argoverse 2 Sensor on-disk format: small, pure readers. Knows nothing of NCore.
+
+Layout: ``<root>/<split>/<log_id>/`` with feather tables (read with pyarrow), lidar sweeps under
+``sensors/lidar/<timestamp_ns>.feather`` and JPEGs under ``sensors/cameras/<camera>/<timestamp_ns>.jpg``.
+Frames follow av2: ``city_SE3_ego`` maps ego points to the city frame, ``ego_SE3_sensor`` maps
+sensor points to the ego frame. Quaternions are scalar-first (qw, qx, qy, qz).
+
+Every reader raises :class:`SourceError` naming the file and the cause on bad input.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.feather as feather
+from upath import UPath
+
+from ncore_convert.geometry import se3_from_quat_wxyz
+
+SPLITS = ("train", "val", "test")
+RING_CAMERAS = (
+    "ring_front_center",
+    "ring_front_left",
+    "ring_front_right",
+    "ring_rear_left",
+    "ring_rear_right",
+    "ring_side_left",
+    "ring_side_right",
+)
+STEREO_CAMERAS = ("stereo_front_left", "stereo_front_right")
+CAMERAS = RING_CAMERAS + STEREO_CAMERAS
+LIDARS = ("up_lidar", "down_lidar")
+
+POSE_COLUMNS = ("qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
+LIDAR_SCHEMA = pa.schema(
+    [
+        ("x", pa.float16()),
+        ("y", pa.float16()),
+        ("z", pa.float16()),
+        ("intensity", pa.uint8()),
+        ("laser_number", pa.uint8()),
+        ("offset_ns", pa.int32()),
+    ]
+)
+POSES_SCHEMA = pa.schema([("timestamp_ns", pa.int64())] + [(c, pa.float64()) for c in POSE_COLUMNS])
+EXTRINSICS_SCHEMA = pa.schema([("sensor_name", pa.string())] + [(c, pa.float64()) for c in POSE_COLUMNS])
+INTRINSICS_SCHEMA = pa.schema(
+    [("sensor_name", pa.string())]
+    + [(c, pa.float64()) for c in ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3")]
+    + [("height_px", pa.uint16()), ("width_px", pa.uint16())]
+)
+ANNOTATIONS_SCHEMA = pa.schema(
+    [("timestamp_ns", pa.int64()), ("track_uuid", pa.string()), ("category", pa.string())]
+    + [(c, pa.float64()) for c in ("length_m", "width_m", "height_m") + POSE_COLUMNS]
+    + [("num_interior_pts", pa.int64())]
+)
+
+
+class SourceError(Exception):
+    """Bad or missing source input. ``str(err)`` is one line: ``<file>: <cause>``."""
+
+    def __init__(self, path: object, cause: str) -> None:
+        super().__init__(f"{path}: {cause}")
+        self.path = str(path)
+        self.cause = cause
+
+
+def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None) -> pa.Table:
+    """Read a feather file and check that it has the columns and types of ``schema``.
+
+    Local files are memory-mapped; remote ones (s3://, ...) are streamed through fsspec.
+    """
+    wanted = columns or schema.names
+    try:
+        if path.protocol in ("", "file", "local"):
+            table = feather.read_table(path.path, columns=wanted, memory_map=True)
+        else:
+            with path.open("rb") as f:
+                table = feather.read_table(f, columns=wanted)
+    except FileNotFoundError:
+        raise SourceError(path, "file not found") from None
+    except (pa.ArrowInvalid, pa.ArrowKeyError, KeyError, OSError) as err:
+        raise SourceError(path, f"not a readable feather table with columns {wanted} ({err})") from None
+    for name in wanted:
+        expected = schema.field(name).type
+        actual = table.schema.field(name).type
+        if actual != expected:
+            raise SourceError(path, f"column {name!r} has type {actual}, expected {expected}")
+    return table
+
+
+def _column(table: pa.Table, name: str) -> np.ndarray:
+    return table.column(name).to_numpy()
+
+
+def _poses_from_table(table: pa.Table) -> np.ndarray:
+    quat = np.stack([_column(table, c) for c in POSE_COLUMNS[:4]], axis=1)
+    t = np.stack([_column(table, c) for c in POSE_COLUMNS[4:]], axis=1)
+    return se3_from_quat_wxyz(quat, t).reshape(-1, 4, 4)
+
+
+# ----------------------------------------------------------------------------------------------
+# Dataset layout
+# ----------------------------------------------------------------------------------------------
+
+
+def list_log_ids(root: UPath, split: str) -> list[str]:
+    """Log ids (directory names) under ``<root>/<split>``, sorted."""
+    split_dir = root / split
+    if not split_dir.is_dir():
+        raise SourceError(split_dir, "split directory not found")
+    return sorted(p.name for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+
+def sweep_path(log_dir: UPath, timestamp_ns: int) -> UPath:
+    return log_dir / "sensors" / "lidar" / f"{timestamp_ns}.feather"
+
+
+def image_path(log_dir: UPath, camera: str, timestamp_ns: int) -> UPath:
+    return log_dir / "sensors" / "cameras" / camera / f"{timestamp_ns}.jpg"
+
+
+def _timestamps_from_stems(directory: UPath, suffix: str) -> np.ndarray:
+    if not directory.is_dir():
+        return np.zeros(0, dtype=np.int64)
+    stamps = []
+    for p in directory.iterdir():
+        if p.name.endswith(suffix):
+            stem = p.name[: -len(suffix)]
+            if not stem.isdigit():
+                raise SourceError(p, f"file name is not <timestamp_ns>{suffix}")
+            stamps.append(int(stem))
+    return np.sort(np.array(stamps, dtype=np.int64))
+
+
+def list_sweep_timestamps_ns(log_dir: UPath) -> np.ndarray:
+    """Sweep reference timestamps (ns, int64, sorted) from ``sensors/lidar/*.feather``."""
+    return _timestamps_from_stems(log_dir / "sensors" / "lidar", ".feather")
+
+
+def list_image_timestamps_ns(log_dir: UPath, camera: str) -> np.ndarray:
+    """Image timestamps (ns, int64, sorted) of one camera; empty if the camera folder is absent."""
+    return _timestamps_from_stems(log_dir / "sensors" / "cameras" / camera, ".jpg")
+
+
+# ----------------------------------------------------------------------------------------------
+# Tables
+# ----------------------------------------------------------------------------------------------
+
+
+def read_city_SE3_ego(log_dir: UPath) -> tuple[np.ndarray, np.ndarray]:
+    """Ego poses from ``city_SE3_egovehicle.feather``.
+
+    Returns:
+        timestamps_ns: int64 [N], sorted ascending.
+        city_SE3_ego: float64 [N,4,4], maps ego-frame points to the city frame.
+    """
+    path = log_dir / "city_SE3_egovehicle.feather"
+    table = read_table(path, POSES_SCHEMA)
+    if table.num_rows < 2:
+        raise SourceError(path, f"needs at least 2 poses, has {table.num_rows}")
+    timestamps_ns = _column(table, "timestamp_ns")
+    order = np.argsort(timestamps_ns, kind="stable")
+    poses = _poses_from_table(table)
+    if not np.all(np.isfinite(poses)):
+        raise SourceError(path, "non-finite pose values")
+    return timestamps_ns[order], poses[order]
+
+
+def read_ego_SE3_sensors(log_dir: UPath) -> dict[str, np.ndarray]:
+    """Static extrinsics ``ego_SE3_sensor`` (float64 [4,4]) by sensor name."""
+    path = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
+    table = read_table(path, EXTRINSICS_SCHEMA)
+    names = table.column("sensor_name").to_pylist()
+    return dict(zip(names, _poses_from_table(table)))
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics of one camera (pixels), plus the original-lens radial coefficients."""
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    k1: float
+    k2: float
+    k3: float
+    width_px: int
+    height_px: int
+
+
+def read_intrinsics(log_dir: UPath) -> dict[str, CameraIntrinsics]:
+    """Camera intrinsics by camera name from ``calibration/intrinsics.feather``."""
+    path = log_dir / "calibration" / "intrinsics.feather"
+    rows = read_table(path, INTRINSICS_SCHEMA).to_pylist()
+    out = {}
+    for row in rows:
+        name = row.pop("sensor_name")
+        intr = CameraIntrinsics(**row)
+        if not (intr.fx_px > 0 and intr.fy_px > 0 and intr.width_px > 0 and intr.height_px > 0):
+            raise SourceError(path, f"camera {name!r} has non-positive focal length or size")
+        out[name] = intr
+    return out
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """One lidar sweep as stored by AV2: ego frame, motion-compensated to ``timestamp_ns``.
+
+    Attributes:
+        timestamp_ns: sweep reference time (file stem), ns.
+        xyz_ego_m: points in the ego frame at ``timestamp_ns``, float32 [N,3] (exact cast from
+            float16, column-major).
+        intensity: uint8 [N].
+        laser_number: uint8 [N], 0..63; the two halves are the two VLP-32C units.
+        offset_ns: int32 [N], per-point time relative to ``timestamp_ns``.
+    """
+
+    timestamp_ns: int
+    xyz_ego_m: np.ndarray
+    intensity: np.ndarray
+    laser_number: np.ndarray
+    offset_ns: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.offset_ns)
+
+
+def read_sweep(log_dir: UPath, timestamp_ns: int) -> Sweep:
+    """Read one sweep. Raises SourceError on a bad schema or laser_number outside 0..63."""
+    path = sweep_path(log_dir, timestamp_ns)
+    table = read_table(path, LIDAR_SCHEMA)
+    # float16 is exact in float32; column-major keeps per-axis math contiguous
+    xyz = np.empty((table.num_rows, 3), dtype=np.float32, order="F")
+    for k, c in enumerate(("x", "y", "z")):
+        xyz[:, k] = _column(table, c)
+    laser_number = _column(table, "laser_number")
+    if laser_number.size and laser_number.max() > 63:
+        raise SourceError(path, f"laser_number {int(laser_number.max())} outside 0..63")
+    offset_ns = _column(table, "offset_ns")
+    if offset_ns.size and offset_ns.min() < 0:
+        raise SourceError(path, f"negative offset_ns {int(offset_ns.min())}")
+    return Sweep(timestamp_ns, xyz, _column(table, "intensity"), laser_number, offset_ns)
+
+
+def read_sweep_offset_range_ns(log_dir: UPath, timestamp_ns: int) -> tuple[int, int]:
+    """(min, max) of a sweep's ``offset_ns`` column without reading the points."""
+    path = sweep_path(log_dir, timestamp_ns)
+    offsets = _column(read_table(path, LIDAR_SCHEMA, columns=["offset_ns"]), "offset_ns")
+    if offsets.size == 0:
+        return 0, 0
+    return int(offsets.min()), int(offsets.max())
+
+
+@dataclass(frozen=True)
+class Annotations:
+    """Cuboid annotations (columnar), each in the ego frame at its sweep ``timestamps_ns``.
+
+    Attributes:
+        timestamps_ns: int64 [M]; track_uuids, categories: lists of str [M].
+        dims_m: (length, width, height) along the object x, y, z axes, float64 [M,3].
+        ego_SE3_object: float64 [M,4,4], box centre and orientation in the ego frame.
+    """
+
+    timestamps_ns: np.ndarray
+    track_uuids: list[str]
+    categories: list[str]
+    dims_m: np.ndarray
+    ego_SE3_object: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.timestamps_ns)
+
+
+def read_annotations(log_dir: UPath) -> Annotations | None:
+    """Annotations from ``annotations.feather``, or None when the log has none (test split, TbV)."""
+    path = log_dir / "annotations.feather"
+    if not path.exists():
+        return None
+    names = [n for n in ANNOTATIONS_SCHEMA.names if n != "num_interior_pts"]
+    table = read_table(path, ANNOTATIONS_SCHEMA, columns=names)
+    dims = np.stack([_column(table, c) for c in ("length_m", "width_m", "height_m")], axis=1)
+    if np.any(~np.isfinite(dims)) or np.any(dims <= 0):
+        raise SourceError(path, "cuboid with non-finite or non-positive dimensions")
+    return Annotations(
+        timestamps_ns=_column(table, "timestamp_ns"),
+        track_uuids=table.column("track_uuid").to_pylist(),
+        categories=table.column("category").to_pylist(),
+        dims_m=dims,
+        ego_SE3_object=_poses_from_table(table),
+    )

@@ -1,0 +1,367 @@
+"""Synthetic Argoverse 2 Sensor logs, byte-compatible with the real on-disk format, with known truth.
+
+The lidar is a simulation of AV2's two VLP-32C units (real beam table, 55.296 µs firing cycle with
+paired firings, opposite spin in their own frames, 180° apart) cast against :mod:`.scene`, then
+ego-motion compensated to the sweep time and quantised to float16, as in the real data.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+import PIL.Image
+import pyarrow as pa
+import pyarrow.feather as feather
+from scipy.spatial.transform import Rotation
+from upath import UPath
+
+from ncore_convert import vlp32c
+from ncore_convert.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.synth.scene import Scene, cast_rays, make_scene
+
+MAX_RANGE_M = 200.0
+SWEEP_PERIOD_NS = 100_000_000
+#: Start of each unit's sweep window after the sweep timestamp (real data: up ~2.7 ms, down ~6 ms).
+UNIT_WINDOW_START_NS = {"up_lidar": 2_650_000, "down_lidar": 6_000_000}
+#: Own-frame spin direction (+1 counter-clockwise about +z) and column azimuth at sweep offset 0.
+UNIT_SPIN = {"up_lidar": (-1.0, np.radians(144.0)), "down_lidar": (+1.0, np.radians(24.0))}
+#: Camera trigger offsets after each sweep timestamp, ms (one per lidar pass over the optical axis).
+CAMERA_TRIGGERS_MS = {
+    "ring_front_right": (2.6, 52.5),
+    "ring_side_left": (12.5, 62.5),
+    "ring_side_right": (17.6, 67.5),
+    "ring_front_left": (27.6, 77.6),
+    "ring_rear_right": (32.5, 82.5),
+    "ring_front_center": (40.0, 90.0),
+    "stereo_front_left": (40.0, 90.0),
+    "stereo_front_right": (40.0, 90.0),
+    "ring_rear_left": (47.6, 97.5),
+}
+#: Camera optical-axis yaw in the ego frame (deg), mounting position (m), focal length (px), as in AV2.
+CAMERA_MOUNTS = {
+    "ring_front_center": (0.0, (1.635, 0.003, 1.398), 1776.0),
+    "ring_front_left": (44.9, (1.546, 0.204, 1.394), 1687.5),
+    "ring_front_right": (-45.0, (1.551, -0.199, 1.398), 1685.9),
+    "ring_rear_left": (153.1, (1.090, 0.126, 1.419), 1683.9),
+    "ring_rear_right": (-152.8, (1.101, -0.127, 1.415), 1689.2),
+    "ring_side_left": (99.2, (1.306, 0.276, 1.407), 1688.2),
+    "ring_side_right": (-98.9, (1.306, -0.279, 1.396), 1686.8),
+    "stereo_front_left": (0.0, (1.625, 0.251, 1.191), 1689.6),
+    "stereo_front_right": (0.0, (1.631, -0.248, 1.190), 1690.5),
+}
+#: Lidar extrinsics (qw, qx, qy, qz), (tx, ty, tz) as in real AV2 calibration; down_lidar is upside down.
+LIDAR_MOUNTS = {
+    "up_lidar": ((0.9999870714742982, 0.0, 0.0, -0.005084966495157445), (1.35018, 0.0, 1.64042)),
+    "down_lidar": (
+        (-0.0005378898980682196, -0.9949195814043752, 0.10067133271798985, -0.0001413555239330126),
+        (1.3467614766959441, 0.0045669612308231996, 1.5254961741451358),
+    ),
+}
+#: OpenCV camera axes in the ego frame for a forward-looking camera (columns: cam x, y, z).
+R_EGO_CAM_FORWARD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    seconds: float = 2.0
+    seed: int = 0
+    swap_lidar_halves: bool = False
+    camera_fps: float = 20.0
+    keep_truth: bool = False
+
+
+@dataclass
+class SweepTruth:
+    """Simulated raw returns of one sweep, in the feather file's row order.
+
+    Attributes:
+        unit: 0 for up_lidar, 1 for down_lidar, int8 [N].
+        direction_sensor: unit ray directions in the unit's own frame at firing time, float64 [N,3].
+        distance_m: true range, float64 [N].
+        time_ns: absolute firing time, int64 [N].
+    """
+
+    timestamp_ns: int
+    offset_ns: np.ndarray
+    unit: np.ndarray | None = None
+    direction_sensor: np.ndarray | None = None
+    distance_m: np.ndarray | None = None
+    time_ns: np.ndarray | None = None
+
+
+@dataclass
+class SynthTruth:
+    log_dir: UPath
+    log_id: str
+    t0_ns: int
+    scene: Scene
+    ego_SE3_sensor: dict[str, np.ndarray]
+    sweeps: list[SweepTruth] = field(default_factory=list)
+    image_paths: list[UPath] = field(default_factory=list)
+    n_cuboids: int = 0
+
+    @property
+    def n_images(self) -> int:
+        return len(self.image_paths)
+
+    def city_SE3_ego(self, timestamps_ns: np.ndarray) -> np.ndarray:
+        return self.scene.ego.city_SE3_ego((np.asarray(timestamps_ns) - self.t0_ns) * 1e-9)
+
+
+def _pandas_metadata(schema: pa.Schema) -> bytes:
+    columns = [
+        {"name": f.name, "field_name": f.name, "pandas_type": _pandas_type(f.type),
+         "numpy_type": "object" if f.type == pa.string() else f.type.to_pandas_dtype().__name__, "metadata": None}
+        for f in schema
+    ]  # fmt: skip
+    meta = {"index_columns": [], "column_indexes": [], "columns": columns,
+            "creator": {"library": "pyarrow", "version": pa.__version__}, "pandas_version": "1.3.4"}  # fmt: skip
+    return json.dumps(meta).encode()
+
+
+def _pandas_type(t: pa.DataType) -> str:
+    return "unicode" if t == pa.string() else t.to_pandas_dtype().__name__
+
+
+def write_feather_table(path: UPath, schema: pa.Schema, columns: dict[str, object]) -> None:
+    """Write a feather V2 file the way AV2 did (pyarrow, lz4, 64k-row batches, pandas metadata)."""
+    schema = schema.with_metadata({b"pandas": _pandas_metadata(schema)})
+    table = pa.table({name: pa.array(columns[name], type=schema.field(name).type) for name in schema.names}, schema=schema)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as f:
+        feather.write_feather(table, f, compression="lz4", chunksize=65536)
+
+
+def _pose_columns(T: np.ndarray) -> dict[str, np.ndarray]:
+    q = quat_wxyz_from_se3(T)
+    return {"qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+            "tx_m": T[:, 0, 3], "ty_m": T[:, 1, 3], "tz_m": T[:, 2, 3]}  # fmt: skip
+
+
+def _camera_extrinsic(yaw_deg: float, position_m: tuple[float, float, float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix() @ R_EGO_CAM_FORWARD
+    T[:3, 3] = position_m
+    return T
+
+
+def calibration() -> tuple[dict[str, np.ndarray], dict[str, tuple[float, int, int]]]:
+    """ego_SE3_sensor for all 11 sensors and (focal, width, height) for the 9 cameras."""
+    ego_SE3_sensor = {}
+    cams = {}
+    for cam, (yaw, pos, focal) in CAMERA_MOUNTS.items():
+        ego_SE3_sensor[cam] = _camera_extrinsic(yaw, pos)
+        width, height = (1550, 2048) if cam == "ring_front_center" else (2048, 1550)
+        cams[cam] = (focal, width, height)
+    for lidar, (quat, t) in LIDAR_MOUNTS.items():
+        ego_SE3_sensor[lidar] = se3_from_quat_wxyz(quat, t)
+    return ego_SE3_sensor, cams
+
+
+def _jpeg_templates(rng: np.random.Generator, width: int, height: int, n: int = 3) -> list[bytes]:
+    """A few JPEGs of a road-like picture with texture, ~250-400 KB at AV2 resolutions."""
+    out = []
+    v = np.linspace(0, 1, height)[:, None]
+    u = np.linspace(0, 1, width)[None, :]
+    for _ in range(n):
+        base = np.where(v < 0.45, 150 + 80 * v, 90 - 40 * (v - 0.45)) + 20 * np.sin(12 * u + rng.uniform(0, 6))
+        noise = rng.normal(0, 7, (height, width, 3))
+        rgb = np.clip(base[..., None] + noise + np.array([0, 5, 12]) * v[..., None], 0, 255).astype(np.uint8)
+        buf = io.BytesIO()
+        PIL.Image.fromarray(rgb).save(buf, format="JPEG", quality=80)
+        out.append(buf.getvalue())
+    return out
+
+
+def _unique_jpeg(template: bytes, comment: str) -> bytes:
+    """Make a template unique per frame by inserting a JPEG comment (COM) segment after SOI."""
+    payload = comment.encode()
+    return template[:2] + b"\xff\xfe" + (len(payload) + 2).to_bytes(2, "big") + payload + template[2:]
+
+
+def simulate_unit(
+    unit: str,
+    window_ns: tuple[int, int],
+    t0_ns: int,
+    scene: Scene,
+    city_SE3_sensor_fn,
+) -> dict[str, np.ndarray]:
+    """Fire one VLP-32C over [start, end) ns and return its hits.
+
+    The unit fires on a continuous clock (cycles of 16 beam pairs every 55.296 µs since t0), spins
+    at 10 Hz in its own frame, and each beam is offset in azimuth by the VLP-32C table.
+
+    Returns a dict with time_ns [N], beam [N], direction_sensor [N,3], distance_m [N], intensity [N],
+    xyz_city_m [N,3].
+    """
+    start, end = window_ns
+    c0 = -(-(start - t0_ns) // vlp32c.FIRING_CYCLE_NS)
+    c1 = -(-(end - t0_ns) // vlp32c.FIRING_CYCLE_NS)
+    cycles = np.arange(c0, c1, dtype=np.int64)
+    pairs = np.array(vlp32c.FIRING_PAIRS)  # [16,2]
+    slot = np.arange(16, dtype=np.int64) * vlp32c.FIRING_PAIR_SPACING_NS
+    fire_ns = (t0_ns + cycles[:, None] * vlp32c.FIRING_CYCLE_NS + slot[None, :]).reshape(-1)  # [C*16]
+    time_ns = np.repeat(fire_ns, 2)
+    beam = np.tile(pairs.reshape(-1), len(cycles))
+    spin_dir, az0 = UNIT_SPIN[unit]
+    t_rel_s = (time_ns - t0_ns) * 1e-9
+    azimuth = az0 + spin_dir * 2 * np.pi * vlp32c.SPIN_RATE_HZ * t_rel_s + np.radians(vlp32c.BEAM_AZIMUTH_OFFSET_DEG[beam])
+    elevation = np.radians(vlp32c.BEAM_ELEVATION_DEG[beam])
+    direction = np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
+    )
+    fire_unique_s = (fire_ns - t0_ns) * 1e-9
+    city_SE3_sensor = city_SE3_sensor_fn(fire_unique_s)  # [C*16,4,4]
+    pose = np.repeat(city_SE3_sensor, 2, axis=0)
+    origin = pose[:, :3, 3]
+    direction_city = np.einsum("nij,nj->ni", pose[:, :3, :3], direction)
+    distance, intensity = cast_rays(origin, direction_city, t_rel_s, scene, MAX_RANGE_M)
+    hit = np.isfinite(distance)
+    return {
+        "time_ns": time_ns[hit],
+        "beam": beam[hit],
+        "direction_sensor": direction[hit],
+        "distance_m": distance[hit],
+        "intensity": intensity[hit],
+        "xyz_city_m": origin[hit] + direction_city[hit] * distance[hit, None],
+    }
+
+
+def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
+    """Write one synthetic log to ``<out_dir>/<log_id>/`` and return its truth."""
+    rng = np.random.default_rng(config.seed)
+    h = rng.bytes(16).hex()
+    log_id = f"{h[:8]}-{h[8:12]}-3{h[13:16]}-8{h[17:20]}-{h[20:32]}"
+    log_dir = UPath(out_dir) / log_id
+    n_sweeps = max(1, int(round(config.seconds * 10)))
+    t0_ns = 315_970_000_000_000_000 + int(rng.integers(0, 10**12)) // 1000 * 1000
+    scene = make_scene(rng, config.seconds)
+    ego_SE3_sensor, cams = calibration()
+    truth = SynthTruth(log_dir, log_id, t0_ns, scene, ego_SE3_sensor)
+
+    jitter_us = rng.integers(-3000, 3000, n_sweeps)
+    jitter_us[0] = 0
+    sweep_ns = t0_ns + np.arange(n_sweeps, dtype=np.int64) * SWEEP_PERIOD_NS + jitter_us * 1000
+
+    # Camera triggers from just before the first sweep to well after the last; poses at every one.
+    cam_ns: dict[str, np.ndarray] = {}
+    periods = np.arange(-1, n_sweeps + 4, dtype=np.int64)
+    for cam, offsets_ms in CAMERA_TRIGGERS_MS.items():
+        stamps = (t0_ns + periods[:, None] * SWEEP_PERIOD_NS + (np.array(offsets_ms) * 1e6).astype(np.int64)).reshape(-1)
+        cam_ns[cam] = np.sort(stamps + rng.integers(-250_000, 250_000, len(stamps)))
+    pose_ns = np.unique(np.concatenate([sweep_ns] + list(cam_ns.values())))
+    write_feather_table(
+        log_dir / "city_SE3_egovehicle.feather",
+        av2.POSES_SCHEMA,
+        {"timestamp_ns": pose_ns, **_pose_columns(truth.city_SE3_ego(pose_ns))},
+    )
+    names = list(av2.CAMERAS) + list(av2.LIDARS)
+    T = np.stack([ego_SE3_sensor[n] for n in names])
+    write_feather_table(
+        log_dir / "calibration" / "egovehicle_SE3_sensor.feather",
+        av2.EXTRINSICS_SCHEMA,
+        {"sensor_name": names, **_pose_columns(T)},
+    )
+    k = {"k1": [], "k2": [], "k3": []}
+    for _ in av2.CAMERAS:
+        k["k1"].append(rng.uniform(-0.29, -0.24))
+        k["k2"].append(rng.uniform(-0.2, -0.02))
+        k["k3"].append(rng.uniform(0.09, 0.33))
+    write_feather_table(
+        log_dir / "calibration" / "intrinsics.feather",
+        av2.INTRINSICS_SCHEMA,
+        {
+            "sensor_name": list(av2.CAMERAS),
+            "fx_px": [cams[c][0] for c in av2.CAMERAS],
+            "fy_px": [cams[c][0] for c in av2.CAMERAS],
+            "cx_px": [cams[c][1] / 2 + rng.uniform(-4, 4) for c in av2.CAMERAS],
+            "cy_px": [cams[c][2] / 2 + rng.uniform(-4, 4) for c in av2.CAMERAS],
+            **k,
+            "height_px": [cams[c][2] for c in av2.CAMERAS],
+            "width_px": [cams[c][1] for c in av2.CAMERAS],
+        },
+    )
+
+    _write_sweeps(truth, sweep_ns, config)
+    if config.camera_fps > 0:
+        _write_images(truth, cam_ns, cams, rng, config.camera_fps)
+    return truth
+
+
+def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) -> None:
+    scene, t0_ns = truth.scene, truth.t0_ns
+    annotation_rows: dict[str, list] = {n: [] for n in av2.ANNOTATIONS_SCHEMA.names}
+    for ts in sweep_ns:
+        ts = int(ts)
+        parts = []
+        for u, unit in enumerate(av2.LIDARS):
+            start = ts + UNIT_WINDOW_START_NS[unit]
+            T_ego_sensor = truth.ego_SE3_sensor[unit]
+            hits = simulate_unit(
+                unit, (start, start + SWEEP_PERIOD_NS), t0_ns, scene,
+                lambda t_s, T=T_ego_sensor: scene.ego.city_SE3_ego(t_s) @ T,
+            )  # fmt: skip
+            high_half = (unit == "down_lidar") != config.swap_lidar_halves
+            hits["laser_number"] = (hits["beam"] + (32 if high_half else 0)).astype(np.uint8)
+            hits["unit"] = np.full(len(hits["beam"]), u, dtype=np.int8)
+            parts.append(hits)
+        hits = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+        ego_SE3_city_ref = invert_se3(truth.city_SE3_ego(np.array([ts]))[0])
+        xyz_ego = transform_points(ego_SE3_city_ref, hits["xyz_city_m"]).astype(np.float16)
+        offset_ns = (hits["time_ns"] - ts).astype(np.int32)
+        write_feather_table(
+            av2.sweep_path(truth.log_dir, ts),
+            av2.LIDAR_SCHEMA,
+            {"x": xyz_ego[:, 0], "y": xyz_ego[:, 1], "z": xyz_ego[:, 2], "intensity": hits["intensity"],
+             "laser_number": hits["laser_number"], "offset_ns": offset_ns},
+        )  # fmt: skip
+        sweep = SweepTruth(ts, offset_ns)
+        if config.keep_truth:
+            sweep.unit, sweep.direction_sensor = hits["unit"], hits["direction_sensor"]
+            sweep.distance_m, sweep.time_ns = hits["distance_m"], hits["time_ns"]
+        truth.sweeps.append(sweep)
+        _annotate(truth, ts, xyz_ego.astype(np.float64), ego_SE3_city_ref, annotation_rows)
+    truth.n_cuboids = len(annotation_rows["timestamp_ns"])
+    write_feather_table(truth.log_dir / "annotations.feather", av2.ANNOTATIONS_SCHEMA, annotation_rows)
+
+
+def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, ego_SE3_city: np.ndarray, rows: dict) -> None:
+    """Annotation rows for every scene object within 100 m, with num_interior_pts from the stored cloud."""
+    t_s = (ts - truth.t0_ns) * 1e-9
+    for box in truth.scene.boxes:
+        if not box.annotated:
+            continue
+        ego_SE3_box = ego_SE3_city @ box.city_SE3_box(t_s)
+        if np.linalg.norm(ego_SE3_box[:2, 3]) > 100.0:
+            continue
+        local = (xyz_ego - ego_SE3_box[:3, 3]) @ ego_SE3_box[:3, :3]
+        inside = np.all(np.abs(local) <= box.dims_m / 2, axis=1)
+        pose = _pose_columns(ego_SE3_box[None])
+        rows["timestamp_ns"].append(ts)
+        rows["track_uuid"].append(box.track_uuid)
+        rows["category"].append(box.category)
+        for name, value in zip(("length_m", "width_m", "height_m"), box.dims_m):
+            rows[name].append(float(value))
+        for name, value in pose.items():
+            rows[name].append(float(value[0]))
+        rows["num_interior_pts"].append(int(inside.sum()))
+
+
+def _write_images(truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, rng: np.random.Generator, fps: float) -> None:
+    templates = {}
+    for cam, stamps in cam_ns.items():
+        _, width, height = cams[cam]
+        if (width, height) not in templates:
+            templates[(width, height)] = _jpeg_templates(rng, width, height)
+        step = max(1, int(round(20.0 / fps)))
+        for i, ts in enumerate(stamps[::step]):
+            path = av2.image_path(truth.log_dir, cam, int(ts))
+            if i == 0:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            variants = templates[(width, height)]
+            path.write_bytes(_unique_jpeg(variants[i % len(variants)], f"{cam} {ts}"))
+            truth.image_paths.append(path)

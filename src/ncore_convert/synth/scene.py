@@ -1,0 +1,189 @@
+"""A simple synthetic driving scene with known truth: ego trajectory, ground plane and boxes.
+
+Everything is analytic in the city frame so tests can compare converter output to exact truth.
+Times are seconds relative to the log start unless a name says otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+GROUND_Z_M = 45.0  #: city height of the ground plane
+EGO_ORIGIN_HEIGHT_M = 0.33  #: ego origin above ground (AV2 rear-axle origin)
+CITY_ORIGIN_M = np.array([5072.4, 2283.9])  #: offset of the scene from the city origin (large, as in AV2)
+
+
+def rotation_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Rz(yaw) @ Ry(pitch) @ Rx(roll) for arrays of angles [N] (radians) -> [N,3,3]."""
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    return np.stack(
+        [
+            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], axis=-1),
+            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], axis=-1),
+            np.stack([-sp, cp * sr, cp * cr], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+@dataclass(frozen=True)
+class EgoMotion:
+    """Constant-speed arc with small pitch/roll oscillations. ``city_SE3_ego(t)`` in closed form."""
+
+    speed_mps: float
+    yaw_rate_rps: float
+    yaw0_rad: float
+
+    def city_SE3_ego(self, t_s: np.ndarray) -> np.ndarray:
+        """Ego poses at times t_s (seconds from log start, [N]) -> float64 [N,4,4]."""
+        t_s = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+        w, v, psi0 = self.yaw_rate_rps, self.speed_mps, self.yaw0_rad
+        yaw = psi0 + w * t_s
+        x = CITY_ORIGIN_M[0] + v / w * (np.sin(yaw) - np.sin(psi0))
+        y = CITY_ORIGIN_M[1] - v / w * (np.cos(yaw) - np.cos(psi0))
+        pitch = 0.010 * np.sin(2 * np.pi * 0.3 * t_s)
+        roll = 0.008 * np.sin(2 * np.pi * 0.5 * t_s + 1.0)
+        z = GROUND_Z_M + EGO_ORIGIN_HEIGHT_M + 0.02 * np.sin(2 * np.pi * 0.7 * t_s)
+        T = np.tile(np.eye(4), (len(t_s), 1, 1))
+        T[:, :3, :3] = rotation_zyx(yaw, pitch, roll)
+        T[:, :3, 3] = np.stack([x, y, z], axis=1)
+        return T
+
+
+@dataclass(frozen=True)
+class Box:
+    """An oriented box moving at constant velocity (city frame).
+
+    Attributes:
+        center0_m: centre at t = 0, [3]; velocity_mps: [3]; rotation: city_R_box [3,3];
+        dims_m: (length, width, height) along box x, y, z; category: AV2 class or "BUILDING".
+    """
+
+    center0_m: np.ndarray
+    velocity_mps: np.ndarray
+    rotation: np.ndarray
+    dims_m: np.ndarray
+    category: str
+    track_uuid: str
+    intensity: int
+
+    @property
+    def annotated(self) -> bool:
+        return self.category != "BUILDING"
+
+    def city_SE3_box(self, t_s: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.rotation
+        T[:3, 3] = self.center0_m + self.velocity_mps * t_s
+        return T
+
+
+@dataclass(frozen=True)
+class Scene:
+    ego: EgoMotion
+    boxes: list[Box]
+
+
+def make_scene(rng: np.random.Generator, seconds: float) -> Scene:
+    """Ego on a gentle arc with parked and moving cars, pedestrians, bollards and buildings."""
+    ego = EgoMotion(speed_mps=float(rng.uniform(6.0, 9.0)), yaw_rate_rps=float(rng.uniform(0.03, 0.07)),
+                    yaw0_rad=float(rng.uniform(-np.pi, np.pi)))  # fmt: skip
+
+    def along(t_s: float, lateral_m: float, z_m: float) -> tuple[np.ndarray, float]:
+        T = ego.city_SE3_ego(np.array([t_s]))[0]
+        yaw = np.arctan2(T[1, 0], T[0, 0])
+        left = np.array([-np.sin(yaw), np.cos(yaw)])
+        xy = T[:2, 3] + lateral_m * left
+        return np.array([xy[0], xy[1], z_m]), float(yaw)
+
+    def uuid() -> str:
+        h = rng.bytes(16).hex()
+        return f"{h[:8]}-{h[8:12]}-4{h[13:16]}-a{h[17:20]}-{h[20:32]}"
+
+    boxes: list[Box] = []
+
+    def add(center, yaw, dims, category, velocity=(0.0, 0.0, 0.0), tilt=(0.0, 0.0), intensity=60):
+        R = Rotation.from_euler("ZYX", [yaw, tilt[0], tilt[1]]).as_matrix()
+        boxes.append(Box(np.asarray(center, float), np.asarray(velocity, float), R, np.asarray(dims, float),
+                         category, uuid(), intensity))  # fmt: skip
+
+    t_end = seconds + 2.0
+    for t in np.arange(-1.0, t_end, 1.1):  # parked cars on both curbs, slightly tilted (full 3-DOF boxes)
+        for side in (-1, 1):
+            if rng.random() < 0.6:
+                dims = (rng.uniform(4.2, 5.0), rng.uniform(1.8, 2.0), rng.uniform(1.4, 1.8))
+                c, yaw = along(t + rng.uniform(-0.2, 0.2), side * rng.uniform(4.5, 5.5), GROUND_Z_M + dims[2] / 2)
+                add(c, yaw + rng.normal(0, 0.05), dims, "REGULAR_VEHICLE",
+                    tilt=(rng.normal(0, 0.03), rng.normal(0, 0.03)), intensity=int(rng.integers(40, 120)))  # fmt: skip
+    for k in range(3):  # cars moving in the next lane
+        dims = (rng.uniform(4.3, 5.2), 1.9, 1.6)
+        c, yaw = along(rng.uniform(0, seconds + 1.0), rng.choice([-2.0, 2.0]) * 1.7, GROUND_Z_M + dims[2] / 2)
+        speed = rng.uniform(3.0, 10.0)
+        add(c, yaw, dims, "REGULAR_VEHICLE", velocity=(speed * np.cos(yaw), speed * np.sin(yaw), 0.0),
+            intensity=int(rng.integers(60, 160)))  # fmt: skip
+    for t in np.arange(0.0, t_end, 0.8):  # pedestrians and bollards on the sidewalks
+        side = rng.choice([-1, 1])
+        c, yaw = along(t, side * rng.uniform(6.5, 8.0), GROUND_Z_M + 0.85)
+        add(c, yaw + rng.uniform(-3, 3), (0.6, 0.6, 1.7), "PEDESTRIAN",
+            velocity=(rng.normal(0, 0.8), rng.normal(0, 0.8), 0.0), intensity=int(rng.integers(20, 80)))  # fmt: skip
+        c, yaw = along(t + 0.4, side * 6.0, GROUND_Z_M + 0.5)
+        add(c, yaw, (0.25, 0.25, 1.0), "BOLLARD", intensity=200)
+    for t in np.arange(-2.0, t_end + 1.0, 2.2):  # building fronts along both sides (not annotated)
+        for side in (-1, 1):
+            c, yaw = along(t, side * rng.uniform(14.0, 18.0), GROUND_Z_M + 6.0)
+            add(c, yaw, (14.0, 6.0, 12.0), "BUILDING", intensity=int(rng.integers(10, 40)))
+    return Scene(ego, boxes)
+
+
+def cast_rays(
+    origins_m: np.ndarray,
+    directions: np.ndarray,
+    times_s: np.ndarray,
+    scene: Scene,
+    max_range_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """First hit of each ray against the ground plane and the scene boxes (city frame).
+
+    Args:
+        origins_m: ray origins [N,3]; directions: unit directions [N,3]; times_s: ray times [N]
+            (moving boxes are placed at each ray's own time).
+
+    Returns:
+        range_m [N] (inf where nothing is hit within max_range_m) and the hit intensity [N] (uint8).
+    """
+    n = len(origins_m)
+    best = np.full(n, np.inf)
+    intensity = np.zeros(n, dtype=np.uint8)
+    down = directions[:, 2] < -1e-9
+    s_ground = np.full(n, np.inf)
+    s_ground[down] = (GROUND_Z_M - origins_m[down, 2]) / directions[down, 2]
+    hit = (s_ground > 0) & (s_ground < best)
+    best[hit] = s_ground[hit]
+    intensity[hit] = 12
+    center_ray = origins_m.mean(axis=0)
+    for box in scene.boxes:
+        c0 = box.center0_m
+        if np.linalg.norm(c0[:2] - center_ray[:2]) - np.linalg.norm(box.dims_m) > max_range_m:
+            continue
+        if np.any(box.velocity_mps):
+            o_b = (origins_m - c0 - np.outer(times_s, box.velocity_mps)) @ box.rotation
+        else:
+            o_b = (origins_m - c0) @ box.rotation
+        d_b = directions @ box.rotation
+        t_near = np.full(n, -np.inf)
+        t_far = np.full(n, np.inf)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for k in range(3):
+                inv = 1.0 / d_b[:, k]
+                t1 = (-box.dims_m[k] / 2 - o_b[:, k]) * inv
+                t2 = (box.dims_m[k] / 2 - o_b[:, k]) * inv
+                t_near = np.fmax(t_near, np.fmin(t1, t2))
+                t_far = np.fmin(t_far, np.fmax(t1, t2))
+        hit = (t_near <= t_far) & (t_near > 0) & (t_near < best)
+        best[hit] = t_near[hit]
+        intensity[hit] = box.intensity
+    best[best > max_range_m] = np.inf
+    return best, intensity

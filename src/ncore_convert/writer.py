@@ -1,0 +1,242 @@
+"""The one place that talks to the nvidia-ncore V4 writer.
+
+Converters hand over plain numpy arrays and Python values; this module builds the NCore types,
+registers the components under their default instance names, and writes the sequence-meta JSON.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from ncore.impl.common.transformations import HalfClosedInterval
+from ncore.impl.data.types import (
+    BBox3,
+    CuboidTrackObservation,
+    IdealPinholeCameraModelParameters,
+    LabelSource,
+    ShutterType,
+)
+from ncore.impl.data.v4.types import ComponentGroupAssignments
+from ncore.data.v4 import (
+    CameraSensorComponent,
+    CuboidsComponent,
+    IntrinsicsComponent,
+    LidarSensorComponent,
+    MasksComponent,
+    PosesComponent,
+    SequenceComponentGroupsReader,
+    SequenceComponentGroupsWriter,
+)
+from upath import UPath
+
+from ncore_convert.lidar import RayBundle
+
+StoreType = Literal["itar", "directory"]
+Profile = Literal["default", "separate-sensors", "separate-all"]
+DEFAULT_INSTANCE = "default"
+
+
+@dataclass(frozen=True)
+class Cuboids:
+    """Cuboid track observations, columnar. Boxes are centred, in ``reference_frame_id`` at ``timestamps_us``.
+
+    Attributes:
+        track_ids, class_ids: lists of str [M].
+        timestamps_us: int [M], observation and reference-frame time, microseconds.
+        centroids_m: box centres, float64 [M,3]; dims_m: (length, width, height), float64 [M,3].
+        euler_xyz_rad: extrinsic xyz Euler angles of the box frame, float64 [M,3].
+    """
+
+    track_ids: list[str]
+    class_ids: list[str]
+    timestamps_us: np.ndarray
+    centroids_m: np.ndarray
+    dims_m: np.ndarray
+    euler_xyz_rad: np.ndarray
+    reference_frame_id: str = "rig"
+
+    def __len__(self) -> int:
+        return len(self.track_ids)
+
+
+class CameraStream:
+    """Frames of one camera. Image bytes are stored as given (no re-encode)."""
+
+    def __init__(self, writer: CameraSensorComponent.Writer) -> None:
+        self._writer = writer
+        self.frames = 0
+
+    def store_frame(self, image_bytes: bytes, image_format: str, timestamps_us: tuple[int, int]) -> None:
+        """Store one encoded image with its (start, end) exposure times in microseconds."""
+        self._writer.store_frame(
+            image_binary_data=image_bytes,
+            image_format=image_format,
+            frame_timestamps_us=np.array(timestamps_us, dtype=np.uint64),
+            generic_data={},
+            generic_meta_data={},
+        )
+        self.frames += 1
+
+
+class LidarStream:
+    """Frames of one lidar, stored as single-return ray bundles."""
+
+    def __init__(self, writer: LidarSensorComponent.Writer) -> None:
+        self._writer = writer
+        self.frames = 0
+        self.rays = 0
+
+    def store_frame(self, rays: RayBundle, generic_meta_data: dict) -> None:
+        self._writer.store_frame(
+            direction=rays.direction,
+            timestamp_us=rays.timestamp_us,
+            model_element=None,
+            distance_m=rays.distance_m[None, :],
+            intensity=rays.intensity[None, :],
+            frame_timestamps_us=rays.frame_timestamps_us,
+            generic_data={},
+            generic_meta_data=generic_meta_data,
+        )
+        self.frames += 1
+        self.rays += len(rays)
+
+    def set_meta(self, generic_meta_data: dict) -> None:
+        """Add or replace component-level metadata (written at finalize)."""
+        self._writer.set_generic_data({}, generic_meta_data)
+
+
+class SequenceWriter:
+    """Writes one NCore V4 sequence: ``<output_dir>/<sequence_id>.ncore4*.zarr[.itar]`` plus ``<sequence_id>.json``."""
+
+    def __init__(
+        self,
+        output_dir: UPath,
+        sequence_id: str,
+        interval_us: tuple[int, int],
+        generic_meta_data: dict,
+        camera_ids: list[str],
+        lidar_ids: list[str],
+        store_type: StoreType = "itar",
+        profile: Profile = "separate-sensors",
+        poses_meta: dict | None = None,
+    ) -> None:
+        """
+        Args:
+            interval_us: inclusive (start, end) of the sequence in microseconds.
+        """
+        self._output_dir = output_dir
+        self._sequence_id = sequence_id
+        self._groups = ComponentGroupAssignments.create(
+            camera_ids=camera_ids,
+            lidar_ids=lidar_ids,
+            radar_ids=[],
+            point_clouds_ids=[],
+            camera_labels_ids=[],
+            profile=profile,
+        )
+        self._writer = SequenceComponentGroupsWriter(
+            output_dir_path=output_dir,
+            store_base_name=sequence_id,
+            sequence_id=sequence_id,
+            sequence_timestamp_interval_us=HalfClosedInterval.from_start_end(int(interval_us[0]), int(interval_us[1])),
+            generic_meta_data=generic_meta_data,
+            store_type=store_type,
+        )
+        register = self._writer.register_component_writer
+        self._poses = register(
+            PosesComponent.Writer, DEFAULT_INSTANCE, self._groups.poses_component_group, poses_meta or {}
+        )
+        self._intrinsics = register(IntrinsicsComponent.Writer, DEFAULT_INSTANCE, self._groups.intrinsics_component_group)
+        self._masks = register(MasksComponent.Writer, DEFAULT_INSTANCE, self._groups.masks_component_group)
+        self._cuboids = register(
+            CuboidsComponent.Writer, DEFAULT_INSTANCE, self._groups.cuboid_track_observations_component_group
+        )
+
+    def store_trajectory(self, timestamps_us: np.ndarray, T_rig_world: np.ndarray, T_world_world_global: np.ndarray) -> None:
+        """Store ``rig->world`` (dynamic, float32) and ``world->world_global`` (static, float64).
+
+        Args:
+            timestamps_us: int [N], strictly increasing, first/last = sequence start/end.
+            T_rig_world: [N,4,4], stored as float32.
+            T_world_world_global: [4,4], stored as float64.
+        """
+        self._poses.store_dynamic_pose(
+            "rig", "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64)
+        )
+        self._poses.store_static_pose("world", "world_global", T_world_world_global.astype(np.float64))
+
+    def add_camera(
+        self,
+        camera_id: str,
+        T_sensor_rig: np.ndarray,
+        focal_length_px: tuple[float, float],
+        principal_point_px: tuple[float, float],
+        resolution_px: tuple[int, int],
+        generic_meta_data: dict,
+    ) -> CameraStream:
+        """Register a global-shutter ideal-pinhole camera (OpenCV camera frame, NCore pixel-corner convention).
+
+        Args:
+            T_sensor_rig: static camera->rig extrinsic [4,4] (stored float32).
+            resolution_px: (width, height).
+        """
+        self._poses.store_static_pose(camera_id, "rig", T_sensor_rig.astype(np.float32))
+        self._intrinsics.store_camera_intrinsics(
+            camera_id,
+            IdealPinholeCameraModelParameters(
+                resolution=np.array(resolution_px, dtype=np.uint64),
+                shutter_type=ShutterType.GLOBAL,
+                principal_point=np.array(principal_point_px, dtype=np.float32),
+                focal_length=np.array(focal_length_px, dtype=np.float32),
+            ),
+        )
+        self._masks.store_camera_masks(camera_id, {})
+        writer = self._writer.register_component_writer(
+            CameraSensorComponent.Writer, camera_id, self._groups.camera_component_groups.get(camera_id), generic_meta_data
+        )
+        return CameraStream(writer)
+
+    def add_lidar(self, lidar_id: str, T_sensor_rig: np.ndarray, generic_meta_data: dict) -> LidarStream:
+        """Register a lidar with its static sensor->rig extrinsic [4,4] (stored float32)."""
+        self._poses.store_static_pose(lidar_id, "rig", T_sensor_rig.astype(np.float32))
+        writer = self._writer.register_component_writer(
+            LidarSensorComponent.Writer, lidar_id, self._groups.lidar_component_groups.get(lidar_id), generic_meta_data
+        )
+        return LidarStream(writer)
+
+    def store_cuboids(self, cuboids: Cuboids | None, source: str = "EXTERNAL") -> None:
+        """Store all cuboid observations (an empty component when there are none)."""
+        observations = []
+        if cuboids is not None:
+            label_source = LabelSource[source]
+            for i in range(len(cuboids)):
+                ts = int(cuboids.timestamps_us[i])
+                observations.append(
+                    CuboidTrackObservation(
+                        track_id=str(cuboids.track_ids[i]),
+                        class_id=str(cuboids.class_ids[i]),
+                        timestamp_us=ts,
+                        reference_frame_id=cuboids.reference_frame_id,
+                        reference_frame_timestamp_us=ts,
+                        bbox3=BBox3(
+                            centroid=tuple(float(v) for v in cuboids.centroids_m[i]),
+                            dim=tuple(float(v) for v in cuboids.dims_m[i]),
+                            rot=tuple(float(v) for v in cuboids.euler_xyz_rad[i]),
+                        ),
+                        source=label_source,
+                    )
+                )
+        self._cuboids.store_observations(observations)
+
+    def finalize(self, write_sequence_meta: bool = True) -> list[UPath]:
+        """Close all stores; write ``<sequence_id>.json`` (sequence meta). Returns the written paths."""
+        paths = self._writer.finalize()
+        if write_sequence_meta:
+            meta = SequenceComponentGroupsReader(paths).get_sequence_meta().to_dict()
+            meta_path = self._output_dir / f"{self._sequence_id}.json"
+            meta_path.write_text(json.dumps(meta, indent=2))
+            paths.append(meta_path)
+        return paths
