@@ -1,0 +1,83 @@
+"""Shared fixtures: synthetic AV2 logs with truth, the real AV2 sample, and their conversions."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from upath import UPath
+
+from ncore_convert.converters.argoverse2 import Argoverse2Options, LogSummary, convert_log
+from ncore_convert.synth.argoverse2 import SynthConfig, SynthTruth, write_log
+
+REPO = Path(__file__).resolve().parents[1]
+AV2_SAMPLE_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+
+
+def find_av2_sample() -> Path:
+    """The real AV2 sample: $NCORE_CONVERT_AV2_SAMPLE, else ../shared/data/av2-sample next to the repo
+    (or next to the repo's parent, for clones under /tmp), else /work/shared/data/av2-sample."""
+    candidates = [os.environ.get("NCORE_CONVERT_AV2_SAMPLE", "")]
+    candidates += [str(p / "shared" / "data" / "av2-sample") for p in (REPO.parent, REPO.parent.parent)]
+    candidates.append("/work/shared/data/av2-sample")
+    for c in candidates:
+        if c and (Path(c) / "val" / AV2_SAMPLE_LOG).is_dir():
+            return Path(c)
+    raise RuntimeError(
+        "real AV2 sample not found; set NCORE_CONVERT_AV2_SAMPLE to the folder holding val/" + AV2_SAMPLE_LOG
+    )
+
+
+@dataclass
+class Converted:
+    truth: SynthTruth | None
+    summary: LogSummary
+    seq_dir: Path
+    loader: SequenceLoaderV4
+
+    @property
+    def reader(self) -> SequenceComponentGroupsReader:
+        return self.loader._reader
+
+
+def open_sequence(seq_dir: Path, sequence_id: str) -> SequenceLoaderV4:
+    return SequenceLoaderV4(SequenceComponentGroupsReader([UPath(seq_dir / f"{sequence_id}.json")]))
+
+
+def synth_and_convert(tmp: Path, config: SynthConfig, options: Argoverse2Options | None = None) -> Converted:
+    truth = write_log(UPath(tmp / "src" / "val"), config)
+    options = options or Argoverse2Options(split="val")
+    seq_dir = tmp / "out" / truth.log_id
+    summary = convert_log(UPath(tmp / "src"), UPath(seq_dir), truth.log_id, options)
+    return Converted(truth, summary, seq_dir, open_sequence(seq_dir, truth.log_id))
+
+
+@pytest.fixture(scope="session")
+def synth_log(tmp_path_factory) -> Converted:
+    """A 1 s synthetic log with images at 20 fps, converted with default options."""
+    return synth_and_convert(tmp_path_factory.mktemp("synth"), SynthConfig(seconds=1.0, seed=1, keep_truth=True))
+
+
+@pytest.fixture(scope="session")
+def synth_swapped(tmp_path_factory) -> Converted:
+    """A synthetic log whose laser_number halves are exchanged (up_lidar owns >= 32)."""
+    return synth_and_convert(
+        tmp_path_factory.mktemp("swapped"),
+        SynthConfig(seconds=0.5, seed=2, swap_lidar_halves=True, camera_fps=0, keep_truth=True),
+        Argoverse2Options(split="val", camera_ids=()),
+    )
+
+
+@pytest.fixture(scope="session")
+def av2_sample_root() -> Path:
+    return find_av2_sample()
+
+
+@pytest.fixture(scope="session")
+def real_log(av2_sample_root, tmp_path_factory) -> Converted:
+    seq_dir = tmp_path_factory.mktemp("real") / AV2_SAMPLE_LOG
+    summary = convert_log(UPath(av2_sample_root), UPath(seq_dir), AV2_SAMPLE_LOG, Argoverse2Options(split="val"))
+    return Converted(None, summary, seq_dir, open_sequence(seq_dir, AV2_SAMPLE_LOG))

@@ -1,0 +1,98 @@
+"""Converter output on the real Argoverse 2 sample log (issue 2 acceptance, real part)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow.feather as feather
+from ncore.data.v4 import LidarSensorComponent, PosesComponent
+from ncore.impl.common.transformations import PoseInterpolator
+from scipy.spatial.transform import Rotation
+
+from conftest import AV2_SAMPLE_LOG
+
+
+def test_opens_with_default_instance_names(real_log):
+    loader = real_log.loader
+    assert set(loader.lidar_ids) == {"up_lidar", "down_lidar"}
+    assert loader.camera_ids == []  # the sample ships no images; reported, not faked
+    assert any("no images" in w for w in real_log.summary.warnings)
+    assert loader.get_lidar_sensor("up_lidar").frames_count == 2
+
+
+def test_low_laser_half_is_up_lidar_with_a_wide_margin(real_log):
+    meta = real_log.reader.open_component_readers(LidarSensorComponent.Reader)
+    for unit in ("up_lidar", "down_lidar"):
+        decision = meta[unit].generic_meta_data["av2_unit_decision"]
+        assert decision["laser_number_lt_32"] == "up_lidar"
+        assert decision["laser_number_ge_32"] == "down_lidar"
+        assert decision["margin"] >= 2.0
+
+
+def test_point_count_preserved_per_unit(real_log, av2_sample_root):
+    lidar_dir = av2_sample_root / "val" / AV2_SAMPLE_LOG / "sensors" / "lidar"
+    files = sorted(lidar_dir.glob("*.feather"))
+    readers = real_log.reader.open_component_readers(LidarSensorComponent.Reader)
+    for unit, low in (("up_lidar", True), ("down_lidar", False)):
+        sensor = real_log.loader.get_lidar_sensor(unit)
+        source_total = 0
+        for i, path in enumerate(files):
+            laser = feather.read_table(path, columns=["laser_number"])["laser_number"].to_numpy()
+            n_source = int(((laser < 32) == low).sum())
+            meta = sensor.get_frame_generic_meta_data(i)
+            stored = len(sensor.get_frame_ray_bundle_direction(i))
+            assert stored + meta["points_zero_range"] + meta["points_non_finite"] == n_source
+            source_total += n_source
+        assert readers[unit].generic_meta_data["source_points"] == source_total
+
+
+def test_all_cuboid_observations_present(real_log, av2_sample_root):
+    table = feather.read_table(av2_sample_root / "val" / AV2_SAMPLE_LOG / "annotations.feather")
+    observations = list(real_log.loader.get_cuboid_track_observations())
+    assert len(observations) == table.num_rows == 11364
+    first = observations[0]
+    row = {k: v[0] for k, v in table.slice(0, 1).to_pydict().items()}
+    assert first.track_id == row["track_uuid"] and first.class_id == row["category"]
+    assert first.timestamp_us == row["timestamp_ns"] // 1000
+    np.testing.assert_allclose(first.bbox3.centroid, (row["tx_m"], row["ty_m"], row["tz_m"]))
+    np.testing.assert_allclose(first.bbox3.dim, (row["length_m"], row["width_m"], row["height_m"]))
+    yaw = 2 * np.arctan2(row["qz"], row["qw"])  # the sample's rotations are yaw-only
+    np.testing.assert_allclose(first.bbox3.rot, (0.0, 0.0, yaw), atol=1e-9)
+
+
+def test_pose_chain_reproduces_city_SE3_egovehicle(real_log, av2_sample_root):
+    table = feather.read_table(av2_sample_root / "val" / AV2_SAMPLE_LOG / "city_SE3_egovehicle.feather")
+    ts_ns = table["timestamp_ns"].to_numpy()
+    q = np.stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")], axis=1)
+    t = np.stack([table[c].to_numpy() for c in ("tx_m", "ty_m", "tz_m")], axis=1)
+    poses = real_log.reader.open_component_readers(PosesComponent.Reader)["default"]
+    T_rig_world, stamps = poses.get_dynamic_pose("rig", "world")
+    T_world_global = poses.get_static_pose("world", "world_global")
+    assert T_world_global.dtype == np.float64 and T_rig_world.dtype == np.float32
+    interp = PoseInterpolator(T_rig_world.astype(np.float64), stamps)
+    T_city = T_world_global @ interp.interpolate_to_timestamps(ts_ns // 1000, dtype=np.float64)
+    np.testing.assert_array_equal(np.unique(ts_ns // 1000), stamps)  # ns -> µs, duplicates removed
+    position_err = np.linalg.norm(T_city[:, :3, 3] - t, axis=1)
+    angle_err = np.degrees((Rotation.from_matrix(T_city[:, :3, :3]).inv() * Rotation.from_quat(q)).magnitude())
+    assert position_err.max() <= 0.001, position_err.max()
+    assert angle_err.max() <= 0.001, angle_err.max()
+
+
+def test_reapplying_ego_motion_gives_back_source_points(real_log, av2_sample_root):
+    lidar_dir = av2_sample_root / "val" / AV2_SAMPLE_LOG / "sensors" / "lidar"
+    loader = real_log.loader
+    pg = loader.pose_graph
+    for i, path in enumerate(sorted(lidar_dir.glob("*.feather"))):
+        table = feather.read_table(path)
+        sweep_us = np.array(int(path.stem) // 1000, dtype=np.uint64)
+        laser = table["laser_number"].to_numpy()
+        xyz_src = np.stack([table[c].to_numpy().astype(np.float64) for c in "xyz"], axis=1)
+        for unit, low in (("up_lidar", True), ("down_lidar", False)):
+            sensor = loader.get_lidar_sensor(unit)
+            pc = sensor.get_frame_point_cloud(i, motion_compensation=True, with_start_points=False)
+            end_us = np.array(int(sensor.frames_timestamps_us[i][1]), dtype=np.uint64)
+            T_end_world = pg.evaluate_poses(unit, "world", end_us).astype(np.float64)
+            T_ref_world = pg.evaluate_poses("rig", "world", sweep_us).astype(np.float64)
+            M = np.linalg.inv(T_ref_world) @ T_end_world
+            xyz = pc.xyz_m_end.astype(np.float64) @ M[:3, :3].T + M[:3, 3]
+            err = np.linalg.norm(xyz - xyz_src[(laser < 32) == low], axis=1)
+            assert np.median(err) <= 0.001, (unit, np.median(err))
