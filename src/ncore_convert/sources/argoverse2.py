@@ -72,6 +72,7 @@ def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None)
 
     Local files are memory-mapped; remote ones (s3://, ...) are streamed through fsspec.
     """
+    path = UPath(path)
     wanted = columns or schema.names
     try:
         if path.protocol in ("", "file", "local"):

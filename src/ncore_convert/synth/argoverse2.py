@@ -79,7 +79,7 @@ class SweepTruth:
     """Simulated raw returns of one sweep, in the feather file's row order.
 
     Attributes:
-        unit: 0 for up_lidar, 1 for down_lidar, int8 [N].
+        unit: 0 for up_lidar, 1 for down_lidar, int8 [N]; laser_number: as written, uint8 [N].
         direction_sensor: unit ray directions in the unit's own frame at firing time, float64 [N,3].
         distance_m: true range, float64 [N].
         time_ns: absolute firing time, int64 [N].
@@ -88,6 +88,7 @@ class SweepTruth:
     timestamp_ns: int
     offset_ns: np.ndarray
     unit: np.ndarray | None = None
+    laser_number: np.ndarray | None = None
     direction_sensor: np.ndarray | None = None
     distance_m: np.ndarray | None = None
     time_ns: np.ndarray | None = None
@@ -321,7 +322,8 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
         )  # fmt: skip
         sweep = SweepTruth(ts, offset_ns)
         if config.keep_truth:
-            sweep.unit, sweep.direction_sensor = hits["unit"], hits["direction_sensor"]
+            sweep.unit, sweep.laser_number = hits["unit"], hits["laser_number"]
+            sweep.direction_sensor = hits["direction_sensor"]
             sweep.distance_m, sweep.time_ns = hits["distance_m"], hits["time_ns"]
         truth.sweeps.append(sweep)
         _annotate(truth, ts, xyz_ego.astype(np.float64), ego_SE3_city_ref, annotation_rows)
