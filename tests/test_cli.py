@@ -170,3 +170,4 @@ def test_synth_command_writes_a_log(tmp_path):
     (log_dir,) = list(tmp_path.iterdir())
     assert len(av2.list_sweep_timestamps_ns(UPath(log_dir))) == 2
     assert np.all(np.diff(av2.read_city_SE3_ego(UPath(log_dir))[0]) > 0)
+

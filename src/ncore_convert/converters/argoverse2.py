@@ -25,7 +25,7 @@ from ncore_convert.lidar import (
 )
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.argoverse2 import SourceError
-from ncore_convert.writer import Cuboids, Profile, SequenceWriter, StoreType
+from ncore_convert.writer import CameraStream, Cuboids, LidarStream, Profile, SequenceWriter, StoreType
 
 SOURCE_DATASET = "argoverse2-sensor"
 #: Sweeps sampled across the log for the up/down unit decision.
@@ -58,6 +58,8 @@ class LogSummary:
     images: int = 0
     cuboids: int = 0
     seconds: float = 0.0
+    lidar_seconds: float = 0.0  #: read + decompensate + write of all sweeps
+    camera_seconds: float = 0.0  #: read + write of all images
     warnings: list[str] = field(default_factory=list)
 
     def line(self) -> str:
@@ -216,6 +218,68 @@ def _camera_meta(intr: av2.CameraIntrinsics) -> dict:
     }
 
 
+def _write_sweeps(
+    log_dir: UPath,
+    sweeps_ns: np.ndarray,
+    unit_split: UnitSplit,
+    T_rig_world: Trajectory,
+    T_sensor_rig: dict[str, np.ndarray],
+    lidars: dict[str, LidarStream],
+    summary: LogSummary,
+    on_frame: Callable[[int], None] | None,
+) -> None:
+    """Stream sweeps one at a time: read, split by unit, decompensate, store. Memory stays flat."""
+    started = time.perf_counter()
+    selected_T = {unit: T_sensor_rig[unit] for unit in lidars}
+    not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
+    source_points = {unit: 0 for unit in lidars}
+    for ts in sweeps_ns:
+        sweep = av2.read_sweep(log_dir, int(ts))
+        for unit, rays in sweep_ray_bundles(sweep, unit_split, T_rig_world, selected_T).items():
+            lidars[unit].store_frame(
+                rays,
+                {
+                    "av2_sweep_timestamp_ns": int(ts),
+                    "points_zero_range": rays.n_zero_range,
+                    "points_non_finite": rays.n_non_finite,
+                },
+            )
+            not_stored[unit]["zero_range"] += rays.n_zero_range
+            not_stored[unit]["non_finite"] += rays.n_non_finite
+            source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
+            summary.points += len(rays)
+            summary.points_not_stored += rays.n_zero_range + rays.n_non_finite
+        summary.sweeps += 1
+        if on_frame:
+            on_frame(1)
+    for unit, stream in lidars.items():
+        stream.set_meta({"source_points": source_points[unit], "points_not_stored": not_stored[unit]})
+    summary.lidar_seconds = time.perf_counter() - started
+
+
+def _write_images(
+    log_dir: UPath,
+    image_timestamps_ns: dict[str, np.ndarray],
+    cameras: dict[str, CameraStream],
+    summary: LogSummary,
+    on_frame: Callable[[int], None] | None,
+) -> None:
+    """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
+    started = time.perf_counter()
+    for cam, stream in cameras.items():
+        for ts in image_timestamps_ns[cam]:
+            path = av2.image_path(log_dir, cam, int(ts))
+            data = path.read_bytes()
+            if data[:2] != b"\xff\xd8":
+                raise SourceError(path, "not a JPEG file (missing SOI marker)")
+            t_us = int(ts) // 1000
+            stream.store_frame(data, "jpeg", (t_us, t_us))
+            summary.images += 1
+            if on_frame:
+                on_frame(1)
+    summary.camera_seconds = time.perf_counter() - started
+
+
 def convert_log(
     root_dir: UPath,
     output_dir: UPath,
@@ -299,36 +363,10 @@ def convert_log(
         )
         for unit in lidar_ids
     }
-    selected_T = {unit: T_sensor_rig[unit] for unit in lidar_ids}
-    not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidar_ids}
-    source_points = {unit: 0 for unit in lidar_ids}
-    for ts in sweeps_ns:
-        sweep = av2.read_sweep(log_dir, int(ts))
-        for unit, rays in sweep_ray_bundles(sweep, unit_split, T_rig_world, selected_T).items():
-            lidars[unit].store_frame(
-                rays,
-                {
-                    "av2_sweep_timestamp_ns": int(ts),
-                    "points_zero_range": rays.n_zero_range,
-                    "points_non_finite": rays.n_non_finite,
-                },
-            )
-            not_stored[unit]["zero_range"] += rays.n_zero_range
-            not_stored[unit]["non_finite"] += rays.n_non_finite
-            source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
-            summary.points += len(rays)
-            summary.points_not_stored += rays.n_zero_range + rays.n_non_finite
-        summary.sweeps += 1
-        if on_frame:
-            on_frame(1)
-    for unit, stream in lidars.items():
-        stream.set_meta({"source_points": source_points[unit], "points_not_stored": not_stored[unit]})
-    if summary.points_not_stored:
-        warnings.append(f"{summary.points_not_stored} lidar points with zero range or non-finite coordinates not stored")
-
+    cameras = {}
     for cam in camera_ids:
         intr = inputs.intrinsics[cam]
-        stream = writer.add_camera(
+        cameras[cam] = writer.add_camera(
             cam,
             T_sensor_rig[cam],
             focal_length_px=(intr.fx_px, intr.fy_px),
@@ -336,16 +374,11 @@ def convert_log(
             resolution_px=(intr.width_px, intr.height_px),
             generic_meta_data=_camera_meta(intr),
         )
-        for ts in inputs.image_timestamps_ns[cam]:
-            path = av2.image_path(log_dir, cam, int(ts))
-            data = path.read_bytes()
-            if data[:2] != b"\xff\xd8":
-                raise SourceError(path, "not a JPEG file (missing SOI marker)")
-            t_us = int(ts) // 1000
-            stream.store_frame(data, "jpeg", (t_us, t_us))
-            summary.images += 1
-            if on_frame:
-                on_frame(1)
+
+    _write_sweeps(log_dir, sweeps_ns, unit_split, T_rig_world, T_sensor_rig, lidars, summary, on_frame)
+    _write_images(log_dir, inputs.image_timestamps_ns, cameras, summary, on_frame)
+    if summary.points_not_stored:
+        warnings.append(f"{summary.points_not_stored} lidar points with zero range or non-finite coordinates not stored")
 
     cuboids = annotation_cuboids(inputs.annotations) if inputs.annotations is not None else None
     writer.store_cuboids(cuboids)
