@@ -6,7 +6,6 @@ NCore converters. Tool commands (``synth``) need no ``--root-dir/--output-dir``.
 
 from __future__ import annotations
 
-import functools
 import sys
 from dataclasses import dataclass
 
@@ -14,6 +13,7 @@ import click
 from upath import UPath
 
 from ncore_convert import __version__
+from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars,
 
 
 @cli.command("argoverse2-v4")
-@click.option("--split", type=click.Choice(["train", "val", "test"]), required=True, help="Dataset split folder.")
+@click.option("--split", type=click.Choice(AV2_SPLITS), required=True, help="Dataset split folder.")
 @click.option(
     "--log-id", "log_ids", multiple=True, show_default="every log of the split", help="Convert only this log (repeatable)."
 )
@@ -123,7 +123,7 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
     def convert(seq_dir, log_id, on_frame, on_total):
         return convert_log(root, seq_dir, log_id, options, on_frame=on_frame, on_total=on_total)
 
-    results = run_logs(out, todo, convert, echo=functools.partial(click.echo, err=False), show_progress=obj.progress)
+    results = run_logs(out, todo, convert, echo=click.echo, show_progress=obj.progress)
     failed = sum(not r.ok for r in results)
     click.echo(f"{len(results) - failed}/{len(results)} logs converted to {out}")
     sys.exit(1 if failed else 0)

@@ -65,20 +65,6 @@ def transform_points(T_a_b: np.ndarray, xyz_a: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nj->ni", T_a_b[:, :3, :3], xyz_a) + T_a_b[:, :3, 3]
 
 
-def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """Geodesic angle between rotation matrices [...,3,3] (radians)."""
-    R_rel = np.einsum("...ji,...jk->...ik", R_a, R_b)
-    cos = (np.trace(R_rel, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arccos(np.clip(cos, -1.0, 1.0))
-
-
-def angle_between_rad(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Angle between row vectors of u and v [N,3] (radians), accurate for tiny angles."""
-    cross = np.linalg.norm(np.cross(u, v), axis=-1)
-    dot = np.einsum("ij,ij->i", u, v)
-    return np.arctan2(cross, dot)
-
-
 def rotation_matrices_from_quats(quat_wxyz: np.ndarray) -> np.ndarray:
     """Rotation matrices from unit quaternions stored column-wise: [4,M] (w,x,y,z rows) -> [3,3,M].
 
@@ -142,11 +128,6 @@ class Trajectory:
     @property
     def end_us(self) -> int:
         return int(self.timestamps_us[-1])
-
-    def covers(self, t_us: npt.ArrayLike) -> bool:
-        """True if every time (µs, any shape) is inside [start_us, end_us]."""
-        t_us = np.asarray(t_us)
-        return bool(t_us.size == 0 or (t_us.min() >= self.start_us and t_us.max() <= self.end_us))
 
     def interpolate_columns(self, t_rel_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rotation and translation at times given in seconds relative to ``timestamps_us[0]``.
@@ -221,6 +202,6 @@ def _constant_velocity_pose(T_prev: np.ndarray, T_last: np.ndarray, dt_us: int, 
     return out
 
 
-def euler_xyz_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
-    """Extrinsic x-y-z Euler angles (NCore BBox3 ``rot``, R = Rz Ry Rx) from quaternions [N,4] -> [N,3]."""
-    return Rotation.from_quat(np.atleast_2d(quat_wxyz), scalar_first=True).as_euler("xyz")
+def euler_xyz_from_rotation(R: np.ndarray) -> np.ndarray:
+    """Extrinsic x-y-z Euler angles (NCore BBox3 ``rot``, R = Rz Ry Rx) of rotation matrices [N,3,3] -> [N,3]."""
+    return Rotation.from_matrix(R).as_euler("xyz")

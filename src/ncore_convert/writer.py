@@ -67,7 +67,6 @@ class CameraStream:
 
     def __init__(self, writer: CameraSensorComponent.Writer) -> None:
         self._writer = writer
-        self.frames = 0
 
     def store_frame(self, image_bytes: bytes, image_format: str, timestamps_us: tuple[int, int]) -> None:
         """Store one encoded image with its (start, end) exposure times in microseconds."""
@@ -78,7 +77,6 @@ class CameraStream:
             generic_data={},
             generic_meta_data={},
         )
-        self.frames += 1
 
 
 class LidarStream:
@@ -86,8 +84,6 @@ class LidarStream:
 
     def __init__(self, writer: LidarSensorComponent.Writer) -> None:
         self._writer = writer
-        self.frames = 0
-        self.rays = 0
 
     def store_frame(self, rays: RayBundle, generic_meta_data: dict) -> None:
         self._writer.store_frame(
@@ -100,8 +96,6 @@ class LidarStream:
             generic_data={},
             generic_meta_data=generic_meta_data,
         )
-        self.frames += 1
-        self.rays += len(rays)
 
     def set_meta(self, generic_meta_data: dict) -> None:
         """Add or replace component-level metadata (written at finalize)."""

@@ -14,7 +14,7 @@ import numpy as np
 from upath import UPath
 
 from ncore_convert import __version__
-from ncore_convert.geometry import Trajectory, euler_xyz_from_quat_wxyz, invert_se3, quat_wxyz_from_se3
+from ncore_convert.geometry import Trajectory, euler_xyz_from_rotation, invert_se3
 from ncore_convert.lidar import (
     RayBundle,
     UnitSplit,
@@ -137,8 +137,10 @@ def ego_trajectory(inputs: LogInputs, needed_us: tuple[int, int], warnings: list
     return Trajectory(traj.timestamps_us, stored), T_world_world_global
 
 
-def _sweep_points_for_half(sweep: av2.Sweep, low_half: bool) -> np.ndarray:
-    return np.flatnonzero((sweep.laser_number < 32) == low_half)
+def _half(sweep: av2.Sweep, low_half: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of one laser_number half (< 32 or >= 32) and their absolute point times (ns, int64)."""
+    idx = np.flatnonzero((sweep.laser_number < 32) == low_half)
+    return idx, sweep.timestamp_ns + sweep.offset_ns[idx].astype(np.int64)
 
 
 def decide_units(
@@ -154,8 +156,7 @@ def decide_units(
     for i in picks:
         sweep = av2.read_sweep(log_dir, int(sweep_timestamps_ns[i]))
         for half, low in (("low", True), ("high", False)):
-            idx = _sweep_points_for_half(sweep, low)
-            times_ns = sweep.timestamp_ns + sweep.offset_ns[idx].astype(np.int64)
+            idx, times_ns = _half(sweep, low)
             for unit, T in T_sensor_rig.items():
                 xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T)
                 score = beam_elevation_spread_rad(xyz, sweep.laser_number[idx].astype(np.int64) % 32)
@@ -171,8 +172,7 @@ def sweep_ray_bundles(
     for unit, low in ((split.low_half_unit, True), (split.high_half_unit, False)):
         if unit not in T_sensor_rig:
             continue
-        idx = _sweep_points_for_half(sweep, low)
-        times_ns = sweep.timestamp_ns + sweep.offset_ns[idx].astype(np.int64)
+        idx, times_ns = _half(sweep, low)
         xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T_sensor_rig[unit])
         out[unit] = ray_bundle(xyz, times_ns, sweep.intensity[idx], sweep.timestamp_ns // 1000)
     return out
@@ -186,7 +186,7 @@ def annotation_cuboids(annotations: av2.Annotations) -> Cuboids:
         timestamps_us=annotations.timestamps_ns // 1000,
         centroids_m=annotations.ego_SE3_object[:, :3, 3],
         dims_m=annotations.dims_m,
-        euler_xyz_rad=euler_xyz_from_quat_wxyz(quat_wxyz_from_se3(annotations.ego_SE3_object)),
+        euler_xyz_rad=euler_xyz_from_rotation(annotations.ego_SE3_object[:, :3, :3]),
     )
 
 
@@ -321,12 +321,11 @@ def convert_log(
 
     needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids))
     T_rig_world, T_world_world_global = ego_trajectory(inputs, needed_us, warnings)
-    T_sensor_rig = {name: T for name, T in inputs.ego_SE3_sensor.items()}
-    lidar_T = {unit: T_sensor_rig[unit] for unit in av2.LIDARS}
+    T_sensor_rig = inputs.ego_SE3_sensor  # av2 ego_SE3_sensor is NCore T_sensor_rig
 
     unit_split = None
     if lidar_ids:
-        unit_split = decide_units(log_dir, sweeps_ns, T_rig_world, lidar_T)
+        unit_split = decide_units(log_dir, sweeps_ns, T_rig_world, {u: T_sensor_rig[u] for u in av2.LIDARS})
         if unit_split.margin < UNIT_DECISION_MIN_MARGIN:
             warnings.append(
                 f"{log_dir}: up/down lidar decision has a low margin {unit_split.margin:.2f}"
