@@ -47,8 +47,19 @@ def child_convert(root: str, out: str, log_id: str) -> None:
     s = convert_log(UPath(root), UPath(out), log_id, Argoverse2Options(split="val"))
     wall = time.perf_counter() - t
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps({"wall_s": wall, "sweeps": s.sweeps, "images": s.images, "points": s.points,
-                      "lidar_s": s.lidar_seconds, "camera_s": s.camera_seconds, "peak_rss_mb": rss_mb}))
+    print(
+        json.dumps(
+            {
+                "wall_s": wall,
+                "sweeps": s.sweeps,
+                "images": s.images,
+                "points": s.points,
+                "lidar_s": s.lidar_seconds,
+                "camera_s": s.camera_seconds,
+                "peak_rss_mb": rss_mb,
+            }
+        )
+    )
 
 
 def du_bytes(path: Path) -> int:

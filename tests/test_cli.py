@@ -7,9 +7,9 @@ import pyarrow as pa
 import pyarrow.feather as feather
 import pytest
 from click.testing import CliRunner
+from conftest import open_sequence
 from upath import UPath
 
-from conftest import open_sequence
 from ncore_convert.cli import cli
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
@@ -66,7 +66,11 @@ def test_conversion_writes_the_documented_layout(small_root, tmp_path):
     "store_type,profile,expected",
     [
         ("directory", "default", [".ncore4.zarr"]),
-        ("itar", "separate-all", [".ncore4-poses.zarr.itar", ".ncore4-cuboids.zarr.itar", ".ncore4-up_lidar.zarr.itar"]),
+        (
+            "itar",
+            "separate-all",
+            [".ncore4-poses.zarr.itar", ".ncore4-cuboids.zarr.itar", ".ncore4-up_lidar.zarr.itar"],
+        ),
     ],
 )
 def test_store_types_and_profiles_open_with_the_default_loader(small_root, tmp_path, store_type, profile, expected):
@@ -97,9 +101,18 @@ def test_no_sequence_meta_writes_no_json(small_root, tmp_path):
     [
         (["argoverse2-v4", "--split", "val"], "--root-dir is required"),
         (["--root-dir", "/nonexistent", "--output-dir", "x", "argoverse2-v4", "--split", "val"], "directory not found"),
-        (["--root-dir", "{root}", "--output-dir", "x", "argoverse2-v4", "--split", "val", "--log-id", "nope"], "not found"),
-        (["--root-dir", "{root}", "--output-dir", "x", "--camera-id", "fisheye", "argoverse2-v4", "--split", "val"], "unknown camera"),
-        (["--root-dir", "{root}", "--output-dir", "x", "argoverse2-v4", "--split", "train"], "split directory not found"),
+        (
+            ["--root-dir", "{root}", "--output-dir", "x", "argoverse2-v4", "--split", "val", "--log-id", "nope"],
+            "not found",
+        ),
+        (
+            ["--root-dir", "{root}", "--output-dir", "x", "--camera-id", "fisheye", "argoverse2-v4", "--split", "val"],
+            "unknown camera",
+        ),
+        (
+            ["--root-dir", "{root}", "--output-dir", "x", "argoverse2-v4", "--split", "train"],
+            "split directory not found",
+        ),
     ],
 )
 def test_usage_errors_exit_2(small_root, args, message):
@@ -170,4 +183,3 @@ def test_synth_command_writes_a_log(tmp_path):
     (log_dir,) = list(tmp_path.iterdir())
     assert len(av2.list_sweep_timestamps_ns(UPath(log_dir))) == 2
     assert np.all(np.diff(av2.read_city_SE3_ego(UPath(log_dir))[0]) > 0)
-

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow.feather as feather
+from conftest import AV2_SAMPLE_LOG
 from ncore.data.v4 import LidarSensorComponent, PosesComponent
 from ncore.impl.common.transformations import PoseInterpolator
 from scipy.spatial.transform import Rotation
-
-from conftest import AV2_SAMPLE_LOG
 
 
 def test_opens_with_default_instance_names(real_log):

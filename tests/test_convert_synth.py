@@ -32,7 +32,7 @@ def stored_frames(conv, unit):
 @pytest.mark.parametrize("unit_index,unit", list(enumerate(UNITS)))
 def test_directions_match_simulated_raw_rays(synth_log, unit_index, unit):
     errors, range_errors = [], []
-    for sweep, (direction, _, distance, _) in zip(synth_log.truth.sweeps, stored_frames(synth_log, unit)):
+    for sweep, (direction, _, distance, _) in zip(synth_log.truth.sweeps, stored_frames(synth_log, unit), strict=True):
         mine = sweep.unit == unit_index
         assert len(direction) == mine.sum()
         errors.append(angle_deg(direction.astype(np.float64), sweep.direction_sensor[mine]))
@@ -46,7 +46,7 @@ def test_directions_match_simulated_raw_rays(synth_log, unit_index, unit):
 
 @pytest.mark.parametrize("unit_index,unit", list(enumerate(UNITS)))
 def test_point_timestamps_exact_to_the_microsecond(synth_log, unit_index, unit):
-    for sweep, (_, timestamp_us, _, frame_us) in zip(synth_log.truth.sweeps, stored_frames(synth_log, unit)):
+    for sweep, (_, timestamp_us, _, frame_us) in zip(synth_log.truth.sweeps, stored_frames(synth_log, unit), strict=True):
         expected = sweep.time_ns[sweep.unit == unit_index] // 1000
         np.testing.assert_array_equal(timestamp_us, expected.astype(np.uint64))
         assert frame_us[0] == min(sweep.timestamp_ns // 1000, expected.min())

@@ -67,7 +67,9 @@ def test_constant_velocity_extension_continues_the_motion():
 def test_decompensation_matches_naive_chain_and_inverts(seed):
     rng = np.random.default_rng(seed)
     traj = random_trajectory(seed)
-    T_sensor_rig = se3_from_quat_wxyz(Rotation.random(random_state=seed + 1).as_quat(scalar_first=True), rng.normal(size=3))
+    T_sensor_rig = se3_from_quat_wxyz(
+        Rotation.random(random_state=seed + 1).as_quat(scalar_first=True), rng.normal(size=3)
+    )
     n = 500
     ref_ns = (traj.start_us + (traj.end_us - traj.start_us) // 2) * 1000
     times_ns = np.sort(rng.integers(traj.start_us * 1000, traj.end_us * 1000, n // 2)).repeat(2)  # paired firings
@@ -80,7 +82,9 @@ def test_decompensation_matches_naive_chain_and_inverts(seed):
     np.testing.assert_allclose(compensate(out, times_ns, ref_ns, traj, T_sensor_rig), xyz, atol=1e-9)
     # unsorted times take the general path and give the same answer
     perm = rng.permutation(n)
-    np.testing.assert_allclose(decompensate(xyz[perm], times_ns[perm], ref_ns, traj, T_sensor_rig), naive[perm], atol=1e-9)
+    np.testing.assert_allclose(
+        decompensate(xyz[perm], times_ns[perm], ref_ns, traj, T_sensor_rig), naive[perm], atol=1e-9
+    )
 
 
 def test_ray_bundle_counts_points_it_cannot_store():
@@ -102,7 +106,10 @@ def test_beam_flatness_prefers_the_true_frame():
     elevation = np.radians(np.linspace(-25, 15, 32))[beam]
     azimuth = rng.uniform(-np.pi, np.pi, len(beam))
     r = rng.uniform(5, 80, len(beam))
-    xyz = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], 1) * r[:, None]
+    xyz = (
+        np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], 1)
+        * r[:, None]
+    )
     tilted = xyz @ Rotation.from_euler("x", 2.0, degrees=True).as_matrix().T
     assert beam_elevation_spread_rad(xyz, beam) < 1e-6
     assert beam_elevation_spread_rad(tilted, beam) > np.radians(0.5)

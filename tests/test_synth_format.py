@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pyarrow.feather as feather
 import pyarrow.ipc as ipc
-
 from conftest import AV2_SAMPLE_LOG
+
 from ncore_convert import vlp32c
 from ncore_convert.sources import argoverse2 as av2
 
@@ -78,7 +78,9 @@ def test_units_spin_opposite_ways_in_their_own_frames(synth_log):
     for unit_index in (0, 1):
         mine = sweep.unit == unit_index
         d = sweep.direction_sensor[mine]
-        azimuth = np.unwrap(np.arctan2(d[:, 1], d[:, 0]) - np.radians(vlp32c.BEAM_AZIMUTH_OFFSET_DEG[sweep.laser_number[mine] % 32]))
+        azimuth = np.unwrap(
+            np.arctan2(d[:, 1], d[:, 0]) - np.radians(vlp32c.BEAM_AZIMUTH_OFFSET_DEG[sweep.laser_number[mine] % 32])
+        )
         rates.append(np.polyfit(sweep.time_ns[mine] * 1e-9 - sweep.timestamp_ns * 1e-9, azimuth, 1)[0])
     assert rates[0] < 0 < rates[1]  # up clockwise, down counter-clockwise about their own +z
     np.testing.assert_allclose(np.abs(rates), 2 * np.pi * 10, rtol=1e-3)

@@ -51,9 +51,13 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     "--output-dir", type=str, default=None, show_default="none; required by conversion commands",
     help="Where sequences are written, one folder per log.",
 )  # fmt: skip
-@click.option("--camera-id", "camera_ids", multiple=True, show_default="all", help="Convert only this camera (repeatable).")
+@click.option(
+    "--camera-id", "camera_ids", multiple=True, show_default="all", help="Convert only this camera (repeatable)."
+)
 @click.option("--no-cameras", is_flag=True, default=False, show_default="off", help="Convert no cameras.")
-@click.option("--lidar-id", "lidar_ids", multiple=True, show_default="all", help="Convert only this lidar (repeatable).")
+@click.option(
+    "--lidar-id", "lidar_ids", multiple=True, show_default="all", help="Convert only this lidar (repeatable)."
+)
 @click.option("--no-lidars", is_flag=True, default=False, show_default="off", help="Convert no lidars.")
 @click.option("--progress/--no-progress", default=True, help="Show per-log progress bars.")
 @click.pass_context
@@ -71,7 +75,11 @@ def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars,
 @cli.command("argoverse2-v4")
 @click.option("--split", type=click.Choice(AV2_SPLITS), required=True, help="Dataset split folder.")
 @click.option(
-    "--log-id", "log_ids", multiple=True, show_default="every log of the split", help="Convert only this log (repeatable)."
+    "--log-id",
+    "log_ids",
+    multiple=True,
+    show_default="every log of the split",
+    help="Convert only this log (repeatable).",
 )
 @click.option("--store-type", type=click.Choice(["itar", "directory"]), default="itar", help="Zarr store container.")
 @click.option(
@@ -135,14 +143,18 @@ def synth():
 
 
 @synth.command("argoverse2")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Split folder to write the log into.")
+@click.option(
+    "--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Split folder to write the log into."
+)
 @click.option("--seconds", type=click.FloatRange(min=0.1), default=2.0, help="Log duration (10 sweeps per second).")
 @click.option("--seed", type=int, default=0, help="Random seed (scene, trajectory, log id).")
 @click.option(
     "--swap-lidar-halves", is_flag=True, default=False, show_default="off",
     help="Give up_lidar the laser_number half >= 32 (proves the unit decision comes from the data).",
 )  # fmt: skip
-@click.option("--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none).")
+@click.option(
+    "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
+)
 def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps):
     """A synthetic Argoverse 2 Sensor log: real schemas, two simulated VLP-32C units, cameras, cuboids."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log

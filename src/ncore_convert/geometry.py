@@ -113,13 +113,23 @@ class Trajectory:
         theta = np.arccos(np.clip(np.einsum("ij,ij->i", quats[1:], quats[:-1]), -1.0, 1.0))
         sin_theta = np.sin(theta)
         inv_sin = np.where(sin_theta > 1e-12, 1.0 / np.where(sin_theta > 1e-12, sin_theta, 1.0), 0.0)
+        # one row per segment quantity, one column per segment: a single gather fetches them all
+        dt = np.diff(t_rel_s)
+        segments = np.concatenate(
+            [
+                t_rel_s[None, :-1],  # 0: segment start (s)
+                (1.0 / dt)[None],  # 1: 1 / segment length
+                theta[None],  # 2: slerp arc angle
+                inv_sin[None],  # 3: 1 / sin(arc), 0 for a degenerate (lerp) segment
+                quats[:-1].T,  # 4..7: start quaternion
+                quats[1:].T,  # 8..11: end quaternion
+                self.poses[:-1, :3, 3].T,  # 12..14: start translation
+                np.diff(self.poses[:, :3, 3], axis=0).T,  # 15..17: translation change
+            ]
+        )
         object.__setattr__(self, "_t_rel_s", t_rel_s)
-        object.__setattr__(self, "_quats", quats)
-        object.__setattr__(self, "_seg_theta", theta)
-        object.__setattr__(self, "_seg_inv_sin", inv_sin)
-        # contiguous per-component copies: 1-D gathers are much cheaper than [N,4] ones
-        object.__setattr__(self, "_q_cols", tuple(np.ascontiguousarray(c) for c in quats.T))
-        object.__setattr__(self, "_t_cols", tuple(np.ascontiguousarray(c) for c in self.poses[:, :3, 3].T))
+        object.__setattr__(self, "_segments", segments)
+        object.__setattr__(self, "_has_lerp_segments", bool(np.any(inv_sin == 0.0)))
 
     @property
     def start_us(self) -> int:
@@ -145,15 +155,18 @@ class Trajectory:
         knots = self._t_rel_s
         if t_rel_s.size and (t_rel_s.min() < 0.0 or t_rel_s.max() > knots[-1]):
             raise ValueError("interpolation time outside the trajectory")
-        i = np.clip(np.searchsorted(knots, t_rel_s, side="right") - 1, 0, len(knots) - 2)
-        j = i + 1
-        alpha = (t_rel_s - knots[i]) / (knots[j] - knots[i])
-        theta, inv_sin = self._seg_theta[i], self._seg_inv_sin[i]
-        lerp = inv_sin == 0.0
-        w0 = np.where(lerp, 1.0 - alpha, np.sin((1.0 - alpha) * theta) * inv_sin)
-        w1 = np.where(lerp, alpha, np.sin(alpha * theta) * inv_sin)
-        quat = np.array([w0 * c[i] + w1 * c[j] for c in self._q_cols])
-        translation = np.array([c[i] + alpha * (c[j] - c[i]) for c in self._t_cols])
+        i = np.searchsorted(knots, t_rel_s, side="right") - 1
+        np.clip(i, 0, len(knots) - 2, out=i)
+        seg = self._segments.take(i, axis=1)
+        alpha = (t_rel_s - seg[0]) * seg[1]
+        theta, inv_sin = seg[2], seg[3]
+        w1 = np.sin(alpha * theta) * inv_sin
+        w0 = np.sin(theta - alpha * theta) * inv_sin
+        if self._has_lerp_segments:
+            lerp = inv_sin == 0.0
+            w0[lerp], w1[lerp] = 1.0 - alpha[lerp], alpha[lerp]
+        quat = w0 * seg[4:8] + w1 * seg[8:12]
+        translation = seg[12:15] + alpha * seg[15:18]
         return quat, translation
 
     def interpolate(self, t_rel_s: np.ndarray) -> np.ndarray:

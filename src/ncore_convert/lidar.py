@@ -29,15 +29,33 @@ def unique_times(times_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.unique(times_ns, return_inverse=True)
 
 
-def _per_time_transforms(
+def _quat_conj_times(q_wxyz: np.ndarray, p_wxyz: np.ndarray) -> np.ndarray:
+    """conj(q_u) * p for column-wise unit quaternions q [4,U] and one quaternion p [4] -> [4,U].
+
+    The product is linear in conj(q), so it is one 4x4 matrix applied to all columns.
+    """
+    w, x, y, z = p_wxyz
+    right = np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])  # q * p = right @ q
+    return right @ (q_wxyz * np.array([1.0, -1.0, -1.0, -1.0])[:, None])
+
+
+def _rig_motion_columns(
     T_rig_world: Trajectory, point_times_ns: np.ndarray, ref_time_ns: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rotations and translations of T_rig_world at each unique point time (column-wise) plus the
-    reference pose: R [3,3,U], t [3,U], T_ref [4,4], and the point -> unique-time index [N]."""
+    """Rig motion from the reference time to each unique point time.
+
+    Returns R [3,3,U] and d [3,U] with ``p_rig(t_u) = R[:, :, u] p_rig(ref) + d[:, u]``, i.e.
+    ``T_rig_world(t_u)^-1 T_rig_world(ref)`` per unique time (float64, column-wise), and the
+    point -> unique-time index [N].
+    """
     times_ns, inverse = unique_times(point_times_ns)
     quat, t = T_rig_world.interpolate_columns(T_rig_world.relative_seconds(times_ns))
-    T_ref = T_rig_world.interpolate(T_rig_world.relative_seconds(np.array([ref_time_ns])))[0]
-    return rotation_matrices_from_quats(quat), t, T_ref, inverse
+    quat_ref, t_ref = T_rig_world.interpolate_columns(T_rig_world.relative_seconds(np.array([ref_time_ns])))
+    R_ref = rotation_matrices_from_quats(quat_ref)[:, :, 0]
+    R = rotation_matrices_from_quats(_quat_conj_times(quat, quat_ref[:, 0]))  # R(t)^T R_ref
+    w = R_ref.T @ (t_ref - t)  # R(t)^T (t_ref - t) = R(t)^T R_ref R_ref^T (t_ref - t)
+    d = np.einsum("iju,ju->iu", R, w)
+    return R, d, inverse
 
 
 def _apply_columns(M: np.ndarray, b: np.ndarray, inverse: np.ndarray, xyz_m: np.ndarray) -> np.ndarray:
@@ -48,12 +66,13 @@ def _apply_columns(M: np.ndarray, b: np.ndarray, inverse: np.ndarray, xyz_m: np.
     200 m, far below the source quantisation.
     """
     dtype = xyz_m.dtype
-    M = M.astype(dtype)[:, :, inverse]
-    b = b.astype(dtype)[:, inverse]
+    per_time = np.concatenate([M.reshape(9, -1), b]).astype(dtype)
+    per_point = per_time.take(inverse, axis=1)  # one gather of all 12 coefficients
     x, y, z = xyz_m[:, 0], xyz_m[:, 1], xyz_m[:, 2]
     out = np.empty((len(inverse), 3), dtype=dtype, order="F")
     for k in range(3):
-        out[:, k] = M[k, 0] * x + M[k, 1] * y + M[k, 2] * z + b[k]
+        row = per_point[3 * k : 3 * k + 3]
+        out[:, k] = row[0] * x + row[1] * y + row[2] * z + per_point[9 + k]
     return out
 
 
@@ -69,24 +88,23 @@ def decompensate(
     p_sensor(t_i) = T_sensor_rig^-1 · T_rig_world(t_i)^-1 · T_rig_world(t_ref) · p_rig_ref
 
     Args:
-        xyz_rig_ref_m: points in the rig frame at the reference time, float64 [N,3], metres.
+        xyz_rig_ref_m: points in the rig frame at the reference time, [N,3] float32 or float64, metres.
         point_times_ns: absolute per-point times, int64 [N], nanoseconds.
         ref_time_ns: absolute time the input points are compensated to, nanoseconds.
         T_rig_world: ego trajectory, must cover all times.
         T_sensor_rig: static sensor->rig extrinsic [4,4].
 
     Returns:
-        points in the sensor frame at their own time, float64 [N,3], metres.
+        points in the sensor frame at their own time, [N,3] in the input dtype, metres.
     """
     if len(point_times_ns) == 0:
-        return np.zeros((0, 3))
-    R, t, T_ref, inverse = _per_time_transforms(T_rig_world, point_times_ns, ref_time_ns)
+        return np.zeros((0, 3), dtype=xyz_rig_ref_m.dtype)
+    R, d, inverse = _rig_motion_columns(T_rig_world, point_times_ns, ref_time_ns)
     T_rig_sensor = invert_se3(T_sensor_rig)
     A, a = T_rig_sensor[:3, :3], T_rig_sensor[:3, 3]
-    # sensor(t) <- rig(t) <- world <- rig(ref):  A R(t)^T (R_ref p + t_ref - t(t)) + a
-    ARt = np.einsum("ij,kju->iku", A, R)
-    M = np.einsum("iku,kl->ilu", ARt, T_ref[:3, :3])
-    b = np.einsum("iku,ku->iu", ARt, T_ref[:3, 3][:, None] - t) + a[:, None]
+    # sensor(t) <- rig(t) <- rig(ref):  A (R p + d) + a ; A is folded in per time with one matrix product
+    M = (A @ R.reshape(3, -1)).reshape(3, 3, -1)
+    b = A @ d + a[:, None]
     return _apply_columns(M, b, inverse, xyz_rig_ref_m)
 
 
@@ -102,14 +120,12 @@ def compensate(
     Same argument frames and units as :func:`decompensate`, with input and output swapped.
     """
     if len(point_times_ns) == 0:
-        return np.zeros((0, 3))
-    R, t, T_ref, inverse = _per_time_transforms(T_rig_world, point_times_ns, ref_time_ns)
+        return np.zeros((0, 3), dtype=xyz_sensor_m.dtype)
+    R, d, inverse = _rig_motion_columns(T_rig_world, point_times_ns, ref_time_ns)
     S, s = T_sensor_rig[:3, :3], T_sensor_rig[:3, 3]
-    R_ref_T = T_ref[:3, :3].T
-    # rig(ref) <- world <- rig(t) <- sensor:  R_ref^T (R(t) (S p + s) + t(t) - t_ref)
-    RrR = np.einsum("ik,kju->iju", R_ref_T, R)
-    M = np.einsum("iju,jl->ilu", RrR, S)
-    b = np.einsum("iju,j->iu", RrR, s) + R_ref_T @ (t - T_ref[:3, 3][:, None])
+    # rig(ref) <- rig(t) <- sensor:  R^T (S p + s - d)
+    M = np.einsum("jiu,jl->ilu", R, S)
+    b = np.einsum("jiu,ju->iu", R, s[:, None] - d)
     return _apply_columns(M, b, inverse, xyz_sensor_m)
 
 

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import shutil
 import traceback
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Callable, Iterable, Protocol
+from typing import Protocol
 
 from tqdm import tqdm
 from upath import UPath

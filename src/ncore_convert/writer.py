@@ -11,15 +11,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from ncore.impl.common.transformations import HalfClosedInterval
-from ncore.impl.data.types import (
-    BBox3,
-    CuboidTrackObservation,
-    IdealPinholeCameraModelParameters,
-    LabelSource,
-    ShutterType,
-)
-from ncore.impl.data.v4.types import ComponentGroupAssignments
 from ncore.data.v4 import (
     CameraSensorComponent,
     CuboidsComponent,
@@ -30,6 +21,15 @@ from ncore.data.v4 import (
     SequenceComponentGroupsReader,
     SequenceComponentGroupsWriter,
 )
+from ncore.impl.common.transformations import HalfClosedInterval
+from ncore.impl.data.types import (
+    BBox3,
+    CuboidTrackObservation,
+    IdealPinholeCameraModelParameters,
+    LabelSource,
+    ShutterType,
+)
+from ncore.impl.data.v4.types import ComponentGroupAssignments
 from upath import UPath
 
 from ncore_convert.lidar import RayBundle
@@ -143,13 +143,17 @@ class SequenceWriter:
         self._poses = register(
             PosesComponent.Writer, DEFAULT_INSTANCE, self._groups.poses_component_group, poses_meta or {}
         )
-        self._intrinsics = register(IntrinsicsComponent.Writer, DEFAULT_INSTANCE, self._groups.intrinsics_component_group)
+        self._intrinsics = register(
+            IntrinsicsComponent.Writer, DEFAULT_INSTANCE, self._groups.intrinsics_component_group
+        )
         self._masks = register(MasksComponent.Writer, DEFAULT_INSTANCE, self._groups.masks_component_group)
         self._cuboids = register(
             CuboidsComponent.Writer, DEFAULT_INSTANCE, self._groups.cuboid_track_observations_component_group
         )
 
-    def store_trajectory(self, timestamps_us: np.ndarray, T_rig_world: np.ndarray, T_world_world_global: np.ndarray) -> None:
+    def store_trajectory(
+        self, timestamps_us: np.ndarray, T_rig_world: np.ndarray, T_world_world_global: np.ndarray
+    ) -> None:
         """Store ``rig->world`` (dynamic, float32) and ``world->world_global`` (static, float64).
 
         Args:
@@ -189,7 +193,10 @@ class SequenceWriter:
         )
         self._masks.store_camera_masks(camera_id, {})
         writer = self._writer.register_component_writer(
-            CameraSensorComponent.Writer, camera_id, self._groups.camera_component_groups.get(camera_id), generic_meta_data
+            CameraSensorComponent.Writer,
+            camera_id,
+            self._groups.camera_component_groups.get(camera_id),
+            generic_meta_data,
         )
         return CameraStream(writer)
 

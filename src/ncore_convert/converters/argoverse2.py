@@ -7,8 +7,8 @@ first ego pose; ``world_global`` is the AV2 city frame (static float64 edge = fi
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Callable
 
 import numpy as np
 from upath import UPath
@@ -377,7 +377,9 @@ def convert_log(
     _write_sweeps(log_dir, sweeps_ns, unit_split, T_rig_world, T_sensor_rig, lidars, summary, on_frame)
     _write_images(log_dir, inputs.image_timestamps_ns, cameras, summary, on_frame)
     if summary.points_not_stored:
-        warnings.append(f"{summary.points_not_stored} lidar points with zero range or non-finite coordinates not stored")
+        warnings.append(
+            f"{summary.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
+        )
 
     cuboids = annotation_cuboids(inputs.annotations) if inputs.annotations is not None else None
     writer.store_cuboids(cuboids)

@@ -76,10 +76,10 @@ def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None)
     wanted = columns or schema.names
     try:
         if path.protocol in ("", "file", "local"):
-            table = feather.read_table(path.path, columns=wanted, memory_map=True)
+            table = feather.read_table(path.path, columns=wanted, memory_map=True, use_threads=False)
         else:
             with path.open("rb") as f:
-                table = feather.read_table(f, columns=wanted)
+                table = feather.read_table(f, columns=wanted, use_threads=False)
     except FileNotFoundError:
         raise SourceError(path, "file not found") from None
     except (pa.ArrowInvalid, pa.ArrowKeyError, KeyError, OSError) as err:
@@ -89,11 +89,25 @@ def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None)
         actual = table.schema.field(name).type
         if actual != expected:
             raise SourceError(path, f"column {name!r} has type {actual}, expected {expected}")
+        if table.column(name).null_count:
+            raise SourceError(path, f"column {name!r} has {table.column(name).null_count} null value(s)")
     return table
 
 
 def _column(table: pa.Table, name: str) -> np.ndarray:
     return table.column(name).to_numpy()
+
+
+def _fill_from_chunks(out: np.ndarray, column: pa.ChunkedArray) -> None:
+    """Copy a null-free fixed-width column into ``out`` [N] chunk by chunk, converting the dtype
+    on the way (no intermediate concatenated array; float16 -> float32 is exact)."""
+    row = 0
+    for chunk in column.chunks:
+        n = len(chunk)
+        out[row : row + n] = np.frombuffer(
+            chunk.buffers()[1], dtype=chunk.type.to_pandas_dtype(), count=n, offset=chunk.offset * chunk.type.byte_width
+        )
+        row += n
 
 
 def _poses_from_table(table: pa.Table) -> np.ndarray:
@@ -175,7 +189,7 @@ def read_ego_SE3_sensors(log_dir: UPath) -> dict[str, np.ndarray]:
     path = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
     table = read_table(path, EXTRINSICS_SCHEMA)
     names = table.column("sensor_name").to_pylist()
-    return dict(zip(names, _poses_from_table(table)))
+    return dict(zip(names, _poses_from_table(table), strict=True))
 
 
 @dataclass(frozen=True)
@@ -237,7 +251,7 @@ def read_sweep(log_dir: UPath, timestamp_ns: int) -> Sweep:
     # float16 is exact in float32; column-major keeps per-axis math contiguous
     xyz = np.empty((table.num_rows, 3), dtype=np.float32, order="F")
     for k, c in enumerate(("x", "y", "z")):
-        xyz[:, k] = _column(table, c)
+        _fill_from_chunks(xyz[:, k], table.column(c))
     laser_number = _column(table, "laser_number")
     if laser_number.size and laser_number.max() > 63:
         raise SourceError(path, f"laser_number {int(laser_number.max())} outside 0..63")

@@ -131,7 +131,9 @@ def _pandas_type(t: pa.DataType) -> str:
 def write_feather_table(path: UPath, schema: pa.Schema, columns: dict[str, object]) -> None:
     """Write a feather V2 file the way AV2 did (pyarrow, lz4, 64k-row batches, pandas metadata)."""
     schema = schema.with_metadata({b"pandas": _pandas_metadata(schema)})
-    table = pa.table({name: pa.array(columns[name], type=schema.field(name).type) for name in schema.names}, schema=schema)
+    table = pa.table(
+        {name: pa.array(columns[name], type=schema.field(name).type) for name in schema.names}, schema=schema
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("wb") as f:
         feather.write_feather(table, f, compression="lz4", chunksize=65536)
@@ -210,7 +212,9 @@ def simulate_unit(
     beam = np.tile(pairs.reshape(-1), len(cycles))
     spin_dir, az0 = UNIT_SPIN[unit]
     t_rel_s = (time_ns - t0_ns) * 1e-9
-    azimuth = az0 + spin_dir * 2 * np.pi * vlp32c.SPIN_RATE_HZ * t_rel_s + np.radians(vlp32c.BEAM_AZIMUTH_OFFSET_DEG[beam])
+    azimuth = (
+        az0 + spin_dir * 2 * np.pi * vlp32c.SPIN_RATE_HZ * t_rel_s + np.radians(vlp32c.BEAM_AZIMUTH_OFFSET_DEG[beam])
+    )
     elevation = np.radians(vlp32c.BEAM_ELEVATION_DEG[beam])
     direction = np.stack(
         [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
@@ -252,7 +256,9 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     cam_ns: dict[str, np.ndarray] = {}
     periods = np.arange(-1, n_sweeps + 4, dtype=np.int64)
     for cam, offsets_ms in CAMERA_TRIGGERS_MS.items():
-        stamps = (t0_ns + periods[:, None] * SWEEP_PERIOD_NS + (np.array(offsets_ms) * 1e6).astype(np.int64)).reshape(-1)
+        stamps = (t0_ns + periods[:, None] * SWEEP_PERIOD_NS + (np.array(offsets_ms) * 1e6).astype(np.int64)).reshape(
+            -1
+        )
         cam_ns[cam] = np.sort(stamps + rng.integers(-250_000, 250_000, len(stamps)))
     pose_ns = np.unique(np.concatenate([sweep_ns] + list(cam_ns.values())))
     write_feather_table(
@@ -346,14 +352,16 @@ def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, ego_SE3_city: np.
         rows["timestamp_ns"].append(ts)
         rows["track_uuid"].append(box.track_uuid)
         rows["category"].append(box.category)
-        for name, value in zip(("length_m", "width_m", "height_m"), box.dims_m):
+        for name, value in zip(("length_m", "width_m", "height_m"), box.dims_m, strict=True):
             rows[name].append(float(value))
         for name, value in pose.items():
             rows[name].append(float(value[0]))
         rows["num_interior_pts"].append(int(inside.sum()))
 
 
-def _write_images(truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, rng: np.random.Generator, fps: float) -> None:
+def _write_images(
+    truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, rng: np.random.Generator, fps: float
+) -> None:
     templates = {}
     for cam, stamps in cam_ns.items():
         _, width, height = cams[cam]

@@ -118,7 +118,7 @@ def make_scene(rng: np.random.Generator, seconds: float) -> Scene:
                 c, yaw = along(t + rng.uniform(-0.2, 0.2), side * rng.uniform(4.5, 5.5), GROUND_Z_M + dims[2] / 2)
                 add(c, yaw + rng.normal(0, 0.05), dims, "REGULAR_VEHICLE",
                     tilt=(rng.normal(0, 0.03), rng.normal(0, 0.03)), intensity=int(rng.integers(40, 120)))  # fmt: skip
-    for k in range(3):  # cars moving in the next lane
+    for _ in range(3):  # cars moving in the next lane
         dims = (rng.uniform(4.3, 5.2), 1.9, 1.6)
         c, yaw = along(rng.uniform(0, seconds + 1.0), rng.choice([-2.0, 2.0]) * 1.7, GROUND_Z_M + dims[2] / 2)
         speed = rng.uniform(3.0, 10.0)
