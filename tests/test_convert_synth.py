@@ -46,7 +46,8 @@ def test_directions_match_simulated_raw_rays(synth_log, unit_index, unit):
 
 @pytest.mark.parametrize("unit_index,unit", list(enumerate(UNITS)))
 def test_point_timestamps_exact_to_the_microsecond(synth_log, unit_index, unit):
-    for sweep, (_, timestamp_us, _, frame_us) in zip(synth_log.truth.sweeps, stored_frames(synth_log, unit), strict=True):
+    frames = stored_frames(synth_log, unit)
+    for sweep, (_, timestamp_us, _, frame_us) in zip(synth_log.truth.sweeps, frames, strict=True):
         expected = sweep.time_ns[sweep.unit == unit_index] // 1000
         np.testing.assert_array_equal(timestamp_us, expected.astype(np.uint64))
         assert frame_us[0] == min(sweep.timestamp_ns // 1000, expected.min())

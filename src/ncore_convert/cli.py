@@ -13,6 +13,7 @@ import click
 from upath import UPath
 
 from ncore_convert import __version__
+from ncore_convert.pool import default_workers
 from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
 
 
@@ -23,6 +24,7 @@ class GroupOptions:
     camera_ids: tuple[str, ...] | None
     lidar_ids: tuple[str, ...] | None
     progress: bool
+    workers: int
 
     def require_paths(self) -> tuple[UPath, UPath]:
         if not self.root_dir:
@@ -60,8 +62,12 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
 )
 @click.option("--no-lidars", is_flag=True, default=False, show_default="off", help="Convert no lidars.")
 @click.option("--progress/--no-progress", default=True, help="Show per-log progress bars.")
+@click.option(
+    "--workers", type=click.IntRange(min=1), default=None, show_default="the number of CPUs",
+    help="Processes used; a log's sensor stores are written in parallel (1: all in this process).",
+)  # fmt: skip
 @click.pass_context
-def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars, progress):
+def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars, progress, workers):
     """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences."""
     ctx.obj = GroupOptions(
         root_dir=root_dir,
@@ -69,6 +75,7 @@ def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars,
         camera_ids=_selection(camera_ids, no_cameras),
         lidar_ids=_selection(lidar_ids, no_lidars),
         progress=progress,
+        workers=workers or default_workers(),
     )
 
 
@@ -99,6 +106,7 @@ def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars,
 def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequence_meta, lidar_model_source):
     """Argoverse 2 Sensor (<root>/<split>/<log_id>) to NCore V4."""
     from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
+    from ncore_convert.pool import JobPool
     from ncore_convert.runner import run_logs
     from ncore_convert.sources import argoverse2 as av2
 
@@ -128,10 +136,12 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
     if not todo:
         raise click.UsageError(f"no logs under {root / split}")
 
-    def convert(seq_dir, log_id, on_frame, on_total):
-        return convert_log(root, seq_dir, log_id, options, on_frame=on_frame, on_total=on_total)
+    with JobPool(obj.workers, preload=["ncore_convert.converters.argoverse2"]) as pool:
 
-    results = run_logs(out, todo, convert, echo=click.echo, show_progress=obj.progress)
+        def convert(seq_dir, log_id, on_frame, on_total):
+            return convert_log(root, seq_dir, log_id, options, pool=pool, on_frame=on_frame, on_total=on_total)
+
+        results = run_logs(out, todo, convert, echo=click.echo, show_progress=obj.progress)
     failed = sum(not r.ok for r in results)
     click.echo(f"{len(results) - failed}/{len(results)} logs converted to {out}")
     sys.exit(1 if failed else 0)

@@ -6,6 +6,7 @@ registers the components under their default instance names, and writes the sequ
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from typing import Literal
@@ -29,6 +30,7 @@ from ncore.impl.data.types import (
     LabelSource,
     ShutterType,
 )
+from ncore.impl.data.v4.components import SequenceMeta
 from ncore.impl.data.v4.types import ComponentGroupAssignments
 from upath import UPath
 
@@ -102,8 +104,57 @@ class LidarStream:
         self._writer.set_generic_data({}, generic_meta_data)
 
 
+BASE = "base"  #: job marker for the poses, intrinsics, masks and cuboids components
+
+
+def independent_parts(
+    jobs: list[tuple[str, ...]], camera_ids: list[str], lidar_ids: list[str], profile: Profile
+) -> list[list[int]]:
+    """Group jobs so that no two groups write to the same component store.
+
+    Args:
+        jobs: per job, the sensor ids it writes (``BASE`` for the poses/intrinsics/masks/cuboids).
+    Returns:
+        lists of job indices; each list can be written by its own :class:`SequenceWriter` (and
+        process). With ``profile="default"`` everything shares one store, so there is one group.
+    """
+    groups = _component_groups(camera_ids, lidar_ids, profile)
+    base_groups = {
+        groups.poses_component_group,
+        groups.intrinsics_component_group,
+        groups.masks_component_group,
+        groups.cuboid_track_observations_component_group,
+    }
+    sensor_group = {**groups.camera_component_groups, **groups.lidar_component_groups}
+    parts: list[tuple[set, list[int]]] = []
+    for index, job in enumerate(jobs):
+        touched = set().union(*(base_groups if sensor == BASE else {sensor_group.get(sensor)} for sensor in job))
+        overlapping = [part for part in parts if part[0] & touched]
+        merged = (touched.union(*(p[0] for p in overlapping)), sorted([index] + [i for p in overlapping for i in p[1]]))
+        parts = [part for part in parts if not part[0] & touched] + [merged]
+    return sorted((indices for _, indices in parts), key=lambda indices: indices[0])
+
+
+def _component_groups(camera_ids: list[str], lidar_ids: list[str], profile: Profile) -> ComponentGroupAssignments:
+    return ComponentGroupAssignments.create(
+        camera_ids=camera_ids,
+        lidar_ids=lidar_ids,
+        radar_ids=[],
+        point_clouds_ids=[],
+        camera_labels_ids=[],
+        profile=profile,
+    )
+
+
 class SequenceWriter:
-    """Writes one NCore V4 sequence: ``<output_dir>/<sequence_id>.ncore4*.zarr[.itar]`` plus ``<sequence_id>.json``."""
+    """Writes the component stores of one NCore V4 sequence, or a disjoint part of them.
+
+    Files: ``<output_dir>/<sequence_id>.ncore4*.zarr[.itar]``. Several writers with the same
+    sequence arguments may write different jobs (see :func:`independent_parts`), e.g. one per
+    process; :func:`write_sequence_meta` joins their parts into ``<sequence_id>.json``.
+    With ``base=True`` the writer owns the poses, intrinsics, masks and cuboids components, which
+    are always written (empty masks and cuboids when there are none).
+    """
 
     def __init__(
         self,
@@ -115,22 +166,15 @@ class SequenceWriter:
         lidar_ids: list[str],
         store_type: StoreType = "itar",
         profile: Profile = "separate-sensors",
+        base: bool = True,
         poses_meta: dict | None = None,
     ) -> None:
         """
         Args:
             interval_us: inclusive (start, end) of the sequence in microseconds.
+            camera_ids, lidar_ids: all sensors of the sequence (they fix the store layout).
         """
-        self._output_dir = output_dir
-        self._sequence_id = sequence_id
-        self._groups = ComponentGroupAssignments.create(
-            camera_ids=camera_ids,
-            lidar_ids=lidar_ids,
-            radar_ids=[],
-            point_clouds_ids=[],
-            camera_labels_ids=[],
-            profile=profile,
-        )
+        self._groups = _component_groups(camera_ids, lidar_ids, profile)
         self._writer = SequenceComponentGroupsWriter(
             output_dir_path=output_dir,
             store_base_name=sequence_id,
@@ -139,17 +183,22 @@ class SequenceWriter:
             generic_meta_data=generic_meta_data,
             store_type=store_type,
         )
-        register = self._writer.register_component_writer
-        self._poses = register(
-            PosesComponent.Writer, DEFAULT_INSTANCE, self._groups.poses_component_group, poses_meta or {}
-        )
-        self._intrinsics = register(
-            IntrinsicsComponent.Writer, DEFAULT_INSTANCE, self._groups.intrinsics_component_group
-        )
-        self._masks = register(MasksComponent.Writer, DEFAULT_INSTANCE, self._groups.masks_component_group)
-        self._cuboids = register(
-            CuboidsComponent.Writer, DEFAULT_INSTANCE, self._groups.cuboid_track_observations_component_group
-        )
+        self._base = base
+        if base:
+            register = self._writer.register_component_writer
+            groups = self._groups
+            self._poses = register(
+                PosesComponent.Writer, DEFAULT_INSTANCE, groups.poses_component_group, poses_meta or {}
+            )
+            self._intrinsics = register(IntrinsicsComponent.Writer, DEFAULT_INSTANCE, groups.intrinsics_component_group)
+            self._masks = register(MasksComponent.Writer, DEFAULT_INSTANCE, groups.masks_component_group)
+            self._cuboids = register(
+                CuboidsComponent.Writer, DEFAULT_INSTANCE, groups.cuboid_track_observations_component_group
+            )
+
+    def _require_base(self) -> None:
+        if not self._base:
+            raise RuntimeError("poses, intrinsics, masks and cuboids are written by the base writer")
 
     def store_trajectory(
         self, timestamps_us: np.ndarray, T_rig_world: np.ndarray, T_world_world_global: np.ndarray
@@ -161,27 +210,31 @@ class SequenceWriter:
             T_rig_world: [N,4,4], stored as float32.
             T_world_world_global: [4,4], stored as float64.
         """
+        self._require_base()
         self._poses.store_dynamic_pose(
             "rig", "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64)
         )
         self._poses.store_static_pose("world", "world_global", T_world_world_global.astype(np.float64))
 
-    def add_camera(
+    def store_extrinsic(self, sensor_id: str, T_sensor_rig: np.ndarray) -> None:
+        """Store a static sensor->rig extrinsic [4,4] (float32)."""
+        self._require_base()
+        self._poses.store_static_pose(sensor_id, "rig", T_sensor_rig.astype(np.float32))
+
+    def store_pinhole_camera(
         self,
         camera_id: str,
-        T_sensor_rig: np.ndarray,
         focal_length_px: tuple[float, float],
         principal_point_px: tuple[float, float],
         resolution_px: tuple[int, int],
-        generic_meta_data: dict,
-    ) -> CameraStream:
-        """Register a global-shutter ideal-pinhole camera (OpenCV camera frame, NCore pixel-corner convention).
+    ) -> None:
+        """Store a global-shutter ideal-pinhole model (OpenCV camera frame, NCore pixel-corner
+        convention) and the camera's (empty) masks.
 
         Args:
-            T_sensor_rig: static camera->rig extrinsic [4,4] (stored float32).
             resolution_px: (width, height).
         """
-        self._poses.store_static_pose(camera_id, "rig", T_sensor_rig.astype(np.float32))
+        self._require_base()
         self._intrinsics.store_camera_intrinsics(
             camera_id,
             IdealPinholeCameraModelParameters(
@@ -192,6 +245,9 @@ class SequenceWriter:
             ),
         )
         self._masks.store_camera_masks(camera_id, {})
+
+    def add_camera(self, camera_id: str, generic_meta_data: dict) -> CameraStream:
+        """Register a camera component; its frames are stored through the returned stream."""
         writer = self._writer.register_component_writer(
             CameraSensorComponent.Writer,
             camera_id,
@@ -200,9 +256,8 @@ class SequenceWriter:
         )
         return CameraStream(writer)
 
-    def add_lidar(self, lidar_id: str, T_sensor_rig: np.ndarray, generic_meta_data: dict) -> LidarStream:
-        """Register a lidar with its static sensor->rig extrinsic [4,4] (stored float32)."""
-        self._poses.store_static_pose(lidar_id, "rig", T_sensor_rig.astype(np.float32))
+    def add_lidar(self, lidar_id: str, generic_meta_data: dict) -> LidarStream:
+        """Register a lidar component; its frames are stored through the returned stream."""
         writer = self._writer.register_component_writer(
             LidarSensorComponent.Writer, lidar_id, self._groups.lidar_component_groups.get(lidar_id), generic_meta_data
         )
@@ -210,6 +265,7 @@ class SequenceWriter:
 
     def store_cuboids(self, cuboids: Cuboids | None, source: str = "EXTERNAL") -> None:
         """Store all cuboid observations (an empty component when there are none)."""
+        self._require_base()
         observations = []
         if cuboids is not None:
             label_source = LabelSource[source]
@@ -232,12 +288,29 @@ class SequenceWriter:
                 )
         self._cuboids.store_observations(observations)
 
-    def finalize(self, write_sequence_meta: bool = True) -> list[UPath]:
-        """Close all stores; write ``<sequence_id>.json`` (sequence meta). Returns the written paths."""
+    def finalize(self, with_meta: bool = True) -> SequenceMeta | None:
+        """Close this writer's stores. With ``with_meta``, return the library's sequence meta of
+        these stores (component summaries and md5 checksums, computed here so parts hash in parallel)."""
         paths = self._writer.finalize()
-        if write_sequence_meta:
-            meta = SequenceComponentGroupsReader(paths).get_sequence_meta().to_dict()
-            meta_path = self._output_dir / f"{self._sequence_id}.json"
-            meta_path.write_text(json.dumps(meta, indent=2))
-            paths.append(meta_path)
-        return paths
+        if not with_meta or not paths:
+            return None
+        meta = SequenceComponentGroupsReader(paths).get_sequence_meta()
+        order = [path.name for path in paths]  # the reader lists stores in load-completion order
+        return dataclasses.replace(
+            meta, component_stores=sorted(meta.component_stores, key=lambda s: order.index(s.path))
+        )
+
+
+def write_sequence_meta(output_dir: UPath, sequence_id: str, parts: list[SequenceMeta]) -> UPath:
+    """Join the sequence metas of the writer parts into ``<output_dir>/<sequence_id>.json``.
+
+    Stores are listed in part order, so the file does not depend on which process finished first.
+    """
+    stores = [store for part in parts for store in part.component_stores]
+    for part in parts[1:]:
+        if dataclasses.replace(part, component_stores=[]) != dataclasses.replace(parts[0], component_stores=[]):
+            raise ValueError(f"{sequence_id}: writer parts disagree on the sequence properties")
+    meta = dataclasses.replace(parts[0], component_stores=stores)
+    path = output_dir / f"{sequence_id}.json"
+    path.write_text(json.dumps(meta.to_dict(), indent=2))
+    return path

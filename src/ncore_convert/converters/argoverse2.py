@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 from upath import UPath
@@ -23,9 +24,18 @@ from ncore_convert.lidar import (
     decompensate,
     ray_bundle,
 )
+from ncore_convert.pool import JobPool
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.argoverse2 import SourceError
-from ncore_convert.writer import CameraStream, Cuboids, LidarStream, Profile, SequenceWriter, StoreType
+from ncore_convert.writer import (
+    BASE,
+    Cuboids,
+    Profile,
+    SequenceWriter,
+    StoreType,
+    independent_parts,
+    write_sequence_meta,
+)
 
 SOURCE_DATASET = "argoverse2-sensor"
 #: Sweeps sampled across the log for the up/down unit decision.
@@ -48,19 +58,29 @@ class Argoverse2Options:
 
 
 @dataclass
-class LogSummary:
-    """What one log conversion produced."""
+class Counts:
+    """What a conversion, or one writer part of it, produced. Seconds are per-process path times."""
 
-    log_id: str
     sweeps: int = 0
     points: int = 0
     points_not_stored: int = 0
     images: int = 0
     cuboids: int = 0
-    seconds: float = 0.0
     lidar_seconds: float = 0.0  #: read + decompensate + write of all sweeps
     camera_seconds: float = 0.0  #: read + write of all images
     warnings: list[str] = field(default_factory=list)
+
+    def add(self, other: Counts) -> None:
+        for f in fields(Counts):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+
+@dataclass
+class LogSummary(Counts):
+    """What one log conversion produced."""
+
+    log_id: str = ""
+    seconds: float = 0.0  #: wall time of the whole log
 
     def line(self) -> str:
         return (
@@ -190,15 +210,20 @@ def annotation_cuboids(annotations: av2.Annotations) -> Cuboids:
     )
 
 
+def _offset_range_ns(args: tuple[UPath, int]) -> tuple[int, int]:
+    return av2.read_sweep_offset_range_ns(*args)
+
+
 def _sensor_time_range_us(inputs: LogInputs, camera_ids: list[str], with_lidar: bool) -> tuple[int, int]:
     """Inclusive µs range the trajectory must cover: lidar points at their exact ns times (so the
     end rounds up), camera frames and cuboids at their stored (floored) µs times."""
     lo, hi = [], []
     if with_lidar:
-        for ts in inputs.sweep_timestamps_ns:
-            first, last = av2.read_sweep_offset_range_ns(inputs.log_dir, int(ts))
-            lo.append((int(ts) + min(first, 0)) // 1000)
-            hi.append(-(-(int(ts) + last) // 1000))
+        sweeps = [(inputs.log_dir, int(ts)) for ts in inputs.sweep_timestamps_ns]
+        with ThreadPoolExecutor(max_workers=4) as threads:  # pyarrow reads release the GIL
+            for (_, ts), (first, last) in zip(sweeps, threads.map(_offset_range_ns, sweeps), strict=True):
+                lo.append((ts + min(first, 0)) // 1000)
+                hi.append(-(-(ts + last) // 1000))
     for cam in camera_ids:
         if len(stamps := inputs.image_timestamps_ns[cam]):
             lo.append(int(stamps[0]) // 1000)
@@ -218,87 +243,58 @@ def _camera_meta(intr: av2.CameraIntrinsics) -> dict:
     }
 
 
-def _write_sweeps(
-    log_dir: UPath,
-    sweeps_ns: np.ndarray,
-    unit_split: UnitSplit,
-    T_rig_world: Trajectory,
-    T_sensor_rig: dict[str, np.ndarray],
-    lidars: dict[str, LidarStream],
-    summary: LogSummary,
-    on_frame: Callable[[int], None] | None,
-) -> None:
-    """Stream sweeps one at a time: read, split by unit, decompensate, store. Memory stays flat."""
-    started = time.perf_counter()
-    selected_T = {unit: T_sensor_rig[unit] for unit in lidars}
-    not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
-    source_points = {unit: 0 for unit in lidars}
-    for ts in sweeps_ns:
-        sweep = av2.read_sweep(log_dir, int(ts))
-        for unit, rays in sweep_ray_bundles(sweep, unit_split, T_rig_world, selected_T).items():
-            lidars[unit].store_frame(
-                rays,
-                {
-                    "av2_sweep_timestamp_ns": int(ts),
-                    "points_zero_range": rays.n_zero_range,
-                    "points_non_finite": rays.n_non_finite,
-                },
-            )
-            not_stored[unit]["zero_range"] += rays.n_zero_range
-            not_stored[unit]["non_finite"] += rays.n_non_finite
-            source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
-            summary.points += len(rays)
-            summary.points_not_stored += rays.n_zero_range + rays.n_non_finite
-        summary.sweeps += 1
-        if on_frame:
-            on_frame(1)
-    for unit, stream in lidars.items():
-        stream.set_meta({"source_points": source_points[unit], "points_not_stored": not_stored[unit]})
-    summary.lidar_seconds = time.perf_counter() - started
+@dataclass(frozen=True)
+class LogPlan:
+    """Everything the writing jobs of one log need, read and decided once (picklable).
 
-
-def _write_images(
-    log_dir: UPath,
-    image_timestamps_ns: dict[str, np.ndarray],
-    cameras: dict[str, CameraStream],
-    summary: LogSummary,
-    on_frame: Callable[[int], None] | None,
-) -> None:
-    """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
-    started = time.perf_counter()
-    for cam, stream in cameras.items():
-        for ts in image_timestamps_ns[cam]:
-            path = av2.image_path(log_dir, cam, int(ts))
-            data = path.read_bytes()
-            if data[:2] != b"\xff\xd8":
-                raise SourceError(path, "not a JPEG file (missing SOI marker)")
-            t_us = int(ts) // 1000
-            stream.store_frame(data, "jpeg", (t_us, t_us))
-            summary.images += 1
-            if on_frame:
-                on_frame(1)
-    summary.camera_seconds = time.perf_counter() - started
-
-
-def convert_log(
-    root_dir: UPath,
-    output_dir: UPath,
-    log_id: str,
-    options: Argoverse2Options,
-    on_frame: Callable[[int], None] | None = None,
-    on_total: Callable[[int], None] | None = None,
-) -> LogSummary:
-    """Convert one AV2 log into ``output_dir`` (which becomes the sequence directory).
-
-    Args:
-        on_total: called once with the number of frames (sweeps + images) to write.
-        on_frame: called with 1 after each written frame (progress).
+    Attributes:
+        T_rig_world: stored (float32-rounded) ego trajectory, µs.
+        T_world_world_global: first city_SE3_ego [4,4], float64.
+        T_sensor_rig: av2 ego_SE3_sensor per sensor [4,4].
+        unit_split: which laser_number half is which unit (None without lidars).
     """
-    started = time.perf_counter()
-    summary = LogSummary(log_id)
-    warnings = summary.warnings
-    log_dir = root_dir / options.split / log_id
 
+    inputs: LogInputs
+    options: Argoverse2Options
+    log_id: str
+    camera_ids: list[str]
+    lidar_ids: list[str]
+    T_rig_world: Trajectory
+    T_world_world_global: np.ndarray
+    unit_split: UnitSplit | None
+    generic_meta: dict
+    warnings: list[str]
+
+    @property
+    def sweep_timestamps_ns(self) -> np.ndarray:
+        return self.inputs.sweep_timestamps_ns if self.lidar_ids else np.zeros(0, dtype=np.int64)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.sweep_timestamps_ns) + sum(len(self.inputs.image_timestamps_ns[c]) for c in self.camera_ids)
+
+    def writer(self, output_dir: UPath, base: bool) -> SequenceWriter:
+        return SequenceWriter(
+            output_dir=output_dir,
+            sequence_id=self.log_id,
+            interval_us=(self.T_rig_world.start_us, self.T_rig_world.end_us),
+            generic_meta_data=self.generic_meta,
+            camera_ids=self.camera_ids,
+            lidar_ids=self.lidar_ids,
+            store_type=self.options.store_type,
+            profile=self.options.profile,
+            base=base,
+            poses_meta={
+                "calibration_type": "argoverse2-calibration",
+                "egomotion_type": "argoverse2-city_SE3_egovehicle",
+            },
+        )
+
+
+def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPlan:
+    """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split)."""
+    warnings: list[str] = []
+    log_dir = root_dir / options.split / log_id
     camera_ids = select_sensors(options.camera_ids, av2.CAMERAS, "camera")
     lidar_ids = select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
     inputs = read_log_inputs(log_dir, camera_ids)
@@ -314,76 +310,195 @@ def convert_log(
     if missing:
         warnings.append(f"{log_dir / 'sensors' / 'cameras'}: no images for {', '.join(missing)}; cameras not written")
         camera_ids = [cam for cam in camera_ids if cam not in missing]
-    sweeps_ns = inputs.sweep_timestamps_ns if lidar_ids else np.zeros(0, dtype=np.int64)
-    if lidar_ids and len(sweeps_ns) == 0:
+    if lidar_ids and len(inputs.sweep_timestamps_ns) == 0:
         warnings.append(f"{log_dir / 'sensors' / 'lidar'}: no sweeps; lidars not written")
         lidar_ids = []
 
     needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids))
     T_rig_world, T_world_world_global = ego_trajectory(inputs, needed_us, warnings)
-    T_sensor_rig = inputs.ego_SE3_sensor  # av2 ego_SE3_sensor is NCore T_sensor_rig
 
     unit_split = None
     if lidar_ids:
-        unit_split = decide_units(log_dir, sweeps_ns, T_rig_world, {u: T_sensor_rig[u] for u in av2.LIDARS})
+        T_lidar_rig = {u: inputs.ego_SE3_sensor[u] for u in av2.LIDARS}
+        unit_split = decide_units(log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig)
         if unit_split.margin < UNIT_DECISION_MIN_MARGIN:
             warnings.append(
                 f"{log_dir}: up/down lidar decision has a low margin {unit_split.margin:.2f}"
                 f" (laser_number < 32 -> {unit_split.low_half_unit})"
             )
-
     generic_meta = {
         "source_dataset": SOURCE_DATASET,
         "argoverse2_split": options.split,
         "argoverse2_log_id": log_id,
         "converter": {"name": "ncore-convert", "version": __version__, "options": asdict(options)},
     }
-    writer = SequenceWriter(
-        output_dir=output_dir,
-        sequence_id=log_id,
-        interval_us=(T_rig_world.start_us, T_rig_world.end_us),
-        generic_meta_data=generic_meta,
+    return LogPlan(
+        inputs=inputs,
+        options=options,
+        log_id=log_id,
         camera_ids=camera_ids,
         lidar_ids=lidar_ids,
-        store_type=options.store_type,
-        profile=options.profile,
-        poses_meta={"calibration_type": "argoverse2-calibration", "egomotion_type": "argoverse2-city_SE3_egovehicle"},
+        T_rig_world=T_rig_world,
+        T_world_world_global=T_world_world_global,
+        unit_split=unit_split,
+        generic_meta=generic_meta,
+        warnings=warnings,
     )
-    writer.store_trajectory(T_rig_world.timestamps_us, T_rig_world.poses, T_world_world_global)
 
-    if on_total:
-        on_total(len(sweeps_ns) + sum(len(inputs.image_timestamps_ns[c]) for c in camera_ids))
 
-    lidars = {
-        unit: writer.add_lidar(
-            unit,
-            T_sensor_rig[unit],
-            {"av2_unit_decision": unit_split.to_meta(), "lidar_model_source": options.lidar_model_source},
-        )
-        for unit in lidar_ids
-    }
-    cameras = {}
-    for cam in camera_ids:
+@dataclass
+class JobResult(Counts):
+    """Counts of the jobs of one writer part, and its sequence-meta part (None without meta)."""
+
+    meta: object = None
+
+
+def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
+    """Poses (trajectory, world_global, sensor extrinsics), camera models, masks and cuboids."""
+    inputs = plan.inputs
+    writer.store_trajectory(plan.T_rig_world.timestamps_us, plan.T_rig_world.poses, plan.T_world_world_global)
+    for sensor in plan.lidar_ids + plan.camera_ids:
+        writer.store_extrinsic(sensor, inputs.ego_SE3_sensor[sensor])  # av2 ego_SE3_sensor is T_sensor_rig
+    for cam in plan.camera_ids:
         intr = inputs.intrinsics[cam]
-        cameras[cam] = writer.add_camera(
+        writer.store_pinhole_camera(
             cam,
-            T_sensor_rig[cam],
             focal_length_px=(intr.fx_px, intr.fy_px),
             principal_point_px=(intr.cx_px + 0.5, intr.cy_px + 0.5),
             resolution_px=(intr.width_px, intr.height_px),
-            generic_meta_data=_camera_meta(intr),
         )
-
-    _write_sweeps(log_dir, sweeps_ns, unit_split, T_rig_world, T_sensor_rig, lidars, summary, on_frame)
-    _write_images(log_dir, inputs.image_timestamps_ns, cameras, summary, on_frame)
-    if summary.points_not_stored:
-        warnings.append(
-            f"{summary.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
-        )
-
     cuboids = annotation_cuboids(inputs.annotations) if inputs.annotations is not None else None
     writer.store_cuboids(cuboids)
-    summary.cuboids = 0 if cuboids is None else len(cuboids)
-    writer.finalize(write_sequence_meta=options.sequence_meta)
+    result.cuboids = 0 if cuboids is None else len(cuboids)
+
+
+def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
+    """Stream sweeps one at a time: read, split by unit, decompensate, store. Memory stays flat."""
+    started = time.perf_counter()
+    T_sensor_rig = {unit: plan.inputs.ego_SE3_sensor[unit] for unit in plan.lidar_ids}
+    lidars = {
+        unit: writer.add_lidar(
+            unit,
+            {"av2_unit_decision": plan.unit_split.to_meta(), "lidar_model_source": plan.options.lidar_model_source},
+        )
+        for unit in plan.lidar_ids
+    }
+    not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
+    source_points = {unit: 0 for unit in lidars}
+    for ts in plan.sweep_timestamps_ns:
+        sweep = av2.read_sweep(plan.inputs.log_dir, int(ts))
+        for unit, rays in sweep_ray_bundles(sweep, plan.unit_split, plan.T_rig_world, T_sensor_rig).items():
+            lidars[unit].store_frame(
+                rays,
+                {
+                    "av2_sweep_timestamp_ns": int(ts),
+                    "points_zero_range": rays.n_zero_range,
+                    "points_non_finite": rays.n_non_finite,
+                },
+            )
+            not_stored[unit]["zero_range"] += rays.n_zero_range
+            not_stored[unit]["non_finite"] += rays.n_non_finite
+            source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
+            result.points += len(rays)
+            result.points_not_stored += rays.n_zero_range + rays.n_non_finite
+        result.sweeps += 1
+        progress(1)
+    for unit, stream in lidars.items():
+        stream.set_meta({"source_points": source_points[unit], "points_not_stored": not_stored[unit]})
+    if result.points_not_stored:
+        result.warnings.append(
+            f"{result.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
+        )
+    result.lidar_seconds = time.perf_counter() - started
+
+
+def _write_camera(
+    plan: LogPlan, writer: SequenceWriter, cam: str, result: JobResult, progress: Callable[[int], None]
+) -> None:
+    """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
+    started = time.perf_counter()
+    stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam]))
+    for ts in plan.inputs.image_timestamps_ns[cam]:
+        path = av2.image_path(plan.inputs.log_dir, cam, int(ts))
+        data = path.read_bytes()
+        if data[:2] != b"\xff\xd8":
+            raise SourceError(path, "not a JPEG file (missing SOI marker)")
+        t_us = int(ts) // 1000
+        stream.store_frame(data, "jpeg", (t_us, t_us))
+        result.images += 1
+        progress(1)
+    result.camera_seconds += time.perf_counter() - started
+
+
+def write_part(
+    plan: LogPlan, output_dir: UPath, jobs: list[tuple[str, ...]], progress: Callable[[int], None]
+) -> JobResult:
+    """Write the jobs of one independent part (see :func:`log_jobs`) with one writer; runs in a worker."""
+    result = JobResult()
+    writer = plan.writer(output_dir, base=(BASE,) in jobs)
+    for job in jobs:
+        if job == (BASE,):
+            _write_base(plan, writer, result, progress)
+        elif job == tuple(plan.lidar_ids):
+            _write_lidars(plan, writer, result, progress)
+        else:
+            (cam,) = job
+            _write_camera(plan, writer, cam, result, progress)
+    result.meta = writer.finalize(with_meta=plan.options.sequence_meta)
+    return result
+
+
+#: Rough single-core costs used to start the longest parts first (seconds per item).
+_COST_S = {"sweep": 0.05, "image": 0.0035, "cuboid": 0.00025}
+
+
+def log_jobs(plan: LogPlan) -> list[tuple[list[tuple[str, ...]], float]]:
+    """The log's writing jobs grouped into independent parts, with an estimated cost per part.
+
+    Jobs: the base components, all lidars (they share each sweep read), and one per camera.
+    Parts are in store order: base first, then lidars, then cameras.
+    """
+    jobs: list[tuple[str, ...]] = [(BASE,)] + ([tuple(plan.lidar_ids)] if plan.lidar_ids else [])
+    jobs += [(cam,) for cam in plan.camera_ids]
+    n_cuboids = 0 if plan.inputs.annotations is None else len(plan.inputs.annotations)
+    cost = [_COST_S["cuboid"] * n_cuboids]
+    cost += [_COST_S["sweep"] * len(plan.sweep_timestamps_ns)] if plan.lidar_ids else []
+    cost += [_COST_S["image"] * len(plan.inputs.image_timestamps_ns[cam]) for cam in plan.camera_ids]
+    parts = independent_parts(jobs, plan.camera_ids, plan.lidar_ids, plan.options.profile)
+    return [([jobs[i] for i in part], sum(cost[i] for i in part)) for part in parts]
+
+
+def convert_log(
+    root_dir: UPath,
+    output_dir: UPath,
+    log_id: str,
+    options: Argoverse2Options,
+    pool: JobPool | None = None,
+    on_frame: Callable[[int], None] | None = None,
+    on_total: Callable[[int], None] | None = None,
+) -> LogSummary:
+    """Convert one AV2 log into ``output_dir`` (which becomes the sequence directory).
+
+    Args:
+        pool: processes for the log's independent store parts; None writes them in this process.
+        on_total: called once with the number of frames (sweeps + images) to write.
+        on_frame: called with the number of newly written frames (progress).
+    """
+    started = time.perf_counter()
+    plan = plan_log(root_dir, log_id, options)
+    if on_total:
+        on_total(plan.n_frames)
+    parts = log_jobs(plan)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    longest_first = sorted(range(len(parts)), key=lambda i: -parts[i][1])
+    calls = [(write_part, (plan, output_dir, parts[i][0])) for i in longest_first]
+    done = (pool or JobPool(1)).run(calls, on_frame)
+    results = [done[longest_first.index(i)] for i in range(len(parts))]
+
+    if options.sequence_meta:
+        write_sequence_meta(output_dir, log_id, [r.meta for r in results if r.meta is not None])
+    summary = LogSummary(log_id=log_id, warnings=list(plan.warnings))
+    for result in results:
+        summary.add(result)
     summary.seconds = time.perf_counter() - started
     return summary

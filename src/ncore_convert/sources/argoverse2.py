@@ -66,6 +66,9 @@ class SourceError(Exception):
         self.path = str(path)
         self.cause = cause
 
+    def __reduce__(self):  # keep (path, cause) when raised in a worker process
+        return SourceError, (self.path, self.cause)
+
 
 def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None) -> pa.Table:
     """Read a feather file and check that it has the columns and types of ``schema``.
