@@ -1,22 +1,27 @@
 """Benchmark: convert full-size synthetic AV2 logs and compare with copying their bytes.
 
-Not a test. Prints, for a 5 s and a 15 s log (50 / 150 sweeps, 9 cameras at 20 fps, realistic JPEG
-sizes): conversion wall time, lidar-path ms per sweep (read + decompensate + write, both units,
-single thread), peak RSS, and the ratio of conversion time to `cp -r` of the same log, all measured
-side by side in one run. Figures are medians over --repeat runs.
+Not a test. For a 5 s and a 15 s log (50 / 150 sweeps, 9 cameras at 20 fps, realistic JPEG sizes)
+it measures, side by side and interleaved (copy, convert, copy, convert, ...):
+- conversion wall time, as the CLI runs it (pool start-up, all processes, and the final sync);
+- ``cp -r`` of the same log plus sync, and the ratio of the two (median of per-pair ratios);
+- lidar path ms per sweep (read + decompensate + write, both units, in one process), both inside
+  the parallel run and alone on one core (``--no-cameras --workers 1``);
+- peak RSS summed over the process tree (sampled every 20 ms from /proc).
+Figures are medians over --repeat runs; this machine is noisy.
 
-    python bench/bench_argoverse2.py [--work /tmp/ncore-bench] [--repeat 3]
+    python bench/bench_argoverse2.py [--work /tmp/ncore-bench] [--repeat 5] [--workers N]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import resource
+import os
 import shutil
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -38,92 +43,127 @@ def synth(work: Path, seconds: float) -> Path:
     return root / "val" / done.read_text()
 
 
-def child_convert(root: str, out: str, log_id: str) -> None:
-    """Run one conversion in this process and print its figures as JSON (peak RSS is per process)."""
+def _tree_rss_bytes(root_pid: int) -> int:
+    """Resident memory of a process and all its descendants (Linux /proc)."""
+    children: dict[int, list[int]] = {}
+    rss: dict[int, int] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(entry))
+        rss[int(entry)] = int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
+    total, todo = 0, [root_pid]
+    while todo:
+        pid = todo.pop()
+        total += rss.get(pid, 0)
+        todo += children.get(pid, [])
+    return total
+
+
+def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool) -> None:
+    """One conversion as the CLI runs it; prints its figures as JSON."""
     from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+    from ncore_convert.pool import JobPool
 
     shutil.rmtree(out, ignore_errors=True)
+    peak = [0]
+    stop = threading.Event()
+
+    def sample() -> None:
+        while not stop.wait(0.02):
+            peak[0] = max(peak[0], _tree_rss_bytes(os.getpid()))
+
+    threading.Thread(target=sample, daemon=True).start()
+    options = Argoverse2Options(split="val", camera_ids=None if cameras else ())
     t = time.perf_counter()
-    s = convert_log(UPath(root), UPath(out), log_id, Argoverse2Options(split="val"))
+    with JobPool(workers, preload=["ncore_convert.converters.argoverse2"]) as pool:
+        s = convert_log(UPath(root), UPath(out), log_id, options, pool=pool)
+    subprocess.run(["sync"], check=True)
     wall = time.perf_counter() - t
-    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(
-        json.dumps(
-            {
-                "wall_s": wall,
-                "sweeps": s.sweeps,
-                "images": s.images,
-                "points": s.points,
-                "lidar_s": s.lidar_seconds,
-                "camera_s": s.camera_seconds,
-                "peak_rss_mb": rss_mb,
-            }
-        )
-    )
+    stop.set()
+    figures = {"wall_s": wall, "sweeps": s.sweeps, "images": s.images, "points": s.points}
+    figures.update(lidar_s=s.lidar_seconds, camera_s=s.camera_seconds, peak_rss_mb=peak[0] / 2**20)
+    print(json.dumps(figures))
+
+
+def convert(log_dir: Path, out: Path, workers: int, cameras: bool = True) -> dict:
+    args = [sys.executable, __file__, "--child", str(log_dir.parent.parent), str(out), log_dir.name, str(workers)]
+    proc = subprocess.run(args + ([] if cameras else ["--no-cameras"]), check=True, capture_output=True, text=True)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def copy(log_dir: Path, dest: Path) -> float:
+    shutil.rmtree(dest, ignore_errors=True)
+    subprocess.run(["sync"], check=True)
+    t = time.perf_counter()
+    subprocess.run(["cp", "-r", str(log_dir), str(dest)], check=True)
+    subprocess.run(["sync"], check=True)
+    elapsed = time.perf_counter() - t
+    shutil.rmtree(dest)
+    return elapsed
 
 
 def du_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-def measure(log_dir: Path, work: Path, repeat: int) -> dict:
-    copies, runs = [], []
+def measure(log_dir: Path, work: Path, repeat: int, workers: int) -> dict:
+    pairs, lidar_alone = [], []
     for _ in range(repeat):
-        dest = work / "copy"
-        shutil.rmtree(dest, ignore_errors=True)
-        t = time.perf_counter()
-        subprocess.run(["cp", "-r", str(log_dir), str(dest)], check=True)
-        subprocess.run(["sync"], check=True)
-        copies.append(time.perf_counter() - t)
-        shutil.rmtree(dest)
-        out = subprocess.run(
-            [sys.executable, __file__, "--child", str(log_dir.parent.parent), str(work / "out"), log_dir.name],
-            check=True, capture_output=True, text=True,
-        )  # fmt: skip
-        run = json.loads(out.stdout.strip().splitlines()[-1])
-        run["sync_s"] = _timed_sync()
-        runs.append(run)
-    med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-    med["cp_s"] = statistics.median(copies)
+        cp_s = copy(log_dir, work / "copy")
+        run = convert(log_dir, work / "out", workers)
+        run["cp_s"] = cp_s
+        run["ratio"] = run["wall_s"] / cp_s
+        pairs.append(run)
+        alone = convert(log_dir, work / "out-lidar", 1, cameras=False)
+        lidar_alone.append(1e3 * alone["lidar_s"] / alone["sweeps"])
+    med = {k: statistics.median(r[k] for r in pairs) for k in pairs[0]}
+    med["lidar_alone_ms"] = statistics.median(lidar_alone)
     med["bytes"] = du_bytes(log_dir)
     med["out_bytes"] = du_bytes(work / "out")
     return med
 
 
-def _timed_sync() -> float:
-    t = time.perf_counter()
-    subprocess.run(["sync"], check=True)
-    return time.perf_counter() - t
-
-
 def main() -> None:
+    from ncore_convert.pool import default_workers
+
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", default="/tmp/ncore-bench")
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--child", nargs=3, metavar=("ROOT", "OUT", "LOG_ID"), help=argparse.SUPPRESS)
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--workers", type=int, default=default_workers())
+    parser.add_argument("--child", nargs=4, metavar=("ROOT", "OUT", "LOG_ID", "WORKERS"), help=argparse.SUPPRESS)
+    parser.add_argument("--no-cameras", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        child_convert(*args.child)
+        root, out, log_id, workers = args.child
+        child_convert(root, out, log_id, int(workers), cameras=not args.no_cameras)
         return
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
+    print(f"{args.workers} worker process(es), medians of {args.repeat} interleaved runs", flush=True)
     results = {}
     for seconds in (5.0, 15.0):
         print(f"{seconds:g} s log:", flush=True)
-        results[seconds] = r = measure(synth(work, seconds), work, args.repeat)
-        conv = r["wall_s"] + r["sync_s"]
+        results[seconds] = r = measure(synth(work, seconds), work, args.repeat, args.workers)
         print(
-            f"  {r['sweeps']:.0f} sweeps, {r['images']:.0f} images, {r['bytes'] / 1e9:.2f} GB in, {r['out_bytes'] / 1e9:.2f} GB out\n"
-            f"  convert wall        {r['wall_s']:.2f} s (+ sync {r['sync_s']:.2f} s)\n"
-            f"  lidar path          {1e3 * r['lidar_s'] / r['sweeps']:.1f} ms/sweep (both units, one thread)\n"
-            f"  camera path         {1e3 * r['camera_s'] / r['images']:.2f} ms/image\n"
-            f"  cp -r (+ sync)      {r['cp_s']:.2f} s\n"
-            f"  convert / copy      {conv / r['cp_s']:.2f}x\n"
-            f"  peak RSS            {r['peak_rss_mb']:.0f} MB",
+            f"  {r['sweeps']:.0f} sweeps, {r['images']:.0f} images, {r['bytes'] / 1e9:.2f} GB in,"
+            f" {r['out_bytes'] / 1e9:.2f} GB out\n"
+            f"  convert (CLI path, incl. pool start and sync)  {r['wall_s']:.2f} s\n"
+            f"  cp -r + sync                                   {r['cp_s']:.2f} s\n"
+            f"  convert / copy                                 {r['ratio']:.2f}x\n"
+            f"  lidar path in the parallel run                 {1e3 * r['lidar_s'] / r['sweeps']:.1f} ms/sweep\n"
+            f"  lidar path alone on one core                   {r['lidar_alone_ms']:.1f} ms/sweep\n"
+            f"  camera path in the parallel run                {1e3 * r['camera_s'] / r['images']:.2f} ms/image\n"
+            f"  peak RSS, all processes                        {r['peak_rss_mb']:.0f} MB",
             flush=True,
         )
     a, b = results[5.0], results[15.0]
-    print(f"peak RSS 15 s / 5 s log: {b['peak_rss_mb'] / a['peak_rss_mb']:.2f}x (medians of {args.repeat} runs)")
+    print(f"peak RSS 15 s / 5 s log: {b['peak_rss_mb'] / a['peak_rss_mb']:.2f}x")
 
 
 if __name__ == "__main__":

@@ -136,6 +136,7 @@ def _copy_log(truth, dest):
         ("truncate_sweep", "not a readable feather table"),
         ("wrong_pose_dtype", "column 'tx_m' has type float"),
         ("no_calibration", "file not found"),
+        ("offset_beyond_log", "point times reach outside the log's time range"),
     ],
 )
 def test_bad_input_fails_that_log_with_one_line_naming_the_file(small_root, tmp_path, damage, cause):
@@ -154,6 +155,12 @@ def test_bad_input_fails_that_log_with_one_line_naming_the_file(small_root, tmp_
         table = feather.read_table(bad)
         table = table.set_column(table.schema.get_field_index("tx_m"), "tx_m", table["tx_m"].cast(pa.float32()))
         feather.write_feather(table, bad)
+    elif damage == "offset_beyond_log":  # a middle sweep whose points claim to fire 2 s later
+        table = feather.read_table(sweep.path)
+        late = pa.array(table["offset_ns"].to_numpy() + 2_000_000_000, pa.int32())
+        table = table.set_column(table.schema.get_field_index("offset_ns"), "offset_ns", late)
+        feather.write_feather(table, sweep.path)
+        bad = sweep.path
     else:
         bad = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
         bad.unlink()

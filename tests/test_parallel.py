@@ -127,3 +127,14 @@ def _count_to(n: int, progress) -> int:
 
 def _fail(progress) -> None:
     raise ValueError("boom")
+
+
+def test_an_unexpected_worker_error_is_reported_where_the_worker_raised_it(pool, tmp_path):
+    from ncore_convert.runner import convert_one
+
+    def convert(seq_dir, log_id, on_frame, on_total):
+        return pool.run([(_fail, ())])
+
+    result = convert_one(UPath(tmp_path), "log", convert, show_progress=False)
+    assert not result.ok and result.error.startswith("ValueError: boom (at ")
+    assert f"{__file__}:" in result.error and not list(tmp_path.iterdir())

@@ -6,6 +6,7 @@ once complete, so an interrupted run never leaves a sequence that looks finished
 
 from __future__ import annotations
 
+import re
 import shutil
 import traceback
 from collections.abc import Callable, Iterable
@@ -44,6 +45,16 @@ def _remove_tree(path: UPath) -> None:
             path.fs.rm(path.path, recursive=True)
 
 
+def _origin(err: BaseException) -> str:
+    """file:line where an exception was raised, also when it was raised in a worker process
+    (concurrent.futures attaches the worker's formatted traceback as the cause)."""
+    remote = re.findall(r'File "([^"]+)", line (\d+)', str(err.__cause__)) if err.__cause__ else []
+    if remote:
+        return ":".join(remote[-1])
+    where = traceback.extract_tb(err.__traceback__)[-1]
+    return f"{where.filename}:{where.lineno}"
+
+
 def convert_one(output_root: UPath, log_id: str, convert: ConvertFn, show_progress: bool = True) -> LogResult:
     """Convert one log atomically. Errors are caught and returned as a one-line message."""
     partial = output_root / f".{log_id}.partial"
@@ -61,10 +72,7 @@ def convert_one(output_root: UPath, log_id: str, convert: ConvertFn, show_progre
         return LogResult(log_id, False, error=str(err))
     except Exception as err:  # noqa: BLE001 - one log's failure must not stop the others
         _remove_tree(partial)
-        where = traceback.extract_tb(err.__traceback__)[-1]
-        return LogResult(
-            log_id, False, error=f"{type(err).__name__}: {err} (at {where.filename}:{where.lineno})".replace("\n", " ")
-        )
+        return LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
     finally:
         bar.close()
     _remove_tree(final)

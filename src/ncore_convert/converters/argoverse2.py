@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
@@ -163,6 +162,21 @@ def _half(sweep: av2.Sweep, low_half: bool) -> tuple[np.ndarray, np.ndarray]:
     return idx, sweep.timestamp_ns + sweep.offset_ns[idx].astype(np.int64)
 
 
+def read_covered_sweep(log_dir: UPath, timestamp_ns: int, T_rig_world: Trajectory) -> av2.Sweep:
+    """Read a sweep and check that the trajectory covers all its point times (SourceError if not)."""
+    sweep = av2.read_sweep(log_dir, timestamp_ns)
+    start_ns, end_ns = T_rig_world.start_us * 1000, T_rig_world.end_us * 1000
+    if len(sweep) and not (
+        start_ns <= timestamp_ns + int(sweep.offset_ns.min()) and timestamp_ns + int(sweep.offset_ns.max()) <= end_ns
+    ):
+        raise SourceError(
+            av2.sweep_path(log_dir, timestamp_ns),
+            f"point times reach outside the log's time range {start_ns}..{end_ns} ns"
+            " (set by the poses and the first and last sweeps)",
+        )
+    return sweep
+
+
 def decide_units(
     log_dir: UPath, sweep_timestamps_ns: np.ndarray, T_rig_world: Trajectory, T_sensor_rig: dict[str, np.ndarray]
 ) -> UnitSplit:
@@ -174,7 +188,7 @@ def decide_units(
     picks = np.unique(np.linspace(0, len(sweep_timestamps_ns) - 1, UNIT_DECISION_SWEEPS).round().astype(int))
     spread: dict[tuple[str, str], float] = {}
     for i in picks:
-        sweep = av2.read_sweep(log_dir, int(sweep_timestamps_ns[i]))
+        sweep = read_covered_sweep(log_dir, int(sweep_timestamps_ns[i]), T_rig_world)
         for half, low in (("low", True), ("high", False)):
             idx, times_ns = _half(sweep, low)
             for unit, T in T_sensor_rig.items():
@@ -210,20 +224,19 @@ def annotation_cuboids(annotations: av2.Annotations) -> Cuboids:
     )
 
 
-def _offset_range_ns(args: tuple[UPath, int]) -> tuple[int, int]:
-    return av2.read_sweep_offset_range_ns(*args)
-
-
 def _sensor_time_range_us(inputs: LogInputs, camera_ids: list[str], with_lidar: bool) -> tuple[int, int]:
     """Inclusive µs range the trajectory must cover: lidar points at their exact ns times (so the
-    end rounds up), camera frames and cuboids at their stored (floored) µs times."""
+    end rounds up), camera frames and cuboids at their stored (floored) µs times.
+
+    The lidar range comes from the first and the last sweep (each sweep's points span ~106 ms from
+    its timestamp, so they bound all others); every other sweep is checked when it is converted.
+    """
     lo, hi = [], []
     if with_lidar:
-        sweeps = [(inputs.log_dir, int(ts)) for ts in inputs.sweep_timestamps_ns]
-        with ThreadPoolExecutor(max_workers=4) as threads:  # pyarrow reads release the GIL
-            for (_, ts), (first, last) in zip(sweeps, threads.map(_offset_range_ns, sweeps), strict=True):
-                lo.append((ts + min(first, 0)) // 1000)
-                hi.append(-(-(ts + last) // 1000))
+        for ts in {int(inputs.sweep_timestamps_ns[0]), int(inputs.sweep_timestamps_ns[-1])}:
+            first, last = av2.read_sweep_offset_range_ns(inputs.log_dir, ts)
+            lo.append((ts + min(first, 0)) // 1000)
+            hi.append(-(-(ts + last) // 1000))
     for cam in camera_ids:
         if len(stamps := inputs.image_timestamps_ns[cam]):
             lo.append(int(stamps[0]) // 1000)
@@ -250,8 +263,6 @@ class LogPlan:
     Attributes:
         T_rig_world: stored (float32-rounded) ego trajectory, µs.
         T_world_world_global: first city_SE3_ego [4,4], float64.
-        T_sensor_rig: av2 ego_SE3_sensor per sensor [4,4].
-        unit_split: which laser_number half is which unit (None without lidars).
     """
 
     inputs: LogInputs
@@ -261,7 +272,6 @@ class LogPlan:
     lidar_ids: list[str]
     T_rig_world: Trajectory
     T_world_world_global: np.ndarray
-    unit_split: UnitSplit | None
     generic_meta: dict
     warnings: list[str]
 
@@ -316,16 +326,6 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
 
     needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids))
     T_rig_world, T_world_world_global = ego_trajectory(inputs, needed_us, warnings)
-
-    unit_split = None
-    if lidar_ids:
-        T_lidar_rig = {u: inputs.ego_SE3_sensor[u] for u in av2.LIDARS}
-        unit_split = decide_units(log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig)
-        if unit_split.margin < UNIT_DECISION_MIN_MARGIN:
-            warnings.append(
-                f"{log_dir}: up/down lidar decision has a low margin {unit_split.margin:.2f}"
-                f" (laser_number < 32 -> {unit_split.low_half_unit})"
-            )
     generic_meta = {
         "source_dataset": SOURCE_DATASET,
         "argoverse2_split": options.split,
@@ -340,7 +340,6 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         lidar_ids=lidar_ids,
         T_rig_world=T_rig_world,
         T_world_world_global=T_world_world_global,
-        unit_split=unit_split,
         generic_meta=generic_meta,
         warnings=warnings,
     )
@@ -373,21 +372,29 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
 
 
 def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
-    """Stream sweeps one at a time: read, split by unit, decompensate, store. Memory stays flat."""
+    """Decide the unit split, then stream sweeps one at a time: read, split by unit, decompensate,
+    store. Memory stays flat."""
     started = time.perf_counter()
-    T_sensor_rig = {unit: plan.inputs.ego_SE3_sensor[unit] for unit in plan.lidar_ids}
+    log_dir = plan.inputs.log_dir
+    T_lidar_rig = {unit: plan.inputs.ego_SE3_sensor[unit] for unit in av2.LIDARS}
+    unit_split = decide_units(log_dir, plan.inputs.sweep_timestamps_ns, plan.T_rig_world, T_lidar_rig)
+    if unit_split.margin < UNIT_DECISION_MIN_MARGIN:
+        result.warnings.append(
+            f"{log_dir}: up/down lidar decision has a low margin {unit_split.margin:.2f}"
+            f" (laser_number < 32 -> {unit_split.low_half_unit})"
+        )
+    T_sensor_rig = {unit: T_lidar_rig[unit] for unit in plan.lidar_ids}
     lidars = {
         unit: writer.add_lidar(
-            unit,
-            {"av2_unit_decision": plan.unit_split.to_meta(), "lidar_model_source": plan.options.lidar_model_source},
+            unit, {"av2_unit_decision": unit_split.to_meta(), "lidar_model_source": plan.options.lidar_model_source}
         )
         for unit in plan.lidar_ids
     }
     not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
     source_points = {unit: 0 for unit in lidars}
     for ts in plan.sweep_timestamps_ns:
-        sweep = av2.read_sweep(plan.inputs.log_dir, int(ts))
-        for unit, rays in sweep_ray_bundles(sweep, plan.unit_split, plan.T_rig_world, T_sensor_rig).items():
+        sweep = read_covered_sweep(log_dir, int(ts), plan.T_rig_world)
+        for unit, rays in sweep_ray_bundles(sweep, unit_split, plan.T_rig_world, T_sensor_rig).items():
             lidars[unit].store_frame(
                 rays,
                 {
