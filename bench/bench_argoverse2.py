@@ -6,7 +6,7 @@ it measures, side by side and interleaved (copy, convert, copy, convert, ...):
 - ``cp -r`` of the same log plus sync, and the ratio of the two (median of per-pair ratios);
 - lidar path ms per sweep (read + decompensate + write, both units, in one process), both inside
   the parallel run and alone on one core (``--no-cameras --workers 1``);
-- peak RSS summed over the process tree (sampled every 20 ms from /proc).
+- peak RSS and CPU time summed over the process tree (sampled every 20 ms from /proc).
 Figures are medians over --repeat runs; this machine is noisy.
 
     python bench/bench_argoverse2.py [--work /tmp/ncore-bench] [--repeat 5] [--workers N]
@@ -43,10 +43,11 @@ def synth(work: Path, seconds: float) -> Path:
     return root / "val" / done.read_text()
 
 
-def _tree_rss_bytes(root_pid: int) -> int:
-    """Resident memory of a process and all its descendants (Linux /proc)."""
+def _process_tree(root_pid: int) -> dict[int, tuple[int, float]]:
+    """(resident bytes, CPU seconds) of a process and all its descendants (Linux /proc)."""
     children: dict[int, list[int]] = {}
-    rss: dict[int, int] = {}
+    stats: dict[int, tuple[int, float]] = {}
+    page, tick = os.sysconf("SC_PAGE_SIZE"), os.sysconf("SC_CLK_TCK")
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
@@ -56,13 +57,14 @@ def _tree_rss_bytes(root_pid: int) -> int:
         except OSError:
             continue
         children.setdefault(int(fields[1]), []).append(int(entry))
-        rss[int(entry)] = int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
-    total, todo = 0, [root_pid]
+        stats[int(entry)] = (int(fields[21]) * page, (int(fields[11]) + int(fields[12])) / tick)
+    tree, todo = {}, [root_pid]
     while todo:
         pid = todo.pop()
-        total += rss.get(pid, 0)
+        if pid in stats:
+            tree[pid] = stats[pid]
         todo += children.get(pid, [])
-    return total
+    return tree
 
 
 def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool) -> None:
@@ -71,12 +73,14 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool)
     from ncore_convert.pool import JobPool
 
     shutil.rmtree(out, ignore_errors=True)
-    peak = [0]
+    peak, cpu = [0], {}
     stop = threading.Event()
 
     def sample() -> None:
         while not stop.wait(0.02):
-            peak[0] = max(peak[0], _tree_rss_bytes(os.getpid()))
+            tree = _process_tree(os.getpid())
+            peak[0] = max(peak[0], sum(rss for rss, _ in tree.values()))
+            cpu.update({pid: max(cpu.get(pid, 0.0), seconds) for pid, (_, seconds) in tree.items()})
 
     threading.Thread(target=sample, daemon=True).start()
     options = Argoverse2Options(split="val", camera_ids=None if cameras else ())
@@ -88,6 +92,7 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool)
     stop.set()
     figures = {"wall_s": wall, "sweeps": s.sweeps, "images": s.images, "points": s.points}
     figures.update(lidar_s=s.lidar_seconds, camera_s=s.camera_seconds, peak_rss_mb=peak[0] / 2**20)
+    figures.update(cpu_s=sum(cpu.values()))
     print(json.dumps(figures))
 
 
@@ -149,7 +154,8 @@ def main() -> None:
     results = {}
     for seconds in (5.0, 15.0):
         print(f"{seconds:g} s log:", flush=True)
-        results[seconds] = r = measure(synth(work, seconds), work, args.repeat, args.workers)
+        workers = args.workers
+        results[seconds] = r = measure(synth(work, seconds), work, args.repeat, workers)
         print(
             f"  {r['sweeps']:.0f} sweeps, {r['images']:.0f} images, {r['bytes'] / 1e9:.2f} GB in,"
             f" {r['out_bytes'] / 1e9:.2f} GB out\n"
@@ -159,6 +165,8 @@ def main() -> None:
             f"  lidar path in the parallel run                 {1e3 * r['lidar_s'] / r['sweeps']:.1f} ms/sweep\n"
             f"  lidar path alone on one core                   {r['lidar_alone_ms']:.1f} ms/sweep\n"
             f"  camera path in the parallel run                {1e3 * r['camera_s'] / r['images']:.2f} ms/image\n"
+            f"  CPU time, all processes                        {r['cpu_s']:.1f} s"
+            f" ({r['cpu_s'] / (r['wall_s'] * workers):.0%} of {workers} cores)\n"
             f"  peak RSS, all processes                        {r['peak_rss_mb']:.0f} MB",
             flush=True,
         )

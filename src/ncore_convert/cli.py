@@ -64,7 +64,7 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
 @click.option("--progress/--no-progress", default=True, help="Show per-log progress bars.")
 @click.option(
     "--workers", type=click.IntRange(min=1), default=None, show_default="the number of CPUs",
-    help="Processes used; a log's sensor stores are written in parallel (1: all in this process).",
+    help="Worker processes; the independent stores of a log (per sensor) are written in parallel.",
 )  # fmt: skip
 @click.pass_context
 def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars, progress, workers):

@@ -1,5 +1,7 @@
 """Local process pool for the independent jobs of a conversion, with progress across processes.
 
+Without a pool, callers run jobs inline (see :func:`run_inline`), e.g. in tests.
+
 Jobs are module-level functions called as ``fn(*args, progress=report)``; ``report(n)`` adds ``n``
 finished frames to a counter shared with the parent, which forwards it to the progress bar.
 Workers start from a fork server that has imported the converter modules once, so a job starts in
@@ -19,9 +21,18 @@ from typing import Any
 
 Job = tuple[Callable[..., Any], tuple]
 
-#: Workers fill the cores themselves, so numerical libraries get one thread each. Without this,
-#: every worker's OpenBLAS spins a thread per core on tiny matrix products and the run slows down.
-WORKER_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#: Environment of the worker processes (values the user has set win):
+#: - workers fill the cores themselves, so numerical libraries get one thread each; otherwise every
+#:   worker's OpenBLAS spins a thread per core on tiny matrix products;
+#: - glibc malloc keeps freed memory instead of returning each multi-MB per-sweep array to the
+#:   kernel and faulting it in again on the next sweep (this was ~10% of the lidar path).
+WORKER_ENVIRONMENT = {
+    "OPENBLAS_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "MALLOC_MMAP_THRESHOLD_": str(256 * 2**20),
+    "MALLOC_TRIM_THRESHOLD_": str(512 * 2**20),
+}
 
 _frames_done = None  # shared counter, set in each worker
 
@@ -56,13 +67,19 @@ def _environment(values: dict[str, str]):
             del os.environ[k]
 
 
+def run_inline(jobs: Sequence[Job], on_progress: Callable[[int], None] | None = None) -> list[Any]:
+    """Run jobs one after another in this process (same contract as :meth:`JobPool.run`)."""
+    progress = on_progress or (lambda n: None)
+    return [fn(*args, progress=progress) for fn, args in jobs]
+
+
 def default_workers() -> int:
     """Processes available to this run (CPU affinity aware)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 class JobPool:
-    """Runs lists of jobs on ``workers`` processes; ``workers=1`` runs them inline in this process.
+    """Runs lists of jobs on ``workers`` worker processes.
 
     Use as a context manager. The workers start at construction, in the background, so their
     start-up overlaps with whatever the caller does before the first :meth:`run`.
@@ -72,19 +89,17 @@ class JobPool:
         if workers < 1:
             raise ValueError("workers must be >= 1")
         self.workers = workers
-        self._executor = None
-        if workers > 1:
-            ctx = mp.get_context("forkserver")
-            ctx.set_forkserver_preload(list(preload))
-            with _environment(WORKER_ENVIRONMENT):  # the fork server (and so every worker) inherits it
-                multiprocessing.forkserver.ensure_running()
-            self._counter = ctx.Value("q", 0)
-            self._executor = ProcessPoolExecutor(
-                workers, mp_context=ctx, initializer=_init_worker, initargs=(self._counter,)
-            )
-            # start the workers in the background: the fork server imports the preload modules
-            # (about a second) while the caller reads its inputs
-            threading.Thread(target=self._start_workers, daemon=True).start()
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(list(preload))
+        with _environment(WORKER_ENVIRONMENT):  # the fork server (and so every worker) inherits it
+            multiprocessing.forkserver.ensure_running()
+        self._counter = ctx.Value("q", 0)
+        self._executor = ProcessPoolExecutor(
+            workers, mp_context=ctx, initializer=_init_worker, initargs=(self._counter,)
+        )
+        # start the workers in the background: the fork server imports the preload modules (about a
+        # second) while the caller reads its inputs
+        threading.Thread(target=self._start_workers, daemon=True).start()
 
     def _start_workers(self) -> None:
         with contextlib.suppress(RuntimeError):  # the pool was closed before it started
@@ -98,9 +113,7 @@ class JobPool:
         self.close()
 
     def close(self) -> None:
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+        self._executor.shutdown(wait=True, cancel_futures=True)
 
     def run(self, jobs: Sequence[Job], on_progress: Callable[[int], None] | None = None) -> list[Any]:
         """Run all jobs; return their results in job order.
@@ -110,8 +123,6 @@ class JobPool:
         and the first failure is raised.
         """
         progress = on_progress or (lambda n: None)
-        if self._executor is None:
-            return [fn(*args, progress=progress) for fn, args in jobs]
         with self._counter.get_lock():
             self._counter.value = 0
         futures: list[Future] = [self._executor.submit(_call, fn, args) for fn, args in jobs]

@@ -23,7 +23,7 @@ from ncore_convert.lidar import (
     decompensate,
     ray_bundle,
 )
-from ncore_convert.pool import JobPool
+from ncore_convert.pool import JobPool, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.argoverse2 import SourceError
 from ncore_convert.writer import (
@@ -487,7 +487,7 @@ def convert_log(
     """Convert one AV2 log into ``output_dir`` (which becomes the sequence directory).
 
     Args:
-        pool: processes for the log's independent store parts; None writes them in this process.
+        pool: worker processes for the log's independent store parts; None writes them in this process.
         on_total: called once with the number of frames (sweeps + images) to write.
         on_frame: called with the number of newly written frames (progress).
     """
@@ -499,7 +499,7 @@ def convert_log(
     output_dir.mkdir(parents=True, exist_ok=True)
     longest_first = sorted(range(len(parts)), key=lambda i: -parts[i][1])
     calls = [(write_part, (plan, output_dir, parts[i][0])) for i in longest_first]
-    done = (pool or JobPool(1)).run(calls, on_frame)
+    done = pool.run(calls, on_frame) if pool else run_inline(calls, on_frame)
     results = [done[longest_first.index(i)] for i in range(len(parts))]
 
     if options.sequence_meta:
