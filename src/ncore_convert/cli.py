@@ -13,7 +13,7 @@ import click
 from upath import UPath
 
 from ncore_convert import __version__
-from ncore_convert.pool import default_workers
+from ncore_convert.pool import JobPool, default_workers
 from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
 
 
@@ -105,38 +105,37 @@ def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars,
 @click.pass_obj
 def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequence_meta, lidar_model_source):
     """Argoverse 2 Sensor (<root>/<split>/<log_id>) to NCore V4."""
-    from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
-    from ncore_convert.pool import JobPool
-    from ncore_convert.runner import run_logs
-    from ncore_convert.sources import argoverse2 as av2
-
     root, out = obj.require_paths()
-    options = Argoverse2Options(
-        split=split,
-        store_type=store_type,
-        profile=profile,
-        sequence_meta=sequence_meta,
-        lidar_model_source=lidar_model_source,
-        camera_ids=obj.camera_ids,
-        lidar_ids=obj.lidar_ids,
-    )
-    try:
-        select_sensors(options.camera_ids, av2.CAMERAS, "camera")
-        select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
-        available = av2.list_log_ids(root, split)
-    except (ValueError, av2.SourceError) as err:
-        raise click.UsageError(str(err)) from None
-    if log_ids:
-        unknown = [log for log in log_ids if log not in available]
-        if unknown:
-            raise click.UsageError(f"log(s) not found under {root / split}: {', '.join(unknown)}")
-        todo = list(dict.fromkeys(log_ids))
-    else:
-        todo = available
-    if not todo:
-        raise click.UsageError(f"no logs under {root / split}")
-
+    # start the workers first: their fork server imports the converter while this process does
     with JobPool(obj.workers, preload=["ncore_convert.converters.argoverse2"]) as pool:
+        from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
+        from ncore_convert.runner import run_logs
+        from ncore_convert.sources import argoverse2 as av2
+
+        options = Argoverse2Options(
+            split=split,
+            store_type=store_type,
+            profile=profile,
+            sequence_meta=sequence_meta,
+            lidar_model_source=lidar_model_source,
+            camera_ids=obj.camera_ids,
+            lidar_ids=obj.lidar_ids,
+        )
+        try:
+            select_sensors(options.camera_ids, av2.CAMERAS, "camera")
+            select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
+            available = av2.list_log_ids(root, split)
+        except (ValueError, av2.SourceError) as err:
+            raise click.UsageError(str(err)) from None
+        if log_ids:
+            unknown = [log for log in log_ids if log not in available]
+            if unknown:
+                raise click.UsageError(f"log(s) not found under {root / split}: {', '.join(unknown)}")
+            todo = list(dict.fromkeys(log_ids))
+        else:
+            todo = available
+        if not todo:
+            raise click.UsageError(f"no logs under {root / split}")
 
         def convert(seq_dir, log_id, on_frame, on_total):
             return convert_log(root, seq_dir, log_id, options, pool=pool, on_frame=on_frame, on_total=on_total)
