@@ -9,7 +9,7 @@ it measures, side by side and interleaved (copy, convert, command, copy, convert
   worker start-up) to synced files, and its ratio to the copy;
 - lidar path ms per sweep (read + decompensate + write, both units, in one process), both inside
   the parallel run and alone on one core (``--no-cameras --workers 1``);
-- peak RSS and CPU time of the log, summed over the process tree (sampled every 20 ms from /proc).
+- peak RSS and CPU time of the log, summed over the process tree (sampled every 50 ms from /proc).
 Figures are medians over --repeat runs; this machine is noisy.
 
     python bench/bench_argoverse2.py [--work /tmp/ncore-bench] [--repeat 5] [--workers N]
@@ -48,25 +48,19 @@ def synth(work: Path, seconds: float) -> Path:
 
 def _process_tree(root_pid: int) -> dict[int, tuple[int, float]]:
     """(resident bytes, CPU seconds) of a process and all its descendants (Linux /proc)."""
-    children: dict[int, list[int]] = {}
-    stats: dict[int, tuple[int, float]] = {}
     page, tick = os.sysconf("SC_PAGE_SIZE"), os.sysconf("SC_CLK_TCK")
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        children.setdefault(int(fields[1]), []).append(int(entry))
-        stats[int(entry)] = (int(fields[21]) * page, (int(fields[11]) + int(fields[12])) / tick)
     tree, todo = {}, [root_pid]
     while todo:
         pid = todo.pop()
-        if pid in stats:
-            tree[pid] = stats[pid]
-        todo += children.get(pid, [])
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            for task in os.listdir(f"/proc/{pid}/task"):
+                with open(f"/proc/{pid}/task/{task}/children") as f:
+                    todo += [int(child) for child in f.read().split()]
+        except OSError:
+            continue
+        tree[pid] = (int(fields[21]) * page, (int(fields[11]) + int(fields[12])) / tick)
     return tree
 
 
@@ -85,7 +79,7 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool)
     stop = threading.Event()
 
     def sample() -> None:
-        while not stop.wait(0.02):
+        while not stop.wait(0.05):
             tree = _process_tree(os.getpid())
             peak[0] = max(peak[0], sum(rss for rss, _ in tree.values()))
             cpu.update({pid: max(cpu.get(pid, 0.0), seconds) for pid, (_, seconds) in tree.items()})

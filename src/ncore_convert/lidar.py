@@ -201,19 +201,20 @@ def ray_bundle(
     finite = np.isfinite(distance)
     keep = finite & (distance >= MIN_RANGE_M)
     index = np.flatnonzero(keep)
-    dist = distance[index]
+    take = slice(None) if len(index) == len(keep) else index  # usually every point is kept: no gathers
+    dist = distance[take]
     inv = 1.0 / dist
     direction = np.empty((len(index), 3), dtype=np.float32)
     for k, c in enumerate((x, y, z)):
-        direction[:, k] = c[index] * inv
-    timestamp_us = (point_times_ns[index] // 1000).astype(np.uint64)
+        direction[:, k] = c[take] * inv
+    timestamp_us = (point_times_ns[take] // 1000).astype(np.uint64)
     start = frame_start_us if len(index) == 0 else min(frame_start_us, int(timestamp_us.min()))
     end = start if len(index) == 0 else int(timestamp_us.max())
     return RayBundle(
         direction=direction,
         distance_m=dist.astype(np.float32),
         timestamp_us=timestamp_us,
-        intensity=(intensity_u8[index].astype(np.float32) / np.float32(255.0)),
+        intensity=(intensity_u8[take].astype(np.float32) / np.float32(255.0)),
         frame_timestamps_us=np.array([start, end], dtype=np.uint64),
         source_index=index,
         n_zero_range=int(np.count_nonzero(finite & ~keep)),

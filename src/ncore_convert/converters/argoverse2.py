@@ -426,12 +426,8 @@ def _write_camera(
     started = time.perf_counter()
     stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam]))
     for ts in plan.inputs.image_timestamps_ns[cam]:
-        path = av2.image_path(plan.inputs.log_dir, cam, int(ts))
-        data = path.read_bytes()
-        if data[:2] != b"\xff\xd8":
-            raise SourceError(path, "not a JPEG file (missing SOI marker)")
         t_us = int(ts) // 1000
-        stream.store_frame(data, "jpeg", (t_us, t_us))
+        stream.store_frame(av2.read_jpeg(plan.inputs.log_dir, cam, int(ts)), "jpeg", (t_us, t_us))
         result.images += 1
         progress(1)
     result.camera_seconds += time.perf_counter() - started

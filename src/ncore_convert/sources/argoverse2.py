@@ -78,7 +78,7 @@ def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None)
     path = UPath(path)
     wanted = columns or schema.names
     try:
-        if path.protocol in ("", "file", "local"):
+        if _is_local(path):
             table = feather.read_table(path.path, columns=wanted, memory_map=True, use_threads=False)
         else:
             with path.open("rb") as f:
@@ -138,6 +138,28 @@ def sweep_path(log_dir: UPath, timestamp_ns: int) -> UPath:
 
 def image_path(log_dir: UPath, camera: str, timestamp_ns: int) -> UPath:
     return log_dir / "sensors" / "cameras" / camera / f"{timestamp_ns}.jpg"
+
+
+def _is_local(path: UPath) -> bool:
+    return path.protocol in ("", "file", "local")
+
+
+def read_jpeg(log_dir: UPath, camera: str, timestamp_ns: int) -> bytes:
+    """The encoded bytes of one image, checked to be a JPEG (SourceError naming the file if not)."""
+    path = image_path(log_dir, camera, timestamp_ns)
+    try:
+        if _is_local(path):  # plain open is ~3x cheaper per file than going through fsspec
+            with open(path.path, "rb") as f:
+                data = f.read()
+        else:
+            data = path.read_bytes()
+    except FileNotFoundError:
+        raise SourceError(path, "file not found") from None
+    except OSError as err:
+        raise SourceError(path, f"unreadable ({err})") from None
+    if data[:2] != b"\xff\xd8":
+        raise SourceError(path, "not a JPEG file (missing SOI marker)")
+    return data
 
 
 def _timestamps_from_stems(directory: UPath, suffix: str) -> np.ndarray:
