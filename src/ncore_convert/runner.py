@@ -1,13 +1,13 @@
 """Runs per-log conversion tasks: atomic output directories, progress, per-log error isolation.
 
-Each log is written into ``<output>/.<log_id>.partial`` and renamed to ``<output>/<log_id>`` only
-once complete, so an interrupted run never leaves a sequence that looks finished.
+Each log is written into ``<output>/.<log_id>.partial``, flushed to disk, and renamed to
+``<output>/<log_id>`` only once complete, so an interrupted run (or a power loss) never leaves a
+sequence that looks finished.
 """
 
 from __future__ import annotations
 
 import re
-import shutil
 import traceback
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -17,6 +17,7 @@ from tqdm import tqdm
 from upath import UPath
 
 from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.storage import flush_to_disk, remove_tree
 
 
 class Summary(Protocol):
@@ -37,14 +38,6 @@ class LogResult:
     error: str | None = None
 
 
-def _remove_tree(path: UPath) -> None:
-    if path.exists():
-        if path.protocol in ("", "file", "local"):
-            shutil.rmtree(path.path)
-        else:
-            path.fs.rm(path.path, recursive=True)
-
-
 def _origin(err: BaseException) -> str:
     """file:line where an exception was raised, also when it was raised in a worker process
     (concurrent.futures attaches the worker's formatted traceback as the cause)."""
@@ -59,7 +52,7 @@ def convert_one(output_root: UPath, log_id: str, convert: ConvertFn, show_progre
     """Convert one log atomically. Errors are caught and returned as a one-line message."""
     partial = output_root / f".{log_id}.partial"
     final = output_root / log_id
-    _remove_tree(partial)
+    remove_tree(partial)
     bar = tqdm(desc=log_id[:36], unit="frame", disable=not show_progress, leave=False, dynamic_ncols=True)
 
     def on_total(n: int) -> None:
@@ -68,15 +61,17 @@ def convert_one(output_root: UPath, log_id: str, convert: ConvertFn, show_progre
     try:
         summary = convert(partial, log_id, bar.update, on_total)
     except SourceError as err:
-        _remove_tree(partial)
+        remove_tree(partial)
         return LogResult(log_id, False, error=str(err))
     except Exception as err:  # noqa: BLE001 - one log's failure must not stop the others
-        _remove_tree(partial)
+        remove_tree(partial)
         return LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
     finally:
         bar.close()
-    _remove_tree(final)
+    flush_to_disk(partial)  # durable before it is renamed into place
+    remove_tree(final)
     partial.rename(final)
+    flush_to_disk(output_root)
     return LogResult(log_id, True, summary=summary)
 
 

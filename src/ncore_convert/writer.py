@@ -35,6 +35,7 @@ from ncore.impl.data.v4.types import ComponentGroupAssignments
 from upath import UPath
 
 from ncore_convert.lidar import RayBundle
+from ncore_convert.storage import flush_to_disk
 
 StoreType = Literal["itar", "directory"]
 Profile = Literal["default", "separate-sensors", "separate-all"]
@@ -289,9 +290,12 @@ class SequenceWriter:
         self._cuboids.store_observations(observations)
 
     def finalize(self, with_meta: bool = True) -> SequenceMeta | None:
-        """Close this writer's stores. With ``with_meta``, return the library's sequence meta of
-        these stores (component summaries and md5 checksums, computed here so parts hash in parallel)."""
+        """Close this writer's stores and flush them to disk. With ``with_meta``, return the library's
+        sequence meta of these stores (component summaries and md5 checksums, computed here so parts
+        hash in parallel)."""
         paths = self._writer.finalize()
+        for path in paths:  # on disk now, overlapping the other writers' work
+            flush_to_disk(path)
         if not with_meta or not paths:
             return None
         meta = SequenceComponentGroupsReader(paths).get_sequence_meta()
@@ -313,4 +317,5 @@ def write_sequence_meta(output_dir: UPath, sequence_id: str, parts: list[Sequenc
     meta = dataclasses.replace(parts[0], component_stores=stores)
     path = output_dir / f"{sequence_id}.json"
     path.write_text(json.dumps(meta.to_dict(), indent=2))
+    flush_to_disk(path)
     return path

@@ -18,6 +18,7 @@ import pyarrow.feather as feather
 from upath import UPath
 
 from ncore_convert.geometry import se3_from_quat_wxyz
+from ncore_convert.storage import is_local
 
 SPLITS = ("train", "val", "test")
 RING_CAMERAS = (
@@ -78,7 +79,7 @@ def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None)
     path = UPath(path)
     wanted = columns or schema.names
     try:
-        if _is_local(path):
+        if is_local(path):
             table = feather.read_table(path.path, columns=wanted, memory_map=True, use_threads=False)
         else:
             with path.open("rb") as f:
@@ -140,15 +141,11 @@ def image_path(log_dir: UPath, camera: str, timestamp_ns: int) -> UPath:
     return log_dir / "sensors" / "cameras" / camera / f"{timestamp_ns}.jpg"
 
 
-def _is_local(path: UPath) -> bool:
-    return path.protocol in ("", "file", "local")
-
-
 def read_jpeg(log_dir: UPath, camera: str, timestamp_ns: int) -> bytes:
     """The encoded bytes of one image, checked to be a JPEG (SourceError naming the file if not)."""
     path = image_path(log_dir, camera, timestamp_ns)
     try:
-        if _is_local(path):  # plain open is ~3x cheaper per file than going through fsspec
+        if is_local(path):  # plain open is ~3x cheaper per file than going through fsspec
             with open(path.path, "rb") as f:
                 data = f.read()
         else:
