@@ -98,9 +98,10 @@ def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars,
 @click.option("--sequence-meta/--no-sequence-meta", default=True, help="Write <log_id>.json (sequence meta).")
 @click.option(
     "--lidar-model-source",
-    type=click.Choice(["none"]),
-    default="none",
-    help="Structured lidar model: 'none' stores raw per-point-time ray bundles only.",
+    type=click.Choice(["empirical", "none"]),
+    default="empirical",
+    help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's model element;"
+    " 'none': raw per-point-time ray bundles only.",
 )
 @click.pass_obj
 def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequence_meta, lidar_model_source):

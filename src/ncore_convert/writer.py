@@ -28,6 +28,7 @@ from ncore.impl.data.types import (
     CuboidTrackObservation,
     IdealPinholeCameraModelParameters,
     LabelSource,
+    RowOffsetStructuredSpinningLidarModelParameters,
     ShutterType,
 )
 from ncore.impl.data.v4.components import SequenceMeta
@@ -35,6 +36,7 @@ from ncore.impl.data.v4.types import ComponentGroupAssignments
 from upath import UPath
 
 from ncore_convert.lidar import RayBundle
+from ncore_convert.lidar_model import SpinningLidarModel
 from ncore_convert.storage import flush_to_disk
 
 StoreType = Literal["itar", "directory"]
@@ -88,11 +90,12 @@ class LidarStream:
     def __init__(self, writer: LidarSensorComponent.Writer) -> None:
         self._writer = writer
 
-    def store_frame(self, rays: RayBundle, generic_meta_data: dict) -> None:
+    def store_frame(self, rays: RayBundle, generic_meta_data: dict, model_element: np.ndarray | None = None) -> None:
+        """Store one frame; ``model_element`` is uint16 [N,2] (row, column) of the lidar's model, or None."""
         self._writer.store_frame(
             direction=rays.direction,
             timestamp_us=rays.timestamp_us,
-            model_element=None,
+            model_element=model_element,
             distance_m=rays.distance_m[None, :],
             intensity=rays.intensity[None, :],
             frame_timestamps_us=rays.frame_timestamps_us,
@@ -246,6 +249,22 @@ class SequenceWriter:
             ),
         )
         self._masks.store_camera_masks(camera_id, {})
+
+    def store_lidar_model(self, lidar_id: str, model: SpinningLidarModel) -> None:
+        """Store a lidar's structured model as NCore ``RowOffsetStructuredSpinningLidarModelParameters``."""
+        self._require_base()
+        self._intrinsics.store_lidar_intrinsics(
+            lidar_id,
+            RowOffsetStructuredSpinningLidarModelParameters(
+                spinning_frequency_hz=float(model.spinning_frequency_hz),
+                spinning_direction=model.spinning_direction,
+                n_rows=len(model.row_elevations_rad),
+                n_columns=len(model.column_azimuths_rad),
+                row_elevations_rad=model.row_elevations_rad.astype(np.float32),
+                column_azimuths_rad=model.column_azimuths_rad.astype(np.float32),
+                row_azimuth_offsets_rad=model.row_azimuth_offsets_rad.astype(np.float32),
+            ),
+        )
 
     def add_camera(self, camera_id: str, generic_meta_data: dict) -> CameraStream:
         """Register a camera component; its frames are stored through the returned stream."""

@@ -13,9 +13,10 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 from upath import UPath
 
-from ncore_convert import __version__
+from ncore_convert import __version__, vlp32c
 from ncore_convert.geometry import Trajectory, euler_xyz_from_rotation, invert_se3
 from ncore_convert.lidar import (
+    MIN_RANGE_M,
     RayBundle,
     UnitSplit,
     beam_elevation_spread_rad,
@@ -23,6 +24,7 @@ from ncore_convert.lidar import (
     decompensate,
     ray_bundle,
 )
+from ncore_convert.lidar_model import SpinningLidarModel, derive_model
 from ncore_convert.pool import JobPool, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.argoverse2 import SourceError
@@ -37,8 +39,11 @@ from ncore_convert.writer import (
 )
 
 SOURCE_DATASET = "argoverse2-sensor"
-#: Sweeps sampled across the log for the up/down unit decision.
-UNIT_DECISION_SWEEPS = 3
+#: Sweeps sampled across the log for the up/down unit decision and the lidar model.
+CALIBRATION_SWEEPS = 5
+#: Columns of the empirical lidar model per native VLP-32C column (firing cycle): its azimuth
+#: quantisation (mean 0.003°) then stays below the float16 noise of AV2's coordinates.
+MODEL_UPSAMPLE = 16
 #: Below this margin the unit decision is reported as a warning.
 UNIT_DECISION_MIN_MARGIN = 2.0
 
@@ -51,7 +56,7 @@ class Argoverse2Options:
     store_type: StoreType = "itar"
     profile: Profile = "separate-sensors"
     sequence_meta: bool = True
-    lidar_model_source: str = "none"
+    lidar_model_source: str = "empirical"
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
 
@@ -177,38 +182,81 @@ def read_covered_sweep(log_dir: UPath, timestamp_ns: int, T_rig_world: Trajector
     return sweep
 
 
-def decide_units(
-    log_dir: UPath, sweep_timestamps_ns: np.ndarray, T_rig_world: Trajectory, T_sensor_rig: dict[str, np.ndarray]
-) -> UnitSplit:
-    """Decide which laser_number half is which unit from per-beam elevation flatness.
+@dataclass(frozen=True)
+class LidarCalibration:
+    """Per-log lidar decisions: which laser_number half is which unit, and each unit's model."""
 
-    Each half is decompensated into each candidate unit's frame on a few sweeps spread over the
-    log; the assignment with the flatter beams wins.
+    unit_split: UnitSplit
+    models: dict[str, SpinningLidarModel]
+
+
+def calibrate_lidars(
+    log_dir: UPath,
+    sweep_timestamps_ns: np.ndarray,
+    T_rig_world: Trajectory,
+    T_sensor_rig: dict[str, np.ndarray],
+    model_units: list[str],
+) -> LidarCalibration:
+    """Decide the unit split, then derive the structured model of each unit in ``model_units``.
+
+    On a few sweeps spread over the log, each laser_number half is decompensated into each candidate
+    unit's frame; the assignment with the flatter beams wins. The models are fitted to the same
+    decompensated (per-point-time) returns in the winning frames.
     """
-    picks = np.unique(np.linspace(0, len(sweep_timestamps_ns) - 1, UNIT_DECISION_SWEEPS).round().astype(int))
+    picks = np.unique(np.linspace(0, len(sweep_timestamps_ns) - 1, CALIBRATION_SWEEPS).round().astype(int))
+    sweeps = [read_covered_sweep(log_dir, int(sweep_timestamps_ns[i]), T_rig_world) for i in picks]
     spread: dict[tuple[str, str], float] = {}
-    for i in picks:
-        sweep = read_covered_sweep(log_dir, int(sweep_timestamps_ns[i]), T_rig_world)
+    halves: dict[tuple[str, str], list] = {}
+    for k, sweep in enumerate(sweeps):
         for half, low in (("low", True), ("high", False)):
             idx, times_ns = _half(sweep, low)
+            beam = sweep.laser_number[idx].astype(np.int64) % vlp32c.N_BEAMS
             for unit, T in T_sensor_rig.items():
                 xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T)
-                score = beam_elevation_spread_rad(xyz, sweep.laser_number[idx].astype(np.int64) % 32)
-                spread[(half, unit)] = spread.get((half, unit), 0.0) + score
-    return decide_unit_split(spread)
+                spread[(half, unit)] = spread.get((half, unit), 0.0) + beam_elevation_spread_rad(xyz, beam)
+                halves.setdefault((half, unit), []).append((xyz, beam, (times_ns - sweep.timestamp_ns) * 1e-9, k))
+    split = decide_unit_split(spread)
+    models = {}
+    for unit in model_units:
+        half = "low" if unit == split.low_half_unit else "high"
+        xyz = np.concatenate([h[0] for h in halves[(half, unit)]]).astype(np.float64)
+        distance = np.linalg.norm(xyz, axis=1)
+        ok = np.isfinite(distance) & (distance >= MIN_RANGE_M)
+        models[unit] = derive_model(
+            direction=xyz[ok] / distance[ok, None],
+            distance_m=distance[ok],
+            beam=np.concatenate([h[1] for h in halves[(half, unit)]])[ok],
+            time_s=np.concatenate([h[2] for h in halves[(half, unit)]])[ok],
+            frame=np.concatenate([np.full(len(h[1]), h[3]) for h in halves[(half, unit)]])[ok],
+            n_beams=vlp32c.N_BEAMS,
+            firing_cycle_s=vlp32c.FIRING_CYCLE_NS * 1e-9,
+            upsample=MODEL_UPSAMPLE,
+        )
+    return LidarCalibration(split, models)
 
 
 def sweep_ray_bundles(
-    sweep: av2.Sweep, split: UnitSplit, T_rig_world: Trajectory, T_sensor_rig: dict[str, np.ndarray]
-) -> dict[str, RayBundle]:
-    """Split one sweep by unit and decompensate each half into its unit's frame at per-point time."""
+    sweep: av2.Sweep,
+    calibration: LidarCalibration,
+    T_rig_world: Trajectory,
+    T_sensor_rig: dict[str, np.ndarray],
+) -> dict[str, tuple[RayBundle, np.ndarray | None]]:
+    """Split one sweep by unit, decompensate each half into its unit's frame at per-point time, and
+    give each ray its nearest model element (uint16 [N,2], or None without a model)."""
     out = {}
+    split = calibration.unit_split
     for unit, low in ((split.low_half_unit, True), (split.high_half_unit, False)):
         if unit not in T_sensor_rig:
             continue
         idx, times_ns = _half(sweep, low)
         xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T_sensor_rig[unit])
-        out[unit] = ray_bundle(xyz, times_ns, sweep.intensity[idx], sweep.timestamp_ns // 1000)
+        rays = ray_bundle(xyz, times_ns, sweep.intensity[idx], sweep.timestamp_ns // 1000)
+        model = calibration.models.get(unit)
+        elements = None
+        if model is not None:
+            beam = sweep.laser_number[idx[rays.source_index]].astype(np.int64) % vlp32c.N_BEAMS
+            elements = model.assign_elements(rays.direction, beam)
+        out[unit] = (rays, elements)
     return out
 
 
@@ -263,6 +311,7 @@ class LogPlan:
     Attributes:
         T_rig_world: stored (float32-rounded) ego trajectory, µs.
         T_world_world_global: first city_SE3_ego [4,4], float64.
+        lidar_calibration: unit split and models (None without lidars).
     """
 
     inputs: LogInputs
@@ -272,6 +321,7 @@ class LogPlan:
     lidar_ids: list[str]
     T_rig_world: Trajectory
     T_world_world_global: np.ndarray
+    lidar_calibration: LidarCalibration | None
     generic_meta: dict
     warnings: list[str]
 
@@ -326,6 +376,17 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
 
     needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids))
     T_rig_world, T_world_world_global = ego_trajectory(inputs, needed_us, warnings)
+    lidar_calibration = None
+    if lidar_ids:
+        T_lidar_rig = {unit: inputs.ego_SE3_sensor[unit] for unit in av2.LIDARS}
+        model_units = lidar_ids if options.lidar_model_source == "empirical" else []
+        lidar_calibration = calibrate_lidars(log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig, model_units)
+        split = lidar_calibration.unit_split
+        if split.margin < UNIT_DECISION_MIN_MARGIN:
+            warnings.append(
+                f"{log_dir}: up/down lidar decision has a low margin {split.margin:.2f}"
+                f" (laser_number < 32 -> {split.low_half_unit})"
+            )
     generic_meta = {
         "source_dataset": SOURCE_DATASET,
         "argoverse2_split": options.split,
@@ -340,6 +401,7 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         lidar_ids=lidar_ids,
         T_rig_world=T_rig_world,
         T_world_world_global=T_world_world_global,
+        lidar_calibration=lidar_calibration,
         generic_meta=generic_meta,
         warnings=warnings,
     )
@@ -353,7 +415,7 @@ class JobResult(Counts):
 
 
 def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
-    """Poses (trajectory, world_global, sensor extrinsics), camera models, masks and cuboids."""
+    """Poses (trajectory, world_global, sensor extrinsics), camera and lidar models, masks and cuboids."""
     inputs = plan.inputs
     writer.store_trajectory(plan.T_rig_world.timestamps_us, plan.T_rig_world.poses, plan.T_world_world_global)
     for sensor in plan.lidar_ids + plan.camera_ids:
@@ -366,35 +428,31 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
             principal_point_px=(intr.cx_px + 0.5, intr.cy_px + 0.5),
             resolution_px=(intr.width_px, intr.height_px),
         )
+    if plan.lidar_calibration is not None:
+        for unit, model in plan.lidar_calibration.models.items():
+            writer.store_lidar_model(unit, model)
     cuboids = annotation_cuboids(inputs.annotations) if inputs.annotations is not None else None
     writer.store_cuboids(cuboids)
     result.cuboids = 0 if cuboids is None else len(cuboids)
 
 
 def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
-    """Decide the unit split, then stream sweeps one at a time: read, split by unit, decompensate,
-    store. Memory stays flat."""
+    """Stream sweeps one at a time: read, split by unit, decompensate, assign model elements, store.
+    Memory stays flat."""
     started = time.perf_counter()
     log_dir = plan.inputs.log_dir
-    T_lidar_rig = {unit: plan.inputs.ego_SE3_sensor[unit] for unit in av2.LIDARS}
-    unit_split = decide_units(log_dir, plan.inputs.sweep_timestamps_ns, plan.T_rig_world, T_lidar_rig)
-    if unit_split.margin < UNIT_DECISION_MIN_MARGIN:
-        result.warnings.append(
-            f"{log_dir}: up/down lidar decision has a low margin {unit_split.margin:.2f}"
-            f" (laser_number < 32 -> {unit_split.low_half_unit})"
-        )
-    T_sensor_rig = {unit: T_lidar_rig[unit] for unit in plan.lidar_ids}
-    lidars = {
-        unit: writer.add_lidar(
-            unit, {"av2_unit_decision": unit_split.to_meta(), "lidar_model_source": plan.options.lidar_model_source}
-        )
+    calibration = plan.lidar_calibration
+    T_sensor_rig = {unit: plan.inputs.ego_SE3_sensor[unit] for unit in plan.lidar_ids}
+    decision, source = calibration.unit_split.to_meta(), plan.options.lidar_model_source
+    lidars = {  # one metadata dict per lidar: the writer updates it in place
+        unit: writer.add_lidar(unit, {"av2_unit_decision": decision, "lidar_model_source": source})
         for unit in plan.lidar_ids
     }
     not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
     source_points = {unit: 0 for unit in lidars}
     for ts in plan.sweep_timestamps_ns:
         sweep = read_covered_sweep(log_dir, int(ts), plan.T_rig_world)
-        for unit, rays in sweep_ray_bundles(sweep, unit_split, plan.T_rig_world, T_sensor_rig).items():
+        for unit, (rays, elements) in sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig).items():
             lidars[unit].store_frame(
                 rays,
                 {
@@ -402,6 +460,7 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
                     "points_zero_range": rays.n_zero_range,
                     "points_non_finite": rays.n_non_finite,
                 },
+                model_element=elements,
             )
             not_stored[unit]["zero_range"] += rays.n_zero_range
             not_stored[unit]["non_finite"] += rays.n_non_finite

@@ -1,0 +1,162 @@
+"""Empirical structured model of a spinning lidar, derived from decompensated returns (WIP, issue 3).
+
+Frames: every direction is a unit vector in the lidar's own frame at the ray's own time. Angles
+are radians; azimuth is about +z from +x, elevation from the x-y plane.
+
+The model is NCore's row-offset spinning model: element (row, column) has the ray
+(elevation E[row], azimuth B[column] + D[row]). Rows are beams sorted by descending elevation;
+columns are an upsampled uniform azimuth grid over one revolution in the spin direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Returns closer than this are too affected by the beams' origin offsets to fit angles from,
+#: unless a beam has too few far returns (steep downward beams only hit the near ground).
+FAR_FIT_M = 10.0
+MIN_FAR_POINTS = 200
+
+
+def _wrap(angle_rad: np.ndarray) -> np.ndarray:
+    return (angle_rad + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _circular_mean(angle_rad: np.ndarray) -> float:
+    return float(np.arctan2(np.sin(angle_rad).mean(), np.cos(angle_rad).mean()))
+
+
+@dataclass(frozen=True)
+class SpinningLidarModel:
+    """Row-offset spinning lidar model (numpy side of NCore's RowOffsetStructuredSpinningLidarModelParameters).
+
+    Attributes:
+        spinning_frequency_hz: revolutions per second.
+        spinning_direction: "cw" or "ccw" about +z.
+        row_elevations_rad: [R], strictly descending.
+        row_azimuth_offsets_rad: [R].
+        column_azimuths_rad: [C], column 0 first, stepping 2π/C in the spin direction.
+        beam_to_row: [B] int, row of each source beam id.
+    """
+
+    spinning_frequency_hz: float
+    spinning_direction: str
+    row_elevations_rad: np.ndarray
+    row_azimuth_offsets_rad: np.ndarray
+    column_azimuths_rad: np.ndarray
+    beam_to_row: np.ndarray
+
+    @property
+    def _sign(self) -> float:
+        return 1.0 if self.spinning_direction == "ccw" else -1.0
+
+    def assign_elements(self, direction: np.ndarray, beam: np.ndarray) -> np.ndarray:
+        """Nearest model element of each ray: uint16 [N,2] (row, column).
+
+        Args:
+            direction: unit rays in the sensor frame [N,3]; beam: source beam id [N].
+        """
+        row = self.beam_to_row[beam]
+        azimuth = np.arctan2(direction[:, 1], direction[:, 0]) - self.row_azimuth_offsets_rad[row]
+        n = len(self.column_azimuths_rad)
+        step = 2.0 * np.pi / n
+        progress = (self._sign * (azimuth - self.column_azimuths_rad[0])) % (2.0 * np.pi)
+        column = np.rint(progress / step).astype(np.int64) % n
+        return np.stack([row, column], axis=1).astype(np.uint16)
+
+    def element_directions(self, elements: np.ndarray) -> np.ndarray:
+        """Unit rays [N,3] of model elements [N,2] (row, column)."""
+        row, column = elements[:, 0].astype(np.int64), elements[:, 1].astype(np.int64)
+        elevation = self.row_elevations_rad[row]
+        azimuth = self.column_azimuths_rad[column] + self.row_azimuth_offsets_rad[row]
+        c = np.cos(elevation)
+        return np.stack([np.cos(azimuth) * c, np.sin(azimuth) * c, np.sin(elevation)], axis=1)
+
+
+def derive_model(
+    direction: np.ndarray,
+    distance_m: np.ndarray,
+    beam: np.ndarray,
+    time_s: np.ndarray,
+    frame: np.ndarray,
+    n_beams: int,
+    firing_cycle_s: float,
+    upsample: int,
+) -> SpinningLidarModel:
+    """Fit the model from decompensated returns of one unit over one or more frames.
+
+    Args:
+        direction: unit rays in the sensor frame at their own time [N,3].
+        distance_m: ranges [N]; beam: beam id [N] in 0..n_beams-1.
+        time_s: firing time relative to the frame's reference time [N], seconds.
+        frame: frame index of each return [N] (the spin phase is fitted per frame).
+        firing_cycle_s: time of one firing cycle (one native column).
+        upsample: columns per native column.
+    """
+    azimuth = np.arctan2(direction[:, 1], direction[:, 0])
+    elevation = np.arctan2(direction[:, 2], np.hypot(direction[:, 0], direction[:, 1]))
+    fit = _fit_mask(distance_m, beam, n_beams)
+
+    beam_elevation = np.array([np.median(elevation[fit & (beam == b)]) for b in range(n_beams)])
+    rate = _spin_rate_rad_s(azimuth[fit], time_s[fit], beam[fit], frame[fit])
+
+    # per-frame phase and per-beam offset of azimuth = phase + rate * t + offset[beam]
+    offset = np.zeros(n_beams)
+    phases = {}
+    for _ in range(3):
+        residual_all = np.empty(len(azimuth))
+        for f in np.unique(frame):
+            m = frame == f
+            base = azimuth[m] - rate * time_s[m] - offset[beam[m]]
+            phases[f] = _circular_mean(base[fit[m]])
+            residual_all[m] = _wrap(azimuth[m] - rate * time_s[m] - phases[f])
+        offset = np.array([_circular_mean(residual_all[fit & (beam == b)]) for b in range(n_beams)])
+        offset = _wrap(offset - _circular_mean(offset))
+
+    order = np.argsort(-beam_elevation)
+    beam_to_row = np.empty(n_beams, dtype=np.int64)
+    beam_to_row[order] = np.arange(n_beams)
+    frequency = abs(rate) / (2.0 * np.pi)
+    n_columns = int(round(1.0 / (frequency * firing_cycle_s))) * upsample
+    sign = 1.0 if rate > 0 else -1.0
+    start = _circular_mean(np.array([phases[f] + rate * time_s[frame == f].min() for f in phases]))
+    columns = _wrap(start + sign * 2.0 * np.pi * np.arange(n_columns) / n_columns)
+    return SpinningLidarModel(
+        spinning_frequency_hz=float(frequency),
+        spinning_direction="ccw" if rate > 0 else "cw",
+        row_elevations_rad=beam_elevation[order],
+        row_azimuth_offsets_rad=offset[order],
+        column_azimuths_rad=columns,
+        beam_to_row=beam_to_row,
+    )
+
+
+def _fit_mask(distance_m: np.ndarray, beam: np.ndarray, n_beams: int) -> np.ndarray:
+    """Far returns, except for beams with too few of them, which use all returns beyond 1 m."""
+    far = distance_m >= FAR_FIT_M
+    counts = np.bincount(beam[far], minlength=n_beams)
+    near_beams = np.flatnonzero(counts < MIN_FAR_POINTS)
+    return far | (np.isin(beam, near_beams) & (distance_m >= 1.0))
+
+
+def _spin_rate_rad_s(azimuth: np.ndarray, time_s: np.ndarray, beam: np.ndarray, frame: np.ndarray) -> float:
+    """Median over (frame, beam) of the slope of unwrapped azimuth over time."""
+    slopes = []
+    for f in np.unique(frame):
+        for b in np.unique(beam[frame == f]):
+            m = (frame == f) & (beam == b)
+            if m.sum() < 100:
+                continue
+            o = np.argsort(time_s[m])
+            slopes.append(np.polyfit(time_s[m][o], np.unwrap(azimuth[m][o]), 1)[0])
+    return float(np.median(slopes))
+
+
+def angular_error_rad(model: SpinningLidarModel, elements: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Angle between each model ray and the stored direction [N]."""
+    model_ray = model.element_directions(elements)
+    cos = np.clip(np.einsum("ij,ij->i", model_ray, direction / np.linalg.norm(direction, axis=1)[:, None]), -1, 1)
+    cross = np.linalg.norm(np.cross(model_ray, direction), axis=1)
+    return np.arctan2(cross, cos)
