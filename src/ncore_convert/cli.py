@@ -147,6 +147,36 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
     sys.exit(1 if failed else 0)
 
 
+@cli.command("evaluate-lidar-model")
+@click.argument("sequence", type=click.Path(exists=True, dir_okay=False))
+@click.option("--lidar-id", "lidar_ids", multiple=True, show_default="every lidar", help="Evaluate only this lidar.")
+@click.option(
+    "--far-range-m", type=click.FloatRange(min=0.0), default=20.0, help="Rays beyond this count as far range."
+)
+@click.option("--json", "as_json", is_flag=True, default=False, show_default="off", help="Print the report as JSON.")
+def evaluate_lidar_model_command(sequence, lidar_ids, far_range_m, as_json):
+    """Compare each stored ray with the model ray of its model_element (SEQUENCE: <log_id>.json)."""
+    import json
+
+    from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+
+    from ncore_convert.evaluate import evaluate_lidar_model
+
+    loader = SequenceLoaderV4(SequenceComponentGroupsReader([UPath(sequence)]))
+    unknown = sorted(set(lidar_ids) - set(loader.lidar_ids))
+    if unknown:
+        raise click.UsageError(f"lidar(s) {unknown} not in {sequence}; it has {loader.lidar_ids}")
+    try:
+        reports = [evaluate_lidar_model(loader, lidar, far_range_m) for lidar in (lidar_ids or loader.lidar_ids)]
+    except ValueError as err:
+        raise click.ClickException(f"{sequence}: {err}") from None
+    if as_json:
+        click.echo(json.dumps([r.to_dict() for r in reports], indent=2))
+    else:
+        for report in reports:
+            click.echo("\n".join(report.lines()))
+
+
 @cli.group()
 def synth():
     """Write synthetic source logs with known ground truth (test data and demo source)."""

@@ -99,21 +99,18 @@ def derive_model(
     elevation = np.arctan2(direction[:, 2], np.hypot(direction[:, 0], direction[:, 1]))
     fit = _fit_mask(distance_m, beam, n_beams)
 
-    beam_elevation = np.array([np.median(elevation[fit & (beam == b)]) for b in range(n_beams)])
+    beam_elevation = _group_medians(elevation[fit], beam[fit], n_beams)
     rate = _spin_rate_rad_s(azimuth[fit], time_s[fit], beam[fit], frame[fit])
 
-    # per-frame phase and per-beam offset of azimuth = phase + rate * t + offset[beam]
+    # azimuth = phase[frame] + rate * t + offset[beam], with offsets of zero circular mean
+    frame_ids, frame_index = np.unique(frame, return_inverse=True)
+    spun = azimuth - rate * time_s
     offset = np.zeros(n_beams)
-    phases = {}
     for _ in range(3):
-        residual_all = np.empty(len(azimuth))
-        for f in np.unique(frame):
-            m = frame == f
-            base = azimuth[m] - rate * time_s[m] - offset[beam[m]]
-            phases[f] = _circular_mean(base[fit[m]])
-            residual_all[m] = _wrap(azimuth[m] - rate * time_s[m] - phases[f])
-        offset = np.array([_circular_mean(residual_all[fit & (beam == b)]) for b in range(n_beams)])
+        phase = _group_circular_means((spun - offset[beam])[fit], frame_index[fit], len(frame_ids))
+        offset = _group_circular_means((spun - phase[frame_index])[fit], beam[fit], n_beams)
         offset = _wrap(offset - _circular_mean(offset))
+    phase = _group_circular_means((spun - offset[beam])[fit], frame_index[fit], len(frame_ids))
 
     order = np.argsort(-beam_elevation)
     beam_to_row = np.empty(n_beams, dtype=np.int64)
@@ -121,7 +118,9 @@ def derive_model(
     frequency = abs(rate) / (2.0 * np.pi)
     n_columns = int(round(1.0 / (frequency * firing_cycle_s))) * upsample
     sign = 1.0 if rate > 0 else -1.0
-    start = _circular_mean(np.array([phases[f] + rate * time_s[frame == f].min() for f in phases]))
+    first_time_s = np.full(len(frame_ids), np.inf)
+    np.minimum.at(first_time_s, frame_index, time_s)
+    start = _circular_mean(phase + rate * first_time_s)
     columns = _wrap(start + sign * 2.0 * np.pi * np.arange(n_columns) / n_columns)
     return SpinningLidarModel(
         spinning_frequency_hz=float(frequency),
@@ -141,17 +140,37 @@ def _fit_mask(distance_m: np.ndarray, beam: np.ndarray, n_beams: int) -> np.ndar
     return far | (np.isin(beam, near_beams) & (distance_m >= 1.0))
 
 
+def _group_medians(values: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
+    """Median of ``values`` per group id in 0..n_groups-1 (NaN for an empty group)."""
+    order = np.lexsort((values, group))
+    bounds = np.searchsorted(group[order], np.arange(n_groups + 1))
+    return np.array(
+        [np.median(values[order[a:b]]) if b > a else np.nan for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    )
+
+
+def _group_circular_means(angle_rad: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
+    """Circular mean of angles per group id in 0..n_groups-1."""
+    s = np.bincount(group, weights=np.sin(angle_rad), minlength=n_groups)
+    c = np.bincount(group, weights=np.cos(angle_rad), minlength=n_groups)
+    return np.arctan2(s, c)
+
+
 def _spin_rate_rad_s(azimuth: np.ndarray, time_s: np.ndarray, beam: np.ndarray, frame: np.ndarray) -> float:
-    """Median over (frame, beam) of the slope of unwrapped azimuth over time."""
-    slopes = []
-    for f in np.unique(frame):
-        for b in np.unique(beam[frame == f]):
-            m = (frame == f) & (beam == b)
-            if m.sum() < 100:
-                continue
-            o = np.argsort(time_s[m])
-            slopes.append(np.polyfit(time_s[m][o], np.unwrap(azimuth[m][o]), 1)[0])
-    return float(np.median(slopes))
+    """Median over (frame, beam) tracks of the least-squares slope of unwrapped azimuth over time."""
+    track = np.unique(frame, return_inverse=True)[1] * (int(beam.max()) + 1) + beam
+    order = np.lexsort((time_s, track))
+    track, t = track[order], time_s[order]
+    a = np.unwrap(azimuth[order])  # jumps between tracks only add a per-track constant
+    n_tracks = int(track.max()) + 1
+    n = np.bincount(track, minlength=n_tracks).astype(np.float64)
+    t0 = np.bincount(track, weights=t, minlength=n_tracks) / np.maximum(n, 1)
+    a0 = np.bincount(track, weights=a, minlength=n_tracks) / np.maximum(n, 1)
+    dt, da = t - t0[track], a - a0[track]
+    sxy = np.bincount(track, weights=dt * da, minlength=n_tracks)
+    sxx = np.bincount(track, weights=dt * dt, minlength=n_tracks)
+    usable = (n >= 100) & (sxx > 0)
+    return float(np.median(sxy[usable] / sxx[usable]))
 
 
 def angular_error_rad(model: SpinningLidarModel, elements: np.ndarray, direction: np.ndarray) -> np.ndarray:
