@@ -7,8 +7,9 @@ it measures, side by side and interleaved (copy, convert, command, copy, convert
   of a dataset run), and its ratio to the copy (median of per-run ratios);
 - the whole ``ncore-convert`` command for that one log, from process start (interpreter, imports,
   worker start-up) to synced files, and its ratio to the copy;
-- lidar path ms per sweep (read + decompensate + write, both units, in one process), both inside
-  the parallel run and alone on one core (``--no-cameras --workers 1``);
+- lidar model derivation time per unit (slowest unit);
+- lidar path ms per sweep (read, decompensate, assign model elements, write; both units, in one
+  process), both inside the parallel run and alone on one core (``--no-cameras --workers 1``);
 - peak RSS and CPU time of the log, summed over the process tree (sampled every 50 ms from /proc).
 Figures are medians over --repeat runs; this machine is noisy.
 
@@ -96,7 +97,7 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool)
         stop.set()
     figures = {"wall_s": wall, "sweeps": s.sweeps, "images": s.images, "points": s.points}
     figures.update(lidar_s=s.lidar_seconds, camera_s=s.camera_seconds, peak_rss_mb=peak[0] / 2**20)
-    figures.update(cpu_s=sum(cpu.values()) - cpu_before)
+    figures.update(cpu_s=sum(cpu.values()) - cpu_before, model_s=s.lidar_model_seconds)
     print(json.dumps(figures))
 
 
@@ -181,6 +182,7 @@ def main() -> None:
             f"  cp -r + sync                                   {r['cp_s']:.2f} s\n"
             f"  convert one log (warm workers, + sync)         {r['wall_s']:.2f} s  = {r['ratio']:.2f}x copy\n"
             f"  whole command for this log (start to sync)     {r['cli_s']:.2f} s  = {r['cli_ratio']:.2f}x copy\n"
+            f"  lidar model derivation (slowest unit)          {r['model_s']:.2f} s\n"
             f"  lidar path in the parallel run                 {1e3 * r['lidar_s'] / r['sweeps']:.1f} ms/sweep\n"
             f"  lidar path alone on one core                   {r['lidar_alone_ms']:.1f} ms/sweep\n"
             f"  camera path in the parallel run                {1e3 * r['camera_s'] / r['images']:.2f} ms/image\n"

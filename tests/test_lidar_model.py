@@ -99,3 +99,28 @@ def test_evaluate_command_fails_clearly_without_a_model(tmp_path):
     meta = converted.seq_dir / f"{converted.truth.log_id}.json"
     result = CliRunner().invoke(cli, ["evaluate-lidar-model", str(meta)])
     assert result.exit_code == 1 and "no row-offset structured lidar model" in result.output
+
+
+def test_column_time_remap_unwraps_and_recovers_phase_and_rate():
+    from ncore_convert.lidar_model import column_time_remap
+
+    rng = np.random.default_rng(3)
+    n, rate = 28_928, 28_928 * 10.02  # columns per second of a slightly fast spin
+    t = np.sort(rng.uniform(0.0026, 0.1028, 50_000))
+    true = 28_900.0 + rate * (t - t.min())  # starts just before the end of the grid, so it wraps
+    columns = np.rint(true + rng.normal(0, 2, len(t))) % n
+    remap = column_time_remap(columns, t, n, 10.0)
+    assert remap["first_time_s"] == t.min()
+    assert remap["column_at_first_time"] == pytest.approx(28_900.0, abs=0.5)
+    assert remap["columns_per_second"] == pytest.approx(rate, rel=1e-4)
+    assert remap["residual_p99_columns"] < 8
+
+
+@pytest.mark.parametrize("unit", UNITS)
+def test_every_frame_records_its_column_time_alignment(synth_log, unit):
+    sensor = synth_log.loader.get_lidar_sensor(unit)
+    n_columns = _params(synth_log, unit).n_columns
+    for i in range(sensor.frames_count):
+        remap = sensor.get_frame_generic_meta_data(i)["model_column_time_remap"]
+        assert remap["columns_per_second"] == pytest.approx(n_columns * vlp32c.SPIN_RATE_HZ, rel=2e-3)
+        assert remap["residual_p99_columns"] < 0.01 * n_columns

@@ -75,6 +75,35 @@ class SpinningLidarModel:
         return np.stack([np.cos(azimuth) * c, np.sin(azimuth) * c, np.sin(elevation)], axis=1)
 
 
+def column_time_remap(columns: np.ndarray, time_s: np.ndarray, n_columns: int, spinning_frequency_hz: float) -> dict:
+    """Affine column <-> time alignment of one frame: column = phase + rate * (t - t_first), modulo
+    the number of columns.
+
+    The phase places the frame on the revolution and the rate follows spin-rate drift. A frame can
+    span a little more than one revolution, so columns are first unwrapped against the nominal spin.
+
+    Args:
+        columns: model columns of the frame's rays [N]; time_s: their firing times [N], seconds.
+    Returns:
+        {"first_time_s", "column_at_first_time", "columns_per_second", "residual_p99_columns"}
+        (empty for fewer than two rays).
+    """
+    if len(columns) < 2:
+        return {}
+    t = time_s - time_s.min()
+    nominal = t * n_columns * spinning_frequency_hz
+    angle = 2.0 * np.pi * (columns - nominal) / n_columns
+    reference = n_columns * (_circular_mean(angle) % (2.0 * np.pi)) / (2.0 * np.pi)
+    c = columns + n_columns * np.rint((reference + nominal - columns) / n_columns)
+    rate, phase = np.polyfit(t, c, 1)
+    return {
+        "first_time_s": float(time_s.min()),
+        "column_at_first_time": float(phase % n_columns),
+        "columns_per_second": float(rate),
+        "residual_p99_columns": float(np.percentile(np.abs(c - (phase + rate * t)), 99)),
+    }
+
+
 def derive_model(
     direction: np.ndarray,
     distance_m: np.ndarray,
@@ -120,7 +149,9 @@ def derive_model(
     sign = 1.0 if rate > 0 else -1.0
     first_time_s = np.full(len(frame_ids), np.inf)
     np.minimum.at(first_time_s, frame_index, time_s)
-    start = _circular_mean(phase + rate * first_time_s)
+    frame_start = phase + rate * first_time_s  # azimuth where each frame's first firing points
+    mean_start = _circular_mean(frame_start)
+    start = mean_start + sign * np.min(_wrap(sign * (frame_start - mean_start)))  # no frame starts before column 0
     columns = _wrap(start + sign * 2.0 * np.pi * np.arange(n_columns) / n_columns)
     return SpinningLidarModel(
         spinning_frequency_hz=float(frequency),

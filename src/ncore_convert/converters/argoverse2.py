@@ -24,7 +24,7 @@ from ncore_convert.lidar import (
     decompensate,
     ray_bundle,
 )
-from ncore_convert.lidar_model import SpinningLidarModel, derive_model
+from ncore_convert.lidar_model import SpinningLidarModel, column_time_remap, derive_model
 from ncore_convert.pool import JobPool, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.argoverse2 import SourceError
@@ -85,6 +85,7 @@ class LogSummary(Counts):
 
     log_id: str = ""
     seconds: float = 0.0  #: wall time of the whole log
+    lidar_model_seconds: float = 0.0  #: slowest per-unit lidar model derivation
 
     def line(self) -> str:
         return (
@@ -188,6 +189,7 @@ class LidarCalibration:
 
     unit_split: UnitSplit
     models: dict[str, SpinningLidarModel]
+    model_seconds: dict[str, float]  #: derivation time of each model (benchmark figure)
 
 
 def calibrate_lidars(
@@ -216,8 +218,9 @@ def calibrate_lidars(
                 spread[(half, unit)] = spread.get((half, unit), 0.0) + beam_elevation_spread_rad(xyz, beam)
                 halves.setdefault((half, unit), []).append((xyz, beam, (times_ns - sweep.timestamp_ns) * 1e-9, k))
     split = decide_unit_split(spread)
-    models = {}
+    models, seconds = {}, {}
     for unit in model_units:
+        started = time.perf_counter()
         half = "low" if unit == split.low_half_unit else "high"
         xyz = np.concatenate([h[0] for h in halves[(half, unit)]]).astype(np.float64)
         distance = np.linalg.norm(xyz, axis=1)
@@ -232,7 +235,8 @@ def calibrate_lidars(
             firing_cycle_s=vlp32c.FIRING_CYCLE_NS * 1e-9,
             upsample=MODEL_UPSAMPLE,
         )
-    return LidarCalibration(split, models)
+        seconds[unit] = time.perf_counter() - started
+    return LidarCalibration(split, models, seconds)
 
 
 def sweep_ray_bundles(
@@ -240,9 +244,10 @@ def sweep_ray_bundles(
     calibration: LidarCalibration,
     T_rig_world: Trajectory,
     T_sensor_rig: dict[str, np.ndarray],
-) -> dict[str, tuple[RayBundle, np.ndarray | None]]:
+) -> dict[str, tuple[RayBundle, np.ndarray | None, dict]]:
     """Split one sweep by unit, decompensate each half into its unit's frame at per-point time, and
-    give each ray its nearest model element (uint16 [N,2], or None without a model)."""
+    give each ray its nearest model element (uint16 [N,2], or None without a model), plus the
+    frame's affine column-time alignment (see :func:`column_time_remap`; empty without a model)."""
     out = {}
     split = calibration.unit_split
     for unit, low in ((split.low_half_unit, True), (split.high_half_unit, False)):
@@ -252,11 +257,15 @@ def sweep_ray_bundles(
         xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T_sensor_rig[unit])
         rays = ray_bundle(xyz, times_ns, sweep.intensity[idx], sweep.timestamp_ns // 1000)
         model = calibration.models.get(unit)
-        elements = None
+        elements, remap = None, {}
         if model is not None:
             beam = sweep.laser_number[idx[rays.source_index]].astype(np.int64) % vlp32c.N_BEAMS
             elements = model.assign_elements(rays.direction, beam)
-        out[unit] = (rays, elements)
+            time_s = (times_ns[rays.source_index] - sweep.timestamp_ns) * 1e-9
+            remap = column_time_remap(
+                elements[:, 1], time_s, len(model.column_azimuths_rad), model.spinning_frequency_hz
+            )
+        out[unit] = (rays, elements, remap)
     return out
 
 
@@ -452,16 +461,16 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     source_points = {unit: 0 for unit in lidars}
     for ts in plan.sweep_timestamps_ns:
         sweep = read_covered_sweep(log_dir, int(ts), plan.T_rig_world)
-        for unit, (rays, elements) in sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig).items():
-            lidars[unit].store_frame(
-                rays,
-                {
-                    "av2_sweep_timestamp_ns": int(ts),
-                    "points_zero_range": rays.n_zero_range,
-                    "points_non_finite": rays.n_non_finite,
-                },
-                model_element=elements,
-            )
+        bundles = sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig)
+        for unit, (rays, elements, remap) in bundles.items():
+            frame_meta = {
+                "av2_sweep_timestamp_ns": int(ts),
+                "points_zero_range": rays.n_zero_range,
+                "points_non_finite": rays.n_non_finite,
+            }
+            if remap:
+                frame_meta["model_column_time_remap"] = remap
+            lidars[unit].store_frame(rays, frame_meta, model_element=elements)
             not_stored[unit]["zero_range"] += rays.n_zero_range
             not_stored[unit]["non_finite"] += rays.n_non_finite
             source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
@@ -560,6 +569,8 @@ def convert_log(
     if options.sequence_meta:
         write_sequence_meta(output_dir, log_id, [r.meta for r in results if r.meta is not None])
     summary = LogSummary(log_id=log_id, warnings=list(plan.warnings))
+    if plan.lidar_calibration is not None:
+        summary.lidar_model_seconds = max(plan.lidar_calibration.model_seconds.values(), default=0.0)
     for result in results:
         summary.add(result)
     summary.seconds = time.perf_counter() - started
