@@ -18,6 +18,8 @@ import numpy as np
 #: unless a beam has too few far returns (steep downward beams only hit the near ground).
 FAR_FIT_M = 10.0
 MIN_FAR_POINTS = 200
+#: Rays used to fit a frame's column-time alignment.
+REMAP_SAMPLES = 4096
 
 
 def _wrap(angle_rad: np.ndarray) -> np.ndarray:
@@ -56,15 +58,20 @@ class SpinningLidarModel:
         """Nearest model element of each ray: uint16 [N,2] (row, column).
 
         Args:
-            direction: unit rays in the sensor frame [N,3]; beam: source beam id [N].
+            direction: unit rays in the sensor frame [N,3] (float32 is enough: a column is 2e-4 rad);
+            beam: source beam id [N].
         """
         row = self.beam_to_row[beam]
-        azimuth = np.arctan2(direction[:, 1], direction[:, 0]) - self.row_azimuth_offsets_rad[row]
         n = len(self.column_azimuths_rad)
-        step = 2.0 * np.pi / n
-        progress = (self._sign * (azimuth - self.column_azimuths_rad[0])) % (2.0 * np.pi)
-        column = np.rint(progress / step).astype(np.int64) % n
-        return np.stack([row, column], axis=1).astype(np.uint16)
+        # signed progress from column 0 in the spin direction, in columns; the integer modulo wraps it
+        start = self.column_azimuths_rad[0] + self.row_azimuth_offsets_rad
+        azimuth = np.arctan2(direction[:, 1], direction[:, 0])
+        progress = (azimuth - start[row].astype(azimuth.dtype)) * (self._sign * n / (2.0 * np.pi))
+        column = np.rint(progress).astype(np.int64) % n
+        out = np.empty((len(row), 2), dtype=np.uint16)
+        out[:, 0] = row
+        out[:, 1] = column
+        return out
 
     def element_directions(self, elements: np.ndarray) -> np.ndarray:
         """Unit rays [N,3] of model elements [N,2] (row, column)."""
@@ -90,16 +97,19 @@ def column_time_remap(columns: np.ndarray, time_s: np.ndarray, n_columns: int, s
     """
     if len(columns) < 2:
         return {}
-    t = time_s - time_s.min()
+    step = max(1, len(columns) // REMAP_SAMPLES)  # a uniform subsample fits the two numbers as well
+    t = time_s[::step] - time_s.min()
     nominal = t * n_columns * spinning_frequency_hz
-    angle = 2.0 * np.pi * (columns - nominal) / n_columns
+    angle = 2.0 * np.pi * (columns[::step] - nominal) / n_columns
     reference = n_columns * (_circular_mean(angle) % (2.0 * np.pi)) / (2.0 * np.pi)
-    c = columns + n_columns * np.rint((reference + nominal - columns) / n_columns)
-    rate, phase = np.polyfit(t, c, 1)
+    c = columns[::step] + n_columns * np.rint((reference + nominal - columns[::step]) / n_columns)
+    dt, dc = t - t.mean(), c - c.mean()
+    rate = float(np.dot(dt, dc) / np.dot(dt, dt)) if np.dot(dt, dt) > 0 else 0.0
+    phase = float(c.mean() - rate * t.mean())
     return {
         "first_time_s": float(time_s.min()),
-        "column_at_first_time": float(phase % n_columns),
-        "columns_per_second": float(rate),
+        "column_at_first_time": phase % n_columns,
+        "columns_per_second": rate,
         "residual_p99_columns": float(np.percentile(np.abs(c - (phase + rate * t)), 99)),
     }
 
