@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from conftest import synth_and_convert
+from ncore.data.v4 import LidarSensorComponent
 from ncore.impl.data.types import RowOffsetStructuredSpinningLidarModelParameters
 
 from ncore_convert import vlp32c
@@ -124,3 +125,14 @@ def test_every_frame_records_its_column_time_alignment(synth_log, unit):
         remap = sensor.get_frame_generic_meta_data(i)["model_column_time_remap"]
         assert remap["columns_per_second"] == pytest.approx(n_columns * vlp32c.SPIN_RATE_HZ, rel=2e-3)
         assert remap["residual_p99_columns"] < 0.01 * n_columns
+
+
+@pytest.mark.parametrize("unit", UNITS)
+def test_laser_number_to_row_map_is_stored_and_sorts_by_elevation(synth_log, unit):
+    meta = synth_log.reader.open_component_readers(LidarSensorComponent.Reader)[unit].generic_meta_data
+    laser_to_row = {int(k): v for k, v in meta["lidar_model"]["laser_number_to_row"].items()}
+    low = meta["av2_unit_decision"]["laser_number_lt_32"] == unit
+    assert sorted(laser_to_row) == list(range(0, 32) if low else range(32, 64))
+    assert sorted(laser_to_row.values()) == list(range(32))
+    by_row = sorted(laser_to_row, key=laser_to_row.get)
+    assert np.all(np.diff(vlp32c.BEAM_ELEVATION_DEG[np.array(by_row) % 32]) < 0)

@@ -445,6 +445,22 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
     result.cuboids = 0 if cuboids is None else len(cuboids)
 
 
+def _lidar_meta(calibration: LidarCalibration, unit: str, model_source: str) -> dict:
+    """Lidar component metadata: the unit decision and, with a model, how it was derived and the
+    laser_number -> model row map (the NCore model itself has no place for it)."""
+    meta = {"av2_unit_decision": calibration.unit_split.to_meta(), "lidar_model_source": model_source}
+    if (model := calibration.models.get(unit)) is not None:
+        first_laser = 0 if unit == calibration.unit_split.low_half_unit else vlp32c.N_BEAMS
+        meta["lidar_model"] = {
+            "laser_number_to_row": {str(first_laser + b): int(r) for b, r in enumerate(model.beam_to_row)},
+            "columns_per_firing_cycle": MODEL_UPSAMPLE,
+            "firing_cycle_ns": vlp32c.FIRING_CYCLE_NS,
+            "calibration_sweeps": CALIBRATION_SWEEPS,
+            "element_assignment": "beam row; nearest column to the ray azimuth minus the row offset",
+        }
+    return meta
+
+
 def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
     """Stream sweeps one at a time: read, split by unit, decompensate, assign model elements, store.
     Memory stays flat."""
@@ -452,9 +468,8 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     log_dir = plan.inputs.log_dir
     calibration = plan.lidar_calibration
     T_sensor_rig = {unit: plan.inputs.ego_SE3_sensor[unit] for unit in plan.lidar_ids}
-    decision, source = calibration.unit_split.to_meta(), plan.options.lidar_model_source
     lidars = {  # one metadata dict per lidar: the writer updates it in place
-        unit: writer.add_lidar(unit, {"av2_unit_decision": decision, "lidar_model_source": source})
+        unit: writer.add_lidar(unit, _lidar_meta(calibration, unit, plan.options.lidar_model_source))
         for unit in plan.lidar_ids
     }
     not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
