@@ -14,6 +14,7 @@ it measures, side by side and interleaved (copy, convert, command, copy, convert
 Figures are medians over --repeat runs; this machine is noisy.
 
     python bench/bench_argoverse2.py [--work /tmp/ncore-bench] [--repeat 5] [--workers N]
+                                     [--lidar-model-source empirical|none]
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def _ready(progress) -> int:
     return os.getpid()
 
 
-def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool) -> None:
+def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool, model_source: str) -> None:
     """One log through a warm worker pool (as every log after the first in a dataset run);
     prints its figures as JSON. Time and CPU run from the start of the log to its synced files."""
     from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
@@ -85,7 +86,7 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool)
             peak[0] = max(peak[0], sum(rss for rss, _ in tree.values()))
             cpu.update({pid: max(cpu.get(pid, 0.0), seconds) for pid, (_, seconds) in tree.items()})
 
-    options = Argoverse2Options(split="val", camera_ids=None if cameras else ())
+    options = Argoverse2Options(split="val", camera_ids=None if cameras else (), lidar_model_source=model_source)
     with JobPool(workers, preload=["ncore_convert.converters.argoverse2"]) as pool:
         pool.run([(_ready, ())] * workers)
         cpu_before = sum(seconds for _, seconds in _process_tree(os.getpid()).values())
@@ -101,20 +102,21 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool)
     print(json.dumps(figures))
 
 
-def convert(log_dir: Path, out: Path, workers: int, cameras: bool = True) -> dict:
+def convert(log_dir: Path, out: Path, workers: int, model_source: str, cameras: bool = True) -> dict:
     args = [sys.executable, __file__, "--child", str(log_dir.parent.parent), str(out), log_dir.name, str(workers)]
+    args += ["--lidar-model-source", model_source]
     proc = subprocess.run(args + ([] if cameras else ["--no-cameras"]), check=True, capture_output=True, text=True)
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def convert_cli(log_dir: Path, out: Path, workers: int) -> float:
+def convert_cli(log_dir: Path, out: Path, workers: int, model_source: str) -> float:
     """The whole command for this one log, from process start (imports, pool start) to synced files."""
     cli = Path(sys.executable).parent / "ncore-convert"
     shutil.rmtree(out, ignore_errors=True)
     t = time.perf_counter()
     subprocess.run(
         [str(cli), "--root-dir", str(log_dir.parent.parent), "--output-dir", str(out), "--workers", str(workers),
-         "--no-progress", "argoverse2-v4", "--split", "val"],
+         "--no-progress", "argoverse2-v4", "--split", "val", "--lidar-model-source", model_source],
         check=True, capture_output=True,
     )  # fmt: skip
     subprocess.run(["sync"], check=True)
@@ -136,16 +138,16 @@ def du_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-def measure(log_dir: Path, work: Path, repeat: int, workers: int) -> dict:
+def measure(log_dir: Path, work: Path, repeat: int, workers: int, model_source: str) -> dict:
     runs, lidar_alone = [], []
     for _ in range(repeat):
         run = {"cp_s": copy(log_dir, work / "copy")}
-        run.update(convert(log_dir, work / "out", workers))
-        run["cli_s"] = convert_cli(log_dir, work / "out-cli", workers)
+        run.update(convert(log_dir, work / "out", workers, model_source))
+        run["cli_s"] = convert_cli(log_dir, work / "out-cli", workers, model_source)
         run["ratio"] = run["wall_s"] / run["cp_s"]
         run["cli_ratio"] = run["cli_s"] / run["cp_s"]
         runs.append(run)
-        alone = convert(log_dir, work / "out-lidar", 1, cameras=False)
+        alone = convert(log_dir, work / "out-lidar", 1, model_source, cameras=False)
         lidar_alone.append(1e3 * alone["lidar_s"] / alone["sweeps"])
     med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
     med["lidar_alone_ms"] = statistics.median(lidar_alone)
@@ -161,21 +163,26 @@ def main() -> None:
     parser.add_argument("--work", default="/tmp/ncore-bench")
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--workers", type=int, default=default_workers())
+    parser.add_argument("--lidar-model-source", choices=["empirical", "none"], default="empirical")
     parser.add_argument("--child", nargs=4, metavar=("ROOT", "OUT", "LOG_ID", "WORKERS"), help=argparse.SUPPRESS)
     parser.add_argument("--no-cameras", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         root, out, log_id, workers = args.child
-        child_convert(root, out, log_id, int(workers), cameras=not args.no_cameras)
+        child_convert(root, out, log_id, int(workers), not args.no_cameras, args.lidar_model_source)
         return
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    print(f"{args.workers} worker process(es), medians of {args.repeat} interleaved runs", flush=True)
+    print(
+        f"{args.workers} worker process(es), lidar model {args.lidar_model_source},"
+        f" medians of {args.repeat} interleaved runs",
+        flush=True,
+    )
     results = {}
     for seconds in (5.0, 15.0):
         print(f"{seconds:g} s log:", flush=True)
         workers = args.workers
-        results[seconds] = r = measure(synth(work, seconds), work, args.repeat, workers)
+        results[seconds] = r = measure(synth(work, seconds), work, args.repeat, workers, args.lidar_model_source)
         print(
             f"  {r['sweeps']:.0f} sweeps, {r['images']:.0f} images, {r['bytes'] / 1e9:.2f} GB in,"
             f" {r['out_bytes'] / 1e9:.2f} GB out\n"
