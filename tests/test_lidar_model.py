@@ -124,7 +124,7 @@ def test_every_frame_records_its_column_time_alignment(synth_log, unit):
     for i in range(sensor.frames_count):
         remap = sensor.get_frame_generic_meta_data(i)["model_column_time_remap"]
         assert remap["columns_per_second"] == pytest.approx(n_columns * vlp32c.SPIN_RATE_HZ, rel=2e-3)
-        assert remap["residual_p99_columns"] < 0.01 * n_columns
+        assert remap["residual_p99_columns"] < 4  # a uniform simulated spin: only firing-stagger and µs rounding
 
 
 @pytest.mark.parametrize("unit", UNITS)
