@@ -180,7 +180,7 @@ def test_one_failing_log_does_not_stop_the_others(small_root, tmp_path):
     broken.mkdir()
     result = run("--root-dir", str(root), "--output-dir", str(tmp_path / "out"), "argoverse2-v4", "--split", "val")
     assert result.exit_code == 1
-    assert "1/2 logs converted" in result.output
+    assert "1 converted, 0 skipped, 1 failed" in result.output
     assert (tmp_path / "out" / truth.log_id / f"{truth.log_id}.json").exists()
 
 

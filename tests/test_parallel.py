@@ -108,7 +108,7 @@ def test_a_failure_inside_a_worker_names_the_file_and_leaves_nothing(camera_root
     assert result.exit_code == 1, result.output
     fail = [line for line in result.output.splitlines() if line.startswith("FAIL")]
     assert len(fail) == 1 and str(bad) in fail[0] and "not a JPEG" in fail[0], result.output
-    assert not list(out.iterdir())
+    assert [p.name for p in out.iterdir()] == ["conversion-report.json"]
 
 
 def test_pool_runs_jobs_in_order_and_reports_progress(pool):

@@ -7,7 +7,7 @@ NCore converters. Tool commands (``synth``) need no ``--root-dir/--output-dir``.
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import click
 from upath import UPath
@@ -25,6 +25,7 @@ class GroupOptions:
     lidar_ids: tuple[str, ...] | None
     progress: bool
     workers: int
+    mode: str
 
     def require_paths(self) -> tuple[UPath, UPath]:
         if not self.root_dir:
@@ -66,8 +67,18 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     "--workers", type=click.IntRange(min=1), default=None, show_default="the number of CPUs",
     help="Worker processes; the independent stores of a log (per sensor) are written in parallel.",
 )  # fmt: skip
+@click.option(
+    "--overwrite", is_flag=True, default=False, show_default="off",
+    help="Reconvert logs that a previous run already converted with the same version and options.",
+)  # fmt: skip
+@click.option(
+    "--retry-failed", is_flag=True, default=False, show_default="off",
+    help="Convert only the logs that the last run (conversion-report.json) reported as failed.",
+)  # fmt: skip
 @click.pass_context
-def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars, progress, workers):
+def cli(
+    ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars, progress, workers, overwrite, retry_failed
+):
     """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences."""
     ctx.obj = GroupOptions(
         root_dir=root_dir,
@@ -76,7 +87,10 @@ def cli(ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars,
         lidar_ids=_selection(lidar_ids, no_lidars),
         progress=progress,
         workers=workers or default_workers(),
+        mode="overwrite" if overwrite else ("retry-failed" if retry_failed else "resume"),
     )
+    if overwrite and retry_failed:
+        raise click.UsageError("--overwrite and --retry-failed exclude each other")
 
 
 @cli.command("argoverse2-v4")
@@ -141,9 +155,18 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
         def convert(seq_dir, log_id, on_frame, on_total):
             return convert_log(root, seq_dir, log_id, options, pool=pool, on_frame=on_frame, on_total=on_total)
 
-        results = run_logs(out, todo, convert, echo=click.echo, show_progress=obj.progress)
+        fingerprint = {"name": "ncore-convert", "version": __version__, "command": "argoverse2-v4"}
+        fingerprint["options"] = asdict(options)
+        results = run_logs(
+            out, todo, convert, echo=click.echo, show_progress=obj.progress, fingerprint=fingerprint,
+            mode=obj.mode, input_dir=lambda log_id: root / split / log_id,
+        )  # fmt: skip
     failed = sum(not r.ok for r in results)
-    click.echo(f"{len(results) - failed}/{len(results)} logs converted to {out}")
+    skipped = sum(r.skipped for r in results)
+    click.echo(
+        f"{len(results) - failed - skipped} converted, {skipped} skipped, {failed} failed;"
+        f" output and conversion-report.json in {out}"
+    )
     sys.exit(1 if failed else 0)
 
 

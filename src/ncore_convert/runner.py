@@ -1,17 +1,23 @@
-"""Runs per-log conversion tasks: atomic output directories, progress, per-log error isolation.
+"""Runs per-log conversion tasks: atomic output directories, progress, per-log error isolation,
+resumable runs and a run report.
 
 Each log is written into ``<output>/.<log_id>.partial``, flushed to disk, and renamed to
 ``<output>/<log_id>`` only once complete, so an interrupted run (or a power loss) never leaves a
-sequence that looks finished.
+sequence that looks finished. ``<output>/conversion-report.json`` is rewritten atomically after
+every log; a rerun skips the logs it records as converted by the same converter version with the
+same options.
 """
 
 from __future__ import annotations
 
+import json
 import re
+import time
 import traceback
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
-from typing import Protocol
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Literal, Protocol
 
 from tqdm import tqdm
 from upath import UPath
@@ -30,12 +36,20 @@ class Summary(Protocol):
 ConvertFn = Callable[[UPath, str, Callable[[int], None], Callable[[int], None]], Summary]
 
 
+REPORT_NAME = "conversion-report.json"
+Mode = Literal["resume", "overwrite", "retry-failed"]
+
+
 @dataclass
 class LogResult:
     log_id: str
     ok: bool
     summary: Summary | None = None
     error: str | None = None
+    error_file: str | None = None  #: the input file at fault, when known
+    skipped: bool = False
+    seconds: float = 0.0
+    warnings: list[str] = field(default_factory=list)
 
 
 def _origin(err: BaseException) -> str:
@@ -62,7 +76,7 @@ def convert_one(output_root: UPath, log_id: str, convert: ConvertFn, show_progre
         summary = convert(partial, log_id, bar.update, on_total)
     except SourceError as err:
         remove_tree(partial)
-        return LogResult(log_id, False, error=str(err))
+        return LogResult(log_id, False, error=str(err), error_file=err.path)
     except Exception as err:  # noqa: BLE001 - one log's failure must not stop the others
         remove_tree(partial)
         return LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
@@ -72,7 +86,68 @@ def convert_one(output_root: UPath, log_id: str, convert: ConvertFn, show_progre
     remove_tree(final)
     partial.rename(final)
     flush_to_disk(output_root)
-    return LogResult(log_id, True, summary=summary)
+    return LogResult(log_id, True, summary=summary, warnings=list(summary.warnings))
+
+
+def tree_bytes(path: UPath) -> int:
+    """Total size of the files under ``path`` (0 if it does not exist)."""
+    if not path.exists():
+        return 0
+    if path.is_file():
+        return path.stat().st_size
+    return int(path.fs.du(path.path, total=True))
+
+
+class RunReport:
+    """``<output>/conversion-report.json``: per log status, seconds, bytes, warnings and errors.
+
+    Entries of logs not touched by this run are kept, so the report describes the whole output
+    folder. It is rewritten atomically (temporary file + rename) after every log.
+    """
+
+    def __init__(self, output_root: UPath, fingerprint: dict) -> None:
+        self.path = output_root / REPORT_NAME
+        self.fingerprint = json.loads(json.dumps(fingerprint))  # as it reads back (tuples become lists)
+        self.logs: dict[str, dict] = {}
+        if self.path.exists():
+            try:
+                self.logs = json.loads(self.path.read_text()).get("logs", {})
+            except (json.JSONDecodeError, AttributeError):
+                self.logs = {}  # unreadable: nothing is skipped, everything is redone
+
+    def previous(self, log_id: str) -> dict | None:
+        return self.logs.get(log_id)
+
+    def is_done(self, log_id: str, output_root: UPath) -> bool:
+        entry = self.logs.get(log_id) or {}
+        return (
+            entry.get("status") in ("ok", "skipped")
+            and entry.get("fingerprint") == self.fingerprint
+            and (output_root / log_id).is_dir()
+        )
+
+    def record(self, result: LogResult, input_bytes: int, output_bytes: int) -> None:
+        entry = {
+            "status": "skipped" if result.skipped else ("ok" if result.ok else "failed"),
+            "seconds": round(result.seconds, 3),
+            "input_bytes": input_bytes,
+            "output_bytes": output_bytes,
+            "warnings": result.warnings,
+            "error": None if result.ok else {"file": result.error_file, "reason": result.error},
+            "fingerprint": self.fingerprint,
+            "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        }
+        if result.skipped:  # keep what the converting run measured
+            entry.update({k: self.logs[result.log_id][k] for k in ("seconds", "warnings")})
+        self.logs[result.log_id] = entry
+        self._write()
+
+    def _write(self) -> None:
+        text = json.dumps({"converter": self.fingerprint, "logs": self.logs}, indent=2)
+        tmp = self.path.parent / f".{REPORT_NAME}.tmp"
+        tmp.write_text(text)
+        flush_to_disk(tmp)
+        tmp.rename(self.path)
 
 
 def run_logs(
@@ -81,17 +156,40 @@ def run_logs(
     convert: ConvertFn,
     echo: Callable[[str], None],
     show_progress: bool = True,
+    fingerprint: dict | None = None,
+    mode: Mode = "resume",
+    input_dir: Callable[[str], UPath] | None = None,
 ) -> list[LogResult]:
-    """Convert logs one after another; print a one-line summary (or error) per log."""
+    """Convert logs one after another; print a one-line summary (or error) per log; keep the report.
+
+    Args:
+        fingerprint: converter name, version and options; a log converted with the same
+            fingerprint is skipped in ``resume`` mode.
+        mode: ``resume`` skips logs already converted with this fingerprint; ``overwrite`` redoes
+            every log; ``retry-failed`` redoes only the logs the last run reported as failed.
+        input_dir: a log's source folder (for the input bytes in the report).
+    """
     output_root.mkdir(parents=True, exist_ok=True)
+    report = RunReport(output_root, fingerprint or {})
     results = []
     for log_id in log_ids:
-        result = convert_one(output_root, log_id, convert, show_progress)
-        if result.ok:
-            echo(f"ok    {result.summary.line()}")
-            for warning in result.summary.warnings:
-                echo(f"      warning: {warning}")
+        if mode == "retry-failed" and (report.previous(log_id) or {}).get("status") != "failed":
+            echo(f"skip  {log_id}: not a failure of the last run")
+            continue  # its report entry stays as it was
+        if mode == "resume" and report.is_done(log_id, output_root):
+            echo(f"skip  {log_id}: already converted with the same converter version and options")
+            result = LogResult(log_id, True, skipped=True)
         else:
-            echo(f"FAIL  {log_id}: {result.error}")
+            started = time.perf_counter()
+            result = convert_one(output_root, log_id, convert, show_progress)
+            result.seconds = time.perf_counter() - started
+            if result.ok:
+                echo(f"ok    {result.summary.line()}")
+                for warning in result.summary.warnings:
+                    echo(f"      warning: {warning}")
+            else:
+                echo(f"FAIL  {log_id}: {result.error}")
+        input_bytes = tree_bytes(input_dir(log_id)) if input_dir else 0
+        report.record(result, input_bytes, tree_bytes(output_root / log_id) if result.ok else 0)
         results.append(result)
     return results
