@@ -138,3 +138,18 @@ def test_an_unexpected_worker_error_is_reported_where_the_worker_raised_it(pool,
     result = convert_one(UPath(tmp_path), "log", convert, show_progress=False)
     assert not result.ok and result.error.startswith("ValueError: boom (at ")
     assert f"{__file__}:" in result.error and not list(tmp_path.iterdir())
+
+
+def test_a_killed_worker_fails_that_run_and_fresh_workers_serve_the_next(pool):
+    from ncore_convert.pool import WorkerDied
+
+    with pytest.raises(WorkerDied, match="worker process died"):
+        pool.run([(_kill_self, ()), (_count_to, (2,))])
+    assert pool.run([(_count_to, (n,)) for n in (1, 2)]) == [1, 2]
+
+
+def _kill_self(progress) -> None:
+    import os
+    import signal
+
+    os.kill(os.getpid(), signal.SIGKILL)

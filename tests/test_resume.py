@@ -27,8 +27,8 @@ def run(root, out, *extra):
     return CliRunner().invoke(cli, [*args, "argoverse2-v4", "--split", "val"], catch_exceptions=False)
 
 
-def report(out) -> dict:
-    return json.loads((out / "conversion-report.json").read_text())
+def report(out, name: str = "conversion-report.json") -> dict:
+    return json.loads((out / name).read_text())
 
 
 def store_mtimes(out, log_id) -> dict:
@@ -95,3 +95,64 @@ def test_report_records_status_times_bytes_and_the_converter(two_logs, tmp_path)
         assert entry["input_bytes"] == in_bytes and entry["output_bytes"] == out_bytes
         assert isinstance(entry["warnings"], list) and entry["fingerprint"] == data["converter"]
     assert not list(out.glob(".*"))  # no temporary report or partial folder left
+
+
+def _children(pid: int) -> list[int]:
+    import os
+
+    out = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            out += [int(c) for c in f.read().split()]
+    return out
+
+
+def test_a_run_killed_mid_log_is_completed_by_the_rerun(tmp_path):
+    """SIGKILL a worker while a log is being written: that log fails, nothing looks finished, and the
+    rerun converts it correctly."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import open_sequence
+
+    root = tmp_path / "root"
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=1.0, seed=23, camera_fps=20))
+    out = tmp_path / "out"
+    from pathlib import Path
+
+    cmd = [str(Path(sys.executable).parent / "ncore-convert"), "--no-progress", "--root-dir", str(root), "--output-dir",
+           str(out), "--workers", "2", "argoverse2-v4", "--split", "val"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline, workers = time.monotonic() + 60, []
+    while not (workers and (out / f".{truth.log_id}.partial").exists()) and time.monotonic() < deadline:
+        time.sleep(0.02)
+        workers = [w for server in _children(proc.pid) for w in _children(server)]
+    assert workers, "no worker processes found"
+    os.kill(workers[0], signal.SIGKILL)
+    output, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 1, output
+    assert f"FAIL  {truth.log_id}: WorkerDied: a worker process died" in output
+    assert not (out / truth.log_id).exists() and not (out / f".{truth.log_id}.partial").exists()
+    rerun = run(root, out)
+    assert rerun.exit_code == 0 and f"ok    {truth.log_id}" in rerun.output
+    loader = open_sequence(out / truth.log_id, truth.log_id)
+    assert loader.get_lidar_sensor("up_lidar").frames_count == len(truth.sweeps)
+    assert sum(loader.get_camera_sensor(c).frames_count for c in loader.camera_ids) == truth.n_images
+
+
+def test_shards_split_the_logs_and_keep_their_own_reports(two_logs, tmp_path):
+    root, truths = two_logs
+    out = tmp_path / "out"
+    ids = sorted(t.log_id for t in truths)
+    for index in (0, 1):
+        result = run(root, out, "--shard", f"{index}/2")
+        assert result.exit_code == 0 and "1 converted, 0 skipped" in result.output
+        assert list(report(out, f"conversion-report-shard-{index}-of-2.json")["logs"]) == [ids[index]]
+    assert all((out / log_id).is_dir() for log_id in ids)
+    assert not (out / "conversion-report.json").exists()
+    for bad in ("2/2", "x/2", "1"):
+        result = run(root, out, "--shard", bad)
+        assert result.exit_code == 2 and "--shard" in result.output

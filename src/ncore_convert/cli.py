@@ -26,6 +26,7 @@ class GroupOptions:
     progress: bool
     workers: int
     mode: str
+    shard: tuple[int, int] | None
 
     def require_paths(self) -> tuple[UPath, UPath]:
         if not self.root_dir:
@@ -75,9 +76,24 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     "--retry-failed", is_flag=True, default=False, show_default="off",
     help="Convert only the logs that the last run (conversion-report.json) reported as failed.",
 )  # fmt: skip
+@click.option(
+    "--shard", type=str, default=None, show_default="none: every log",
+    help="I/N: convert only every N-th log of the sorted list, starting at I (array jobs without Ray).",
+)  # fmt: skip
 @click.pass_context
 def cli(
-    ctx, root_dir, output_dir, camera_ids, no_cameras, lidar_ids, no_lidars, progress, workers, overwrite, retry_failed
+    ctx,
+    root_dir,
+    output_dir,
+    camera_ids,
+    no_cameras,
+    lidar_ids,
+    no_lidars,
+    progress,
+    workers,
+    overwrite,
+    retry_failed,
+    shard,
 ):
     """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences."""
     ctx.obj = GroupOptions(
@@ -88,9 +104,22 @@ def cli(
         progress=progress,
         workers=workers or default_workers(),
         mode="overwrite" if overwrite else ("retry-failed" if retry_failed else "resume"),
+        shard=_parse_shard(shard),
     )
     if overwrite and retry_failed:
         raise click.UsageError("--overwrite and --retry-failed exclude each other")
+
+
+def _parse_shard(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        index, count = (int(part) for part in text.split("/"))
+    except ValueError:
+        raise click.UsageError(f"--shard {text}: expected I/N, e.g. 0/4") from None
+    if not 0 <= index < count:
+        raise click.UsageError(f"--shard {text}: need 0 <= I < N")
+    return index, count
 
 
 @cli.command("argoverse2-v4")
@@ -124,7 +153,7 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
     # start the workers first: their fork server imports the converter while this process does
     with JobPool(obj.workers, preload=["ncore_convert.converters.argoverse2"]) as pool:
         from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
-        from ncore_convert.runner import run_logs
+        from ncore_convert.runner import report_name, run_logs, shard_logs
         from ncore_convert.sources import argoverse2 as av2
 
         options = Argoverse2Options(
@@ -151,6 +180,7 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
             todo = available
         if not todo:
             raise click.UsageError(f"no logs under {root / split}")
+        todo = shard_logs(todo, obj.shard)
 
         def convert(seq_dir, log_id, on_frame, on_total):
             return convert_log(root, seq_dir, log_id, options, pool=pool, on_frame=on_frame, on_total=on_total)
@@ -159,13 +189,13 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
         fingerprint["options"] = asdict(options)
         results = run_logs(
             out, todo, convert, echo=click.echo, show_progress=obj.progress, fingerprint=fingerprint,
-            mode=obj.mode, input_dir=lambda log_id: root / split / log_id,
+            mode=obj.mode, input_dir=lambda log_id: root / split / log_id, report_file=report_name(obj.shard),
         )  # fmt: skip
     failed = sum(not r.ok for r in results)
     skipped = sum(r.skipped for r in results)
     click.echo(
         f"{len(results) - failed - skipped} converted, {skipped} skipped, {failed} failed;"
-        f" output and conversion-report.json in {out}"
+        f" output and {report_name(obj.shard)} in {out}"
     )
     sys.exit(1 if failed else 0)
 

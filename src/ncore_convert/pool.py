@@ -17,6 +17,7 @@ import os
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 Job = tuple[Callable[..., Any], tuple]
@@ -35,6 +36,10 @@ WORKER_ENVIRONMENT = {
 }
 
 _frames_done = None  # shared counter, set in each worker
+
+
+class WorkerDied(RuntimeError):
+    """A worker process ended abruptly (SIGKILL, out of memory) while running a job."""
 
 
 def _init_worker(counter) -> None:
@@ -93,18 +98,22 @@ class JobPool:
         ctx.set_forkserver_preload(list(preload))
         with _environment(WORKER_ENVIRONMENT):  # the fork server (and so every worker) inherits it
             multiprocessing.forkserver.ensure_running()
+        self._ctx = ctx
         self._counter = ctx.Value("q", 0)
+        self._start_executor()
+
+    def _start_executor(self) -> None:
         self._executor = ProcessPoolExecutor(
-            workers, mp_context=ctx, initializer=_init_worker, initargs=(self._counter,)
+            self.workers, mp_context=self._ctx, initializer=_init_worker, initargs=(self._counter,)
         )
         # start the workers in the background: the fork server imports the preload modules (about a
         # second) while the caller reads its inputs
-        threading.Thread(target=self._start_workers, daemon=True).start()
+        threading.Thread(target=self._start_workers, args=(self._executor,), daemon=True).start()
 
-    def _start_workers(self) -> None:
-        with contextlib.suppress(RuntimeError):  # the pool was closed before it started
+    def _start_workers(self, executor: ProcessPoolExecutor) -> None:
+        with contextlib.suppress(RuntimeError):  # the pool was closed (or broke) before it started
             for _ in range(self.workers):
-                self._executor.submit(_warm_up)
+                executor.submit(_warm_up)
 
     def __enter__(self) -> JobPool:
         return self
@@ -120,9 +129,17 @@ class JobPool:
 
         Jobs are submitted in the given order (put the longest first). If a job fails, jobs not yet
         started are cancelled, running ones are awaited (so nothing writes after this returns),
-        and the first failure is raised.
+        and the first failure is raised. If a worker process dies (killed, out of memory), the
+        run fails with :class:`WorkerDied` and fresh workers serve the next run.
         """
-        progress = on_progress or (lambda n: None)
+        try:
+            return self._run(jobs, on_progress or (lambda n: None))
+        except BrokenProcessPool as err:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._start_executor()
+            raise WorkerDied("a worker process died (killed or out of memory) before its job finished") from err
+
+    def _run(self, jobs: Sequence[Job], progress: Callable[[int], None]) -> list[Any]:
         with self._counter.get_lock():
             self._counter.value = 0
         futures: list[Future] = [self._executor.submit(_call, fn, args) for fn, args in jobs]

@@ -37,6 +37,21 @@ ConvertFn = Callable[[UPath, str, Callable[[int], None], Callable[[int], None]],
 
 
 REPORT_NAME = "conversion-report.json"
+
+
+def report_name(shard: tuple[int, int] | None) -> str:
+    """The run report's file name; each shard of an array job keeps its own report."""
+    return REPORT_NAME if shard is None else f"conversion-report-shard-{shard[0]}-of-{shard[1]}.json"
+
+
+def shard_logs(log_ids: list[str], shard: tuple[int, int] | None) -> list[str]:
+    """Shard I of N: every N-th log of the sorted list, starting at I (all logs without a shard)."""
+    if shard is None:
+        return log_ids
+    index, count = shard
+    return [log for i, log in enumerate(sorted(log_ids)) if i % count == index]
+
+
 Mode = Literal["resume", "overwrite", "retry-failed"]
 
 
@@ -105,8 +120,8 @@ class RunReport:
     folder. It is rewritten atomically (temporary file + rename) after every log.
     """
 
-    def __init__(self, output_root: UPath, fingerprint: dict) -> None:
-        self.path = output_root / REPORT_NAME
+    def __init__(self, output_root: UPath, fingerprint: dict, name: str = REPORT_NAME) -> None:
+        self.path = output_root / name
         self.fingerprint = json.loads(json.dumps(fingerprint))  # as it reads back (tuples become lists)
         self.logs: dict[str, dict] = {}
         if self.path.exists():
@@ -144,7 +159,7 @@ class RunReport:
 
     def _write(self) -> None:
         text = json.dumps({"converter": self.fingerprint, "logs": self.logs}, indent=2)
-        tmp = self.path.parent / f".{REPORT_NAME}.tmp"
+        tmp = self.path.parent / f".{self.path.name}.tmp"
         tmp.write_text(text)
         flush_to_disk(tmp)
         tmp.rename(self.path)
@@ -159,6 +174,7 @@ def run_logs(
     fingerprint: dict | None = None,
     mode: Mode = "resume",
     input_dir: Callable[[str], UPath] | None = None,
+    report_file: str = REPORT_NAME,
 ) -> list[LogResult]:
     """Convert logs one after another; print a one-line summary (or error) per log; keep the report.
 
@@ -168,9 +184,10 @@ def run_logs(
         mode: ``resume`` skips logs already converted with this fingerprint; ``overwrite`` redoes
             every log; ``retry-failed`` redoes only the logs the last run reported as failed.
         input_dir: a log's source folder (for the input bytes in the report).
+        report_file: the report's name in ``output_root`` (one per shard, see :func:`report_name`).
     """
     output_root.mkdir(parents=True, exist_ok=True)
-    report = RunReport(output_root, fingerprint or {})
+    report = RunReport(output_root, fingerprint or {}, report_file)
     results = []
     for log_id in log_ids:
         if mode == "retry-failed" and (report.previous(log_id) or {}).get("status") != "failed":
