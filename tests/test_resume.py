@@ -156,3 +156,17 @@ def test_shards_split_the_logs_and_keep_their_own_reports(two_logs, tmp_path):
     for bad in ("2/2", "x/2", "1"):
         result = run(root, out, "--shard", bad)
         assert result.exit_code == 2 and "--shard" in result.output
+
+
+def test_logs_in_parallel_write_the_same_bytes_as_one_at_a_time(two_logs, tmp_path):
+    root, truths = two_logs
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert run(root, one, "--workers", "1").exit_code == 0
+    result = run(root, two, "--workers", "2")
+    assert result.exit_code == 0 and "2 converted, 0 skipped, 0 failed" in result.output
+    for truth in truths:
+        files = sorted(p.name for p in (one / truth.log_id).iterdir())
+        assert files == sorted(p.name for p in (two / truth.log_id).iterdir())
+        for name in files:
+            assert (one / truth.log_id / name).read_bytes() == (two / truth.log_id / name).read_bytes(), name
+    assert {e["status"] for e in report(two)["logs"].values()} == {"ok"}

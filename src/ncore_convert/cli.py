@@ -66,7 +66,7 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
 @click.option("--progress/--no-progress", default=True, help="Show per-log progress bars.")
 @click.option(
     "--workers", type=click.IntRange(min=1), default=None, show_default="the number of CPUs",
-    help="Worker processes; the independent stores of a log (per sensor) are written in parallel.",
+    help="Worker processes; up to this many logs at a time, each writing its stores (per sensor) in parallel.",
 )  # fmt: skip
 @click.option(
     "--overwrite", is_flag=True, default=False, show_default="off",
@@ -190,6 +190,7 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
         results = run_logs(
             out, todo, convert, echo=click.echo, show_progress=obj.progress, fingerprint=fingerprint,
             mode=obj.mode, input_dir=lambda log_id: root / split / log_id, report_file=report_name(obj.shard),
+            parallel_logs=obj.workers,
         )  # fmt: skip
     failed = sum(not r.ok for r in results)
     skipped = sum(r.skipped for r in results)

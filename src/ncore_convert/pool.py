@@ -11,6 +11,7 @@ milliseconds, and no worker inherits the parent's threads.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import multiprocessing as mp
 import multiprocessing.forkserver
 import os
@@ -35,25 +36,20 @@ WORKER_ENVIRONMENT = {
     "MALLOC_TRIM_THRESHOLD_": str(512 * 2**20),
 }
 
-_frames_done = None  # shared counter, set in each worker
+_progress_queue = None  # (run id, frames) messages to the parent, set in each worker
 
 
 class WorkerDied(RuntimeError):
     """A worker process ended abruptly (SIGKILL, out of memory) while running a job."""
 
 
-def _init_worker(counter) -> None:
-    global _frames_done
-    _frames_done = counter
+def _init_worker(queue) -> None:
+    global _progress_queue
+    _progress_queue = queue
 
 
-def _report(n: int) -> None:
-    with _frames_done.get_lock():
-        _frames_done.value += n
-
-
-def _call(fn: Callable[..., Any], args: tuple) -> Any:
-    return fn(*args, progress=_report)
+def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> Any:
+    return fn(*args, progress=lambda n: _progress_queue.put((run_id, n)))
 
 
 def _warm_up() -> int:
@@ -99,16 +95,30 @@ class JobPool:
         with _environment(WORKER_ENVIRONMENT):  # the fork server (and so every worker) inherits it
             multiprocessing.forkserver.ensure_running()
         self._ctx = ctx
-        self._counter = ctx.Value("q", 0)
+        # a SimpleQueue writes straight to its pipe, so a job's messages are there before its result
+        self._queue = ctx.SimpleQueue()
+        self._callbacks: dict[int, Callable[[int], None]] = {}
+        self._lock = threading.Lock()
+        self._next_run = itertools.count()
+        threading.Thread(target=self._dispatch_progress, daemon=True).start()
         self._start_executor()
 
     def _start_executor(self) -> None:
         self._executor = ProcessPoolExecutor(
-            self.workers, mp_context=self._ctx, initializer=_init_worker, initargs=(self._counter,)
+            self.workers, mp_context=self._ctx, initializer=_init_worker, initargs=(self._queue,)
         )
         # start the workers in the background: the fork server imports the preload modules (about a
         # second) while the caller reads its inputs
         threading.Thread(target=self._start_workers, args=(self._executor,), daemon=True).start()
+
+    def _dispatch_progress(self) -> None:
+        """Forward the workers' progress messages to the callback of the run they belong to."""
+        while (message := self._queue.get()) is not None:
+            run_id, n = message
+            with self._lock:
+                callback = self._callbacks.get(run_id)
+            if callback:
+                callback(n)
 
     def _start_workers(self, executor: ProcessPoolExecutor) -> None:
         with contextlib.suppress(RuntimeError):  # the pool was closed (or broke) before it started
@@ -123,6 +133,7 @@ class JobPool:
 
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
+        self._queue.put(None)  # stops the progress dispatcher
 
     def run(self, jobs: Sequence[Job], on_progress: Callable[[int], None] | None = None) -> list[Any]:
         """Run all jobs; return their results in job order.
@@ -132,33 +143,40 @@ class JobPool:
         and the first failure is raised. If a worker process dies (killed, out of memory), the
         run fails with :class:`WorkerDied` and fresh workers serve the next run.
         """
+        with self._lock:
+            run_id, executor = next(self._next_run), self._executor
+            self._callbacks[run_id] = on_progress or (lambda n: None)
         try:
-            return self._run(jobs, on_progress or (lambda n: None))
+            return self._run(executor, jobs, run_id)
         except BrokenProcessPool as err:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._start_executor()
+            with self._lock:  # several runs may see the same broken pool: replace it once
+                if self._executor is executor:
+                    executor.shutdown(wait=True, cancel_futures=True)
+                    self._start_executor()
             raise WorkerDied("a worker process died (killed or out of memory) before its job finished") from err
+        finally:
+            self._flush_progress(run_id)
 
-    def _run(self, jobs: Sequence[Job], progress: Callable[[int], None]) -> list[Any]:
-        with self._counter.get_lock():
-            self._counter.value = 0
-        futures: list[Future] = [self._executor.submit(_call, fn, args) for fn, args in jobs]
-        reported = 0
+    def _flush_progress(self, run_id: int) -> None:
+        """Deliver this run's last progress messages, then forget the run."""
+        done = threading.Event()
+        with self._lock:
+            self._callbacks[-1 - run_id] = lambda n: done.set()
+        self._queue.put((-1 - run_id, 0))  # queued after every message the run's jobs sent
+        done.wait(timeout=10)
+        with self._lock:
+            self._callbacks.pop(run_id, None)
+            self._callbacks.pop(-1 - run_id, None)
+
+    def _run(self, executor: ProcessPoolExecutor, jobs: Sequence[Job], run_id: int) -> list[Any]:
+        futures: list[Future] = [executor.submit(_call, fn, args, run_id) for fn, args in jobs]
         pending = set(futures)
         while pending:
-            done, pending = wait(pending, timeout=0.2, return_when=FIRST_EXCEPTION)
-            reported = self._forward(reported, progress)
+            done, pending = wait(pending, return_when=FIRST_EXCEPTION)
             failed = [f for f in done if f.exception() is not None]
             if failed:
                 for f in pending:
                     f.cancel()
                 wait(pending)
                 raise failed[0].exception()
-        self._forward(reported, progress)
         return [f.result() for f in futures]
-
-    def _forward(self, reported: int, progress: Callable[[int], None]) -> int:
-        value = self._counter.value
-        if value > reported:
-            progress(value - reported)
-        return value

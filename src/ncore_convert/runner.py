@@ -11,10 +11,13 @@ same options.
 from __future__ import annotations
 
 import json
+import queue
 import re
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Literal, Protocol
@@ -77,12 +80,21 @@ def _origin(err: BaseException) -> str:
     return f"{where.filename}:{where.lineno}"
 
 
-def convert_one(output_root: UPath, log_id: str, convert: ConvertFn, show_progress: bool = True) -> LogResult:
+def convert_one(
+    output_root: UPath, log_id: str, convert: ConvertFn, show_progress: bool = True, bar_position: int = 0
+) -> LogResult:
     """Convert one log atomically. Errors are caught and returned as a one-line message."""
     partial = output_root / f".{log_id}.partial"
     final = output_root / log_id
     remove_tree(partial)
-    bar = tqdm(desc=log_id[:36], unit="frame", disable=not show_progress, leave=False, dynamic_ncols=True)
+    bar = tqdm(
+        desc=log_id[:36],
+        unit="frame",
+        disable=not show_progress,
+        leave=False,
+        dynamic_ncols=True,
+        position=bar_position,
+    )
 
     def on_total(n: int) -> None:
         bar.reset(total=n)
@@ -175,8 +187,10 @@ def run_logs(
     mode: Mode = "resume",
     input_dir: Callable[[str], UPath] | None = None,
     report_file: str = REPORT_NAME,
+    parallel_logs: int = 1,
 ) -> list[LogResult]:
-    """Convert logs one after another; print a one-line summary (or error) per log; keep the report.
+    """Convert logs, ``parallel_logs`` at a time; print a one-line summary (or error) per log; keep
+    the report; show an overall bar (done, failed, skipped, ETA) above one bar per log in flight.
 
     Args:
         fingerprint: converter name, version and options; a log converted with the same
@@ -185,28 +199,55 @@ def run_logs(
             every log; ``retry-failed`` redoes only the logs the last run reported as failed.
         input_dir: a log's source folder (for the input bytes in the report).
         report_file: the report's name in ``output_root`` (one per shard, see :func:`report_name`).
+        parallel_logs: logs converted at the same time (their jobs share the worker pool).
     """
     output_root.mkdir(parents=True, exist_ok=True)
     report = RunReport(output_root, fingerprint or {}, report_file)
-    results = []
-    for log_id in log_ids:
+    log_ids = list(log_ids)
+    lock = threading.Lock()  # report, messages and the overall bar are shared by the log threads
+    overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
+    counts = {"ok": 0, "failed": 0, "skipped": 0}
+    slots = queue.SimpleQueue()  # progress-bar rows for the logs in flight
+    for row in range(1, parallel_logs + 1):
+        slots.put(row)
+
+    def finish(result: LogResult, lines: list[str]) -> None:
+        input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
+        output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
+        with lock:
+            with tqdm.external_write_mode():  # messages above the bars
+                for line in lines:
+                    echo(line)
+            report.record(result, input_bytes, output_bytes)
+            counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
+            overall.set_postfix(counts, refresh=False)
+            overall.update(1)
+
+    def one(log_id: str) -> LogResult | None:
         if mode == "retry-failed" and (report.previous(log_id) or {}).get("status") != "failed":
-            echo(f"skip  {log_id}: not a failure of the last run")
-            continue  # its report entry stays as it was
+            with lock:
+                echo(f"skip  {log_id}: not a failure of the last run")
+                overall.update(1)
+            return None  # its report entry stays as it was
         if mode == "resume" and report.is_done(log_id, output_root):
-            echo(f"skip  {log_id}: already converted with the same converter version and options")
             result = LogResult(log_id, True, skipped=True)
+            finish(result, [f"skip  {log_id}: already converted with the same converter version and options"])
+            return result
+        row = slots.get()
+        started = time.perf_counter()
+        try:
+            result = convert_one(output_root, log_id, convert, show_progress, bar_position=row)
+        finally:
+            slots.put(row)
+        result.seconds = time.perf_counter() - started
+        if result.ok:
+            lines = [f"ok    {result.summary.line()}"] + [f"      warning: {w}" for w in result.summary.warnings]
         else:
-            started = time.perf_counter()
-            result = convert_one(output_root, log_id, convert, show_progress)
-            result.seconds = time.perf_counter() - started
-            if result.ok:
-                echo(f"ok    {result.summary.line()}")
-                for warning in result.summary.warnings:
-                    echo(f"      warning: {warning}")
-            else:
-                echo(f"FAIL  {log_id}: {result.error}")
-        input_bytes = tree_bytes(input_dir(log_id)) if input_dir else 0
-        report.record(result, input_bytes, tree_bytes(output_root / log_id) if result.ok else 0)
-        results.append(result)
+            lines = [f"FAIL  {log_id}: {result.error}"]
+        finish(result, lines)
+        return result
+
+    with ThreadPoolExecutor(max_workers=parallel_logs) as threads:
+        results = [r for r in threads.map(one, log_ids) if r is not None]
+    overall.close()
     return results
