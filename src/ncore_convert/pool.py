@@ -2,8 +2,8 @@
 
 Without a pool, callers run jobs inline (see :func:`run_inline`), e.g. in tests.
 
-Jobs are module-level functions called as ``fn(*args, progress=report)``; ``report(n)`` adds ``n``
-finished frames to a counter shared with the parent, which forwards it to the progress bar.
+Jobs are module-level functions called as ``fn(*args, progress=report)``; ``report(n)`` sends ``n``
+finished frames to the parent, which forwards them to the progress callback of the job's run.
 Workers start from a fork server that has imported the converter modules once, so a job starts in
 milliseconds, and no worker inherits the parent's threads.
 """
@@ -48,8 +48,16 @@ def _init_worker(queue) -> None:
     _progress_queue = queue
 
 
-def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> Any:
-    return fn(*args, progress=lambda n: _progress_queue.put((run_id, n)))
+def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> tuple[Any, int]:
+    """Run a job; return its result and the frames it reported (the parent tops its bar up to that)."""
+    sent = 0
+
+    def report(n: int) -> None:
+        nonlocal sent
+        sent += n
+        _progress_queue.put((run_id, n))
+
+    return fn(*args, progress=report), sent
 
 
 def _warm_up() -> int:
@@ -95,28 +103,35 @@ class JobPool:
         with _environment(WORKER_ENVIRONMENT):  # the fork server (and so every worker) inherits it
             multiprocessing.forkserver.ensure_running()
         self._ctx = ctx
-        # a SimpleQueue writes straight to its pipe, so a job's messages are there before its result
-        self._queue = ctx.SimpleQueue()
         self._callbacks: dict[int, Callable[[int], None]] = {}
+        self._delivered: dict[int, int] = {}
         self._lock = threading.Lock()
         self._next_run = itertools.count()
-        threading.Thread(target=self._dispatch_progress, daemon=True).start()
         self._start_executor()
 
     def _start_executor(self) -> None:
+        # A fresh progress queue per set of workers: a worker killed while writing to a queue can
+        # leave its lock held for good, so a queue is never reused after a worker died.
+        progress_queue = self._ctx.SimpleQueue()  # writes go straight to the pipe, no feeder thread
+        threading.Thread(target=self._dispatch_progress, args=(progress_queue,), daemon=True).start()
         self._executor = ProcessPoolExecutor(
-            self.workers, mp_context=self._ctx, initializer=_init_worker, initargs=(self._queue,)
+            self.workers, mp_context=self._ctx, initializer=_init_worker, initargs=(progress_queue,)
         )
         # start the workers in the background: the fork server imports the preload modules (about a
         # second) while the caller reads its inputs
         threading.Thread(target=self._start_workers, args=(self._executor,), daemon=True).start()
 
-    def _dispatch_progress(self) -> None:
+    def _dispatch_progress(self, progress_queue) -> None:
         """Forward the workers' progress messages to the callback of the run they belong to."""
-        while (message := self._queue.get()) is not None:
-            run_id, n = message
+        while True:
+            try:
+                run_id, n = progress_queue.get()
+            except Exception:  # noqa: BLE001 - a message cut short by a killed worker ends this queue
+                return
             with self._lock:
                 callback = self._callbacks.get(run_id)
+                if callback:
+                    self._delivered[run_id] += n
             if callback:
                 callback(n)
 
@@ -133,7 +148,6 @@ class JobPool:
 
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
-        self._queue.put(None)  # stops the progress dispatcher
 
     def run(self, jobs: Sequence[Job], on_progress: Callable[[int], None] | None = None) -> list[Any]:
         """Run all jobs; return their results in job order.
@@ -143,32 +157,34 @@ class JobPool:
         and the first failure is raised. If a worker process dies (killed, out of memory), the
         run fails with :class:`WorkerDied` and fresh workers serve the next run.
         """
+        callback = on_progress or (lambda n: None)
         with self._lock:
             run_id, executor = next(self._next_run), self._executor
-            self._callbacks[run_id] = on_progress or (lambda n: None)
+            self._callbacks[run_id], self._delivered[run_id] = callback, 0
         try:
-            return self._run(executor, jobs, run_id)
+            done = self._run(executor, jobs, run_id)
         except BrokenProcessPool as err:
+            self._forget(run_id)
             with self._lock:  # several runs may see the same broken pool: replace it once
                 if self._executor is executor:
                     executor.shutdown(wait=True, cancel_futures=True)
                     self._start_executor()
             raise WorkerDied("a worker process died (killed or out of memory) before its job finished") from err
-        finally:
-            self._flush_progress(run_id)
+        except BaseException:
+            self._forget(run_id)
+            raise
+        missing = sum(sent for _, sent in done) - self._forget(run_id)
+        if missing > 0:  # messages still in the pipe: deliver their total now, they are dropped later
+            callback(missing)
+        return [result for result, _ in done]
 
-    def _flush_progress(self, run_id: int) -> None:
-        """Deliver this run's last progress messages, then forget the run."""
-        done = threading.Event()
-        with self._lock:
-            self._callbacks[-1 - run_id] = lambda n: done.set()
-        self._queue.put((-1 - run_id, 0))  # queued after every message the run's jobs sent
-        done.wait(timeout=10)
+    def _forget(self, run_id: int) -> int:
+        """Stop forwarding a run's progress; returns the frames delivered so far."""
         with self._lock:
             self._callbacks.pop(run_id, None)
-            self._callbacks.pop(-1 - run_id, None)
+            return self._delivered.pop(run_id, 0)
 
-    def _run(self, executor: ProcessPoolExecutor, jobs: Sequence[Job], run_id: int) -> list[Any]:
+    def _run(self, executor: ProcessPoolExecutor, jobs: Sequence[Job], run_id: int) -> list[tuple[Any, int]]:
         futures: list[Future] = [executor.submit(_call, fn, args, run_id) for fn, args in jobs]
         pending = set(futures)
         while pending:
