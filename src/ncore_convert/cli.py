@@ -39,6 +39,11 @@ class GroupOptions:
         return root, UPath(self.output_dir)
 
 
+def off_flag(*decls: str, help: str):
+    """A boolean flag that is off unless given (documented as such in --help)."""
+    return click.option(*decls, is_flag=True, default=False, show_default="off", help=help)
+
+
 def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     if disabled:
         return ()
@@ -58,24 +63,18 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
 @click.option(
     "--camera-id", "camera_ids", multiple=True, show_default="all", help="Convert only this camera (repeatable)."
 )
-@click.option("--no-cameras", is_flag=True, default=False, show_default="off", help="Convert no cameras.")
+@off_flag("--no-cameras", help="Convert no cameras.")
 @click.option(
     "--lidar-id", "lidar_ids", multiple=True, show_default="all", help="Convert only this lidar (repeatable)."
 )
-@click.option("--no-lidars", is_flag=True, default=False, show_default="off", help="Convert no lidars.")
+@off_flag("--no-lidars", help="Convert no lidars.")
 @click.option("--progress/--no-progress", default=True, help="Show per-log progress bars.")
 @click.option(
     "--workers", type=click.IntRange(min=1), default=None, show_default="the number of CPUs",
     help="Worker processes; up to this many logs at a time, each writing its stores (per sensor) in parallel.",
 )  # fmt: skip
-@click.option(
-    "--overwrite", is_flag=True, default=False, show_default="off",
-    help="Reconvert logs that a previous run already converted with the same version and options.",
-)  # fmt: skip
-@click.option(
-    "--retry-failed", is_flag=True, default=False, show_default="off",
-    help="Convert only the logs that the last run (conversion-report.json) reported as failed.",
-)  # fmt: skip
+@off_flag("--overwrite", help="Reconvert logs that a previous run already converted with the same version and options.")
+@off_flag("--retry-failed", help="Convert only the logs that the last run (conversion-report.json) reported as failed.")
 @click.option(
     "--shard", type=str, default=None, show_default="none: every log",
     help="I/N: convert only every N-th log of the sorted list, starting at I (array jobs without Ray).",
@@ -207,7 +206,7 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
 @click.option(
     "--far-range-m", type=click.FloatRange(min=0.0), default=20.0, help="Rays beyond this count as far range."
 )
-@click.option("--json", "as_json", is_flag=True, default=False, show_default="off", help="Print the report as JSON.")
+@off_flag("--json", "as_json", help="Print the report as JSON.")
 def evaluate_lidar_model_command(sequence, lidar_ids, far_range_m, as_json):
     """Compare each stored ray with the model ray of its model_element (SEQUENCE: <log_id>.json)."""
     import json
@@ -242,10 +241,10 @@ def synth():
 )
 @click.option("--seconds", type=click.FloatRange(min=0.1), default=2.0, help="Log duration (10 sweeps per second).")
 @click.option("--seed", type=int, default=0, help="Random seed (scene, trajectory, log id).")
-@click.option(
-    "--swap-lidar-halves", is_flag=True, default=False, show_default="off",
+@off_flag(
+    "--swap-lidar-halves",
     help="Give up_lidar the laser_number half >= 32 (proves the unit decision comes from the data).",
-)  # fmt: skip
+)
 @click.option(
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )

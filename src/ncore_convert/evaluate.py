@@ -12,7 +12,7 @@ import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import RowOffsetStructuredSpinningLidarModelParameters
 
-from ncore_convert.lidar_model import SpinningLidarModel, angular_error_rad
+from ncore_convert.lidar_model import SpinningLidarModel, angle_between_rad
 
 
 @dataclass
@@ -102,11 +102,12 @@ def evaluate_lidar_model(loader: SequenceLoaderV4, lidar_id: str, far_range_m: f
             raise ValueError(f"{lidar_id}: frame {i} has no model_element")
         direction = sensor.get_frame_ray_bundle_direction(i).astype(np.float64)
         distance = np.asarray(sensor.get_frame_ray_bundle_return_distance_m(i, return_index=0)).reshape(-1)
-        error = np.degrees(angular_error_rad(model, elements, direction))
+        model_ray = model.element_directions(elements)
+        error = np.degrees(angle_between_rad(model_ray, direction))
         far = distance > far_range_m
-        model_ray = model.element_directions(elements[far])
-        az = np.arctan2(direction[far, 1], direction[far, 0]) - np.arctan2(model_ray[:, 1], model_ray[:, 0])
-        el = np.arcsin(np.clip(direction[far, 2], -1, 1)) - np.arcsin(np.clip(model_ray[:, 2], -1, 1))
+        stored, modelled = direction[far], model_ray[far]
+        az = np.arctan2(stored[:, 1], stored[:, 0]) - np.arctan2(modelled[:, 1], modelled[:, 0])
+        el = np.arcsin(np.clip(stored[:, 2], -1, 1)) - np.arcsin(np.clip(modelled[:, 2], -1, 1))
         az_bias.append(np.degrees((az + np.pi) % (2 * np.pi) - np.pi))
         el_bias.append(np.degrees(el))
         stats = ErrorStats.of(error, far)

@@ -205,14 +205,24 @@ class Trajectory:
         return Trajectory(ts.astype(np.int64), poses)
 
 
+def sorted_run_starts(values: np.ndarray) -> np.ndarray | None:
+    """Start index of each run of equal values in a non-decreasing array [N] (None if unsorted or empty).
+
+    Lidar firing times and their trajectory segments are sorted, so per-run work replaces general
+    gathers and sorts.
+    """
+    if len(values) == 0 or np.any(values[1:] < values[:-1]):
+        return None
+    return np.flatnonzero(np.concatenate([[True], values[1:] != values[:-1]]))
+
+
 def _gather_columns(table: np.ndarray, index: np.ndarray) -> np.ndarray:
     """``table[:, index]`` for a [R,K] table; sorted indices (lidar times) are expanded run by run,
     which is several times cheaper than a general gather."""
-    if len(index) > 1 and np.all(index[1:] >= index[:-1]):
-        starts = np.flatnonzero(np.concatenate([[True], index[1:] != index[:-1]]))
-        counts = np.diff(np.append(starts, len(index)))
-        return np.repeat(table[:, index[starts]], counts, axis=1)
-    return table.take(index, axis=1)
+    starts = sorted_run_starts(index)
+    if starts is None:
+        return table.take(index, axis=1)
+    return np.repeat(table[:, index[starts]], np.diff(np.append(starts, len(index))), axis=1)
 
 
 def _constant_velocity_pose(T_prev: np.ndarray, T_last: np.ndarray, dt_us: int, ahead_us: int) -> np.ndarray:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncore_convert.geometry import Trajectory, invert_se3, rotation_matrices_from_quats
+from ncore_convert.geometry import Trajectory, invert_se3, rotation_matrices_from_quats, sorted_run_starts
 
 #: Points closer than this to the sensor origin have no defined direction and cannot be stored.
 MIN_RANGE_M = 1e-3
@@ -22,11 +22,12 @@ def unique_times(times_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Lidar points share firing times (paired firings), so poses are interpolated once per time.
     """
-    if len(times_ns) and np.all(times_ns[1:] >= times_ns[:-1]):
-        starts = np.flatnonzero(np.concatenate([[True], times_ns[1:] != times_ns[:-1]]))
-        inverse = np.cumsum(np.concatenate([[False], times_ns[1:] != times_ns[:-1]]))
-        return times_ns[starts], inverse
-    return np.unique(times_ns, return_inverse=True)
+    starts = sorted_run_starts(times_ns)
+    if starts is None:
+        return np.unique(times_ns, return_inverse=True)
+    run_begins = np.zeros(len(times_ns), dtype=np.int64)
+    run_begins[starts[1:]] = 1
+    return times_ns[starts], np.cumsum(run_begins)
 
 
 def _quat_conj_times(q_wxyz: np.ndarray, p_wxyz: np.ndarray) -> np.ndarray:

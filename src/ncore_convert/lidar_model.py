@@ -214,9 +214,7 @@ def _spin_rate_rad_s(azimuth: np.ndarray, time_s: np.ndarray, beam: np.ndarray, 
     return float(np.median(sxy[usable] / sxx[usable]))
 
 
-def angular_error_rad(model: SpinningLidarModel, elements: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """Angle between each model ray and the stored direction [N]."""
-    model_ray = model.element_directions(elements)
-    cos = np.clip(np.einsum("ij,ij->i", model_ray, direction / np.linalg.norm(direction, axis=1)[:, None]), -1, 1)
-    cross = np.linalg.norm(np.cross(model_ray, direction), axis=1)
-    return np.arctan2(cross, cos)
+def angle_between_rad(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle between rays a [N,3] and b [N,3] (any lengths), radians [N]; accurate at small angles."""
+    cross = np.linalg.norm(np.cross(a, b), axis=1)
+    return np.arctan2(cross, np.einsum("ij,ij->i", a, b))

@@ -18,7 +18,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Literal, Protocol
 
@@ -67,7 +67,10 @@ class LogResult:
     error_file: str | None = None  #: the input file at fault, when known
     skipped: bool = False
     seconds: float = 0.0
-    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def warnings(self) -> list[str]:
+        return list(self.summary.warnings) if self.summary is not None else []
 
 
 def _origin(err: BaseException) -> str:
@@ -113,7 +116,7 @@ def convert_one(
     remove_tree(final)
     partial.rename(final)
     flush_to_disk(output_root)
-    return LogResult(log_id, True, summary=summary, warnings=list(summary.warnings))
+    return LogResult(log_id, True, summary=summary)
 
 
 def tree_bytes(path: UPath) -> int:
@@ -241,7 +244,7 @@ def run_logs(
             slots.put(row)
         result.seconds = time.perf_counter() - started
         if result.ok:
-            lines = [f"ok    {result.summary.line()}"] + [f"      warning: {w}" for w in result.summary.warnings]
+            lines = [f"ok    {result.summary.line()}"] + [f"      warning: {w}" for w in result.warnings]
         else:
             lines = [f"FAIL  {log_id}: {result.error}"]
         finish(result, lines)
