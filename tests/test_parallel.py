@@ -11,7 +11,7 @@ from upath import UPath
 
 from ncore_convert.cli import cli
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
-from ncore_convert.pool import JobPool
+from ncore_convert.pool import JobPool, Progress
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.writer import BASE, independent_parts
@@ -34,10 +34,12 @@ def pool():
 
 
 def _convert(root, out, log_id, pool, **options):
-    frames = []
+    frames, totals = [], []
+    progress = Progress(frames.append, totals.append)
     summary = convert_log(
-        UPath(root), UPath(out), log_id, Argoverse2Options(split="val", **options), pool=pool, on_frame=frames.append
+        UPath(root), UPath(out), log_id, Argoverse2Options(split="val", **options), pool=pool, progress=progress
     )
+    assert totals == [sum(frames)]  # the total is announced once and the frames add up to it
     return summary, sum(frames)
 
 
@@ -112,14 +114,15 @@ def test_a_failure_inside_a_worker_names_the_file_and_leaves_nothing(camera_root
 
 
 def test_pool_runs_jobs_in_order_and_reports_progress(pool):
-    seen = []
-    assert pool.run([(_count_to, (n,)) for n in (3, 1, 2)], seen.append) == [3, 1, 2]
-    assert sum(seen) == 6
+    seen, totals = [], []
+    assert pool.run([(_count_to, (n,)) for n in (3, 1, 2)], Progress(seen.append, totals.append)) == [3, 1, 2]
+    assert sum(seen) == 6 and sorted(totals) == [1, 2, 3]
     with pytest.raises(ValueError, match="boom"):
         pool.run([(_count_to, (1,)), (_fail, ())])
 
 
 def _count_to(n: int, progress) -> int:
+    progress.total(n)
     for _ in range(n):
         progress(1)
     return n
@@ -132,7 +135,7 @@ def _fail(progress) -> None:
 def test_an_unexpected_worker_error_is_reported_where_the_worker_raised_it(pool, tmp_path):
     from ncore_convert.runner import convert_one
 
-    def convert(seq_dir, log_id, on_frame, on_total):
+    def convert(seq_dir, log_id, progress):
         return pool.run([(_fail, ())])
 
     result = convert_one(UPath(tmp_path), "log", convert, show_progress=False)

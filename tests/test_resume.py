@@ -22,9 +22,9 @@ def two_logs(tmp_path_factory):
     return root, truths
 
 
-def run(root, out, *extra):
-    args = ["--no-progress", "--root-dir", str(root), "--output-dir", str(out), *extra]
-    return CliRunner().invoke(cli, [*args, "argoverse2-v4", "--split", "val"], catch_exceptions=False)
+def run(root, out, *extra, log_id=None):
+    args = ["--no-progress", "--root-dir", str(root), "--output-dir", str(out), *extra, "argoverse2-v4", "--split", "val"]
+    return CliRunner().invoke(cli, args + (["--log-id", log_id] if log_id else []), catch_exceptions=False)
 
 
 def report(out, name: str = "conversion-report.json") -> dict:
@@ -46,7 +46,7 @@ def test_rerun_skips_converted_logs_and_overwrite_redoes_them(two_logs, tmp_path
     assert {t.log_id: store_mtimes(out, t.log_id) for t in truths} == first
     assert {e["status"] for e in report(out)["logs"].values()} == {"skipped"}
     result = run(root, out, "--overwrite")
-    assert result.exit_code == 0 and "2 converted, 0 skipped" in result.output
+    assert result.exit_code == 0 and "2 converted, 0 skipped" in result.output, result.output
     assert {e["status"] for e in report(out)["logs"].values()} == {"ok"}
     # different options are a different conversion: no skip
     result = run(root, out, "--lidar-id", "up_lidar")
@@ -158,10 +158,12 @@ def test_shards_split_the_logs_and_keep_their_own_reports(two_logs, tmp_path):
         assert result.exit_code == 2 and "--shard" in result.output
 
 
-def test_logs_in_parallel_write_the_same_bytes_as_one_at_a_time(two_logs, tmp_path):
+def test_one_log_per_worker_writes_the_same_bytes_as_workers_sharing_a_log(two_logs, tmp_path):
+    """Two logs on two workers run as one job per log; a single log has its stores spread over them."""
     root, truths = two_logs
     one, two = tmp_path / "one", tmp_path / "two"
-    assert run(root, one, "--workers", "1").exit_code == 0
+    for truth in truths:
+        assert run(root, one, "--workers", "2", log_id=truth.log_id).exit_code == 0
     result = run(root, two, "--workers", "2")
     assert result.exit_code == 0 and "2 converted, 0 skipped, 0 failed" in result.output
     for truth in truths:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import asdict, dataclass
+from functools import partial
 
 import click
 from upath import UPath
@@ -27,6 +28,8 @@ class GroupOptions:
     workers: int
     mode: str
     shard: tuple[int, int] | None
+    executor: str
+    ray_address: str | None
 
     def require_paths(self) -> tuple[UPath, UPath]:
         if not self.root_dir:
@@ -37,6 +40,21 @@ class GroupOptions:
         if not root.is_dir():
             raise click.UsageError(f"--root-dir {self.root_dir}: directory not found")
         return root, UPath(self.output_dir)
+
+    def make_executor(self, preload: list[str]):
+        """The executor of this run (a context manager); local workers start here, in the background."""
+        if self.executor == "local":
+            pool = JobPool(self.workers, preload=preload)  # its fork server imports while this process does
+            from ncore_convert.executors import LocalExecutor
+
+            return LocalExecutor(pool)
+        from ncore_convert.executors import RayExecutor
+
+        try:
+            return RayExecutor(self.ray_address)
+        except (ImportError, ConnectionError) as err:
+            where = self.ray_address or "auto (RAY_ADDRESS or a cluster started on this machine)"
+            raise click.UsageError(f"--executor ray, --ray-address {where}: {err}".replace("\n", " ")) from None
 
 
 def off_flag(*decls: str, help: str):
@@ -79,6 +97,14 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     "--shard", type=str, default=None, show_default="none: every log",
     help="I/N: convert only every N-th log of the sorted list, starting at I (array jobs without Ray).",
 )  # fmt: skip
+@click.option(
+    "--executor", type=click.Choice(["local", "ray"]), default="local",
+    help="Where logs run: this machine's worker processes, or the tasks of an existing Ray cluster.",
+)  # fmt: skip
+@click.option(
+    "--ray-address", type=str, default=None, show_default="RAY_ADDRESS, else a cluster started on this machine",
+    help="host:port of the Ray head node (with --executor ray).",
+)  # fmt: skip
 @click.pass_context
 def cli(
     ctx,
@@ -93,6 +119,8 @@ def cli(
     overwrite,
     retry_failed,
     shard,
+    executor,
+    ray_address,
 ):
     """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences."""
     ctx.obj = GroupOptions(
@@ -104,9 +132,13 @@ def cli(
         workers=workers or default_workers(),
         mode="overwrite" if overwrite else ("retry-failed" if retry_failed else "resume"),
         shard=_parse_shard(shard),
+        executor=executor,
+        ray_address=ray_address,
     )
     if overwrite and retry_failed:
         raise click.UsageError("--overwrite and --retry-failed exclude each other")
+    if ray_address and executor != "ray":
+        raise click.UsageError("--ray-address needs --executor ray")
 
 
 def _parse_shard(text: str | None) -> tuple[int, int] | None:
@@ -149,8 +181,7 @@ def _parse_shard(text: str | None) -> tuple[int, int] | None:
 def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequence_meta, lidar_model_source):
     """Argoverse 2 Sensor (<root>/<split>/<log_id>) to NCore V4."""
     root, out = obj.require_paths()
-    # start the workers first: their fork server imports the converter while this process does
-    with JobPool(obj.workers, preload=["ncore_convert.converters.argoverse2"]) as pool:
+    with obj.make_executor(preload=["ncore_convert.converters.argoverse2"]) as executor:
         from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
         from ncore_convert.runner import report_name, run_logs, shard_logs
         from ncore_convert.sources import argoverse2 as av2
@@ -181,15 +212,12 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
             raise click.UsageError(f"no logs under {root / split}")
         todo = shard_logs(todo, obj.shard)
 
-        def convert(seq_dir, log_id, on_frame, on_total):
-            return convert_log(root, seq_dir, log_id, options, pool=pool, on_frame=on_frame, on_total=on_total)
-
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": "argoverse2-v4"}
         fingerprint["options"] = asdict(options)
         results = run_logs(
-            out, todo, convert, echo=click.echo, show_progress=obj.progress, fingerprint=fingerprint,
-            mode=obj.mode, input_dir=lambda log_id: root / split / log_id, report_file=report_name(obj.shard),
-            parallel_logs=obj.workers,
+            out, todo, partial(convert_log, root, options=options), executor, echo=click.echo,
+            show_progress=obj.progress, fingerprint=fingerprint, mode=obj.mode,
+            input_dir=lambda log_id: root / split / log_id, report_file=report_name(obj.shard),
         )  # fmt: skip
     failed = sum(not r.ok for r in results)
     skipped = sum(r.skipped for r in results)

@@ -2,8 +2,9 @@
 
 Without a pool, callers run jobs inline (see :func:`run_inline`), e.g. in tests.
 
-Jobs are module-level functions called as ``fn(*args, progress=report)``; ``report(n)`` sends ``n``
-finished frames to the parent, which forwards them to the progress callback of the job's run.
+Jobs are module-level functions called as ``fn(*args, progress=progress)`` with a :class:`Progress`:
+``progress(n)`` sends ``n`` finished frames to the parent and ``progress.total(n)`` the number of
+frames to expect; the parent forwards them to the callbacks of the job's run.
 Workers start from a fork server that has imported the converter modules once, so a job starts in
 milliseconds, and no worker inherits the parent's threads.
 """
@@ -19,6 +20,7 @@ import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 from typing import Any
 
 Job = tuple[Callable[..., Any], tuple]
@@ -43,6 +45,22 @@ class WorkerDied(RuntimeError):
     """A worker process ended abruptly (SIGKILL, out of memory) while running a job."""
 
 
+def _ignore(n: int) -> None:
+    pass
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Given to every job: ``progress(n)`` reports ``n`` more frames written, ``progress.total(n)``
+    the number of frames the job will write (when it learns it)."""
+
+    frames: Callable[[int], None] = _ignore
+    total: Callable[[int], None] = _ignore
+
+    def __call__(self, n: int) -> None:
+        self.frames(n)
+
+
 def _init_worker(queue) -> None:
     global _progress_queue
     _progress_queue = queue
@@ -52,12 +70,15 @@ def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> tuple[Any, int]:
     """Run a job; return its result and the frames it reported (the parent tops its bar up to that)."""
     sent = 0
 
-    def report(n: int) -> None:
+    def frames(n: int) -> None:
         nonlocal sent
         sent += n
-        _progress_queue.put((run_id, n))
+        _progress_queue.put((run_id, False, n))
 
-    return fn(*args, progress=report), sent
+    def total(n: int) -> None:
+        _progress_queue.put((run_id, True, n))
+
+    return fn(*args, progress=Progress(frames, total)), sent
 
 
 def _warm_up() -> int:
@@ -76,9 +97,9 @@ def _environment(values: dict[str, str]):
             del os.environ[k]
 
 
-def run_inline(jobs: Sequence[Job], on_progress: Callable[[int], None] | None = None) -> list[Any]:
+def run_inline(jobs: Sequence[Job], progress: Progress | None = None) -> list[Any]:
     """Run jobs one after another in this process (same contract as :meth:`JobPool.run`)."""
-    progress = on_progress or (lambda n: None)
+    progress = progress or Progress()
     return [fn(*args, progress=progress) for fn, args in jobs]
 
 
@@ -103,7 +124,7 @@ class JobPool:
         with _environment(WORKER_ENVIRONMENT):  # the fork server (and so every worker) inherits it
             multiprocessing.forkserver.ensure_running()
         self._ctx = ctx
-        self._callbacks: dict[int, Callable[[int], None]] = {}
+        self._progress: dict[int, Progress] = {}
         self._delivered: dict[int, int] = {}
         self._lock = threading.Lock()
         self._next_run = itertools.count()
@@ -122,18 +143,18 @@ class JobPool:
         threading.Thread(target=self._start_workers, args=(self._executor,), daemon=True).start()
 
     def _dispatch_progress(self, progress_queue) -> None:
-        """Forward the workers' progress messages to the callback of the run they belong to."""
+        """Forward the workers' progress messages to the callbacks of the run they belong to."""
         while True:
             try:
-                run_id, n = progress_queue.get()
+                run_id, is_total, n = progress_queue.get()
             except Exception:  # noqa: BLE001 - a message cut short by a killed worker ends this queue
                 return
             with self._lock:
-                callback = self._callbacks.get(run_id)
-                if callback:
+                progress = self._progress.get(run_id)
+                if progress and not is_total:
                     self._delivered[run_id] += n
-            if callback:
-                callback(n)
+            if progress:
+                (progress.total if is_total else progress.frames)(n)
 
     def _start_workers(self, executor: ProcessPoolExecutor) -> None:
         with contextlib.suppress(RuntimeError):  # the pool was closed (or broke) before it started
@@ -149,7 +170,7 @@ class JobPool:
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
 
-    def run(self, jobs: Sequence[Job], on_progress: Callable[[int], None] | None = None) -> list[Any]:
+    def run(self, jobs: Sequence[Job], progress: Progress | None = None) -> list[Any]:
         """Run all jobs; return their results in job order.
 
         Jobs are submitted in the given order (put the longest first). If a job fails, jobs not yet
@@ -157,10 +178,10 @@ class JobPool:
         and the first failure is raised. If a worker process dies (killed, out of memory), the
         run fails with :class:`WorkerDied` and fresh workers serve the next run.
         """
-        callback = on_progress or (lambda n: None)
+        progress = progress or Progress()
         with self._lock:
             run_id, executor = next(self._next_run), self._executor
-            self._callbacks[run_id], self._delivered[run_id] = callback, 0
+            self._progress[run_id], self._delivered[run_id] = progress, 0
         try:
             done = self._run(executor, jobs, run_id)
         except BrokenProcessPool as err:
@@ -175,13 +196,13 @@ class JobPool:
             raise
         missing = sum(sent for _, sent in done) - self._forget(run_id)
         if missing > 0:  # messages still in the pipe: deliver their total now, they are dropped later
-            callback(missing)
+            progress(missing)
         return [result for result, _ in done]
 
     def _forget(self, run_id: int) -> int:
         """Stop forwarding a run's progress; returns the frames delivered so far."""
         with self._lock:
-            self._callbacks.pop(run_id, None)
+            self._progress.pop(run_id, None)
             return self._delivered.pop(run_id, 0)
 
     def _run(self, executor: ProcessPoolExecutor, jobs: Sequence[Job], run_id: int) -> list[tuple[Any, int]]:

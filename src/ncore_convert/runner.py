@@ -11,13 +11,12 @@ same options.
 from __future__ import annotations
 
 import json
-import queue
 import re
-import threading
+import shutil
+import tempfile
 import time
 import traceback
-from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Literal, Protocol
@@ -25,8 +24,9 @@ from typing import Literal, Protocol
 from tqdm import tqdm
 from upath import UPath
 
+from ncore_convert.pool import Progress
 from ncore_convert.sources.argoverse2 import SourceError
-from ncore_convert.storage import flush_to_disk, remove_tree
+from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
 
 
 class Summary(Protocol):
@@ -35,8 +35,13 @@ class Summary(Protocol):
     def line(self) -> str: ...
 
 
-#: convert(sequence_dir, log_id, on_frame, on_total) -> Summary
-ConvertFn = Callable[[UPath, str, Callable[[int], None], Callable[[int], None]], Summary]
+#: task(sequence_dir, log_id, progress=Progress, pool=JobPool | None) -> Summary: converts one log
+#: into sequence_dir. A module-level function or a partial of one: it is shipped to worker processes
+#: and Ray nodes.
+LogTask = Callable[..., Summary]
+
+#: convert(sequence_dir, log_id, progress) -> Summary: a task bound to where it runs (see executors).
+ConvertFn = Callable[[UPath, str, Progress], Summary]
 
 
 REPORT_NAME = "conversion-report.json"
@@ -86,10 +91,17 @@ def _origin(err: BaseException) -> str:
 def convert_one(
     output_root: UPath, log_id: str, convert: ConvertFn, show_progress: bool = True, bar_position: int = 0
 ) -> LogResult:
-    """Convert one log atomically. Errors are caught and returned as a one-line message."""
-    partial = output_root / f".{log_id}.partial"
+    """Convert one log atomically; errors are caught and returned as a one-line message.
+
+    The log is written to ``<output_root>/.<log_id>.partial`` (on a local output) or to a local
+    staging folder (on an object store), and moved into ``<output_root>/<log_id>`` only once
+    complete (see :func:`~ncore_convert.storage.publish`).
+    """
+    started = time.perf_counter()
     final = output_root / log_id
-    remove_tree(partial)
+    staging = None if is_local(output_root) else tempfile.mkdtemp(prefix=f"ncore-convert-{log_id[:40]}-")
+    work = output_root / f".{log_id}.partial" if staging is None else UPath(staging) / log_id
+    remove_tree(work)
     bar = tqdm(
         desc=log_id[:36],
         unit="frame",
@@ -98,25 +110,21 @@ def convert_one(
         dynamic_ncols=True,
         position=bar_position,
     )
-
-    def on_total(n: int) -> None:
-        bar.reset(total=n)
-
     try:
-        summary = convert(partial, log_id, bar.update, on_total)
+        summary = convert(work, log_id, Progress(bar.update, lambda n: bar.reset(total=n)))
+        publish(work, final)
+        result = LogResult(log_id, True, summary=summary)
     except SourceError as err:
-        remove_tree(partial)
-        return LogResult(log_id, False, error=str(err), error_file=err.path)
+        result = LogResult(log_id, False, error=str(err), error_file=err.path)
     except Exception as err:  # noqa: BLE001 - one log's failure must not stop the others
-        remove_tree(partial)
-        return LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
+        result = LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
     finally:
         bar.close()
-    flush_to_disk(partial)  # durable before it is renamed into place
-    remove_tree(final)
-    partial.rename(final)
-    flush_to_disk(output_root)
-    return LogResult(log_id, True, summary=summary)
+        remove_tree(work)
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+    result.seconds = time.perf_counter() - started
+    return result
 
 
 def tree_bytes(path: UPath) -> int:
@@ -174,26 +182,39 @@ class RunReport:
 
     def _write(self) -> None:
         text = json.dumps({"converter": self.fingerprint, "logs": self.logs}, indent=2)
+        if not is_local(self.path):  # an object is replaced atomically when it is written
+            self.path.write_text(text)
+            return
         tmp = self.path.parent / f".{self.path.name}.tmp"
         tmp.write_text(text)
         flush_to_disk(tmp)
         tmp.rename(self.path)
 
 
+class Executor(Protocol):
+    """Where per-log tasks run (see :mod:`ncore_convert.executors`)."""
+
+    def results(
+        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool
+    ) -> Iterator[LogResult]:
+        """Convert the logs (each with :func:`convert_one`); yield their results as they finish."""
+        ...
+
+
 def run_logs(
     output_root: UPath,
     log_ids: Iterable[str],
-    convert: ConvertFn,
+    task: LogTask,
+    executor: Executor,
     echo: Callable[[str], None],
     show_progress: bool = True,
     fingerprint: dict | None = None,
     mode: Mode = "resume",
     input_dir: Callable[[str], UPath] | None = None,
     report_file: str = REPORT_NAME,
-    parallel_logs: int = 1,
 ) -> list[LogResult]:
-    """Convert logs, ``parallel_logs`` at a time; print a one-line summary (or error) per log; keep
-    the report; show an overall bar (done, failed, skipped, ETA) above one bar per log in flight.
+    """Convert logs on ``executor``; print a one-line summary (or error) per log; keep the report;
+    show an overall bar (done, failed, skipped, ETA) above the executor's per-log bars.
 
     Args:
         fingerprint: converter name, version and options; a log converted with the same
@@ -202,55 +223,45 @@ def run_logs(
             every log; ``retry-failed`` redoes only the logs the last run reported as failed.
         input_dir: a log's source folder (for the input bytes in the report).
         report_file: the report's name in ``output_root`` (one per shard, see :func:`report_name`).
-        parallel_logs: logs converted at the same time (their jobs share the worker pool).
     """
     output_root.mkdir(parents=True, exist_ok=True)
     report = RunReport(output_root, fingerprint or {}, report_file)
     log_ids = list(log_ids)
-    lock = threading.Lock()  # report, messages and the overall bar are shared by the log threads
     overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
     counts = {"ok": 0, "failed": 0, "skipped": 0}
-    slots = queue.SimpleQueue()  # progress-bar rows for the logs in flight
-    for row in range(1, parallel_logs + 1):
-        slots.put(row)
+    results: list[LogResult] = []
 
     def finish(result: LogResult, lines: list[str]) -> None:
         input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
         output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
-        with lock:
-            with tqdm.external_write_mode():  # messages above the bars
-                for line in lines:
-                    echo(line)
-            report.record(result, input_bytes, output_bytes)
-            counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
-            overall.set_postfix(counts, refresh=False)
-            overall.update(1)
+        with tqdm.external_write_mode():  # messages above the bars
+            for line in lines:
+                echo(line)
+        report.record(result, input_bytes, output_bytes)
+        counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
+        overall.set_postfix(counts, refresh=False)
+        overall.update(1)
+        results.append(result)
 
-    def one(log_id: str) -> LogResult | None:
+    todo = []
+    for log_id in log_ids:
         if mode == "retry-failed" and (report.previous(log_id) or {}).get("status") != "failed":
-            with lock:
+            with tqdm.external_write_mode():
                 echo(f"skip  {log_id}: not a failure of the last run")
-                overall.update(1)
-            return None  # its report entry stays as it was
-        if mode == "resume" and report.is_done(log_id, output_root):
-            result = LogResult(log_id, True, skipped=True)
-            finish(result, [f"skip  {log_id}: already converted with the same converter version and options"])
-            return result
-        row = slots.get()
-        started = time.perf_counter()
-        try:
-            result = convert_one(output_root, log_id, convert, show_progress, bar_position=row)
-        finally:
-            slots.put(row)
-        result.seconds = time.perf_counter() - started
-        if result.ok:
-            lines = [f"ok    {result.summary.line()}"] + [f"      warning: {w}" for w in result.warnings]
+            overall.update(1)  # its report entry stays as it was
+        elif mode == "resume" and report.is_done(log_id, output_root):
+            finish(
+                LogResult(log_id, True, skipped=True),
+                [f"skip  {log_id}: already converted with the same converter version and options"],
+            )
         else:
-            lines = [f"FAIL  {log_id}: {result.error}"]
-        finish(result, lines)
-        return result
-
-    with ThreadPoolExecutor(max_workers=parallel_logs) as threads:
-        results = [r for r in threads.map(one, log_ids) if r is not None]
+            todo.append(log_id)
+    if todo:
+        for result in executor.results(task, output_root, todo, show_progress):
+            if result.ok:
+                lines = [f"ok    {result.summary.line()}"] + [f"      warning: {w}" for w in result.warnings]
+            else:
+                lines = [f"FAIL  {result.log_id}: {result.error}"]
+            finish(result, lines)
     overall.close()
-    return results
+    return sorted(results, key=lambda r: log_ids.index(r.log_id))  # in the order asked for

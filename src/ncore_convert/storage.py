@@ -1,4 +1,4 @@
-"""Output-storage helpers shared by the writer and the runner: durability and removal.
+"""Output-storage helpers shared by the writer and the runner: durability, removal, publishing.
 
 Local paths are flushed with fsync, so a sequence is on disk before its folder is renamed into
 place; object stores (s3://, gs://, ...) make an object durable when it is closed.
@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from pathlib import Path
 
 from upath import UPath
 
@@ -44,3 +45,33 @@ def remove_tree(path: UPath) -> None:
             shutil.rmtree(path.path)
         else:
             path.fs.rm(path.path, recursive=True)
+
+
+def publish(work: UPath, final: UPath) -> None:
+    """Move a finished sequence folder into place, replacing any previous ``final``.
+
+    Local: flushed to disk, then renamed (atomic within one file system). Object store (``work``
+    is a local staging folder): the files are uploaded, the folder's top-level files (the
+    sequence meta ``<log_id>.json`` that readers open first) last; an upload that fails removes
+    what it wrote. Either way ``final`` never looks complete before it is.
+    """
+    remove_tree(final)
+    if is_local(final):
+        flush_to_disk(work)
+        work.rename(final)
+        _fsync(final.parent.path, os.O_RDONLY | os.O_DIRECTORY)  # the rename itself (not the siblings)
+        return
+    files = sorted(p for p in Path(work.path).rglob("*") if p.is_file())
+    last = [p for p in files if p.parent == Path(work.path)]
+    first = [p for p in files if p.parent != Path(work.path)]
+    try:
+        for batch in (first, last):
+            if batch:
+                final.fs.put([str(p) for p in batch], [_remote(final, work, p) for p in batch])
+    except BaseException:
+        remove_tree(final)
+        raise
+
+
+def _remote(final: UPath, work: UPath, local_file: Path) -> str:
+    return f"{final.path}/{local_file.relative_to(work.path).as_posix()}"

@@ -25,7 +25,7 @@ from ncore_convert.lidar import (
     ray_bundle,
 )
 from ncore_convert.lidar_model import SpinningLidarModel, column_time_remap, derive_model
-from ncore_convert.pool import JobPool, run_inline
+from ncore_convert.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.argoverse2 import SourceError
 from ncore_convert.writer import (
@@ -560,25 +560,23 @@ def convert_log(
     log_id: str,
     options: Argoverse2Options,
     pool: JobPool | None = None,
-    on_frame: Callable[[int], None] | None = None,
-    on_total: Callable[[int], None] | None = None,
+    progress: Progress | None = None,
 ) -> LogSummary:
     """Convert one AV2 log into ``output_dir`` (which becomes the sequence directory).
 
     Args:
         pool: worker processes for the log's independent store parts; None writes them in this process.
-        on_total: called once with the number of frames (sweeps + images) to write.
-        on_frame: called with the number of newly written frames (progress).
+        progress: told the number of frames (sweeps + images) to write, then each written frame.
     """
     started = time.perf_counter()
+    progress = progress or Progress()
     plan = plan_log(root_dir, log_id, options)
-    if on_total:
-        on_total(plan.n_frames)
+    progress.total(plan.n_frames)
     parts = log_jobs(plan)
     output_dir.mkdir(parents=True, exist_ok=True)
     longest_first = sorted(range(len(parts)), key=lambda i: -parts[i][1])
     calls = [(write_part, (plan, output_dir, parts[i][0])) for i in longest_first]
-    done = pool.run(calls, on_frame) if pool else run_inline(calls, on_frame)
+    done = pool.run(calls, progress) if pool else run_inline(calls, progress)
     results = [done[longest_first.index(i)] for i in range(len(parts))]
 
     if options.sequence_meta:

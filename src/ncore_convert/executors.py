@@ -1,0 +1,117 @@
+"""Where per-log tasks run: this machine's worker processes, or an existing Ray cluster.
+
+Both run the same task per log through :func:`~ncore_convert.runner.convert_one`, so a log's output
+does not depend on the executor.
+"""
+
+from __future__ import annotations
+
+import queue
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from functools import partial
+
+from upath import UPath
+
+from ncore_convert.pool import JobPool, Progress
+from ncore_convert.runner import LogResult, LogTask, Summary, convert_one
+
+
+def _log_as_one_job(task: LogTask, sequence_dir: UPath, log_id: str, progress: Progress) -> Summary:
+    """Pool job: a whole log (planning and every store) in one worker process."""
+    return task(sequence_dir, log_id, progress=progress)
+
+
+def _one_worker_per_log(pool: JobPool, task: LogTask, sequence_dir: UPath, log_id: str, progress: Progress) -> Summary:
+    return pool.run([(_log_as_one_job, (task, sequence_dir, log_id))], progress)[0]
+
+
+def _workers_share_log(pool: JobPool, task: LogTask, sequence_dir: UPath, log_id: str, progress: Progress) -> Summary:
+    return task(sequence_dir, log_id, progress=progress, pool=pool)
+
+
+class LocalExecutor:
+    """Logs on this machine's worker processes (:class:`~ncore_convert.pool.JobPool`).
+
+    With at least as many logs as workers, each log is one job: a worker plans and writes it
+    alone, and ``workers`` logs run at a time. With fewer logs, every log in flight is planned in
+    this process and its stores (base, lidars, each camera) are written by the workers in parallel.
+    """
+
+    def __init__(self, pool: JobPool) -> None:
+        self.pool = pool
+
+    def __enter__(self) -> LocalExecutor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.pool.close()
+
+    def results(
+        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool
+    ) -> Iterator[LogResult]:
+        by_log = len(log_ids) >= self.pool.workers
+        convert = partial(_one_worker_per_log if by_log else _workers_share_log, self.pool, task)
+        in_flight = min(self.pool.workers, len(log_ids))
+        rows: queue.SimpleQueue[int] = queue.SimpleQueue()  # progress-bar rows below the overall bar
+        for row in range(1, in_flight + 1):
+            rows.put(row)
+
+        def one(log_id: str) -> LogResult:
+            row = rows.get()
+            try:
+                return convert_one(output_root, log_id, convert, show_progress, bar_position=row)
+            finally:
+                rows.put(row)
+
+        with ThreadPoolExecutor(max_workers=in_flight) as threads:
+            for future in as_completed([threads.submit(one, log_id) for log_id in log_ids]):
+                yield future.result()
+
+
+def _convert_on_node(task: LogTask, output_root: UPath, log_id: str) -> LogResult:
+    """Ray task: one whole log on a cluster node (no progress bars there)."""
+    return convert_one(output_root, log_id, partial(_log_as_one_job, task), show_progress=False)
+
+
+class RayExecutor:
+    """Logs as Ray tasks (one CPU each) on an existing cluster; Ray schedules them and retries a
+    task whose worker died. ``address``: ``host:port`` of the head node; None connects to
+    ``RAY_ADDRESS`` or the cluster started on this machine.
+
+    Every node needs this package installed and access to the input and output paths (a shared
+    file system or object storage).
+    """
+
+    def __init__(self, address: str | None) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise ImportError("--executor ray needs Ray: pip install 'ncore-convert[ray]'") from None
+        self._ray = ray
+        ray.init(address=address or "auto", log_to_driver=False, logging_level="WARNING")
+
+    def __enter__(self) -> RayExecutor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._ray.shutdown()
+
+    def results(
+        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool
+    ) -> Iterator[LogResult]:
+        ray = self._ray
+        remote = ray.remote(num_cpus=1, max_retries=2)(_convert_on_node)
+        pending = {remote.remote(task, output_root, log_id): log_id for log_id in log_ids}
+        try:
+            while pending:
+                done, _ = ray.wait(list(pending), num_returns=1)
+                log_id = pending.pop(done[0])
+                try:
+                    yield ray.get(done[0])
+                except Exception as err:  # noqa: BLE001 - the task died (node lost, retries used up)
+                    reason = f"Ray task failed: {type(err).__name__}: {err}".replace("\n", " ")
+                    yield LogResult(log_id, False, error=reason)
+        finally:
+            for ref in pending:  # interrupted: do not leave tasks running on the cluster
+                ray.cancel(ref)
