@@ -7,6 +7,7 @@ does not depend on the executor.
 from __future__ import annotations
 
 import queue
+import socket
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from functools import partial
@@ -74,6 +75,17 @@ def _convert_on_node(task: LogTask, output_root: UPath, log_id: str) -> LogResul
     return convert_one(output_root, log_id, partial(_log_as_one_job, task), show_progress=False)
 
 
+def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
+    """Raise ConnectionError unless a TCP connection to ``host:port`` (``ray://`` allowed) opens."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except ValueError:
+        raise ConnectionError(f"{address!r} is not host:port") from None
+    except OSError as err:
+        raise ConnectionError(f"no Ray head node reachable ({err})") from None
+
+
 class RayExecutor:
     """Logs as Ray tasks (one CPU each) on an existing cluster; Ray schedules them and retries a
     task whose worker died. ``address``: ``host:port`` of the head node; None connects to
@@ -89,6 +101,8 @@ class RayExecutor:
         except ImportError:
             raise ImportError("--executor ray needs Ray: pip install 'ncore-convert[ray]'") from None
         self._ray = ray
+        if address:
+            _check_reachable(address)  # Ray itself retries an unreachable head for minutes
         ray.init(address=address or "auto", log_to_driver=False, logging_level="WARNING")
 
     def __enter__(self) -> RayExecutor:

@@ -1,0 +1,113 @@
+"""Object storage: read a log from a bucket and write its sequence to a bucket on a real
+S3-compatible server (moto's server mode on 127.0.0.1), through fsspec/s3fs."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from upath import UPath
+
+from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+BIN = Path(sys.executable).parent
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def s3_env():
+    """A moto S3 server on 127.0.0.1; the environment that points AWS clients (s3fs) at it."""
+    port = _free_port()
+    server = subprocess.Popen(
+        [str(BIN / "moto_server"), "-H", "127.0.0.1", "-p", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    env = {
+        "AWS_ACCESS_KEY_ID": "test",
+        "AWS_SECRET_ACCESS_KEY": "test",
+        "AWS_DEFAULT_REGION": "us-east-1",
+        "AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}",
+    }
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "moto server did not start"
+                time.sleep(0.2)
+        yield {**os.environ, **env}
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def convert(env, root: str, out: str, *extra):
+    cmd = [str(BIN / "ncore-convert"), "--no-progress", "--root-dir", root, "--output-dir", out, *extra,
+           "argoverse2-v4", "--split", "val"]  # fmt: skip
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+
+
+def test_a_log_in_a_bucket_converts_into_a_bucket_as_it_does_locally(s3_env, tmp_path):
+    import s3fs
+    from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+
+    truth = write_log(UPath(tmp_path / "src" / "val"), SynthConfig(seconds=0.3, seed=41, camera_fps=5))
+    fs = s3fs.S3FileSystem()
+    fs.mkdir("datasets")
+    fs.mkdir("converted")
+    fs.put(str(tmp_path / "src" / "val") + "/", "datasets/av2/val/", recursive=True)
+    assert len(fs.find(f"datasets/av2/val/{truth.log_id}")) == sum(
+        1 for p in Path(truth.log_dir.path).rglob("*") if p.is_file()
+    )
+
+    local = convert(s3_env, str(tmp_path / "src"), str(tmp_path / "out"))
+    remote = convert(s3_env, "s3://datasets/av2", "s3://converted/v4", "--workers", "1")
+    for result in (local, remote):
+        assert result.returncode == 0 and "1 converted, 0 skipped, 0 failed" in result.stdout, result.stderr
+
+    fs.invalidate_cache()
+    names = sorted(p.name for p in (tmp_path / "out" / truth.log_id).iterdir())
+    assert sorted(Path(p).name for p in fs.ls(f"converted/v4/{truth.log_id}")) == names
+    for name in names:
+        local_bytes = (tmp_path / "out" / truth.log_id / name).read_bytes()
+        assert fs.cat_file(f"converted/v4/{truth.log_id}/{name}") == local_bytes, name
+    assert not [p for p in fs.ls("converted/v4") if Path(p).name.startswith(".")]
+
+    report = json.loads(fs.cat_file("converted/v4/conversion-report.json"))["logs"][truth.log_id]
+    assert report["status"] == "ok" and report["error"] is None
+    assert report["input_bytes"] == sum(p.stat().st_size for p in Path(truth.log_dir.path).rglob("*") if p.is_file())
+    assert report["output_bytes"] == sum(len(fs.cat_file(f"converted/v4/{truth.log_id}/{n}")) for n in names)
+
+    seq = UPath(f"s3://converted/v4/{truth.log_id}/{truth.log_id}.json")
+    loader = SequenceLoaderV4(SequenceComponentGroupsReader([seq]))
+    assert loader.get_lidar_sensor("up_lidar").frames_count == len(truth.sweeps)
+    assert sum(loader.get_camera_sensor(c).frames_count for c in loader.camera_ids) == truth.n_images
+
+    rerun = convert(s3_env, "s3://datasets/av2", "s3://converted/v4")
+    assert rerun.returncode == 0 and "0 converted, 1 skipped, 0 failed" in rerun.stdout, rerun.stderr
+
+
+def test_a_missing_bucket_prefix_is_a_usage_error(s3_env, tmp_path):
+    result = convert(s3_env, "s3://no-such-bucket/av2", str(tmp_path / "out"))
+    assert result.returncode == 2 and "--root-dir s3://no-such-bucket/av2: directory not found" in result.stderr
