@@ -23,8 +23,9 @@ def two_logs(tmp_path_factory):
 
 
 def run(root, out, *extra, log_id=None):
-    args = ["--no-progress", "--root-dir", str(root), "--output-dir", str(out), *extra, "argoverse2-v4", "--split", "val"]
-    return CliRunner().invoke(cli, args + (["--log-id", log_id] if log_id else []), catch_exceptions=False)
+    args = ["--no-progress", "--root-dir", str(root), "--output-dir", str(out), *extra, "argoverse2-v4"]
+    args += ["--split", "val"] + (["--log-id", log_id] if log_id else [])
+    return CliRunner().invoke(cli, args, catch_exceptions=False)
 
 
 def report(out, name: str = "conversion-report.json") -> dict:
