@@ -48,7 +48,7 @@ def synth(work: Path, seconds: float) -> Path:
     return root / "val" / done.read_text()
 
 
-def _process_tree(root_pid: int) -> dict[int, tuple[int, float]]:
+def process_tree(root_pid: int) -> dict[int, tuple[int, float]]:
     """(resident bytes, CPU seconds) of a process and all its descendants (Linux /proc)."""
     page, tick = os.sysconf("SC_PAGE_SIZE"), os.sysconf("SC_CLK_TCK")
     tree, todo = {}, [root_pid]
@@ -82,14 +82,14 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool,
 
     def sample() -> None:
         while not stop.wait(0.05):
-            tree = _process_tree(os.getpid())
+            tree = process_tree(os.getpid())
             peak[0] = max(peak[0], sum(rss for rss, _ in tree.values()))
             cpu.update({pid: max(cpu.get(pid, 0.0), seconds) for pid, (_, seconds) in tree.items()})
 
     options = Argoverse2Options(split="val", camera_ids=None if cameras else (), lidar_model_source=model_source)
     with JobPool(workers, preload=["ncore_convert.converters.argoverse2"]) as pool:
         pool.run([(_ready, ())] * workers)
-        cpu_before = sum(seconds for _, seconds in _process_tree(os.getpid()).values())
+        cpu_before = sum(seconds for _, seconds in process_tree(os.getpid()).values())
         threading.Thread(target=sample, daemon=True).start()
         t = time.perf_counter()
         s = convert_log(UPath(root), UPath(out), log_id, options, pool=pool)

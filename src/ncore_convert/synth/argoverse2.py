@@ -340,13 +340,18 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
 def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, ego_SE3_city: np.ndarray, rows: dict) -> None:
     """Annotation rows for every scene object within 100 m, with num_interior_pts from the stored cloud."""
     t_s = (ts - truth.t0_ns) * 1e-9
+    by_x = np.argsort(xyz_ego[:, 0])
+    x_sorted = xyz_ego[by_x, 0]
     for box in truth.scene.boxes:
         if not box.annotated:
             continue
         ego_SE3_box = ego_SE3_city @ box.city_SE3_box(t_s)
         if np.linalg.norm(ego_SE3_box[:2, 3]) > 100.0:
             continue
-        local = (xyz_ego - ego_SE3_box[:3, 3]) @ ego_SE3_box[:3, :3]
+        reach_m = np.linalg.norm(box.dims_m) / 2  # only points within this x distance can be inside
+        near = by_x[np.searchsorted(x_sorted, ego_SE3_box[0, 3] - reach_m) : np.searchsorted(
+            x_sorted, ego_SE3_box[0, 3] + reach_m, "right")]  # fmt: skip
+        local = (xyz_ego[near] - ego_SE3_box[:3, 3]) @ ego_SE3_box[:3, :3]
         inside = np.all(np.abs(local) <= box.dims_m / 2, axis=1)
         pose = _pose_columns(ego_SE3_box[None])
         rows["timestamp_ns"].append(ts)

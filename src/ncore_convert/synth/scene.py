@@ -138,6 +138,20 @@ def make_scene(rng: np.random.Generator, seconds: float) -> Scene:
     return Scene(ego, boxes)
 
 
+def _rays_towards(azimuth_sorted: np.ndarray, order: np.ndarray, offset_m: np.ndarray, sin_half: float) -> np.ndarray:
+    """Indices of the rays whose azimuth lies within asin(sin_half) of the azimuth of offset_m [3]."""
+    center = np.arctan2(offset_m[1], offset_m[0])
+    half = np.arcsin(min(1.0, sin_half))
+    lo, hi = center - half, center + half
+    parts = [(lo, hi)]
+    if lo < -np.pi:
+        parts = [(lo + 2 * np.pi, np.pi), (-np.pi, hi)]
+    elif hi > np.pi:
+        parts = [(lo, np.pi), (-np.pi, hi - 2 * np.pi)]
+    return np.concatenate([order[np.searchsorted(azimuth_sorted, a):np.searchsorted(azimuth_sorted, b, "right")]
+                           for a, b in parts])  # fmt: skip
+
+
 def cast_rays(
     origins_m: np.ndarray,
     directions: np.ndarray,
@@ -163,18 +177,29 @@ def cast_rays(
     hit = (s_ground > 0) & (s_ground < best)
     best[hit] = s_ground[hit]
     intensity[hit] = 12
-    center_ray = origins_m.mean(axis=0)
+    center_m = origins_m.mean(axis=0)
+    spread_m = float(np.max(np.linalg.norm(origins_m[:, :2] - center_m[:2], axis=1), initial=0.0))
+    t_mid_s, half_span_s = float(np.median(times_s)), float(np.ptp(times_s)) / 2 if n else 0.0
+    order = np.argsort(np.arctan2(directions[:, 1], directions[:, 0]))
+    azimuth_sorted = np.arctan2(directions[order, 1], directions[order, 0])
     for box in scene.boxes:
-        c0 = box.center0_m
-        if np.linalg.norm(c0[:2] - center_ray[:2]) - np.linalg.norm(box.dims_m) > max_range_m:
+        # Only rays whose azimuth points at the box can hit it: seen from the rays' mean origin, the
+        # box (at the sweep's middle time) lies within a disc of radius r, padded by the spread of
+        # the origins and the box's motion during the sweep.
+        center = box.center0_m + box.velocity_mps * t_mid_s
+        r = np.linalg.norm(box.dims_m) / 2 + spread_m + np.linalg.norm(box.velocity_mps) * half_span_s
+        distance = np.linalg.norm(center[:2] - center_m[:2])
+        if distance - r > max_range_m:
             continue
+        idx = slice(None) if distance <= r else _rays_towards(azimuth_sorted, order, center - center_m, r / distance)
+        o, d, t = origins_m[idx], directions[idx], times_s[idx]
         if np.any(box.velocity_mps):
-            o_b = (origins_m - c0 - np.outer(times_s, box.velocity_mps)) @ box.rotation
+            o_b = (o - box.center0_m - np.outer(t, box.velocity_mps)) @ box.rotation
         else:
-            o_b = (origins_m - c0) @ box.rotation
-        d_b = directions @ box.rotation
-        t_near = np.full(n, -np.inf)
-        t_far = np.full(n, np.inf)
+            o_b = (o - box.center0_m) @ box.rotation
+        d_b = d @ box.rotation
+        t_near = np.full(len(o_b), -np.inf)
+        t_far = np.full(len(o_b), np.inf)
         with np.errstate(divide="ignore", invalid="ignore"):
             for k in range(3):
                 inv = 1.0 / d_b[:, k]
@@ -182,8 +207,12 @@ def cast_rays(
                 t2 = (box.dims_m[k] / 2 - o_b[:, k]) * inv
                 t_near = np.fmax(t_near, np.fmin(t1, t2))
                 t_far = np.fmin(t_far, np.fmax(t1, t2))
-        hit = (t_near <= t_far) & (t_near > 0) & (t_near < best)
-        best[hit] = t_near[hit]
-        intensity[hit] = box.intensity
+        nearest = best[idx]
+        hit = (t_near <= t_far) & (t_near > 0) & (t_near < nearest)
+        nearest[hit] = t_near[hit]
+        best[idx] = nearest
+        hits = intensity[idx]
+        hits[hit] = box.intensity
+        intensity[idx] = hits
     best[best > max_range_m] = np.inf
     return best, intensity

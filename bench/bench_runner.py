@@ -1,0 +1,183 @@
+"""Benchmark the runner: dataset throughput with 1 and 2 workers, and memory per worker vs log length.
+
+Not a test. Figures are medians over --repeat runs (this machine is noisy):
+- throughput: the same --logs synthetic logs (--seconds each, 9 cameras at 20 fps) converted with
+  1 and with 2 workers, interleaved, as logs per minute; both through warm worker processes (the
+  runner alone: every log of a dataset run after the first) and as the whole ``ncore-convert``
+  command from process start; the speedup is the median of the per-run ratios;
+- memory: a 15 s and a 60 s log, each converted by a fresh command-like run; the peak resident
+  set (VmHWM) of the largest worker process and of the main process. With one worker, the log is
+  one job (the dataset-run mode); with two, its stores are shared between the workers.
+
+    python bench/bench_runner.py [--work /tmp/ncore-bench] [--logs 6] [--seconds 2] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+from bench_argoverse2 import process_tree
+from upath import UPath
+
+
+def synth_logs(work: Path, count: int, seconds: float) -> Path:
+    """(Once, cached) ``count`` synthetic logs of ``seconds`` each under ``<root>/val``; returns root."""
+    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+    root = work / f"runner-{count}x{seconds:g}s"
+    if not (root / "DONE").exists():
+        shutil.rmtree(root, ignore_errors=True)
+        for seed in range(count):
+            write_log(UPath(root / "val"), SynthConfig(seconds=seconds, seed=100 + seed))
+        (root / "DONE").write_text("")
+    return root
+
+
+def long_log_root(work: Path, seconds: float) -> Path:
+    """(Once, cached) one synthetic log of ``seconds``, shared with bench_argoverse2; returns its root."""
+    from bench_argoverse2 import synth
+
+    return synth(work, seconds).parent.parent
+
+
+def run_dataset(executor, root: Path, out: Path) -> float:
+    """Convert every log under root/val with the runner; returns seconds to synced files."""
+    from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+    from ncore_convert.runner import run_logs
+    from ncore_convert.sources.argoverse2 import list_log_ids
+
+    shutil.rmtree(out, ignore_errors=True)
+    options = Argoverse2Options(split="val")
+    log_ids = list_log_ids(UPath(root), "val")
+    t = time.perf_counter()
+    task = partial(convert_log, UPath(root), options=options)
+    results = run_logs(
+        UPath(out), log_ids, task, executor, echo=lambda line: None, show_progress=False, mode="overwrite"
+    )
+    subprocess.run(["sync"], check=True)
+    elapsed = time.perf_counter() - t
+    failed = [r.error for r in results if not r.ok]
+    if failed:
+        raise SystemExit(f"conversion failed: {failed[0]}")
+    return elapsed
+
+
+def run_command(root: Path, out: Path, workers: int) -> float:
+    """The whole command, from process start to synced files."""
+    shutil.rmtree(out, ignore_errors=True)
+    cli = Path(sys.executable).parent / "ncore-convert"
+    t = time.perf_counter()
+    subprocess.run(
+        [str(cli), "--root-dir", str(root), "--output-dir", str(out), "--workers", str(workers), "--no-progress",
+         "argoverse2-v4", "--split", "val"],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    subprocess.run(["sync"], check=True)
+    return time.perf_counter() - t
+
+
+def _ready(progress) -> int:
+    return os.getpid()
+
+
+def _vm_hwm_bytes(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+def child_memory(root: str, out: str, workers: int) -> None:
+    """Convert the one log under root/val in a fresh process; print the peak RSS of the largest
+    worker and of this process as JSON."""
+    from ncore_convert.executors import LocalExecutor
+    from ncore_convert.pool import JobPool
+
+    with LocalExecutor(JobPool(workers, preload=["ncore_convert.converters.argoverse2"])) as executor:
+        executor.pool.run([(_ready, ())] * workers)
+        wall = run_dataset(executor, Path(root), Path(out))
+        workers_peak = max(_vm_hwm_bytes(pid) for pid in process_tree(os.getpid()) if pid != os.getpid())
+    print(json.dumps({"worker_mb": workers_peak / 2**20, "main_mb": _vm_hwm_bytes(os.getpid()) / 2**20, "s": wall}))
+
+
+def memory(root: Path, out: Path, workers: int) -> dict:
+    args = [sys.executable, __file__, "--child-memory", str(root), str(out), str(workers)]
+    proc = subprocess.run(args, check=True, capture_output=True, text=True)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--work", default="/tmp/ncore-bench")
+    parser.add_argument("--logs", type=int, default=6)
+    parser.add_argument("--seconds", type=float, default=2.0)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--child-memory", nargs=3, metavar=("ROOT", "OUT", "WORKERS"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child_memory:
+        root, out, workers = args.child_memory
+        child_memory(root, out, int(workers))
+        return
+    from ncore_convert.executors import LocalExecutor
+    from ncore_convert.pool import JobPool
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    root = synth_logs(work, args.logs, args.seconds)
+    print(f"throughput: {args.logs} logs of {args.seconds:g} s, medians of {args.repeat} interleaved runs", flush=True)
+    runs = []
+    with (
+        LocalExecutor(JobPool(1, preload=["ncore_convert.converters.argoverse2"])) as one,
+        LocalExecutor(JobPool(2, preload=["ncore_convert.converters.argoverse2"])) as two,
+    ):
+        one.pool.run([(_ready, ())])
+        two.pool.run([(_ready, ())] * 2)
+        for _ in range(args.repeat):
+            run = {"runner_1": run_dataset(one, root, work / "runner-out"),
+                   "runner_2": run_dataset(two, root, work / "runner-out"),
+                   "command_1": run_command(root, work / "runner-out", 1),
+                   "command_2": run_command(root, work / "runner-out", 2)}  # fmt: skip
+            run["runner_speedup"] = run["runner_1"] / run["runner_2"]
+            run["command_speedup"] = run["command_1"] / run["command_2"]
+            runs.append(run)
+            print("  " + ", ".join(f"{k} {v:.2f}" for k, v in run.items()), flush=True)
+    med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+    per_min = {k: 60 * args.logs / med[k] for k in ("runner_1", "runner_2", "command_1", "command_2")}
+    print(
+        f"  runner (warm workers)  1 worker {per_min['runner_1']:.1f} logs/min, 2 workers {per_min['runner_2']:.1f}"
+        f" logs/min: speedup {med['runner_speedup']:.2f}x\n"
+        f"  whole command          1 worker {per_min['command_1']:.1f} logs/min, 2 workers {per_min['command_2']:.1f}"
+        f" logs/min: speedup {med['command_speedup']:.2f}x",
+        flush=True,
+    )
+    print("memory: peak RSS (VmHWM) per process, one log per run", flush=True)
+    figures = {}
+    for seconds in (15.0, 60.0):
+        log_root = long_log_root(work, seconds)
+        for workers in (1, 2):
+            samples = [memory(log_root, work / "memory-out", workers) for _ in range(args.repeat)]
+            figures[seconds, workers] = m = {k: statistics.median(s[k] for s in samples) for k in samples[0]}
+            print(
+                f"  {seconds:>4g} s log, {workers} worker(s): largest worker {m['worker_mb']:.0f} MB,"
+                f" main process {m['main_mb']:.0f} MB ({m['s']:.1f} s)",
+                flush=True,
+            )
+    for workers in (1, 2):
+        ratio = figures[60.0, workers]["worker_mb"] / figures[15.0, workers]["worker_mb"]
+        print(f"  largest worker, 60 s / 15 s log, {workers} worker(s): {ratio:.3f}x")
+    shutil.rmtree(work / "memory-out", ignore_errors=True)
+    shutil.rmtree(work / "runner-out", ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
