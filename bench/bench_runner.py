@@ -7,9 +7,13 @@ Not a test. Figures are medians over --repeat runs (this machine is noisy):
   command from process start; the speedup is the median of the per-run ratios;
 - memory: a 15 s and a 60 s log, each converted by a fresh command-like run; the peak resident
   set (VmHWM) of the largest worker process and of the main process. With one worker, the log is
-  one job (the dataset-run mode); with two, its stores are shared between the workers.
+  one job (the dataset-run mode); with two, its stores are shared between the workers. Each log
+  is measured as synthesised (with annotations) and without its annotations.feather (as TbV
+  and the AV2 test split): NCore stores all cuboid observations of a log in one JSON attribute,
+  so that part of the memory grows with the number of annotations.
 
     python bench/bench_runner.py [--work /tmp/ncore-bench] [--logs 6] [--seconds 2] [--repeat 3]
+                                 [--skip-throughput]
 """
 
 from __future__ import annotations
@@ -42,11 +46,20 @@ def synth_logs(work: Path, count: int, seconds: float) -> Path:
     return root
 
 
-def long_log_root(work: Path, seconds: float) -> Path:
-    """(Once, cached) one synthetic log of ``seconds``, shared with bench_argoverse2; returns its root."""
+def long_log_root(work: Path, seconds: float, annotations: bool) -> Path:
+    """(Once, cached) one synthetic log of ``seconds``, shared with bench_argoverse2; returns its root.
+    Without annotations: a hard-linked copy without annotations.feather."""
     from bench_argoverse2 import synth
 
-    return synth(work, seconds).parent.parent
+    root = synth(work, seconds).parent.parent
+    if annotations:
+        return root
+    bare = work / f"{root.name}-no-annotations"
+    if not bare.exists():
+        shutil.copytree(root, bare, copy_function=os.link)
+        for path in bare.glob("val/*/annotations.feather"):
+            path.unlink()
+    return bare
 
 
 def run_dataset(executor, root: Path, out: Path) -> float:
@@ -116,25 +129,12 @@ def memory(root: Path, out: Path, workers: int) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--work", default="/tmp/ncore-bench")
-    parser.add_argument("--logs", type=int, default=6)
-    parser.add_argument("--seconds", type=float, default=2.0)
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--child-memory", nargs=3, metavar=("ROOT", "OUT", "WORKERS"), help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.child_memory:
-        root, out, workers = args.child_memory
-        child_memory(root, out, int(workers))
-        return
+def throughput(work: Path, logs: int, seconds: float, repeat: int) -> None:
     from ncore_convert.executors import LocalExecutor
     from ncore_convert.pool import JobPool
 
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
-    root = synth_logs(work, args.logs, args.seconds)
-    print(f"throughput: {args.logs} logs of {args.seconds:g} s, medians of {args.repeat} interleaved runs", flush=True)
+    root = synth_logs(work, logs, seconds)
+    print(f"throughput: {logs} logs of {seconds:g} s, medians of {repeat} interleaved runs", flush=True)
     runs = []
     with (
         LocalExecutor(JobPool(1, preload=["ncore_convert.converters.argoverse2"])) as one,
@@ -142,7 +142,7 @@ def main() -> None:
     ):
         one.pool.run([(_ready, ())])
         two.pool.run([(_ready, ())] * 2)
-        for _ in range(args.repeat):
+        for _ in range(repeat):
             run = {"runner_1": run_dataset(one, root, work / "runner-out"),
                    "runner_2": run_dataset(two, root, work / "runner-out"),
                    "command_1": run_command(root, work / "runner-out", 1),
@@ -152,7 +152,7 @@ def main() -> None:
             runs.append(run)
             print("  " + ", ".join(f"{k} {v:.2f}" for k, v in run.items()), flush=True)
     med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-    per_min = {k: 60 * args.logs / med[k] for k in ("runner_1", "runner_2", "command_1", "command_2")}
+    per_min = {k: 60 * logs / med[k] for k in ("runner_1", "runner_2", "command_1", "command_2")}
     print(
         f"  runner (warm workers)  1 worker {per_min['runner_1']:.1f} logs/min, 2 workers {per_min['runner_2']:.1f}"
         f" logs/min: speedup {med['runner_speedup']:.2f}x\n"
@@ -160,21 +160,44 @@ def main() -> None:
         f" logs/min: speedup {med['command_speedup']:.2f}x",
         flush=True,
     )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--work", default="/tmp/ncore-bench")
+    parser.add_argument("--logs", type=int, default=6)
+    parser.add_argument("--seconds", type=float, default=2.0)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--skip-throughput", action="store_true")
+    parser.add_argument("--child-memory", nargs=3, metavar=("ROOT", "OUT", "WORKERS"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child_memory:
+        root, out, workers = args.child_memory
+        child_memory(root, out, int(workers))
+        return
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    if not args.skip_throughput:
+        throughput(work, args.logs, args.seconds, args.repeat)
     print("memory: peak RSS (VmHWM) per process, one log per run", flush=True)
     figures = {}
-    for seconds in (15.0, 60.0):
-        log_root = long_log_root(work, seconds)
+    for annotated in (True, False):
+        for seconds in (15.0, 60.0):
+            log_root = long_log_root(work, seconds, annotated)
+            for workers in (1, 2):
+                samples = [memory(log_root, work / "memory-out", workers) for _ in range(args.repeat)]
+                m = {k: statistics.median(sample[k] for sample in samples) for k in samples[0]}
+                figures[annotated, seconds, workers] = m
+                print(
+                    f"  {seconds:>4g} s log, {'with' if annotated else 'without'} annotations, {workers} worker(s):"
+                    f" largest worker {m['worker_mb']:.0f} MB, main process {m['main_mb']:.0f} MB ({m['s']:.1f} s)",
+                    flush=True,
+                )
+    for annotated in (True, False):
         for workers in (1, 2):
-            samples = [memory(log_root, work / "memory-out", workers) for _ in range(args.repeat)]
-            figures[seconds, workers] = m = {k: statistics.median(s[k] for s in samples) for k in samples[0]}
-            print(
-                f"  {seconds:>4g} s log, {workers} worker(s): largest worker {m['worker_mb']:.0f} MB,"
-                f" main process {m['main_mb']:.0f} MB ({m['s']:.1f} s)",
-                flush=True,
-            )
-    for workers in (1, 2):
-        ratio = figures[60.0, workers]["worker_mb"] / figures[15.0, workers]["worker_mb"]
-        print(f"  largest worker, 60 s / 15 s log, {workers} worker(s): {ratio:.3f}x")
+            ratio = figures[annotated, 60.0, workers]["worker_mb"] / figures[annotated, 15.0, workers]["worker_mb"]
+            label = "with" if annotated else "without"
+            print(f"  largest worker, 60 s / 15 s log, {label} annotations, {workers} worker(s): {ratio:.3f}x")
     shutil.rmtree(work / "memory-out", ignore_errors=True)
     shutil.rmtree(work / "runner-out", ignore_errors=True)
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal
 
@@ -150,6 +151,24 @@ def _component_groups(camera_ids: list[str], lidar_ids: list[str], profile: Prof
     )
 
 
+def _observations(cuboids: Cuboids, source: LabelSource) -> Iterator[CuboidTrackObservation]:
+    for i in range(len(cuboids)):
+        ts = int(cuboids.timestamps_us[i])
+        yield CuboidTrackObservation(
+            track_id=str(cuboids.track_ids[i]),
+            class_id=str(cuboids.class_ids[i]),
+            timestamp_us=ts,
+            reference_frame_id=cuboids.reference_frame_id,
+            reference_frame_timestamp_us=ts,
+            bbox3=BBox3(
+                centroid=tuple(float(v) for v in cuboids.centroids_m[i]),
+                dim=tuple(float(v) for v in cuboids.dims_m[i]),
+                rot=tuple(float(v) for v in cuboids.euler_xyz_rad[i]),
+            ),
+            source=source,
+        )
+
+
 class SequenceWriter:
     """Writes the component stores of one NCore V4 sequence, or a disjoint part of them.
 
@@ -284,29 +303,14 @@ class SequenceWriter:
         return LidarStream(writer)
 
     def store_cuboids(self, cuboids: Cuboids | None, source: str = "EXTERNAL") -> None:
-        """Store all cuboid observations (an empty component when there are none)."""
+        """Store all cuboid observations (an empty component when there are none).
+
+        The library keeps every observation in one JSON attribute, so this costs memory in
+        proportion to the number of observations; they are handed over one at a time (a
+        generator) so that only the library's own copy is held.
+        """
         self._require_base()
-        observations = []
-        if cuboids is not None:
-            label_source = LabelSource[source]
-            for i in range(len(cuboids)):
-                ts = int(cuboids.timestamps_us[i])
-                observations.append(
-                    CuboidTrackObservation(
-                        track_id=str(cuboids.track_ids[i]),
-                        class_id=str(cuboids.class_ids[i]),
-                        timestamp_us=ts,
-                        reference_frame_id=cuboids.reference_frame_id,
-                        reference_frame_timestamp_us=ts,
-                        bbox3=BBox3(
-                            centroid=tuple(float(v) for v in cuboids.centroids_m[i]),
-                            dim=tuple(float(v) for v in cuboids.dims_m[i]),
-                            rot=tuple(float(v) for v in cuboids.euler_xyz_rad[i]),
-                        ),
-                        source=label_source,
-                    )
-                )
-        self._cuboids.store_observations(observations)
+        self._cuboids.store_observations(_observations(cuboids, LabelSource[source]) if cuboids is not None else [])
 
     def finalize(self, with_meta: bool = True) -> SequenceMeta | None:
         """Close this writer's stores and flush them to disk. With ``with_meta``, return the library's

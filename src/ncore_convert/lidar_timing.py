@@ -1,0 +1,191 @@
+"""Per-point lidar firing times reconstructed without per-point timestamps (TbV has no offset_ns).
+
+Facts used (measured on the real AV2 sample, where offset_ns gives the truth):
+- each unit's points are stored in firing order;
+- a point's firing azimuth (its azimuth in the unit's own frame minus its beam's azimuth offset)
+  advances at about 3.6°/ms, one revolution per 100 ms;
+- cameras are triggered on an exact 100 ms grid, each when one unit's firing azimuth crosses the
+  camera's optical axis. The trigger times are every image timestamp, which the pose table also
+  holds: every pose timestamp whose phase within 100 ms recurs is a trigger. So each unit gets
+  one (time, azimuth) knot per camera and revolution, and a firing azimuth maps to a time within
+  the 100 ms period by interpolating between knots (which also follows a non-uniform spin);
+- the image timestamps lag the crossing by about 0.1 ms (:data:`TRIGGER_DELAY_MS`).
+
+The knots fix the time within a period up to which of the two units (180° apart) a trigger
+belongs to; the sweep timestamp settles that: a sweep's first firing is within
+:data:`FIRST_FIRING_WINDOW_MS` of its timestamp (0.2 to 6.6 ms in AV2). Rows far from the start
+of a sweep are placed in the right revolution by following the row order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+PERIOD_NS = 100_000_000  #: trigger grid and nominal revolution
+PERIOD_MS = PERIOD_NS / 1e6
+RATE_DEG_PER_MS = 360.0 / PERIOD_MS  #: nominal spin rate
+#: Image timestamps minus the unit's crossing of the camera axis, measured on the real AV2 sample
+#: (up_lidar 0.09 ms, down_lidar 0.12 ms; the only real data with per-point times at hand).
+TRIGGER_DELAY_MS = 0.1
+#: A sweep's first firing lies within this many ms after (or before) its timestamp.
+FIRST_FIRING_WINDOW_MS = (-25.0, 25.0)
+#: Phases within this many ns are one trigger phase (image timestamps sit exactly on the grid).
+PHASE_TOLERANCE_NS = 20_000
+#: A phase is a trigger phase if it recurs in at least this share of the periods spanned.
+MIN_PHASE_SHARE = 0.3
+#: Rows per block for the row-order revolution tracking.
+BLOCK_ROWS = 32
+
+
+class TimingError(ValueError):
+    """The data do not allow reconstructing firing times (no trigger grid, too few triggers)."""
+
+
+def trigger_phases_ns(times_ns: np.ndarray, period_ns: int = PERIOD_NS) -> tuple[int, np.ndarray]:
+    """The recurring phases of a set of timestamps: camera triggers on a fixed grid.
+
+    Args:
+        times_ns: candidate trigger times (image and pose timestamps), int64 [N], ns.
+
+    Returns:
+        (epoch_ns, phases_ns): a reference time and the sorted distinct phases (ns within one
+        period after the epoch) that recur in at least MIN_PHASE_SHARE of the periods. Stray
+        timestamps (sweep timestamps, which drift against the grid) are left out.
+    """
+    times_ns = np.unique(np.asarray(times_ns, dtype=np.int64))
+    if len(times_ns) < 2:
+        raise TimingError("fewer than two trigger timestamps")
+    epoch = int(times_ns[0])
+    phase = (times_ns - epoch) % period_ns
+    periods = max(1, int((times_ns[-1] - times_ns[0]) // period_ns))
+    bins = np.round(phase / PHASE_TOLERANCE_NS).astype(np.int64) % (period_ns // PHASE_TOLERANCE_NS)
+    values, counts = np.unique(bins, return_counts=True)
+    keep = values[counts >= max(2, MIN_PHASE_SHARE * periods)]
+    if len(keep) == 0:
+        raise TimingError(f"no timestamps recur on a {period_ns / 1e6:g} ms grid (no camera triggers)")
+    centers = keep * PHASE_TOLERANCE_NS  # medians taken around each bin's centre, across the period wrap
+    phases = [
+        c + np.median((phase[bins == b] - c + period_ns / 2) % period_ns - period_ns / 2)
+        for b, c in zip(keep, centers, strict=True)
+    ]
+    return epoch, np.sort(np.asarray(phases) % period_ns)
+
+
+@dataclass(frozen=True)
+class RotationKnots:
+    """One unit's periodic rotation: its firing azimuth at trigger times.
+
+    Attributes:
+        epoch_ns: time origin of the grid, ns.
+        times_ms: knot times within one period after the epoch, sorted, float64 [K], ms.
+        azimuth_deg: firing azimuth at each knot, own frame, unwrapped, float64 [K], degrees.
+        spin: +1 if the azimuth increases with time, -1 if it decreases.
+        residual_ms: RMS distance of the knots from a uniform rotation at the nominal rate, ms.
+    """
+
+    epoch_ns: int
+    times_ms: np.ndarray
+    azimuth_deg: np.ndarray
+    spin: int
+    residual_ms: float
+
+    def phase_ms(self, firing_azimuth_deg: np.ndarray) -> np.ndarray:
+        """Time within the period (ms after the epoch grid, [0, 100)) at which the unit fires
+        towards each azimuth ([N] degrees, own frame)."""
+        turn = self.spin * 360.0
+        k_az = self.spin * np.r_[self.azimuth_deg - turn, self.azimuth_deg, self.azimuth_deg + turn]
+        k_t = np.r_[self.times_ms - PERIOD_MS, self.times_ms, self.times_ms + PERIOD_MS]
+        a0 = self.spin * self.azimuth_deg[0]
+        a = a0 + (self.spin * np.asarray(firing_azimuth_deg) - a0) % 360.0
+        return np.interp(a, k_az, k_t) % PERIOD_MS
+
+
+def fit_rotation_knots(
+    camera_azimuth_deg: np.ndarray, spin: int, epoch_ns: int, phases_ns: np.ndarray, half_turn: bool = False
+) -> RotationKnots:
+    """Assign trigger phases to one unit's crossings of the camera axes.
+
+    Args:
+        camera_azimuth_deg: each camera's optical axis as an azimuth in the unit's own frame, [C] degrees.
+        spin: the unit's spin direction (+1: azimuth increases with time).
+        epoch_ns, phases_ns: the trigger grid (see :func:`trigger_phases_ns`).
+        half_turn: take the other of the two fits 180° apart (the other unit's triggers).
+
+    Returns:
+        The knots: each camera's azimuth at the trigger phase its crossing matches best, assuming
+        a uniform spin at the nominal rate to match, then TRIGGER_DELAY_MS earlier.
+    """
+    psi = np.asarray(camera_azimuth_deg, dtype=np.float64)
+    phases_ms = np.asarray(phases_ns) / 1e6
+
+    def gaps(a0: np.ndarray) -> np.ndarray:  # [A,C] ms from each predicted crossing to its nearest trigger phase
+        t = ((psi[None, :] - a0[:, None]) / (spin * RATE_DEG_PER_MS)) % PERIOD_MS
+        d = (t[:, :, None] - phases_ms[None, None, :] + PERIOD_MS / 2) % PERIOD_MS - PERIOD_MS / 2
+        return np.abs(d).min(axis=2)
+
+    grid = np.arange(0.0, 360.0, 0.05)
+    score = np.minimum(gaps(grid), 1.0).sum(axis=1)
+    best = grid[np.argmin(score)]
+    if half_turn:
+        near = np.abs((grid - best + 180.0) % 360.0 - 180.0) > 90.0  # the other half of the circle
+        best = grid[near][np.argmin(score[near])]
+    t = ((psi - best) / (spin * RATE_DEG_PER_MS)) % PERIOD_MS
+    d = (t[:, None] - phases_ms[None, :] + PERIOD_MS / 2) % PERIOD_MS - PERIOD_MS / 2
+    j = np.abs(d).argmin(axis=1)
+    residual = float(np.sqrt(np.mean(d[np.arange(len(psi)), j] ** 2)))
+    times = (phases_ms[j] - TRIGGER_DELAY_MS) % PERIOD_MS
+    order = np.argsort(times)
+    azimuth = np.degrees(np.unwrap(np.radians(psi[order])))
+    return RotationKnots(epoch_ns, times[order], azimuth, spin, residual)
+
+
+def spin_direction(firing_azimuth_deg: np.ndarray) -> int:
+    """+1 if the azimuth increases along the rows (firing order), else -1 ([N] degrees)."""
+    steps = np.diff(np.degrees(np.unwrap(np.radians(firing_azimuth_deg))))
+    return 1 if np.median(steps) >= 0 and steps.sum() >= 0 else -1
+
+
+@dataclass(frozen=True)
+class SweepTimes:
+    """Reconstructed firing times of one unit's rows and how well they follow the row order.
+
+    Attributes:
+        times_ns: absolute firing time per row, int64 [N], ns.
+        out_of_order: share of rows more than 0.5 ms earlier than the row before them.
+    """
+
+    times_ns: np.ndarray
+    out_of_order: float
+
+
+def firing_times(firing_azimuth_deg: np.ndarray, knots: RotationKnots, sweep_ts_ns: int) -> SweepTimes:
+    """Absolute firing time of each row of one unit in one sweep.
+
+    Args:
+        firing_azimuth_deg: firing azimuth per row in firing (row) order, own frame, [N] degrees.
+        knots: the unit's rotation.
+        sweep_ts_ns: the sweep timestamp, ns.
+
+    The time within the period comes from the knots. The revolution of each row follows a smooth
+    track of the row order (circular means of blocks of rows, unwrapped), which a few noisy rows
+    cannot derail; the first rows are placed within FIRST_FIRING_WINDOW_MS of the sweep timestamp.
+    """
+    n = len(firing_azimuth_deg)
+    if n == 0:
+        return SweepTimes(np.zeros(0, dtype=np.int64), 0.0)
+    phase_ms = knots.phase_ms(firing_azimuth_deg)
+    angle = phase_ms * (2 * np.pi / PERIOD_MS)
+    blocks = np.arange(0, n, BLOCK_ROWS)
+    mean_angle = np.angle(np.add.reduceat(np.exp(1j * angle), blocks))
+    track_ms = np.unwrap(mean_angle) * (PERIOD_MS / (2 * np.pi))
+    centers = np.minimum(blocks + BLOCK_ROWS / 2 - 0.5, (blocks + n - 1) / 2)
+    track = np.interp(np.arange(n), centers, track_ms)
+    rel_ms = phase_ms + PERIOD_MS * np.round((track - phase_ms) / PERIOD_MS)
+    # absolute: epoch + rel + whole periods, with the first block inside the window after the timestamp
+    start_ms = (sweep_ts_ns - knots.epoch_ns) / 1e6 + FIRST_FIRING_WINDOW_MS[0]
+    shift = PERIOD_MS * np.ceil((start_ms - track_ms[0]) / PERIOD_MS)
+    times_ns = knots.epoch_ns + np.round((rel_ms + shift) * 1e6).astype(np.int64)
+    out_of_order = float(np.mean(np.diff(times_ns) < -500_000)) if n > 1 else 0.0
+    return SweepTimes(times_ns, out_of_order)
