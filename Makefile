@@ -30,6 +30,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/bench_argoverse2.py
+	$(PY) bench/bench_runner.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info

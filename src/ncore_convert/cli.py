@@ -153,71 +153,65 @@ def _parse_shard(text: str | None) -> tuple[int, int] | None:
     return index, count
 
 
-@cli.command("argoverse2-v4")
-@click.option("--split", type=click.Choice(AV2_SPLITS), required=True, help="Dataset split folder.")
-@click.option(
-    "--log-id",
-    "log_ids",
-    multiple=True,
-    show_default="every log of the split",
-    help="Convert only this log (repeatable).",
-)
-@click.option("--store-type", type=click.Choice(["itar", "directory"]), default="itar", help="Zarr store container.")
-@click.option(
-    "--profile",
-    type=click.Choice(["default", "separate-sensors", "separate-all"]),
-    default="separate-sensors",
-    help="Component group layout: one store, one store per sensor, or also separate poses/intrinsics/masks/cuboids.",
-)
-@click.option("--sequence-meta/--no-sequence-meta", default=True, help="Write <log_id>.json (sequence meta).")
-@click.option(
-    "--lidar-model-source",
-    type=click.Choice(["empirical", "none"]),
-    default="empirical",
-    help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's model element;"
-    " 'none': raw per-point-time ray bundles only.",
-)
-@click.pass_obj
-def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequence_meta, lidar_model_source):
-    """Argoverse 2 Sensor (<root>/<split>/<log_id>) to NCore V4."""
+def av2_family_options(log_scope: str):
+    """Options shared by the Argoverse 2 Sensor and TbV commands."""
+
+    def decorate(f):
+        for option in reversed([
+            click.option("--log-id", "log_ids", multiple=True, show_default=f"every log {log_scope}",
+                         help="Convert only this log (repeatable)."),
+            click.option("--store-type", type=click.Choice(["itar", "directory"]), default="itar",
+                         help="Zarr store container."),
+            click.option("--profile", type=click.Choice(["default", "separate-sensors", "separate-all"]),
+                         default="separate-sensors",
+                         help="Component group layout: one store, one store per sensor, or also separate"
+                         " poses/intrinsics/masks/cuboids."),
+            click.option("--sequence-meta/--no-sequence-meta", default=True,
+                         help="Write <log_id>.json (sequence meta)."),
+            click.option("--lidar-model-source", type=click.Choice(["empirical", "none"]), default="empirical",
+                         help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's"
+                         " model element; 'none': raw per-point-time ray bundles only."),
+        ]):  # fmt: skip
+            f = option(f)
+        return f
+
+    return decorate
+
+
+def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_ids: tuple[str, ...], **options):
+    """Run the Argoverse 2 Sensor (split given) or TbV (split None) conversion of the selected logs."""
     root, out = obj.require_paths()
     with obj.make_executor(preload=["ncore_convert.converters.argoverse2"]) as executor:
         from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
         from ncore_convert.runner import report_name, run_logs, shard_logs
         from ncore_convert.sources import argoverse2 as av2
+        from ncore_convert.sources import tbv
 
-        options = Argoverse2Options(
-            split=split,
-            store_type=store_type,
-            profile=profile,
-            sequence_meta=sequence_meta,
-            lidar_model_source=lidar_model_source,
-            camera_ids=obj.camera_ids,
-            lidar_ids=obj.lidar_ids,
-        )
+        options = Argoverse2Options(split=split, camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids, **options)
+        logs_dir = root if options.tbv else root / split
         try:
-            select_sensors(options.camera_ids, av2.CAMERAS, "camera")
+            select_sensors(options.camera_ids, av2.RING_CAMERAS if options.tbv else av2.CAMERAS, "camera")
             select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
-            available = av2.list_log_ids(root, split)
+            available = tbv.list_log_ids(root) if options.tbv else av2.list_log_ids(root, split)
         except (ValueError, av2.SourceError) as err:
             raise click.UsageError(str(err)) from None
         if log_ids:
             unknown = [log for log in log_ids if log not in available]
             if unknown:
-                raise click.UsageError(f"log(s) not found under {root / split}: {', '.join(unknown)}")
+                raise click.UsageError(f"log(s) not found under {logs_dir}: {', '.join(unknown)}")
             todo = list(dict.fromkeys(log_ids))
         else:
             todo = available
         if not todo:
-            raise click.UsageError(f"no logs under {root / split}")
+            raise click.UsageError(f"no logs under {logs_dir}")
         todo = shard_logs(todo, obj.shard)
 
-        fingerprint = {"name": "ncore-convert", "version": __version__, "command": "argoverse2-v4"}
+        fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
         results = run_logs(
             out, todo, partial(convert_log, root, options=options), executor, echo=click.echo,
             show_progress=obj.progress, fingerprint=fingerprint, mode=obj.mode,
-            input_dir=lambda log_id: root / split / log_id, report_file=report_name(obj.shard),
+            input_dir=lambda log_id: options.log_dir(root, log_id), report_file=report_name(obj.shard),
         )  # fmt: skip
     failed = sum(not r.ok for r in results)
     skipped = sum(r.skipped for r in results)
@@ -226,6 +220,23 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, store_type, profile, sequen
         f" output and {report_name(obj.shard)} in {out}"
     )
     sys.exit(1 if failed else 0)
+
+
+@cli.command("argoverse2-v4")
+@click.option("--split", type=click.Choice(AV2_SPLITS), required=True, help="Dataset split folder.")
+@av2_family_options("of the split")
+@click.pass_obj
+def argoverse2_v4(obj: GroupOptions, split, log_ids, **options):
+    """Argoverse 2 Sensor (<root>/<split>/<log_id>) to NCore V4."""
+    _convert_av2_family(obj, "argoverse2-v4", split, log_ids, **options)
+
+
+@cli.command("tbv-v4")
+@av2_family_options("under the root")
+@click.pass_obj
+def tbv_v4(obj: GroupOptions, log_ids, **options):
+    """Argoverse 2 TbV (<root>/<log_id>) to NCore V4; per-point times reconstructed (no offset_ns)."""
+    _convert_av2_family(obj, "tbv-v4", None, log_ids, **options)
 
 
 @cli.command("evaluate-lidar-model")

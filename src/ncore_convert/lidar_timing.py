@@ -19,9 +19,14 @@ of a sweep are placed in the right revolution by following the row order.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+
+from ncore_convert import vlp32c
+from ncore_convert.geometry import Trajectory
+from ncore_convert.lidar import decompensate
 
 PERIOD_NS = 100_000_000  #: trigger grid and nominal revolution
 PERIOD_MS = PERIOD_NS / 1e6
@@ -83,6 +88,8 @@ class RotationKnots:
         azimuth_deg: firing azimuth at each knot, own frame, unwrapped, float64 [K], degrees.
         spin: +1 if the azimuth increases with time, -1 if it decreases.
         residual_ms: RMS distance of the knots from a uniform rotation at the nominal rate, ms.
+        first_firing_ms: median time of the sweeps' first firing after their timestamps (set by
+            :func:`unit_rotation`), ms.
     """
 
     epoch_ns: int
@@ -90,6 +97,7 @@ class RotationKnots:
     azimuth_deg: np.ndarray
     spin: int
     residual_ms: float
+    first_firing_ms: float = float("nan")
 
     def phase_ms(self, firing_azimuth_deg: np.ndarray) -> np.ndarray:
         """Time within the period (ms after the epoch grid, [0, 100)) at which the unit fires
@@ -189,3 +197,101 @@ def firing_times(firing_azimuth_deg: np.ndarray, knots: RotationKnots, sweep_ts_
     times_ns = knots.epoch_ns + np.round((rel_ms + shift) * 1e6).astype(np.int64)
     out_of_order = float(np.mean(np.diff(times_ns) < -500_000)) if n > 1 else 0.0
     return SweepTimes(times_ns, out_of_order)
+
+
+def firing_azimuth_deg(xyz_sensor_m: np.ndarray, beam: np.ndarray) -> np.ndarray:
+    """Firing (column) azimuth of each return: its azimuth in the unit's frame minus its beam's
+    azimuth offset. xyz_sensor_m: [N,3] metres, own frame; beam: [N] AV2 beam index; -> [N] degrees."""
+    azimuth = np.degrees(np.arctan2(xyz_sensor_m[:, 1], xyz_sensor_m[:, 0]))
+    return azimuth - vlp32c.BEAM_AZIMUTH_OFFSET_DEG[beam]
+
+
+def camera_azimuths_deg(T_sensor_rig: np.ndarray, T_cameras_rig: list[np.ndarray]) -> np.ndarray:
+    """Each camera's optical axis (+z) as an azimuth in the lidar's own frame.
+
+    Args:
+        T_sensor_rig: lidar-to-rig extrinsic [4,4] (AV2 ego_SE3_sensor).
+        T_cameras_rig: camera-to-rig extrinsics [4,4] each (AV2 ego_SE3_cam, OpenCV camera frame).
+
+    Returns:
+        [C] degrees.
+    """
+    axes = np.stack([T_sensor_rig[:3, :3].T @ T[:3, :3][:, 2] for T in T_cameras_rig])
+    return np.degrees(np.arctan2(axes[:, 1], axes[:, 0]))
+
+
+def reconstruct_times(
+    xyz_rig_ref_m: np.ndarray,
+    beam: np.ndarray,
+    sweep_ts_ns: int,
+    knots: RotationKnots,
+    T_rig_world: Trajectory,
+    T_sensor_rig: np.ndarray,
+    iterations: int = 3,
+) -> SweepTimes:
+    """Firing times of one unit's returns in one sweep, alternating with decompensation.
+
+    The stored points are compensated to the sweep time, which shifts azimuths by the ego motion;
+    each pass decompensates with the previous pass's times and maps the new azimuths to times.
+
+    Args:
+        xyz_rig_ref_m: the unit's returns in row (firing) order, rig frame at ``sweep_ts_ns``, [N,3] metres.
+        beam: AV2 beam index per return, [N].
+        T_rig_world: ego trajectory covering the sweep; T_sensor_rig: the unit's extrinsic [4,4].
+    """
+    times_ns = np.full(len(beam), sweep_ts_ns, dtype=np.int64)
+    for _ in range(iterations):
+        xyz_sensor = decompensate(xyz_rig_ref_m, times_ns, sweep_ts_ns, T_rig_world, T_sensor_rig)
+        result = firing_times(firing_azimuth_deg(xyz_sensor, beam), knots, sweep_ts_ns)
+        times_ns = result.times_ns
+    return result
+
+
+def unit_rotation(
+    camera_azimuth_deg: np.ndarray,
+    sweeps: list[tuple[np.ndarray, np.ndarray, int]],
+    trigger_grid: tuple[int, np.ndarray],
+    T_rig_world: Trajectory,
+    T_sensor_rig: np.ndarray,
+) -> RotationKnots:
+    """One unit's rotation knots, from the trigger grid and a few of its sweeps.
+
+    Args:
+        camera_azimuth_deg: camera axes in the unit's frame, [C] degrees (:func:`camera_azimuths_deg`).
+        sweeps: (xyz_rig_ref_m [N,3], beam [N], sweep_ts_ns) of the unit's returns in row order.
+        trigger_grid: (epoch_ns, phases_ns) from :func:`trigger_phases_ns`.
+
+    The spin direction is the majority over the sweeps; of the two fits 180° apart, the one that
+    puts the sweeps' first firings within FIRST_FIRING_WINDOW_MS of their timestamps is kept (or,
+    if neither does, the nearer one: see :func:`check_first_firing`).
+    """
+    static = [
+        firing_azimuth_deg(decompensate(xyz, np.full(len(b), ts), ts, T_rig_world, T_sensor_rig), b)
+        for xyz, b, ts in sweeps
+        if len(b) > BLOCK_ROWS
+    ]
+    if not static:
+        raise TimingError("no sweep with enough returns to find the spin direction")
+    spin = 1 if sum(spin_direction(az) for az in static) >= 0 else -1
+    epoch, phases = trigger_grid
+    fits = []
+    for half_turn in (False, True):
+        knots = fit_rotation_knots(camera_azimuth_deg, spin, epoch, phases, half_turn=half_turn)
+        first_ms = [
+            (reconstruct_times(xyz, b, ts, knots, T_rig_world, T_sensor_rig, 1).times_ns[0] - ts) / 1e6
+            for xyz, b, ts in sweeps
+            if len(b)
+        ]
+        fits.append(dataclasses.replace(knots, first_firing_ms=float(np.median(first_ms))))
+    center = sum(FIRST_FIRING_WINDOW_MS) / 2
+    return min(fits, key=lambda k: abs(k.first_firing_ms - center))
+
+
+def check_first_firing(knots: RotationKnots) -> None:
+    """Raise TimingError unless the sweeps' first firings fall within FIRST_FIRING_WINDOW_MS."""
+    lo, hi = FIRST_FIRING_WINDOW_MS
+    if not lo <= knots.first_firing_ms < hi:
+        raise TimingError(
+            f"the camera triggers put the first firing {knots.first_firing_ms:.1f} ms after the sweep"
+            f" timestamp, outside [{lo:g}, {hi:g}) ms"
+        )

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 from upath import UPath
 
-from ncore_convert import __version__, vlp32c
+from ncore_convert import __version__, lidar_timing, vlp32c
 from ncore_convert.geometry import Trajectory, euler_xyz_from_rotation, invert_se3
 from ncore_convert.lidar import (
     MIN_RANGE_M,
@@ -44,21 +44,35 @@ CALIBRATION_SWEEPS = 5
 #: Columns of the empirical lidar model per native VLP-32C column (firing cycle): its azimuth
 #: quantisation (mean 0.003°) then stays below the float16 noise of AV2's coordinates.
 MODEL_UPSAMPLE = 16
+#: Without offset_ns, a sweep's reconstructed firing times lie within this range of its timestamp
+#: (the first firing within lidar_timing.FIRST_FIRING_WINDOW_MS, then one revolution and a bit).
+LIDAR_SPAN_MS = (lidar_timing.FIRST_FIRING_WINDOW_MS[0], lidar_timing.FIRST_FIRING_WINDOW_MS[1] + 110.0)
 #: Below this margin the unit decision is reported as a warning.
 UNIT_DECISION_MIN_MARGIN = 2.0
 
 
 @dataclass(frozen=True)
 class Argoverse2Options:
-    """Options of the ``argoverse2-v4`` command (sensor selection: None = all available)."""
+    """Options of the ``argoverse2-v4`` and ``tbv-v4`` commands (sensor selection: None = all available).
 
-    split: str
+    ``split`` is the AV2 Sensor split folder; None for TbV, whose logs sit directly under the root
+    and have no per-point times (they are reconstructed, see :mod:`ncore_convert.lidar_timing`).
+    """
+
+    split: str | None
     store_type: StoreType = "itar"
     profile: Profile = "separate-sensors"
     sequence_meta: bool = True
     lidar_model_source: str = "empirical"
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
+
+    @property
+    def tbv(self) -> bool:
+        return self.split is None
+
+    def log_dir(self, root_dir: UPath, log_id: str) -> UPath:
+        return root_dir / log_id if self.tbv else root_dir / self.split / log_id
 
 
 @dataclass
@@ -162,34 +176,84 @@ def ego_trajectory(inputs: LogInputs, needed_us: tuple[int, int], warnings: list
     return Trajectory(traj.timestamps_us, stored), T_world_world_global
 
 
-def _half(sweep: av2.Sweep, low_half: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of one laser_number half (< 32 or >= 32) and their absolute point times (ns, int64)."""
+def unit_rows(
+    sweep: av2.Sweep,
+    low_half: bool,
+    T_rig_world: Trajectory,
+    T_sensor_rig: np.ndarray,
+    knots: lidar_timing.RotationKnots | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Row indices of one laser_number half (< 32 or >= 32) and their absolute firing times (ns,
+    int64): from offset_ns, or reconstructed with the unit's rotation ``knots`` (TbV)."""
     idx = np.flatnonzero((sweep.laser_number < 32) == low_half)
-    return idx, sweep.timestamp_ns + sweep.offset_ns[idx].astype(np.int64)
+    if sweep.offset_ns is not None:
+        return idx, sweep.timestamp_ns + sweep.offset_ns[idx].astype(np.int64)
+    beam = sweep.laser_number[idx].astype(np.int64) % vlp32c.N_BEAMS
+    times_ns = lidar_timing.reconstruct_times(
+        sweep.xyz_ego_m[idx], beam, sweep.timestamp_ns, knots, T_rig_world, T_sensor_rig
+    ).times_ns
+    _check_covered(sweep, times_ns, T_rig_world)
+    return idx, times_ns
 
 
-def read_covered_sweep(log_dir: UPath, timestamp_ns: int, T_rig_world: Trajectory) -> av2.Sweep:
-    """Read a sweep and check that the trajectory covers all its point times (SourceError if not)."""
-    sweep = av2.read_sweep(log_dir, timestamp_ns)
+def _check_covered(sweep: av2.Sweep, times_ns: np.ndarray, T_rig_world: Trajectory) -> None:
     start_ns, end_ns = T_rig_world.start_us * 1000, T_rig_world.end_us * 1000
-    if len(sweep) and not (
-        start_ns <= timestamp_ns + int(sweep.offset_ns.min()) and timestamp_ns + int(sweep.offset_ns.max()) <= end_ns
-    ):
+    if len(times_ns) and not (start_ns <= times_ns.min() and times_ns.max() <= end_ns):
         raise SourceError(
-            av2.sweep_path(log_dir, timestamp_ns),
+            sweep.path,
             f"point times reach outside the log's time range {start_ns}..{end_ns} ns"
             " (set by the poses and the first and last sweeps)",
         )
+
+
+def read_covered_sweep(log_dir: UPath, timestamp_ns: int, T_rig_world: Trajectory, with_offsets: bool) -> av2.Sweep:
+    """Read a sweep; with offset_ns, check that the trajectory covers all its point times
+    (SourceError if not). Reconstructed times are checked when they are computed."""
+    sweep = av2.read_sweep(log_dir, timestamp_ns, with_offsets)
+    if with_offsets:
+        _check_covered(sweep, timestamp_ns + sweep.offset_ns.astype(np.int64), T_rig_world)
     return sweep
 
 
 @dataclass(frozen=True)
 class LidarCalibration:
-    """Per-log lidar decisions: which laser_number half is which unit, and each unit's model."""
+    """Per-log lidar decisions: which laser_number half is which unit, each unit's model, and
+    (without offset_ns) each unit's rotation knots for the firing times."""
 
     unit_split: UnitSplit
     models: dict[str, SpinningLidarModel]
     model_seconds: dict[str, float]  #: derivation time of each model (benchmark figure)
+    knots: dict[str, lidar_timing.RotationKnots]  #: empty when offset_ns gives the times
+    timing_meta: dict[str, dict]  #: per unit: how its firing times were obtained, with residuals
+
+
+@dataclass(frozen=True)
+class TriggerTiming:
+    """What reconstructing firing times needs beyond the sweeps: the camera-trigger grid
+    (:func:`lidar_timing.trigger_phases_ns`) and the ring cameras' extrinsics (T_camera_rig)."""
+
+    grid: tuple[int, np.ndarray]
+    T_cameras_rig: list[np.ndarray]
+
+
+def _unit_knots(
+    sweeps: list[av2.Sweep], T_rig_world: Trajectory, T_sensor_rig: dict[str, np.ndarray], timing: TriggerTiming
+) -> dict[tuple[str, str], lidar_timing.RotationKnots]:
+    """Rotation knots for every (laser_number half, unit) hypothesis."""
+    knots = {}
+    for half, low in (("low", True), ("high", False)):
+        rows = []
+        for sweep in sweeps:
+            idx = np.flatnonzero((sweep.laser_number < 32) == low)
+            beam = sweep.laser_number[idx].astype(np.int64) % vlp32c.N_BEAMS
+            rows.append((sweep.xyz_ego_m[idx], beam, sweep.timestamp_ns))
+        for unit, T in T_sensor_rig.items():
+            camera_azimuths = lidar_timing.camera_azimuths_deg(T, timing.T_cameras_rig)
+            try:
+                knots[(half, unit)] = lidar_timing.unit_rotation(camera_azimuths, rows, timing.grid, T_rig_world, T)
+            except lidar_timing.TimingError as err:
+                raise SourceError(sweeps[0].path.parent, f"cannot time the lidar points of {unit}: {err}") from None
+    return knots
 
 
 def calibrate_lidars(
@@ -198,30 +262,34 @@ def calibrate_lidars(
     T_rig_world: Trajectory,
     T_sensor_rig: dict[str, np.ndarray],
     model_units: list[str],
+    timing: TriggerTiming | None = None,
 ) -> LidarCalibration:
     """Decide the unit split, then derive the structured model of each unit in ``model_units``.
 
     On a few sweeps spread over the log, each laser_number half is decompensated into each candidate
     unit's frame; the assignment with the flatter beams wins. The models are fitted to the same
-    decompensated (per-point-time) returns in the winning frames.
+    decompensated (per-point-time) returns in the winning frames. Without offset_ns (``timing``
+    given), each hypothesis gets its own reconstructed firing times.
     """
     picks = np.unique(np.linspace(0, len(sweep_timestamps_ns) - 1, CALIBRATION_SWEEPS).round().astype(int))
-    sweeps = [read_covered_sweep(log_dir, int(sweep_timestamps_ns[i]), T_rig_world) for i in picks]
+    sweeps = [read_covered_sweep(log_dir, int(sweep_timestamps_ns[i]), T_rig_world, timing is None) for i in picks]
+    knots = _unit_knots(sweeps, T_rig_world, T_sensor_rig, timing) if timing is not None else {}
     spread: dict[tuple[str, str], float] = {}
     halves: dict[tuple[str, str], list] = {}
     for k, sweep in enumerate(sweeps):
         for half, low in (("low", True), ("high", False)):
-            idx, times_ns = _half(sweep, low)
-            beam = sweep.laser_number[idx].astype(np.int64) % vlp32c.N_BEAMS
             for unit, T in T_sensor_rig.items():
+                idx, times_ns = unit_rows(sweep, low, T_rig_world, T, knots.get((half, unit)))
+                beam = sweep.laser_number[idx].astype(np.int64) % vlp32c.N_BEAMS
                 xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T)
                 spread[(half, unit)] = spread.get((half, unit), 0.0) + beam_elevation_spread_rad(xyz, beam)
                 halves.setdefault((half, unit), []).append((xyz, beam, (times_ns - sweep.timestamp_ns) * 1e-9, k))
     split = decide_unit_split(spread)
+    chosen = {split.low_half_unit: "low", split.high_half_unit: "high"}
     models, seconds = {}, {}
     for unit in model_units:
         started = time.perf_counter()
-        half = "low" if unit == split.low_half_unit else "high"
+        half = chosen[unit]
         xyz = np.concatenate([h[0] for h in halves[(half, unit)]]).astype(np.float64)
         distance = np.linalg.norm(xyz, axis=1)
         ok = np.isfinite(distance) & (distance >= MIN_RANGE_M)
@@ -236,7 +304,31 @@ def calibrate_lidars(
             upsample=MODEL_UPSAMPLE,
         )
         seconds[unit] = time.perf_counter() - started
-    return LidarCalibration(split, models, seconds)
+    unit_knots = {unit: knots[(half, unit)] for unit, half in chosen.items() if knots}
+    for unit, unit_knot in unit_knots.items():
+        try:
+            lidar_timing.check_first_firing(unit_knot)
+        except lidar_timing.TimingError as err:
+            raise SourceError(log_dir / "sensors" / "lidar", f"cannot time the lidar points of {unit}: {err}") from None
+    timing_meta = {unit: _timing_meta(unit_knots.get(unit), timing) for unit in chosen}
+    return LidarCalibration(split, models, seconds, unit_knots, timing_meta)
+
+
+def _timing_meta(knots: lidar_timing.RotationKnots | None, timing: TriggerTiming | None) -> dict:
+    if knots is None:
+        return {"method": "offset_ns", "note": "per-point time = sweep timestamp + offset_ns"}
+    return {
+        "method": "reconstructed",
+        "note": "firing azimuth (own-frame azimuth minus beam offset) mapped to time through the unit's"
+        " crossings of the camera axes, taken from the 100 ms camera-trigger grid (image and pose timestamps);"
+        " revolution from the row (firing) order",
+        "spin": knots.spin,
+        "trigger_phases": len(timing.grid[1]),
+        "trigger_delay_ms": lidar_timing.TRIGGER_DELAY_MS,
+        "knot_residual_ms": round(knots.residual_ms, 4),
+        "first_firing_ms": round(knots.first_firing_ms, 3),
+        "knots": {"times_ms": knots.times_ms.round(4).tolist(), "azimuth_deg": knots.azimuth_deg.round(4).tolist()},
+    }
 
 
 def sweep_ray_bundles(
@@ -253,7 +345,7 @@ def sweep_ray_bundles(
     for unit, low in ((split.low_half_unit, True), (split.high_half_unit, False)):
         if unit not in T_sensor_rig:
             continue
-        idx, times_ns = _half(sweep, low)
+        idx, times_ns = unit_rows(sweep, low, T_rig_world, T_sensor_rig[unit], calibration.knots.get(unit))
         xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T_sensor_rig[unit])
         rays = ray_bundle(xyz, times_ns, sweep.intensity[idx], sweep.timestamp_ns // 1000)
         model = calibration.models.get(unit)
@@ -281,15 +373,21 @@ def annotation_cuboids(annotations: av2.Annotations) -> Cuboids:
     )
 
 
-def _sensor_time_range_us(inputs: LogInputs, camera_ids: list[str], with_lidar: bool) -> tuple[int, int]:
+def _sensor_time_range_us(
+    inputs: LogInputs, camera_ids: list[str], with_lidar: bool, with_offsets: bool
+) -> tuple[int, int]:
     """Inclusive µs range the trajectory must cover: lidar points at their exact ns times (so the
     end rounds up), camera frames and cuboids at their stored (floored) µs times.
 
     The lidar range comes from the first and the last sweep (each sweep's points span ~106 ms from
     its timestamp, so they bound all others); every other sweep is checked when it is converted.
+    Without offset_ns, the range is the widest that reconstructed times can take (LIDAR_SPAN_MS).
     """
     lo, hi = [], []
-    if with_lidar:
+    if with_lidar and not with_offsets:
+        lo.append((int(inputs.sweep_timestamps_ns[0]) + int(LIDAR_SPAN_MS[0] * 1e6)) // 1000)
+        hi.append(-(-(int(inputs.sweep_timestamps_ns[-1]) + int(LIDAR_SPAN_MS[1] * 1e6)) // 1000))
+    elif with_lidar:
         for ts in {int(inputs.sweep_timestamps_ns[0]), int(inputs.sweep_timestamps_ns[-1])}:
             first, last = av2.read_sweep_offset_range_ns(inputs.log_dir, ts)
             lo.append((ts + min(first, 0)) // 1000)
@@ -360,12 +458,34 @@ class LogPlan:
         )
 
 
+def _trigger_timing(inputs: LogInputs) -> TriggerTiming:
+    """The camera-trigger grid from every image and pose timestamp, and the ring cameras' extrinsics."""
+    candidates = np.concatenate([inputs.pose_timestamps_ns, *inputs.image_timestamps_ns.values()])
+    try:
+        grid = lidar_timing.trigger_phases_ns(np.setdiff1d(candidates, inputs.sweep_timestamps_ns))
+    except lidar_timing.TimingError as err:
+        raise SourceError(
+            inputs.log_dir / "city_SE3_egovehicle.feather", f"cannot time the lidar points: {err}"
+        ) from None
+    rings = [cam for cam in av2.RING_CAMERAS if cam in inputs.ego_SE3_sensor]
+    if not rings:
+        raise SourceError(inputs.log_dir / "calibration" / "egovehicle_SE3_sensor.feather", "no ring camera extrinsics")
+    return TriggerTiming(grid, [inputs.ego_SE3_sensor[cam] for cam in rings])
+
+
 def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPlan:
     """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split)."""
     warnings: list[str] = []
-    log_dir = root_dir / options.split / log_id
-    camera_ids = select_sensors(options.camera_ids, av2.CAMERAS, "camera")
+    log_dir = options.log_dir(root_dir, log_id)
     lidar_ids = select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
+    if options.tbv:  # the cameras are those of the log's calibration
+        known = tuple(av2.read_intrinsics(log_dir)) if log_dir.is_dir() else ()
+        try:
+            camera_ids = select_sensors(options.camera_ids, known, "camera")
+        except ValueError as err:
+            raise SourceError(log_dir / "calibration" / "intrinsics.feather", str(err)) from None
+    else:
+        camera_ids = select_sensors(options.camera_ids, av2.CAMERAS, "camera")
     inputs = read_log_inputs(log_dir, camera_ids)
 
     calib_path = log_dir / "calibration"
@@ -383,13 +503,16 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         warnings.append(f"{log_dir / 'sensors' / 'lidar'}: no sweeps; lidars not written")
         lidar_ids = []
 
-    needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids))
+    needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids), not options.tbv)
     T_rig_world, T_world_world_global = ego_trajectory(inputs, needed_us, warnings)
     lidar_calibration = None
     if lidar_ids:
         T_lidar_rig = {unit: inputs.ego_SE3_sensor[unit] for unit in av2.LIDARS}
         model_units = lidar_ids if options.lidar_model_source == "empirical" else []
-        lidar_calibration = calibrate_lidars(log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig, model_units)
+        timing = _trigger_timing(inputs) if options.tbv else None
+        lidar_calibration = calibrate_lidars(
+            log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig, model_units, timing
+        )
         split = lidar_calibration.unit_split
         if split.margin < UNIT_DECISION_MIN_MARGIN:
             warnings.append(
@@ -397,7 +520,7 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
                 f" (laser_number < 32 -> {split.low_half_unit})"
             )
     generic_meta = {
-        "source_dataset": SOURCE_DATASET,
+        "source_dataset": "argoverse2-tbv" if options.tbv else SOURCE_DATASET,
         "argoverse2_split": options.split,
         "argoverse2_log_id": log_id,
         "converter": {"name": "ncore-convert", "version": __version__, "options": asdict(options)},
@@ -448,7 +571,11 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
 def _lidar_meta(calibration: LidarCalibration, unit: str, model_source: str) -> dict:
     """Lidar component metadata: the unit decision and, with a model, how it was derived and the
     laser_number -> model row map (the NCore model itself has no place for it)."""
-    meta = {"av2_unit_decision": calibration.unit_split.to_meta(), "lidar_model_source": model_source}
+    meta = {
+        "av2_unit_decision": calibration.unit_split.to_meta(),
+        "lidar_model_source": model_source,
+        "point_timing": calibration.timing_meta[unit],
+    }
     if (model := calibration.models.get(unit)) is not None:
         first_laser = 0 if unit == calibration.unit_split.low_half_unit else vlp32c.N_BEAMS
         meta["lidar_model"] = {
@@ -475,7 +602,7 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
     source_points = {unit: 0 for unit in lidars}
     for ts in plan.sweep_timestamps_ns:
-        sweep = read_covered_sweep(log_dir, int(ts), plan.T_rig_world)
+        sweep = read_covered_sweep(log_dir, int(ts), plan.T_rig_world, not plan.options.tbv)
         bundles = sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig)
         for unit, (rays, elements, remap) in bundles.items():
             frame_meta = {

@@ -253,23 +253,28 @@ class Sweep:
             float16, column-major).
         intensity: uint8 [N].
         laser_number: uint8 [N], 0..63; the two halves are the two VLP-32C units.
-        offset_ns: int32 [N], per-point time relative to ``timestamp_ns``.
+        offset_ns: int32 [N], per-point time relative to ``timestamp_ns``; None where the
+            dataset has no per-point times (TbV).
     """
 
     timestamp_ns: int
     xyz_ego_m: np.ndarray
     intensity: np.ndarray
     laser_number: np.ndarray
-    offset_ns: np.ndarray
+    offset_ns: np.ndarray | None
+    path: UPath | None = None  #: the file it was read from (for errors)
 
     def __len__(self) -> int:
-        return len(self.offset_ns)
+        return len(self.laser_number)
 
 
-def read_sweep(log_dir: UPath, timestamp_ns: int) -> Sweep:
-    """Read one sweep. Raises SourceError on a bad schema or laser_number outside 0..63."""
+def read_sweep(log_dir: UPath, timestamp_ns: int, with_offsets: bool = True) -> Sweep:
+    """Read one sweep (without ``offset_ns``: a TbV sweep, which has no such column).
+
+    Raises SourceError on a bad schema or laser_number outside 0..63."""
     path = sweep_path(log_dir, timestamp_ns)
-    table = read_table(path, LIDAR_SCHEMA)
+    columns = None if with_offsets else [n for n in LIDAR_SCHEMA.names if n != "offset_ns"]
+    table = read_table(path, LIDAR_SCHEMA, columns=columns)
     # float16 is exact in float32; column-major keeps per-axis math contiguous
     xyz = np.empty((table.num_rows, 3), dtype=np.float32, order="F")
     for k, c in enumerate(("x", "y", "z")):
@@ -277,10 +282,10 @@ def read_sweep(log_dir: UPath, timestamp_ns: int) -> Sweep:
     laser_number = _column(table, "laser_number")
     if laser_number.size and laser_number.max() > 63:
         raise SourceError(path, f"laser_number {int(laser_number.max())} outside 0..63")
-    offset_ns = _column(table, "offset_ns")
-    if offset_ns.size and offset_ns.min() < 0:
+    offset_ns = _column(table, "offset_ns") if with_offsets else None
+    if offset_ns is not None and offset_ns.size and offset_ns.min() < 0:
         raise SourceError(path, f"negative offset_ns {int(offset_ns.min())}")
-    return Sweep(timestamp_ns, xyz, _column(table, "intensity"), laser_number, offset_ns)
+    return Sweep(timestamp_ns, xyz, _column(table, "intensity"), laser_number, offset_ns, path)
 
 
 def read_sweep_offset_range_ns(log_dir: UPath, timestamp_ns: int) -> tuple[int, int]:

@@ -1,0 +1,23 @@
+"""Argoverse 2 TbV (Trust, but Verify) on-disk layout; knows nothing of NCore.
+
+TbV logs sit directly under the dataset root (``<root>/<log_id>``, log ids like
+``VvgE5LfOzIahbS266MFW7tP2al00LhQn__Autumn_2020``) and use the Argoverse 2 Sensor file formats
+(read with :mod:`ncore_convert.sources.argoverse2`), except:
+- sweeps have no ``offset_ns`` column (``read_sweep(..., with_offsets=False)``);
+- the cameras are the 7 ring cameras, the six other than ring_front_center at half resolution
+  (read from ``calibration/intrinsics.feather``, never assumed);
+- there is no ``annotations.feather``.
+"""
+
+from __future__ import annotations
+
+from upath import UPath
+
+from ncore_convert.sources.argoverse2 import SourceError
+
+
+def list_log_ids(root: UPath) -> list[str]:
+    """Log ids (directory names) directly under the TbV root, sorted."""
+    if not root.is_dir():
+        raise SourceError(root, "TbV root directory not found")
+    return sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
