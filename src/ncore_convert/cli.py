@@ -301,5 +301,27 @@ def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps):
     )
 
 
+@synth.command("tbv")
+@click.option(
+    "--out", "out_dir", type=click.Path(file_okay=False), required=True, help="TbV root to write the log into."
+)
+@click.option(
+    "--seconds", type=click.FloatRange(min=0.1, max=120.0), default=2.0, help="Log duration (10 sweeps per second)."
+)
+@click.option("--seed", type=int, default=0, help="Random seed (scene, trajectory, log id).")
+@click.option(
+    "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
+)
+def synth_tbv(out_dir, seconds, seed, camera_fps):
+    """A synthetic TbV log: flat layout, no offset_ns, 7 ring cameras (6 at half resolution), no annotations."""
+    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+    truth = write_log(UPath(out_dir), SynthConfig(seconds=seconds, seed=seed, camera_fps=camera_fps, tbv=True))
+    click.echo(
+        f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
+        f" {sum(len(s.offset_ns) for s in truth.sweeps)} points, {truth.n_images} images"
+    )
+
+
 def main() -> None:
     cli(auto_envvar_prefix="NCORE_CONVERT")

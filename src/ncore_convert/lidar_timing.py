@@ -36,6 +36,9 @@ RATE_DEG_PER_MS = 360.0 / PERIOD_MS  #: nominal spin rate
 TRIGGER_DELAY_MS = 0.1
 #: A sweep's first firing lies within this many ms after (or before) its timestamp.
 FIRST_FIRING_WINDOW_MS = (-25.0, 25.0)
+#: Reconstructed firing times are kept within this range of the sweep timestamp: the first firing
+#: window, then one revolution and a bit (real AV2 sweeps span 0.2 to 106.1 ms).
+SWEEP_SPAN_MS = (FIRST_FIRING_WINDOW_MS[0], FIRST_FIRING_WINDOW_MS[1] + 110.0)
 #: Phases within this many ns are one trigger phase (image timestamps sit exactly on the grid).
 PHASE_TOLERANCE_NS = 20_000
 #: A phase is a trigger phase if it recurs in at least this share of the periods spanned.
@@ -195,6 +198,8 @@ def firing_times(firing_azimuth_deg: np.ndarray, knots: RotationKnots, sweep_ts_
     start_ms = (sweep_ts_ns - knots.epoch_ns) / 1e6 + FIRST_FIRING_WINDOW_MS[0]
     shift = PERIOD_MS * np.ceil((start_ms - track_ms[0]) / PERIOD_MS)
     times_ns = knots.epoch_ns + np.round((rel_ms + shift) * 1e6).astype(np.int64)
+    span_ns = [sweep_ts_ns + int(bound * 1e6) for bound in SWEEP_SPAN_MS]
+    times_ns = np.clip(times_ns, *span_ns)  # a wrong hypothesis (unit, spin) must not run off the trajectory
     out_of_order = float(np.mean(np.diff(times_ns) < -500_000)) if n > 1 else 0.0
     return SweepTimes(times_ns, out_of_order)
 

@@ -44,9 +44,6 @@ CALIBRATION_SWEEPS = 5
 #: Columns of the empirical lidar model per native VLP-32C column (firing cycle): its azimuth
 #: quantisation (mean 0.003°) then stays below the float16 noise of AV2's coordinates.
 MODEL_UPSAMPLE = 16
-#: Without offset_ns, a sweep's reconstructed firing times lie within this range of its timestamp
-#: (the first firing within lidar_timing.FIRST_FIRING_WINDOW_MS, then one revolution and a bit).
-LIDAR_SPAN_MS = (lidar_timing.FIRST_FIRING_WINDOW_MS[0], lidar_timing.FIRST_FIRING_WINDOW_MS[1] + 110.0)
 #: Below this margin the unit decision is reported as a warning.
 UNIT_DECISION_MIN_MARGIN = 2.0
 
@@ -381,12 +378,12 @@ def _sensor_time_range_us(
 
     The lidar range comes from the first and the last sweep (each sweep's points span ~106 ms from
     its timestamp, so they bound all others); every other sweep is checked when it is converted.
-    Without offset_ns, the range is the widest that reconstructed times can take (LIDAR_SPAN_MS).
+    Without offset_ns, the range is the widest that reconstructed times can take (SWEEP_SPAN_MS).
     """
     lo, hi = [], []
     if with_lidar and not with_offsets:
-        lo.append((int(inputs.sweep_timestamps_ns[0]) + int(LIDAR_SPAN_MS[0] * 1e6)) // 1000)
-        hi.append(-(-(int(inputs.sweep_timestamps_ns[-1]) + int(LIDAR_SPAN_MS[1] * 1e6)) // 1000))
+        lo.append((int(inputs.sweep_timestamps_ns[0]) + int(lidar_timing.SWEEP_SPAN_MS[0] * 1e6)) // 1000)
+        hi.append(-(-(int(inputs.sweep_timestamps_ns[-1]) + int(lidar_timing.SWEEP_SPAN_MS[1] * 1e6)) // 1000))
     elif with_lidar:
         for ts in {int(inputs.sweep_timestamps_ns[0]), int(inputs.sweep_timestamps_ns[-1])}:
             first, last = av2.read_sweep_offset_range_ns(inputs.log_dir, ts)

@@ -1,8 +1,13 @@
-"""Synthetic Argoverse 2 Sensor logs, byte-compatible with the real on-disk format, with known truth.
+"""Synthetic Argoverse 2 Sensor and TbV logs, byte-compatible with the real on-disk formats, with known truth.
 
 The lidar is a simulation of AV2's two VLP-32C units (real beam table, 55.296 µs firing cycle with
 paired firings, opposite spin in their own frames, 180° apart) cast against :mod:`.scene`, then
-ego-motion compensated to the sweep time and quantised to float16, as in the real data.
+ego-motion compensated to the sweep time and quantised to float16, as in the real data. The units
+are phase-locked to a 100 ms clock, and the cameras are triggered on that clock when a unit's
+firing azimuth crosses their optical axis, with the ~0.1 ms lag measured on real AV2 data.
+
+A TbV log (``SynthConfig.tbv``) has TbV's differences: a TbV-style log id, no offset_ns column, the
+7 ring cameras only (six at half resolution) and no annotations.
 """
 
 from __future__ import annotations
@@ -24,23 +29,15 @@ from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.scene import Scene, cast_rays, make_scene
 
 MAX_RANGE_M = 200.0
+TBV_LIDAR_SCHEMA = pa.schema([f for f in av2.LIDAR_SCHEMA if f.name != "offset_ns"])
 SWEEP_PERIOD_NS = 100_000_000
 #: Start of each unit's sweep window after the sweep timestamp (real data: up ~2.7 ms, down ~6 ms).
 UNIT_WINDOW_START_NS = {"up_lidar": 2_650_000, "down_lidar": 6_000_000}
 #: Own-frame spin direction (+1 counter-clockwise about +z) and column azimuth at sweep offset 0.
 UNIT_SPIN = {"up_lidar": (-1.0, np.radians(144.0)), "down_lidar": (+1.0, np.radians(24.0))}
-#: Camera trigger offsets after each sweep timestamp, ms (one per lidar pass over the optical axis).
-CAMERA_TRIGGERS_MS = {
-    "ring_front_right": (2.6, 52.5),
-    "ring_side_left": (12.5, 62.5),
-    "ring_side_right": (17.6, 67.5),
-    "ring_front_left": (27.6, 77.6),
-    "ring_rear_right": (32.5, 82.5),
-    "ring_front_center": (40.0, 90.0),
-    "stereo_front_left": (40.0, 90.0),
-    "stereo_front_right": (40.0, 90.0),
-    "ring_rear_left": (47.6, 97.5),
-}
+#: Image timestamps lag a unit's crossing of the camera axis by this much (measured on real AV2).
+CAMERA_TRIGGER_DELAY_NS = 100_000
+TBV_SEASONS = ("Spring_2020", "Summer_2020", "Autumn_2020", "Winter_2020", "Winter_2021", "Summer_2019", "Autumn_2019")
 #: Camera optical-axis yaw in the ego frame (deg), mounting position (m), focal length (px), as in AV2.
 CAMERA_MOUNTS = {
     "ring_front_center": (0.0, (1.635, 0.003, 1.398), 1776.0),
@@ -72,6 +69,11 @@ class SynthConfig:
     swap_lidar_halves: bool = False
     camera_fps: float = 20.0
     keep_truth: bool = False
+    tbv: bool = False  #: write a TbV log (see the module docstring)
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        return av2.RING_CAMERAS if self.tbv else av2.CAMERAS
 
 
 @dataclass
@@ -152,17 +154,37 @@ def _camera_extrinsic(yaw_deg: float, position_m: tuple[float, float, float]) ->
     return T
 
 
-def calibration() -> tuple[dict[str, np.ndarray], dict[str, tuple[float, int, int]]]:
-    """ego_SE3_sensor for all 11 sensors and (focal, width, height) for the 9 cameras."""
+def calibration(tbv: bool = False) -> tuple[dict[str, np.ndarray], dict[str, tuple[float, int, int]]]:
+    """ego_SE3_sensor for all sensors and (focal, width, height) for the cameras (AV2: 9 cameras
+    at full resolution; TbV: the 7 ring cameras, all but ring_front_center at half resolution)."""
     ego_SE3_sensor = {}
     cams = {}
     for cam, (yaw, pos, focal) in CAMERA_MOUNTS.items():
+        if tbv and cam not in av2.RING_CAMERAS:
+            continue
         ego_SE3_sensor[cam] = _camera_extrinsic(yaw, pos)
         width, height = (1550, 2048) if cam == "ring_front_center" else (2048, 1550)
+        if tbv and cam != "ring_front_center":
+            focal, width, height = focal / 2, width // 2, height // 2
         cams[cam] = (focal, width, height)
     for lidar, (quat, t) in LIDAR_MOUNTS.items():
         ego_SE3_sensor[lidar] = se3_from_quat_wxyz(quat, t)
     return ego_SE3_sensor, cams
+
+
+def camera_trigger_phases_ns(ego_SE3_sensor: dict[str, np.ndarray], cameras: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Per camera, its two trigger phases (ns after t0 within the 100 ms clock): when each unit's
+    firing azimuth crosses the camera's optical axis, plus CAMERA_TRIGGER_DELAY_NS."""
+    out = {}
+    for cam in cameras:
+        phases = []
+        for unit, (spin, az0) in UNIT_SPIN.items():
+            axis = ego_SE3_sensor[unit][:3, :3].T @ ego_SE3_sensor[cam][:3, :3][:, 2]
+            psi = np.arctan2(axis[1], axis[0])
+            crossing_s = ((psi - az0) / (spin * 2 * np.pi * vlp32c.SPIN_RATE_HZ)) % (1 / vlp32c.SPIN_RATE_HZ)
+            phases.append(int(round(crossing_s * 1e9)) + CAMERA_TRIGGER_DELAY_NS)
+        out[cam] = np.sort(np.array(phases, dtype=np.int64))
+    return out
 
 
 def _jpeg_templates(rng: np.random.Generator, width: int, height: int, n: int = 3) -> list[bytes]:
@@ -237,36 +259,39 @@ def simulate_unit(
 
 
 def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
-    """Write one synthetic log to ``<out_dir>/<log_id>/`` and return its truth."""
+    """Write one synthetic log to ``<out_dir>/<log_id>/`` and return its truth (``out_dir``: the AV2
+    split folder, or the TbV root)."""
     rng = np.random.default_rng(config.seed)
     h = rng.bytes(16).hex()
     log_id = f"{h[:8]}-{h[8:12]}-3{h[13:16]}-8{h[17:20]}-{h[20:32]}"
+    if config.tbv:
+        alphabet = np.array(list("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789"))
+        log_id = "".join(rng.choice(alphabet, 32)) + "__" + str(rng.choice(TBV_SEASONS))
     log_dir = UPath(out_dir) / log_id
     n_sweeps = max(1, int(round(config.seconds * 10)))
     t0_ns = 315_970_000_000_000_000 + int(rng.integers(0, 10**12)) // 1000 * 1000
     scene = make_scene(rng, config.seconds)
-    ego_SE3_sensor, cams = calibration()
+    ego_SE3_sensor, cams = calibration(config.tbv)
     truth = SynthTruth(log_dir, log_id, t0_ns, scene, ego_SE3_sensor)
 
     jitter_us = rng.integers(-3000, 3000, n_sweeps)
     jitter_us[0] = 0
     sweep_ns = t0_ns + np.arange(n_sweeps, dtype=np.int64) * SWEEP_PERIOD_NS + jitter_us * 1000
 
-    # Camera triggers from just before the first sweep to well after the last; poses at every one.
-    cam_ns: dict[str, np.ndarray] = {}
+    # Camera triggers on the 100 ms clock from just before the first sweep to well after the last;
+    # poses at every one.
     periods = np.arange(-1, n_sweeps + 4, dtype=np.int64)
-    for cam, offsets_ms in CAMERA_TRIGGERS_MS.items():
-        stamps = (t0_ns + periods[:, None] * SWEEP_PERIOD_NS + (np.array(offsets_ms) * 1e6).astype(np.int64)).reshape(
-            -1
-        )
-        cam_ns[cam] = np.sort(stamps + rng.integers(-250_000, 250_000, len(stamps)))
+    cam_ns = {
+        cam: np.sort((t0_ns + periods[:, None] * SWEEP_PERIOD_NS + phases[None, :]).reshape(-1))
+        for cam, phases in camera_trigger_phases_ns(ego_SE3_sensor, config.cameras).items()
+    }
     pose_ns = np.unique(np.concatenate([sweep_ns] + list(cam_ns.values())))
     write_feather_table(
         log_dir / "city_SE3_egovehicle.feather",
         av2.POSES_SCHEMA,
         {"timestamp_ns": pose_ns, **_pose_columns(truth.city_SE3_ego(pose_ns))},
     )
-    names = list(av2.CAMERAS) + list(av2.LIDARS)
+    names = list(config.cameras) + list(av2.LIDARS)
     T = np.stack([ego_SE3_sensor[n] for n in names])
     write_feather_table(
         log_dir / "calibration" / "egovehicle_SE3_sensor.feather",
@@ -274,7 +299,7 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
         {"sensor_name": names, **_pose_columns(T)},
     )
     k = {"k1": [], "k2": [], "k3": []}
-    for _ in av2.CAMERAS:
+    for _ in config.cameras:
         k["k1"].append(rng.uniform(-0.29, -0.24))
         k["k2"].append(rng.uniform(-0.2, -0.02))
         k["k3"].append(rng.uniform(0.09, 0.33))
@@ -282,14 +307,14 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
         log_dir / "calibration" / "intrinsics.feather",
         av2.INTRINSICS_SCHEMA,
         {
-            "sensor_name": list(av2.CAMERAS),
-            "fx_px": [cams[c][0] for c in av2.CAMERAS],
-            "fy_px": [cams[c][0] for c in av2.CAMERAS],
-            "cx_px": [cams[c][1] / 2 + rng.uniform(-4, 4) for c in av2.CAMERAS],
-            "cy_px": [cams[c][2] / 2 + rng.uniform(-4, 4) for c in av2.CAMERAS],
+            "sensor_name": list(config.cameras),
+            "fx_px": [cams[c][0] for c in config.cameras],
+            "fy_px": [cams[c][0] for c in config.cameras],
+            "cx_px": [cams[c][1] / 2 + rng.uniform(-4, 4) for c in config.cameras],
+            "cy_px": [cams[c][2] / 2 + rng.uniform(-4, 4) for c in config.cameras],
             **k,
-            "height_px": [cams[c][2] for c in av2.CAMERAS],
-            "width_px": [cams[c][1] for c in av2.CAMERAS],
+            "height_px": [cams[c][2] for c in config.cameras],
+            "width_px": [cams[c][1] for c in config.cameras],
         },
     )
 
@@ -322,7 +347,7 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
         offset_ns = (hits["time_ns"] - ts).astype(np.int32)
         write_feather_table(
             av2.sweep_path(truth.log_dir, ts),
-            av2.LIDAR_SCHEMA,
+            TBV_LIDAR_SCHEMA if config.tbv else av2.LIDAR_SCHEMA,
             {"x": xyz_ego[:, 0], "y": xyz_ego[:, 1], "z": xyz_ego[:, 2], "intensity": hits["intensity"],
              "laser_number": hits["laser_number"], "offset_ns": offset_ns},
         )  # fmt: skip
@@ -332,7 +357,10 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
             sweep.direction_sensor = hits["direction_sensor"]
             sweep.distance_m, sweep.time_ns = hits["distance_m"], hits["time_ns"]
         truth.sweeps.append(sweep)
-        _annotate(truth, ts, xyz_ego.astype(np.float64), ego_SE3_city_ref, annotation_rows)
+        if not config.tbv:
+            _annotate(truth, ts, xyz_ego.astype(np.float64), ego_SE3_city_ref, annotation_rows)
+    if config.tbv:  # TbV has no annotations
+        return
     truth.n_cuboids = len(annotation_rows["timestamp_ns"])
     write_feather_table(truth.log_dir / "annotations.feather", av2.ANNOTATIONS_SCHEMA, annotation_rows)
 
