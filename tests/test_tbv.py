@@ -148,3 +148,14 @@ def test_synthetic_tbv_images_are_stored_byte_identical(synth_tbv):
         width, height = (1550, 2048) if cam == "ring_front_center" else (1024, 775)
         np.testing.assert_array_equal(sensor.model_parameters.resolution, [width, height])
     assert stored == truth.n_images
+
+
+def test_synthetic_tbv_map_round_trips_exactly(synth_tbv):
+    from test_maps import stored_map
+
+    truth, summary, loader = synth_tbv
+    source = av2.read_log_map(truth.log_dir)
+    vector, raster, meta = stored_map(loader)
+    assert summary.maps == 1 and vector == source.vector_map_json
+    assert raster.tobytes() == source.ground_height_m.tobytes() and np.isnan(raster).any()
+    assert meta["img_Sim2_city"] == source.img_Sim2_city

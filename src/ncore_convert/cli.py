@@ -168,6 +168,8 @@ def av2_family_options(log_scope: str):
                          " poses/intrinsics/masks/cuboids."),
             click.option("--sequence-meta/--no-sequence-meta", default=True,
                          help="Write <log_id>.json (sequence meta)."),
+            click.option("--maps/--no-maps", default=True,
+                         help="Store the log's HD map (vector map, ground-height raster, Sim(2)) with the poses."),
             click.option("--lidar-model-source", type=click.Choice(["empirical", "none"]), default="empirical",
                          help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's"
                          " model element; 'none': raw per-point-time ray bundles only."),

@@ -109,6 +109,10 @@ class LidarStream:
         self._writer.set_generic_data({}, generic_meta_data)
 
 
+#: Names of the HD map in the poses component's generic data and generic metadata.
+MAP_VECTOR_JSON = "hd_map_vector_json"
+MAP_GROUND_HEIGHT = "hd_map_ground_height_m"
+MAP_META = "hd_map"
 BASE = "base"  #: job marker for the poses, intrinsics, masks and cuboids components
 
 
@@ -238,6 +242,20 @@ class SequenceWriter:
             "rig", "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64)
         )
         self._poses.store_static_pose("world", "world_global", T_world_world_global.astype(np.float64))
+
+    def store_map(self, vector_map_json: bytes, ground_height_m: np.ndarray, meta: dict) -> None:
+        """Attach an HD map to the poses component (which holds ``world_global``) as generic data.
+
+        Args:
+            vector_map_json: the vector map file's bytes, stored as uint8 [B] (``MAP_VECTOR_JSON``).
+            ground_height_m: ground height raster [H,W], stored with its dtype (``MAP_GROUND_HEIGHT``).
+            meta: JSON-able description (frame, Sim(2), lookup rule), stored as ``MAP_META``.
+        """
+        self._require_base()
+        self._poses.set_generic_data(
+            {MAP_VECTOR_JSON: np.frombuffer(vector_map_json, dtype=np.uint8), MAP_GROUND_HEIGHT: ground_height_m},
+            {MAP_META: meta},
+        )
 
     def store_extrinsic(self, sensor_id: str, T_sensor_rig: np.ndarray) -> None:
         """Store a static sensor->rig extrinsic [4,4] (float32)."""

@@ -61,6 +61,7 @@ class Argoverse2Options:
     profile: Profile = "separate-sensors"
     sequence_meta: bool = True
     lidar_model_source: str = "empirical"
+    maps: bool = True
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
 
@@ -81,6 +82,7 @@ class Counts:
     points_not_stored: int = 0
     images: int = 0
     cuboids: int = 0
+    maps: int = 0
     lidar_seconds: float = 0.0  #: read + decompensate + write of all sweeps
     camera_seconds: float = 0.0  #: read + write of all images
     warnings: list[str] = field(default_factory=list)
@@ -102,7 +104,7 @@ class LogSummary(Counts):
         return (
             f"{self.log_id}: {self.sweeps} sweeps, {self.points} points"
             f" ({self.points_not_stored} not representable), {self.images} images,"
-            f" {self.cuboids} cuboids, {self.seconds:.1f} s"
+            f" {self.cuboids} cuboids, {'an HD map' if self.maps else 'no HD map'}, {self.seconds:.1f} s"
             + (f", {len(self.warnings)} warning(s)" if self.warnings else "")
         )
 
@@ -562,7 +564,34 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
             writer.store_lidar_model(unit, model)
     cuboids = annotation_cuboids(inputs.annotations) if inputs.annotations is not None else None
     writer.store_cuboids(cuboids)
+    if plan.options.maps:
+        _store_map(inputs.log_dir, writer, result)
     result.cuboids = 0 if cuboids is None else len(cuboids)
+
+
+def _store_map(log_dir: UPath, writer: SequenceWriter, result: JobResult) -> None:
+    """The log's HD map, as stored, in the city frame (= world_global), or a warning without one."""
+    log_map = av2.read_log_map(log_dir)
+    if log_map is None:
+        result.warnings.append(f"{log_dir / 'map'}: no map folder; no HD map written")
+        return
+    vector_name, raster_name, sim2_name = log_map.file_names
+    writer.store_map(
+        log_map.vector_map_json,
+        log_map.ground_height_m,
+        {
+            "frame": "world_global (the AV2 city frame)",
+            "vector_map_file": vector_name,
+            "ground_height_file": raster_name,
+            "img_Sim2_city_file": sim2_name,
+            "city": vector_name.split("____")[1].split("_")[0] if "____" in vector_name else None,
+            "img_Sim2_city": log_map.img_Sim2_city,
+            "raster_lookup": "p_img = s * (R @ [x, y] + t) with (x, y) in world_global metres, R row-major 2x2;"
+            " value = ground_height_m[int(p_img[1]), int(p_img[0])] (truncation; NaN outside the region of interest)",
+            "resolution_m": 1.0 / float(log_map.img_Sim2_city["s"]),
+        },
+    )
+    result.maps = 1
 
 
 def _lidar_meta(calibration: LidarCalibration, unit: str, model_source: str) -> dict:

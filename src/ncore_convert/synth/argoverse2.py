@@ -26,6 +26,7 @@ from upath import UPath
 from ncore_convert import vlp32c
 from ncore_convert.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.synth.maps import write_map
 from ncore_convert.synth.scene import Scene, cast_rays, make_scene
 
 MAX_RANGE_M = 200.0
@@ -318,6 +319,7 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
         },
     )
 
+    write_map(log_dir, log_id, scene, config.seconds, rng)
     _write_sweeps(truth, sweep_ns, config)
     if config.camera_fps > 0:
         _write_images(truth, cam_ns, cams, rng, config.camera_fps)
