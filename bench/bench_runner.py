@@ -62,15 +62,17 @@ def long_log_root(work: Path, seconds: float, annotations: bool) -> Path:
     return bare
 
 
-def run_dataset(executor, root: Path, out: Path) -> float:
-    """Convert every log under root/val with the runner; returns seconds to synced files."""
+def run_dataset(executor, root: Path, out: Path, tbv: bool = False) -> tuple[float, list]:
+    """Convert every log under root/val (TbV: under root) with the runner; returns the seconds to
+    synced files and the per-log results."""
     from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
     from ncore_convert.runner import run_logs
-    from ncore_convert.sources.argoverse2 import list_log_ids
+    from ncore_convert.sources import argoverse2
+    from ncore_convert.sources import tbv as tbv_source
 
     shutil.rmtree(out, ignore_errors=True)
-    options = Argoverse2Options(split="val")
-    log_ids = list_log_ids(UPath(root), "val")
+    options = Argoverse2Options(split=None if tbv else "val")
+    log_ids = tbv_source.list_log_ids(UPath(root)) if tbv else argoverse2.list_log_ids(UPath(root), "val")
     t = time.perf_counter()
     task = partial(convert_log, UPath(root), options=options)
     results = run_logs(
@@ -81,7 +83,7 @@ def run_dataset(executor, root: Path, out: Path) -> float:
     failed = [r.error for r in results if not r.ok]
     if failed:
         raise SystemExit(f"conversion failed: {failed[0]}")
-    return elapsed
+    return elapsed, results
 
 
 def run_command(root: Path, out: Path, workers: int) -> float:
@@ -110,21 +112,26 @@ def _vm_hwm_bytes(pid: int) -> int:
     return 0
 
 
-def child_memory(root: str, out: str, workers: int) -> None:
-    """Convert the one log under root/val in a fresh process; print the peak RSS of the largest
-    worker and of this process as JSON."""
+def child_memory(root: str, out: str, workers: int, tbv: bool) -> None:
+    """Convert the one log under root/val (TbV: root) in a fresh process; print the peak RSS of the
+    largest worker and of this process, the time and the lidar path per sweep as JSON."""
     from ncore_convert.executors import LocalExecutor
     from ncore_convert.pool import JobPool
 
     with LocalExecutor(JobPool(workers, preload=["ncore_convert.converters.argoverse2"])) as executor:
         executor.pool.run([(_ready, ())] * workers)
-        wall = run_dataset(executor, Path(root), Path(out))
+        wall, results = run_dataset(executor, Path(root), Path(out), tbv)
         workers_peak = max(_vm_hwm_bytes(pid) for pid in process_tree(os.getpid()) if pid != os.getpid())
-    print(json.dumps({"worker_mb": workers_peak / 2**20, "main_mb": _vm_hwm_bytes(os.getpid()) / 2**20, "s": wall}))
+    sweeps = sum(r.summary.sweeps for r in results)
+    lidar_ms = 1e3 * sum(r.summary.lidar_seconds for r in results) / max(1, sweeps)
+    figures = {"worker_mb": workers_peak / 2**20, "main_mb": _vm_hwm_bytes(os.getpid()) / 2**20, "s": wall}
+    print(json.dumps({**figures, "lidar_ms_per_sweep": lidar_ms}))
 
 
-def memory(root: Path, out: Path, workers: int) -> dict:
-    args = [sys.executable, __file__, "--child-memory", str(root), str(out), str(workers)]
+def memory(root: Path, out: Path, workers: int, tbv: bool = False) -> dict:
+    """One fresh-process conversion of the log under ``root`` (see :func:`child_memory`)."""
+    args = [sys.executable, str(Path(__file__).resolve()), "--child-memory", str(root), str(out), str(workers)]
+    args += ["--tbv"] if tbv else []
     proc = subprocess.run(args, check=True, capture_output=True, text=True)
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -143,8 +150,8 @@ def throughput(work: Path, logs: int, seconds: float, repeat: int) -> None:
         one.pool.run([(_ready, ())])
         two.pool.run([(_ready, ())] * 2)
         for _ in range(repeat):
-            run = {"runner_1": run_dataset(one, root, work / "runner-out"),
-                   "runner_2": run_dataset(two, root, work / "runner-out"),
+            run = {"runner_1": run_dataset(one, root, work / "runner-out")[0],
+                   "runner_2": run_dataset(two, root, work / "runner-out")[0],
                    "command_1": run_command(root, work / "runner-out", 1),
                    "command_2": run_command(root, work / "runner-out", 2)}  # fmt: skip
             run["runner_speedup"] = run["runner_1"] / run["runner_2"]
@@ -169,11 +176,12 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--skip-throughput", action="store_true")
+    parser.add_argument("--tbv", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--child-memory", nargs=3, metavar=("ROOT", "OUT", "WORKERS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child_memory:
         root, out, workers = args.child_memory
-        child_memory(root, out, int(workers))
+        child_memory(root, out, int(workers), args.tbv)
         return
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
