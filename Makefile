@@ -7,14 +7,16 @@ DEMO   ?= /tmp/ncore-convert-demo
 
 .PHONY: install demo test bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	# nvidia-ncore depends on torch; the conversion never imports it, so take the CPU build
 	# (a local wheel on these machines, the PyTorch CPU index elsewhere) instead of the CUDA one.
 	$(PY) -m pip install -q "torch==2.13.0" || \
 	  $(PY) -m pip install -q torch --index-url https://download.pytorch.org/whl/cpu
-	$(PY) -m pip install -q -e ".[test]"
+	# constraints.txt: the versions CI is known to work with (s3fs/aiobotocore and boto3 pin botocore
+	# differently, and an unconstrained resolve backtracks for many minutes)
+	$(PY) -m pip install -q -e ".[test]" -c constraints.txt
 	touch $(STAMP)
 
 install: $(STAMP)
