@@ -33,6 +33,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/bench_argoverse2.py
 	$(PY) bench/bench_runner.py
+	$(PY) bench/bench_tbv.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info
