@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import socket
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +16,7 @@ from ncore_convert.converters.argoverse2 import Argoverse2Options, LogSummary, c
 from ncore_convert.synth.argoverse2 import SynthConfig, SynthTruth, write_log
 
 REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent  #: the venv's scripts: ncore-convert, ray, moto_server
 AV2_SAMPLE_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 
 
@@ -29,6 +32,19 @@ def find_av2_sample() -> Path:
     raise RuntimeError(
         "real AV2 sample not found; set NCORE_CONVERT_AV2_SAMPLE to the folder holding val/" + AV2_SAMPLE_LOG
     )
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def av2_command(root, out, *group_options) -> list[str]:
+    """The installed ``ncore-convert`` command converting ``<root>/val`` into ``out`` (for subprocesses)."""
+    return [str(BIN / "ncore-convert"), "--no-progress", "--root-dir", str(root), "--output-dir", str(out),
+            *group_options, "argoverse2-v4", "--split", "val"]  # fmt: skip
 
 
 @dataclass

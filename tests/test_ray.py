@@ -4,29 +4,19 @@ local executor, per-log failures reported, and a clear usage error without a clu
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
-import sys
-from pathlib import Path
 
 import pytest
+from conftest import BIN, av2_command, free_port
 from upath import UPath
 
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-BIN = Path(sys.executable).parent
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 @pytest.fixture(scope="module")
 def ray_address():
-    port = _free_port()
+    port = free_port()
     start = [str(BIN / "ray"), "start", "--head", "--node-ip-address", "127.0.0.1", "--port", str(port),
              "--num-cpus", "2", "--include-dashboard", "false", "--object-store-memory", str(100 * 2**20),
              "--disable-usage-stats"]  # fmt: skip
@@ -49,9 +39,7 @@ def three_logs(tmp_path_factory):
 
 
 def convert(root, out, *extra):
-    cmd = [str(BIN / "ncore-convert"), "--no-progress", "--root-dir", str(root), "--output-dir", str(out), *extra,
-           "argoverse2-v4", "--split", "val"]  # fmt: skip
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    return subprocess.run(av2_command(root, out, *extra), capture_output=True, text=True, timeout=600)
 
 
 def test_ray_executor_writes_what_the_local_executor_writes(ray_address, three_logs, tmp_path):
@@ -83,6 +71,6 @@ def test_ray_executor_writes_what_the_local_executor_writes(ray_address, three_l
 
 def test_no_cluster_at_the_address_is_a_usage_error(three_logs, tmp_path):
     root, _, _ = three_logs
-    result = convert(root, tmp_path / "out", "--executor", "ray", "--ray-address", f"127.0.0.1:{_free_port()}")
+    result = convert(root, tmp_path / "out", "--executor", "ray", "--ray-address", f"127.0.0.1:{free_port()}")
     assert result.returncode == 2 and "--ray-address 127.0.0.1:" in result.stderr, result.stderr
     assert not (tmp_path / "out").exists()

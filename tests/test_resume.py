@@ -114,19 +114,16 @@ def test_a_run_killed_mid_log_is_completed_by_the_rerun(tmp_path):
     import os
     import signal
     import subprocess
-    import sys
     import time
 
-    from conftest import open_sequence
+    from conftest import av2_command, open_sequence
 
     root = tmp_path / "root"
     truth = write_log(UPath(root / "val"), SynthConfig(seconds=1.0, seed=23, camera_fps=20))
     out = tmp_path / "out"
-    from pathlib import Path
-
-    cmd = [str(Path(sys.executable).parent / "ncore-convert"), "--no-progress", "--root-dir", str(root), "--output-dir",
-           str(out), "--workers", "2", "argoverse2-v4", "--split", "val"]  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        av2_command(root, out, "--workers", "2"), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
     deadline, workers = time.monotonic() + 60, []
     while not (workers and (out / f".{truth.log_id}.partial").exists()) and time.monotonic() < deadline:
         time.sleep(0.02)

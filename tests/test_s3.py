@@ -7,28 +7,20 @@ import json
 import os
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+from conftest import BIN, av2_command, free_port
 from upath import UPath
 
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-
-BIN = Path(sys.executable).parent
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
 def s3_env():
     """A moto S3 server on 127.0.0.1; the environment that points AWS clients (s3fs) at it."""
-    port = _free_port()
+    port = free_port()
     server = subprocess.Popen(
         [str(BIN / "moto_server"), "-H", "127.0.0.1", "-p", str(port)],
         stdout=subprocess.DEVNULL,
@@ -63,9 +55,7 @@ def s3_env():
 
 
 def convert(env, root: str, out: str, *extra):
-    cmd = [str(BIN / "ncore-convert"), "--no-progress", "--root-dir", root, "--output-dir", out, *extra,
-           "argoverse2-v4", "--split", "val"]  # fmt: skip
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    return subprocess.run(av2_command(root, out, *extra), capture_output=True, text=True, timeout=600, env=env)
 
 
 def test_a_log_in_a_bucket_converts_into_a_bucket_as_it_does_locally(s3_env, tmp_path):

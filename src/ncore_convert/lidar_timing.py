@@ -270,23 +270,20 @@ def unit_rotation(
     puts the sweeps' first firings within FIRST_FIRING_WINDOW_MS of their timestamps is kept (or,
     if neither does, the nearer one: see :func:`check_first_firing`).
     """
+    # azimuths with every return at the sweep time: the first pass of reconstruct_times
     static = [
-        firing_azimuth_deg(decompensate(xyz, np.full(len(b), ts), ts, T_rig_world, T_sensor_rig), b)
+        (firing_azimuth_deg(decompensate(xyz, np.full(len(b), ts), ts, T_rig_world, T_sensor_rig), b), ts)
         for xyz, b, ts in sweeps
-        if len(b) > BLOCK_ROWS
+        if len(b)
     ]
-    if not static:
+    if not any(len(az) > BLOCK_ROWS for az, _ in static):
         raise TimingError("no sweep with enough returns to find the spin direction")
-    spin = 1 if sum(spin_direction(az) for az in static) >= 0 else -1
+    spin = 1 if sum(spin_direction(az) for az, _ in static if len(az) > BLOCK_ROWS) >= 0 else -1
     epoch, phases = trigger_grid
     fits = []
     for half_turn in (False, True):
         knots = fit_rotation_knots(camera_azimuth_deg, spin, epoch, phases, half_turn=half_turn)
-        first_ms = [
-            (reconstruct_times(xyz, b, ts, knots, T_rig_world, T_sensor_rig, 1).times_ns[0] - ts) / 1e6
-            for xyz, b, ts in sweeps
-            if len(b)
-        ]
+        first_ms = [(firing_times(az, knots, ts).times_ns[0] - ts) / 1e6 for az, ts in static]
         fits.append(dataclasses.replace(knots, first_firing_ms=float(np.median(first_ms))))
     center = sum(FIRST_FIRING_WINDOW_MS) / 2
     return min(fits, key=lambda k: abs(k.first_firing_ms - center))

@@ -264,4 +264,5 @@ def run_logs(
                 lines = [f"FAIL  {result.log_id}: {result.error}"]
             finish(result, lines)
     overall.close()
-    return sorted(results, key=lambda r: log_ids.index(r.log_id))  # in the order asked for
+    order = {log_id: i for i, log_id in enumerate(log_ids)}
+    return sorted(results, key=lambda r: order[r.log_id])  # in the order asked for

@@ -123,7 +123,10 @@ class LogInputs:
     annotations: av2.Annotations | None
 
 
-def read_log_inputs(log_dir: UPath, camera_ids: list[str]) -> LogInputs:
+def read_log_inputs(
+    log_dir: UPath, camera_ids: list[str], intrinsics: dict[str, av2.CameraIntrinsics] | None = None
+) -> LogInputs:
+    """Read a log's small inputs; ``intrinsics``: already read (TbV reads them to pick the cameras)."""
     if not log_dir.is_dir():
         raise SourceError(log_dir, "log directory not found")
     pose_ts, city_SE3_ego = av2.read_city_SE3_ego(log_dir)
@@ -132,7 +135,7 @@ def read_log_inputs(log_dir: UPath, camera_ids: list[str]) -> LogInputs:
         pose_timestamps_ns=pose_ts,
         city_SE3_ego=city_SE3_ego,
         ego_SE3_sensor=av2.read_ego_SE3_sensors(log_dir),
-        intrinsics=av2.read_intrinsics(log_dir),
+        intrinsics=intrinsics if intrinsics is not None else av2.read_intrinsics(log_dir),
         sweep_timestamps_ns=av2.list_sweep_timestamps_ns(log_dir),
         image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam) for cam in camera_ids},
         annotations=av2.read_annotations(log_dir),
@@ -477,15 +480,16 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
     warnings: list[str] = []
     log_dir = options.log_dir(root_dir, log_id)
     lidar_ids = select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
+    intrinsics = None
     if options.tbv:  # the cameras are those of the log's calibration
-        known = tuple(av2.read_intrinsics(log_dir)) if log_dir.is_dir() else ()
+        intrinsics = av2.read_intrinsics(log_dir) if log_dir.is_dir() else {}
         try:
-            camera_ids = select_sensors(options.camera_ids, known, "camera")
+            camera_ids = select_sensors(options.camera_ids, tuple(intrinsics), "camera")
         except ValueError as err:
             raise SourceError(log_dir / "calibration" / "intrinsics.feather", str(err)) from None
     else:
         camera_ids = select_sensors(options.camera_ids, av2.CAMERAS, "camera")
-    inputs = read_log_inputs(log_dir, camera_ids)
+    inputs = read_log_inputs(log_dir, camera_ids, intrinsics)
 
     calib_path = log_dir / "calibration"
     for sensor in av2.LIDARS + tuple(camera_ids):
