@@ -89,7 +89,8 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
 @click.option("--progress/--no-progress", default=True, help="Show per-log progress bars.")
 @click.option(
     "--workers", type=click.IntRange(min=1), default=None, show_default="the number of CPUs",
-    help="Worker processes; up to this many logs at a time, each writing its stores (per sensor) in parallel.",
+    help="Local worker processes: a log per worker when there are enough logs, else a log's stores (per sensor)"
+    " spread over them. Not used with --executor ray.",
 )  # fmt: skip
 @off_flag("--overwrite", help="Reconvert logs that a previous run already converted with the same version and options.")
 @off_flag("--retry-failed", help="Convert only the logs that the last run (conversion-report.json) reported as failed.")
