@@ -63,3 +63,22 @@ def points_right_handed(xyz_carla: np.ndarray) -> np.ndarray:
     out = np.array(xyz_carla, copy=True)
     out[..., 1] = -out[..., 1]
     return out
+
+
+def boxes_world_right_handed(
+    location: np.ndarray, angle: np.ndarray, center: np.ndarray, extent: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """CARLA actor bounding boxes as right-handed world poses of the box centres, and full sizes.
+
+    Args:
+        location: actor origins [M,3]; angle: actor (roll, yaw, pitch) [M,3], degrees; center: the
+            box-centre offset in the actor frame [M,3]; extent: half length, width, height [M,3].
+            All in the CARLA (left-handed) world, metres.
+
+    Returns:
+        world_SE3_box [M,4,4] (right-handed; box x forward, y left, z up) and (length, width,
+        height) [M,3] = 2 * extent. The centre is ``location + R(angle) · center``.
+    """
+    T = carla_world_SE3(np.concatenate([location, angle], axis=1))
+    T[:, :3, 3] += np.einsum("mij,mj->mi", T[:, :3, :3], center)
+    return right_handed_SE3(T), 2.0 * np.asarray(extent, dtype=np.float64)

@@ -238,3 +238,23 @@ def _constant_velocity_pose(T_prev: np.ndarray, T_last: np.ndarray, dt_us: int, 
 def euler_xyz_from_rotation(R: np.ndarray) -> np.ndarray:
     """Extrinsic x-y-z Euler angles (NCore BBox3 ``rot``, R = Rz Ry Rx) of rotation matrices [N,3,3] -> [N,3]."""
     return Rotation.from_matrix(R).as_euler("xyz")
+
+
+def rigid_mean(T: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Mean of samples of one rigid transform (e.g. an extrinsic measured every frame).
+
+    Args:
+        T: SE(3) samples [N,4,4] of the same transform.
+
+    Returns:
+        the mean [4,4] (median translation, chordal mean rotation), and the largest deviation of a
+        sample from it: translation (m) and rotation angle (degrees).
+    """
+    mean = np.eye(4)
+    rotations = Rotation.from_matrix(T[:, :3, :3])
+    mean_rotation = rotations.mean()
+    mean[:3, :3] = mean_rotation.as_matrix()
+    mean[:3, 3] = np.median(T[:, :3, 3], axis=0)
+    deviation_m = float(np.max(np.linalg.norm(T[:, :3, 3] - mean[:3, 3], axis=1)))
+    deviation_deg = float(np.degrees(np.max((mean_rotation.inv() * rotations).magnitude())))
+    return mean, deviation_m, deviation_deg

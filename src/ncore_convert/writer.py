@@ -228,20 +228,27 @@ class SequenceWriter:
             raise RuntimeError("poses, intrinsics, masks and cuboids are written by the base writer")
 
     def store_trajectory(
-        self, timestamps_us: np.ndarray, T_rig_world: np.ndarray, T_world_world_global: np.ndarray
+        self,
+        timestamps_us: np.ndarray,
+        T_rig_world: np.ndarray,
+        T_world_world_global: np.ndarray | None,
+        rig_frame: str = "rig",
     ) -> None:
         """Store ``rig->world`` (dynamic, float32) and ``world->world_global`` (static, float64).
 
         Args:
-            timestamps_us: int [N], strictly increasing, first/last = sequence start/end.
+            timestamps_us: int [N], strictly increasing, within the sequence interval.
             T_rig_world: [N,4,4], stored as float32.
-            T_world_world_global: [4,4], stored as float64.
+            T_world_world_global: [4,4], stored as float64; None when another call stores it
+                (several rigs in one sequence).
+            rig_frame: the moving frame's name ("rig", or e.g. "agent1732_rig").
         """
         self._require_base()
         self._poses.store_dynamic_pose(
-            "rig", "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64)
+            rig_frame, "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64)
         )
-        self._poses.store_static_pose("world", "world_global", T_world_world_global.astype(np.float64))
+        if T_world_world_global is not None:
+            self._poses.store_static_pose("world", "world_global", T_world_world_global.astype(np.float64))
 
     def store_map(self, vector_map_json: bytes, ground_height_m: np.ndarray, meta: dict) -> None:
         """Attach an HD map to the poses component (which holds ``world_global``) as generic data.
@@ -257,10 +264,10 @@ class SequenceWriter:
             {MAP_META: meta},
         )
 
-    def store_extrinsic(self, sensor_id: str, T_sensor_rig: np.ndarray) -> None:
+    def store_extrinsic(self, sensor_id: str, T_sensor_rig: np.ndarray, rig_frame: str = "rig") -> None:
         """Store a static sensor->rig extrinsic [4,4] (float32)."""
         self._require_base()
-        self._poses.store_static_pose(sensor_id, "rig", T_sensor_rig.astype(np.float32))
+        self._poses.store_static_pose(sensor_id, rig_frame, T_sensor_rig.astype(np.float32))
 
     def store_pinhole_camera(
         self,

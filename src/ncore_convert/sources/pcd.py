@@ -90,7 +90,12 @@ def read_pcd(path: UPath) -> dict[str, np.ndarray]:
     return {name: table[:, i].astype(dt) for i, (name, dt) in enumerate(zip(header.fields, header.dtypes, strict=True))}
 
 
+def red_from_rgb(rgb: np.ndarray) -> np.ndarray:
+    """The red channel (uint8 [N]) of Open3D's packed float ``rgb`` (bytes b, g, r, 0)."""
+    bits = np.ascontiguousarray(rgb, dtype=np.float32).view(np.uint32)
+    return ((bits >> 16) & 0xFF).astype(np.uint8)
+
+
 def intensity_from_rgb(rgb: np.ndarray) -> np.ndarray:
     """Intensity in [0, 1] from Open3D's packed float ``rgb`` (red channel / 255), float32 [N]."""
-    bits = np.ascontiguousarray(rgb, dtype=np.float32).view(np.uint32)
-    return (((bits >> 16) & 0xFF).astype(np.float32)) / 255.0
+    return red_from_rgb(rgb).astype(np.float32) / np.float32(255.0)

@@ -1,0 +1,240 @@
+"""OPV2V and V2XSet (OpenCOOD layout, written by OpenCDA) on disk: small, pure readers.
+
+Layout: ``<root>/<split>/<scenario>/<agent>/<key>.{yaml,pcd}`` and ``<key>_camera{0..3}.png``, plus
+``<scenario>/data_protocol.yaml``. Agents are CARLA actor ids: positive for connected vehicles
+(CAVs), negative for infrastructure (V2XSet RSUs). Keys are the CARLA frame counter, zero-padded to
+6 digits. Everything here is in CARLA's own (left-handed) conventions; nothing knows of NCore.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+import yaml
+from upath import UPath
+
+from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.pcd import read_pcd, red_from_rgb
+
+SPLITS = {
+    "opv2v": ("train", "validate", "test", "test_culvercity"),
+    "v2xset": ("train", "validate", "test"),
+}
+#: Camera folder index -> NCore camera id (OpenCDA mounts: front, right rear, left rear, back).
+CAMERAS = ("camera_front", "camera_right_rear", "camera_left_rear", "camera_back")
+LIDAR = "lidar_top"
+#: A CAV is absent from its own ``vehicles``; OpenCDA's logreplay spawns every CAV as this model
+#: (``vehicle.lincoln.mkz_2017``): bounding-box centre offset and half extents, metres.
+CAV_BOX_CENTER_M = (0.0040, 0.0, 0.7189)
+CAV_BOX_EXTENT_M = (2.4508, 1.0642, 0.7554)
+
+_AGENT = re.compile(r"^-?[0-9]{1,9}$")
+_KEY = re.compile(r"^[0-9]{4,9}$")
+_SCENARIO = re.compile(r"^[A-Za-z0-9_.-]{1,128}$")
+
+
+class _Loader(yaml.CSafeLoader if hasattr(yaml, "CSafeLoader") else yaml.SafeLoader):
+    """Safe YAML (no object construction) that also reads ``1e-06`` as a float, as OpenCOOD does."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(
+        r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?|[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+        |\.[0-9_]+(?:[eE][-+][0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$""",
+        re.X,
+    ),
+    list("-+0123456789."),
+)
+
+
+def load_yaml(path: UPath) -> dict:
+    """Parse a YAML mapping safely; SourceError naming the file if it is unreadable or not a mapping."""
+    try:
+        data = yaml.load(UPath(path).read_bytes(), Loader=_Loader)  # noqa: S506 - _Loader is a SafeLoader
+    except FileNotFoundError:
+        raise SourceError(path, "file not found") from None
+    except yaml.YAMLError as err:
+        raise SourceError(path, f"not valid YAML ({str(err).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise SourceError(path, "expected a YAML mapping")
+    return data
+
+
+def is_infrastructure(agent_id: str) -> bool:
+    return int(agent_id) < 0
+
+
+def list_scenarios(root: UPath, split: str) -> list[str]:
+    """Sorted scenario folder names of a split (SourceError if the split folder is missing)."""
+    split_dir = UPath(root) / split
+    if not split_dir.is_dir():
+        raise SourceError(split_dir, "split folder not found")
+    names = sorted(p.name for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+    for name in names:
+        if not _SCENARIO.match(name):
+            raise SourceError(split_dir / name, "not a scenario folder name (letters, digits, '_', '-', '.')")
+    return names
+
+
+def list_agents(scenario_dir: UPath) -> list[str]:
+    """Agent folder names (CARLA actor ids as strings), sorted numerically."""
+    if not scenario_dir.is_dir():
+        raise SourceError(scenario_dir, "scenario folder not found")
+    names = [p.name for p in scenario_dir.iterdir() if p.is_dir() and not p.name.startswith(".")]
+    bad = [n for n in names if not _AGENT.match(n)]
+    if bad:
+        raise SourceError(scenario_dir / bad[0], "agent folder names must be integer actor ids")
+    if not names:
+        raise SourceError(scenario_dir, "no agent folders")
+    return sorted(names, key=int)
+
+
+def opencood_ego(agent_ids: list[str]) -> str:
+    """OpenCOOD's ego choice: the first agent by *string* sort, with a leading infrastructure id
+    moved to the end (``basedataset.py``); e.g. ['650', '1732', '-1'] -> '1732'."""
+    order = sorted(agent_ids)
+    if is_infrastructure(order[0]):
+        order = order[1:] + order[:1]
+    return order[0]
+
+
+def list_frame_keys(agent_dir: UPath) -> list[str]:
+    """Frame keys of an agent: the stems of ``<key>.yaml`` (``*_additional.yaml`` and others skipped)."""
+    return sorted((p.stem for p in agent_dir.iterdir() if p.suffix == ".yaml" and _KEY.match(p.stem)), key=int)
+
+
+def read_fixed_delta_seconds(scenario_dir: UPath) -> float:
+    """``world.fixed_delta_seconds`` (the CARLA tick) from the scenario's ``data_protocol.yaml``."""
+    path = scenario_dir / "data_protocol.yaml"
+    protocol = load_yaml(path)
+    try:
+        dt = float(protocol["world"]["fixed_delta_seconds"])
+    except (KeyError, TypeError, ValueError):
+        raise SourceError(path, "no numeric world.fixed_delta_seconds") from None
+    if not 0.0 < dt <= 1.0:
+        raise SourceError(path, f"world.fixed_delta_seconds {dt} is not a plausible CARLA tick")
+    return dt
+
+
+@dataclass(frozen=True)
+class Vehicles:
+    """Vehicles of one agent's frame, columnar, CARLA world (left-handed), metres and degrees.
+
+    Attributes:
+        actor_ids: int64 [M]; location: actor origin [M,3]; angle: (roll, yaw, pitch) [M,3];
+        center: box-centre offset in the actor frame [M,3]; extent: half length, width, height [M,3].
+    """
+
+    actor_ids: np.ndarray
+    location: np.ndarray
+    angle: np.ndarray
+    center: np.ndarray
+    extent: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.actor_ids)
+
+
+@dataclass(frozen=True)
+class AgentFrame:
+    """One agent's ``<key>.yaml``: poses ``[x, y, z, roll, yaw, pitch]`` (m, deg, CARLA world).
+
+    Attributes:
+        lidar_pose: [6]; true_ego_pos: [6]; camera_cords: {camera index: [6]};
+        camera_intrinsic: {camera index: K [3,3]}; vehicles: the labelled vehicles.
+    """
+
+    path: UPath
+    lidar_pose: np.ndarray
+    true_ego_pos: np.ndarray
+    camera_cords: dict[int, np.ndarray]
+    camera_intrinsic: dict[int, np.ndarray]
+    vehicles: Vehicles
+
+
+def _vector(path: UPath, data: dict, key: str, size: int, where: str = "") -> np.ndarray:
+    """``data[key]`` as float64 [size], or SourceError naming the file, ``where`` and the key."""
+    try:
+        value = np.asarray(data[key], dtype=np.float64).reshape(-1)  # a 3x3 matrix comes flat
+    except KeyError:
+        raise SourceError(path, f"{where}missing key {key!r}") from None
+    except (TypeError, ValueError):
+        raise SourceError(path, f"{where}{key!r} is not numeric") from None
+    if value.shape != (size,) or not np.all(np.isfinite(value)):
+        raise SourceError(path, f"{where}{key!r} must be {size} finite numbers, got {data[key]!r}"[:200])
+    return value
+
+
+def _vehicles(path: UPath, table: object) -> Vehicles:
+    if table is None:
+        table = {}
+    if not isinstance(table, dict):
+        raise SourceError(path, "'vehicles' is not a mapping")
+    columns: dict[str, list] = {"location": [], "angle": [], "center": [], "extent": []}
+    ids = []
+    for actor, entry in table.items():
+        try:
+            ids.append(int(actor))
+        except (TypeError, ValueError):
+            raise SourceError(path, f"vehicle id {actor!r} is not an integer") from None
+        if not isinstance(entry, dict):
+            raise SourceError(path, f"vehicle {actor}: not a mapping")
+        for name, column in columns.items():
+            column.append(_vector(path, entry, name, 3, where=f"vehicle {actor}: "))
+    shape = (len(ids), 3)
+    return Vehicles(
+        np.array(ids, dtype=np.int64), *(np.array(c, dtype=np.float64).reshape(shape) for c in columns.values())
+    )
+
+
+def read_agent_frame(agent_dir: UPath, key: str) -> AgentFrame:
+    """Read ``<agent_dir>/<key>.yaml`` (SourceError naming the file on a missing key or bad value)."""
+    path = agent_dir / f"{key}.yaml"
+    data = load_yaml(path)
+    cords, intrinsic = {}, {}
+    for index in range(len(CAMERAS)):
+        entry = data.get(f"camera{index}")
+        if entry is None:
+            continue
+        if not isinstance(entry, dict):
+            raise SourceError(path, f"'camera{index}' is not a mapping")
+        cords[index] = _vector(path, entry, "cords", 6, where=f"camera{index}: ")
+        intrinsic[index] = _vector(path, entry, "intrinsic", 9, where=f"camera{index}: ").reshape(3, 3)
+    return AgentFrame(
+        path=path,
+        lidar_pose=_vector(path, data, "lidar_pose", 6),
+        true_ego_pos=_vector(path, data, "true_ego_pos", 6),
+        camera_cords=cords,
+        camera_intrinsic=intrinsic,
+        vehicles=_vehicles(path, data.get("vehicles")),
+    )
+
+
+def pcd_path(agent_dir: UPath, key: str) -> UPath:
+    return agent_dir / f"{key}.pcd"
+
+
+def camera_path(agent_dir: UPath, key: str, index: int) -> UPath:
+    return agent_dir / f"{key}_camera{index}.png"
+
+
+def read_points(agent_dir: UPath, key: str) -> tuple[np.ndarray, np.ndarray]:
+    """A sweep in the CARLA lidar frame (left-handed: x forward, y right, z up).
+
+    Returns:
+        xyz_m float32 [N,3] and intensity_u8 [N]: the red channel of the packed ``rgb`` field,
+        where OpenCDA stores the lidar intensity (intensity = value / 255).
+    """
+    path = pcd_path(agent_dir, key)
+    try:
+        columns = read_pcd(path)
+    except FileNotFoundError:
+        raise SourceError(path, "file not found") from None
+    missing = [f for f in ("x", "y", "z", "rgb") if f not in columns]
+    if missing:
+        raise SourceError(path, f"PCD lacks field(s) {', '.join(missing)}")
+    xyz = np.stack([columns["x"], columns["y"], columns["z"]], axis=1).astype(np.float32, copy=False)
+    return xyz, red_from_rgb(columns["rgb"])
