@@ -16,6 +16,7 @@ from upath import UPath
 from ncore_convert import __version__
 from ncore_convert.pool import JobPool, default_workers
 from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
+from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
 
 
 @dataclass(frozen=True)
@@ -154,6 +155,22 @@ def _parse_shard(text: str | None) -> tuple[int, int] | None:
     return index, count
 
 
+def store_options(f):
+    """Store layout options shared by every dataset command."""
+    for option in reversed([
+        click.option("--store-type", type=click.Choice(["itar", "directory"]), default="itar",
+                     help="Zarr store container."),
+        click.option("--profile", type=click.Choice(["default", "separate-sensors", "separate-all"]),
+                     default="separate-sensors",
+                     help="Component group layout: one store, one store per sensor, or also separate"
+                     " poses/intrinsics/masks/cuboids."),
+        click.option("--sequence-meta/--no-sequence-meta", default=True,
+                     help="Write <sequence_id>.json (sequence meta)."),
+    ]):  # fmt: skip
+        f = option(f)
+    return f
+
+
 def av2_family_options(log_scope: str):
     """Options shared by the Argoverse 2 Sensor and TbV commands."""
 
@@ -161,14 +178,7 @@ def av2_family_options(log_scope: str):
         for option in reversed([
             click.option("--log-id", "log_ids", multiple=True, show_default=f"every log {log_scope}",
                          help="Convert only this log (repeatable)."),
-            click.option("--store-type", type=click.Choice(["itar", "directory"]), default="itar",
-                         help="Zarr store container."),
-            click.option("--profile", type=click.Choice(["default", "separate-sensors", "separate-all"]),
-                         default="separate-sensors",
-                         help="Component group layout: one store, one store per sensor, or also separate"
-                         " poses/intrinsics/masks/cuboids."),
-            click.option("--sequence-meta/--no-sequence-meta", default=True,
-                         help="Write <log_id>.json (sequence meta)."),
+            store_options,
             click.option("--maps/--no-maps", default=True,
                          help="Store the log's HD map (vector map, ground-height raster, Sim(2)) with the poses."),
             click.option("--lidar-model-source", type=click.Choice(["empirical", "none"]), default="empirical",
@@ -181,40 +191,31 @@ def av2_family_options(log_scope: str):
     return decorate
 
 
-def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_ids: tuple[str, ...], **options):
-    """Run the Argoverse 2 Sensor (split given) or TbV (split None) conversion of the selected logs."""
+def _pick(requested: tuple[str, ...], available: list[str], where: UPath, noun: str) -> list[str]:
+    """The requested logs (or scenarios) in order, all available ones if none are requested."""
+    if requested:
+        unknown = [name for name in requested if name not in available]
+        if unknown:
+            raise click.UsageError(f"{noun}(s) not found under {where}: {', '.join(unknown)}")
+        return list(dict.fromkeys(requested))
+    if not available:
+        raise click.UsageError(f"no {noun}s under {where}")
+    return available
+
+
+def _convert(obj: GroupOptions, command: str, preload: str, prepare) -> None:
+    """Run a dataset conversion: ``prepare(root)`` -> (options, ids, task, input_dir), after the
+    executor has started (its workers import ``preload`` meanwhile)."""
     root, out = obj.require_paths()
-    with obj.make_executor(preload=["ncore_convert.converters.argoverse2"]) as executor:
-        from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
+    with obj.make_executor(preload=[preload]) as executor:
         from ncore_convert.runner import report_name, run_logs, shard_logs
-        from ncore_convert.sources import argoverse2 as av2
-        from ncore_convert.sources import tbv
 
-        options = Argoverse2Options(split=split, camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids, **options)
-        logs_dir = root if options.tbv else root / split
-        try:
-            select_sensors(options.camera_ids, av2.RING_CAMERAS if options.tbv else av2.CAMERAS, "camera")
-            select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
-            available = tbv.list_log_ids(root) if options.tbv else av2.list_log_ids(root, split)
-        except (ValueError, av2.SourceError) as err:
-            raise click.UsageError(str(err)) from None
-        if log_ids:
-            unknown = [log for log in log_ids if log not in available]
-            if unknown:
-                raise click.UsageError(f"log(s) not found under {logs_dir}: {', '.join(unknown)}")
-            todo = list(dict.fromkeys(log_ids))
-        else:
-            todo = available
-        if not todo:
-            raise click.UsageError(f"no logs under {logs_dir}")
-        todo = shard_logs(todo, obj.shard)
-
+        options, todo, task, input_dir = prepare(root)
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
         results = run_logs(
-            out, todo, partial(convert_log, root, options=options), executor, echo=click.echo,
-            show_progress=obj.progress, fingerprint=fingerprint, mode=obj.mode,
-            input_dir=lambda log_id: options.log_dir(root, log_id), report_file=report_name(obj.shard),
+            out, shard_logs(todo, obj.shard), task, executor, echo=click.echo, show_progress=obj.progress,
+            fingerprint=fingerprint, mode=obj.mode, input_dir=input_dir, report_file=report_name(obj.shard),
         )  # fmt: skip
     failed = sum(not r.ok for r in results)
     skipped = sum(r.skipped for r in results)
@@ -223,6 +224,69 @@ def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_
         f" output and {report_name(obj.shard)} in {out}"
     )
     sys.exit(1 if failed else 0)
+
+
+def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_ids: tuple[str, ...], **options):
+    """Run the Argoverse 2 Sensor (split given) or TbV (split None) conversion of the selected logs."""
+
+    def prepare(root: UPath):
+        from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
+        from ncore_convert.sources import argoverse2 as av2
+        from ncore_convert.sources import tbv
+
+        opts = Argoverse2Options(split=split, camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids, **options)
+        try:
+            select_sensors(opts.camera_ids, av2.RING_CAMERAS if opts.tbv else av2.CAMERAS, "camera")
+            select_sensors(opts.lidar_ids, av2.LIDARS, "lidar")
+            available = tbv.list_log_ids(root) if opts.tbv else av2.list_log_ids(root, split)
+        except (ValueError, av2.SourceError) as err:
+            raise click.UsageError(str(err)) from None
+        todo = _pick(log_ids, available, root if opts.tbv else root / split, "log")
+        return opts, todo, partial(convert_log, root, options=opts), lambda log_id: opts.log_dir(root, log_id)
+
+    _convert(obj, command, "ncore_convert.converters.argoverse2", prepare)
+
+
+def _convert_opencood(obj: GroupOptions, dataset: str, split: str, scenarios: tuple[str, ...], **options):
+    """Run the OPV2V or V2XSet conversion of the selected scenarios."""
+
+    def prepare(root: UPath):
+        from ncore_convert.converters.argoverse2 import select_sensors
+        from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+        from ncore_convert.sources import opencood as src
+
+        opts = OpenCoodOptions(dataset=dataset, split=split, camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids,
+                               **options)  # fmt: skip
+        try:
+            select_sensors(opts.camera_ids, src.CAMERAS, "camera")
+            select_sensors(opts.lidar_ids, (src.LIDAR,), "lidar")
+            available = src.list_scenarios(root, split)
+        except (ValueError, src.SourceError) as err:
+            raise click.UsageError(str(err)) from None
+        todo = _pick(scenarios, available, root / split, "scenario")
+        return opts, todo, partial(convert_scenario, root, options=opts), lambda s: opts.scenario_dir(root, s)
+
+    _convert(obj, f"{dataset}-v4", "ncore_convert.converters.opencood", prepare)
+
+
+def opencood_options(dataset: str):
+    """Options of the OPV2V and V2XSet commands."""
+
+    def decorate(f):
+        for option in reversed([
+            click.option("--split", type=click.Choice(OPENCOOD_SPLITS[dataset]), required=True,
+                         help="Dataset split folder."),
+            click.option("--scenario", "scenarios", multiple=True, show_default="every scenario of the split",
+                         help="Convert only this scenario (repeatable)."),
+            click.option("--layout", type=click.Choice(["agents", "scenario"]), default="agents",
+                         help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
+                         " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_)."),
+            store_options,
+        ]):  # fmt: skip
+            f = option(f)
+        return f
+
+    return decorate
 
 
 @cli.command("argoverse2-v4")
@@ -240,6 +304,22 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, **options):
 def tbv_v4(obj: GroupOptions, log_ids, **options):
     """Argoverse 2 TbV (<root>/<log_id>) to NCore V4; per-point times reconstructed (no offset_ns)."""
     _convert_av2_family(obj, "tbv-v4", None, log_ids, **options)
+
+
+@cli.command("opv2v-v4")
+@opencood_options("opv2v")
+@click.pass_obj
+def opv2v_v4(obj: GroupOptions, split, scenarios, **options):
+    """OPV2V (<root>/<split>/<scenario>/<agent_id>) to NCore V4: a sequence per agent, shared world_global."""
+    _convert_opencood(obj, "opv2v", split, scenarios, **options)
+
+
+@cli.command("v2xset-v4")
+@opencood_options("v2xset")
+@click.pass_obj
+def v2xset_v4(obj: GroupOptions, split, scenarios, **options):
+    """V2XSet (OPV2V layout plus infrastructure agents with negative ids) to NCore V4."""
+    _convert_opencood(obj, "v2xset", split, scenarios, **options)
 
 
 @cli.command("evaluate-lidar-model")
@@ -324,6 +404,33 @@ def synth_tbv(out_dir, seconds, seed, camera_fps):
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
         f" {sum(len(s.offset_ns) for s in truth.sweeps)} points, {truth.n_images} images"
     )
+
+
+def _synth_opencood(dataset: str):
+    @synth.command(dataset, help=f"Synthetic {dataset.upper()} scenarios, written as OpenCDA writes them, with truth.")
+    @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True,
+                  help="Dataset root: writes <out>/<split>/<scenario>/<agent_id>/...")  # fmt: skip
+    @click.option("--split", type=click.Choice(OPENCOOD_SPLITS[dataset]), default="test", help="Split folder.")
+    @click.option("--scenarios", type=click.IntRange(min=1), default=1, help="Number of scenarios.")
+    @click.option("--frames", type=click.IntRange(min=2), default=10, help="Frames per scenario (10 per second).")
+    @click.option("--cavs", type=click.IntRange(min=1), default=2, help="Connected vehicles per scenario.")
+    @click.option("--infrastructure", type=click.IntRange(min=0), default=1 if dataset == "v2xset" else 0,
+                  help="Infrastructure units per scenario.")  # fmt: skip
+    @click.option("--lidar-columns", type=click.IntRange(min=16), default=720, help="Lidar azimuth samples (x 64).")
+    @click.option("--seed", type=int, default=0, help="Random seed (scene, actor ids, scenario names).")
+    def command(out_dir, split, scenarios, frames, cavs, infrastructure, lidar_columns, seed):
+        from ncore_convert.synth.opencood import SynthConfig, write_dataset
+
+        config = SynthConfig(dataset=dataset, frames=frames, seed=seed, cavs=cavs, infrastructure=infrastructure,
+                             split=split, lidar_columns=lidar_columns)  # fmt: skip
+        for truth in write_dataset(UPath(out_dir), config, scenarios):
+            click.echo(f"wrote {truth.scenario_dir}: agents {', '.join(truth.agents)}, {len(truth.keys)} frames")
+
+    return command
+
+
+synth_opv2v = _synth_opencood("opv2v")
+synth_v2xset = _synth_opencood("v2xset")
 
 
 def main() -> None:

@@ -247,7 +247,7 @@ def simulate_unit(
     pose = np.repeat(city_SE3_sensor, 2, axis=0)
     origin = pose[:, :3, 3]
     direction_city = np.einsum("nij,nj->ni", pose[:, :3, :3], direction)
-    distance, intensity = cast_rays(origin, direction_city, t_rel_s, scene, MAX_RANGE_M)
+    distance, intensity, _ = cast_rays(origin, direction_city, t_rel_s, scene, MAX_RANGE_M)
     hit = np.isfinite(distance)
     return {
         "time_ns": time_ns[hit],

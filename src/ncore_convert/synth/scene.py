@@ -158,22 +158,25 @@ def cast_rays(
     times_s: np.ndarray,
     scene: Scene,
     max_range_m: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """First hit of each ray against the ground plane and the scene boxes (city frame).
+    ground_z_m: float = GROUND_Z_M,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First hit of each ray against the ground plane z = ``ground_z_m`` and the scene boxes.
 
     Args:
         origins_m: ray origins [N,3]; directions: unit directions [N,3]; times_s: ray times [N]
-            (moving boxes are placed at each ray's own time).
+            (moving boxes are placed at each ray's own time). All in the scene's frame.
 
     Returns:
-        range_m [N] (inf where nothing is hit within max_range_m) and the hit intensity [N] (uint8).
+        range_m [N] (inf where nothing is hit within max_range_m), the hit intensity [N] (uint8)
+        and the index of the hit box in ``scene.boxes`` [N] (-1: the ground or nothing).
     """
     n = len(origins_m)
     best = np.full(n, np.inf)
     intensity = np.zeros(n, dtype=np.uint8)
+    box_index = np.full(n, -1, dtype=np.int64)
     down = directions[:, 2] < -1e-9
     s_ground = np.full(n, np.inf)
-    s_ground[down] = (GROUND_Z_M - origins_m[down, 2]) / directions[down, 2]
+    s_ground[down] = (ground_z_m - origins_m[down, 2]) / directions[down, 2]
     hit = (s_ground > 0) & (s_ground < best)
     best[hit] = s_ground[hit]
     intensity[hit] = 12
@@ -182,7 +185,7 @@ def cast_rays(
     t_mid_s, half_span_s = float(np.median(times_s)), float(np.ptp(times_s)) / 2 if n else 0.0
     order = np.argsort(np.arctan2(directions[:, 1], directions[:, 0]))
     azimuth_sorted = np.arctan2(directions[order, 1], directions[order, 0])
-    for box in scene.boxes:
+    for b, box in enumerate(scene.boxes):
         # Only rays whose azimuth points at the box can hit it: seen from the rays' mean origin, the
         # box (at the sweep's middle time) lies within a disc of radius r, padded by the spread of
         # the origins and the box's motion during the sweep.
@@ -214,5 +217,8 @@ def cast_rays(
         hits = intensity[idx]
         hits[hit] = box.intensity
         intensity[idx] = hits
+        which = box_index[idx]
+        which[hit] = b
+        box_index[idx] = which
     best[best > max_range_m] = np.inf
-    return best, intensity
+    return best, intensity, box_index

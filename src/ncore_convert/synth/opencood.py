@@ -1,0 +1,343 @@
+"""Synthetic OPV2V / V2XSet scenarios, written the way OpenCDA writes them, with known truth.
+
+Everything is built in CARLA's own conventions, independently of :mod:`ncore_convert.carla`:
+a left-handed world (z up, +y 90° clockwise from +x seen from above), poses
+``[x, y, z, roll, yaw, pitch]`` in degrees with ``R = Rz(yaw) · Ry(-pitch) · Rx(-roll)``, UE4
+camera axes (x optical axis, y right, z up). On disk: ``<root>/<split>/<scenario>/<agent>/`` with
+6-digit frame keys stepping by 2 from an odd, non-zero first key, per-frame YAML, ASCII PCD
+(x y z rgb, the intensity in the packed red channel), 800x600 PNGs and ``data_protocol.yaml``.
+
+The scene: a curved road with CAVs (positive actor ids) and other vehicles driving on it, parked
+vehicles, pillars (static landmarks) and building fronts; V2XSet adds infrastructure units
+(negative ids) with a lidar on a pole and four cameras pitched down 35°. The lidar is a 64-channel
+CARLA ray-cast lidar (all points at the tick). Each camera image carries a red 3x3 marker on the
+pixel where each pillar's centre projects.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+
+import numpy as np
+import PIL.Image
+import yaml
+from scipy.spatial.transform import Rotation
+from upath import UPath
+
+from ncore_convert.sources import opencood as src
+from ncore_convert.synth.scene import Box, Scene, cast_rays
+
+WIDTH, HEIGHT, FOV_DEG = 800, 600, 100.0
+FOCAL_PX = float(WIDTH / (2.0 * np.tan(np.radians(FOV_DEG / 2))))
+LIDAR_CHANNELS, UPPER_FOV_DEG, LOWER_FOV_DEG, LIDAR_RANGE_M = 64, 2.0, -25.0, 120.0
+#: Lidar mount on a CAV (vehicle frame, m), and the height of an infrastructure lidar above ground.
+CAV_LIDAR_M = (-0.5, 0.0, 1.9)
+RSU_LIDAR_HEIGHT_M = 4.5
+#: OpenCDA camera mounts (vehicle frame): x, y, z (m), yaw (deg); pitch 0 on a CAV, -35° on an RSU.
+CAMERA_MOUNTS = ((2.5, 0.0, 1.0, 0.0), (0.0, 0.3, 1.8, 100.0), (0.0, -0.3, 1.8, -100.0), (-2.0, 0.0, 1.5, 180.0))
+RSU_CAMERA_PITCH_DEG = -35.0
+PILLAR_DIMS_M = (0.8, 0.8, 4.0)
+MARKER_RGB = (255, 0, 0)
+PCD_HEADER = (
+    "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\n"
+    "COUNT 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n"
+)
+
+
+def carla_rotation(angles_deg: np.ndarray) -> np.ndarray:
+    """CARLA rotation matrices of (roll, yaw, pitch) degrees [...,3]: Rz(yaw)·Ry(-pitch)·Rx(-roll)."""
+    a = np.asarray(angles_deg, dtype=np.float64)
+    return Rotation.from_euler("ZYX", np.stack([a[..., 1], -a[..., 2], -a[..., 0]], axis=-1), degrees=True).as_matrix()
+
+
+def carla_pose_matrix(pose: np.ndarray) -> np.ndarray:
+    """[x, y, z, roll, yaw, pitch] -> 4x4 world_SE3_x in CARLA's (left-handed) world."""
+    T = np.eye(4)
+    T[:3, :3] = carla_rotation(np.asarray(pose[3:6]))
+    T[:3, 3] = pose[:3]
+    return T
+
+
+def carla_pose_list(T: np.ndarray) -> list[float]:
+    """4x4 CARLA world_SE3_x -> [x, y, z, roll, yaw, pitch] (degrees)."""
+    yaw, neg_pitch, neg_roll = Rotation.from_matrix(T[:3, :3]).as_euler("ZYX", degrees=True)
+    return [float(v) for v in (*T[:3, 3], -neg_roll, yaw, -neg_pitch)]
+
+
+def project_ue4(T_world_cam: np.ndarray, xyz_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CARLA camera projection of world points [M,3]: pixel (u, v) [M,2] (pixel-corner convention,
+    principal point at the image centre) and whether each is in front of the camera [M]."""
+    p = (xyz_world - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]  # UE4 camera axes
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([WIDTH / 2 + FOCAL_PX * p[:, 1] / p[:, 0], HEIGHT / 2 - FOCAL_PX * p[:, 2] / p[:, 0]], axis=1)
+    return uv, p[:, 0] > 0.5
+
+
+def write_pcd_ascii(path: UPath, xyz: np.ndarray, red_u8: np.ndarray) -> None:
+    """An Open3D-style ASCII PCD: float32 x y z and the packed float ``rgb`` (bytes b, g, r, 0)."""
+    rgb = (red_u8.astype(np.uint32) << 16).view(np.float32)
+    table = np.column_stack([xyz.astype(np.float32), rgb]).astype(np.float64)
+    body = io.BytesIO()
+    np.savetxt(body, table, fmt="%.10g")
+    UPath(path).write_bytes(PCD_HEADER.format(n=len(xyz)).encode() + body.getvalue())
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    dataset: str = "opv2v"  #: "opv2v" or "v2xset"
+    frames: int = 10
+    seed: int = 0
+    cavs: int = 2
+    infrastructure: int | None = None  #: None: 1 for V2XSet, 0 for OPV2V
+    split: str = "test"
+    first_key: int = 69
+    key_step: int = 2
+    fixed_delta_seconds: float = 0.05
+    lidar_columns: int = 720  #: azimuth samples per revolution (x 64 channels)
+    keep_truth: bool = False
+
+    @property
+    def n_infrastructure(self) -> int:
+        return self.infrastructure if self.infrastructure is not None else int(self.dataset == "v2xset")
+
+
+@dataclass
+class AgentTruth:
+    """Per frame key: CARLA lidar pose [6], the actor id hit by each stored point (-1 ground,
+    -2 pillar, -3 building), the stored intensity (uint8) and the marker pixels
+    {camera index: {pillar index: (u, v)}}. Point arrays only with ``keep_truth``."""
+
+    agent_id: str
+    lidar_pose: dict[str, list[float]] = field(default_factory=dict)
+    hit_actor: dict[str, np.ndarray] = field(default_factory=dict)
+    intensity_u8: dict[str, np.ndarray] = field(default_factory=dict)
+    n_points: dict[str, int] = field(default_factory=dict)
+    markers: dict[str, dict[int, dict[int, tuple[float, float]]]] = field(default_factory=dict)
+
+
+@dataclass
+class ScenarioTruth:
+    scenario_dir: UPath
+    scenario: str
+    keys: list[str]
+    fixed_delta_seconds: float
+    pillars_m: np.ndarray  #: pillar centres, CARLA world [P,3]; sizes PILLAR_DIMS_M, yaw 0
+    agents: dict[str, AgentTruth]
+
+
+@dataclass(frozen=True)
+class _Actor:
+    actor_id: int
+    lane_m: float  #: lateral offset (to the right of the road centre line)
+    start_m: float  #: arc length at t = 0
+    speed_mps: float
+    extent_m: tuple[float, float, float]
+    center_m: tuple[float, float, float]
+    intensity: int
+
+
+@dataclass(frozen=True)
+class _Road:
+    """A constant-curvature road in the CARLA world: centre line position and yaw by arc length."""
+
+    origin_m: np.ndarray
+    yaw0_deg: float
+    curvature: float  #: 1/m (positive: turning clockwise seen from above, i.e. to the right)
+
+    def at(self, s_m: float, lane_m: float) -> tuple[np.ndarray, float]:
+        yaw = np.radians(self.yaw0_deg) + self.curvature * s_m
+        y0 = np.radians(self.yaw0_deg)
+        k = self.curvature
+        x = self.origin_m[0] + (np.sin(yaw) - np.sin(y0)) / k
+        y = self.origin_m[1] - (np.cos(yaw) - np.cos(y0)) / k
+        right = np.array([-np.sin(yaw), np.cos(yaw)])
+        xy = np.array([x, y]) + lane_m * right
+        return np.array([xy[0], xy[1], 0.0]), float(np.degrees(yaw))
+
+
+def _actor_pose(road: _Road, actor: _Actor, t_s: float, wobble: bool) -> np.ndarray:
+    """[x, y, z, roll, yaw, pitch] of an actor's origin (on the ground) at time t_s."""
+    xyz, yaw = road.at(actor.start_m + actor.speed_mps * t_s, actor.lane_m)
+    roll = 0.3 * np.sin(1.3 * t_s + actor.actor_id) if wobble else 0.0
+    pitch = 0.4 * np.sin(0.9 * t_s + 0.5 * actor.actor_id) if wobble else 0.0
+    return np.array([xyz[0], xyz[1], 0.03, roll, yaw, pitch])
+
+
+def _box(T_world_actor: np.ndarray, actor: _Actor, category: str) -> Box:
+    center = T_world_actor[:3, :3] @ np.array(actor.center_m) + T_world_actor[:3, 3]
+    return Box(center, np.zeros(3), T_world_actor[:3, :3], 2 * np.array(actor.extent_m), category,
+               str(actor.actor_id), actor.intensity)  # fmt: skip
+
+
+def _lidar_rays(columns: int) -> np.ndarray:
+    """Unit directions of a CARLA lidar revolution in its (left-handed) frame [64*columns, 3]."""
+    elevation = np.radians(np.linspace(UPPER_FOV_DEG, LOWER_FOV_DEG, LIDAR_CHANNELS))
+    azimuth = np.radians(np.arange(columns) * 360.0 / columns)
+    el, az = np.meshgrid(elevation, azimuth, indexing="ij")
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
+
+
+def _png(camera_index: int, pixels: list[tuple[float, float]]) -> bytes:
+    """An 800x600 RGB image: a gradient per camera, with a red 3x3 marker on each pixel in ``pixels``."""
+    rows = np.linspace(40, 200, HEIGHT, dtype=np.float32)[:, None]
+    cols = np.linspace(0, 60, WIDTH, dtype=np.float32)[None, :]
+    image = np.empty((HEIGHT, WIDTH, 3), dtype=np.uint8)
+    image[..., 0] = 0
+    image[..., 1] = (rows * 0.5 + cols).astype(np.uint8)
+    image[..., 2] = (rows + 30 * camera_index).clip(0, 255).astype(np.uint8)
+    for u, v in pixels:
+        c, r = int(np.floor(u)), int(np.floor(v))
+        image[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] = MARKER_RGB
+    out = io.BytesIO()
+    PIL.Image.fromarray(image).save(out, format="PNG", compress_level=1)
+    return out.getvalue()
+
+
+def _yaml(data: dict) -> bytes:
+    return yaml.dump(data, Dumper=getattr(yaml, "CSafeDumper", yaml.SafeDumper), default_flow_style=None).encode()
+
+
+def _floats(values) -> list[float]:
+    return [float(v) for v in np.ravel(values)]
+
+
+def _scenario_name(rng: np.random.Generator) -> str:
+    day, hour, minute, second = rng.integers(1, 29), rng.integers(0, 24), rng.integers(0, 60), rng.integers(0, 60)
+    return f"2021_08_{day:02d}_{hour:02d}_{minute:02d}_{second:02d}"
+
+
+def _protocol(config: SynthConfig, cav_spawns: list[list[float]], rsu_spawns: list[list[float]]) -> dict:
+    lidar = {"channels": LIDAR_CHANNELS, "range": LIDAR_RANGE_M, "points_per_second": 1300000,
+             "rotation_frequency": 20, "upper_fov": UPPER_FOV_DEG, "lower_fov": LOWER_FOV_DEG,
+             "noise_stddev": 0.0, "dropoff_general_rate": 0.0}  # fmt: skip
+    sensing = {"perception": {"camera_num": 4, "lidar": lidar}, "localization": {"gnss": {"noise_alt_stddev": 0.005}}}
+    protocol = {
+        "world": {"client_port": 2000, "fixed_delta_seconds": config.fixed_delta_seconds, "seed": config.seed,
+                  "sync_mode": True, "weather": {"sun_altitude_angle": 15, "cloudiness": 0, "fog_density": 0}},
+        "vehicle_base": {"sensing": sensing},
+        "scenario": {"single_cav_list": [{"spawn_position": s, "sensing": sensing} for s in cav_spawns]},
+    }  # fmt: skip
+    if rsu_spawns:
+        protocol["scenario"]["rsu_list"] = [{"spawn_position": s, "sensing": sensing} for s in rsu_spawns]
+    return protocol
+
+
+def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0) -> ScenarioTruth:
+    """Write one scenario into ``split_dir``; return its truth."""
+    rng = np.random.default_rng([config.seed, scenario_seed])
+    road = _Road(np.array([rng.uniform(-300, 300), rng.uniform(-400, 400)]), float(rng.uniform(-180, 180)),
+                 float(rng.choice([-1, 1]) * rng.uniform(1 / 600, 1 / 300)))  # fmt: skip
+    ids = rng.choice(np.arange(100, 9999), size=config.cavs + 12, replace=False).tolist()
+    lincoln = (src.CAV_BOX_EXTENT_M, src.CAV_BOX_CENTER_M)
+    cavs = [_Actor(ids[i], 1.75 * (i % 2), -8.0 + 14.0 * i, 8.0, *lincoln, int(rng.integers(60, 250)))
+            for i in range(config.cavs)]  # fmt: skip
+    others = []
+    for j in range(config.cavs, config.cavs + 12):
+        moving = j % 3 != 0
+        extent = (float(rng.uniform(2.0, 2.6)), float(rng.uniform(0.9, 1.1)), float(rng.uniform(0.7, 0.9)))
+        lane = float(rng.choice([-1.75, 0.0, 1.75])) if moving else float(rng.choice([-5.0, 6.5]))
+        others.append(_Actor(ids[j], lane, float(rng.uniform(-60, 80)), float(rng.uniform(4, 12)) if moving else 0.0,
+                             extent, (0.0, 0.0, extent[2]), int(rng.integers(20, 250))))  # fmt: skip
+    pillars, buildings = [], []
+    for s in np.arange(-40.0, 80.0, 9.0):
+        for side in (-1, 1):
+            xyz, yaw = road.at(float(s) + rng.uniform(-2, 2), side * 8.5)
+            pillars.append(xyz + np.array([0, 0, PILLAR_DIMS_M[2] / 2]))
+            xyz_b, yaw_b = road.at(float(s), side * 18.0)
+            buildings.append(Box(xyz_b + np.array([0, 0, 6.0]), np.zeros(3), carla_rotation(np.array([0, yaw_b, 0])),
+                                 np.array([9.0, 5.0, 12.0]), "BUILDING", "", int(rng.integers(10, 40))))  # fmt: skip
+    pillar_boxes = [Box(p, np.zeros(3), np.eye(3), np.array(PILLAR_DIMS_M), "PILLAR", "", 230) for p in pillars]
+    rsu_positions = [road.at(25.0 + 30.0 * k, -11.0)[0] for k in range(config.n_infrastructure)]
+
+    scenario = _scenario_name(rng)
+    scenario_dir = split_dir / scenario
+    keys = [f"{config.first_key + config.key_step * i:06d}" for i in range(config.frames)]
+    agent_ids = [str(c.actor_id) for c in cavs] + [str(-(k + 1)) for k in range(config.n_infrastructure)]
+    truth = ScenarioTruth(scenario_dir, scenario, keys, config.fixed_delta_seconds, np.array(pillars),
+                          {a: AgentTruth(a) for a in agent_ids})  # fmt: skip
+    for a in agent_ids:
+        (scenario_dir / a).mkdir(parents=True, exist_ok=True)
+    rays_lidar = _lidar_rays(config.lidar_columns)
+    K = [[FOCAL_PX, 0.0, WIDTH / 2], [0.0, FOCAL_PX, HEIGHT / 2], [0.0, 0.0, 1.0]]
+    tick0 = config.first_key * config.fixed_delta_seconds
+    cav_spawns = [_floats(_actor_pose(road, c, 0.0, False)) for c in cavs]
+    rsu_spawns = [_floats([*p[:2], RSU_LIDAR_HEIGHT_M, 0, 0, 0]) for p in rsu_positions]
+    (scenario_dir / "data_protocol.yaml").write_bytes(_yaml(_protocol(config, cav_spawns, rsu_spawns)))
+
+    for key in keys:
+        t_s = int(key) * config.fixed_delta_seconds - tick0
+        vehicle_pose = {c.actor_id: _actor_pose(road, c, t_s, True) for c in cavs + others}
+        T_vehicle = {a: carla_pose_matrix(p) for a, p in vehicle_pose.items()}
+        actor_boxes = [_box(T_vehicle[c.actor_id], c, "VEHICLE") for c in cavs + others]
+        actors = cavs + others
+        for agent_id in agent_ids:
+            infra = int(agent_id) < 0
+            if infra:
+                position = rsu_positions[-int(agent_id) - 1]
+                T_world_lidar = np.eye(4)
+                T_world_lidar[:3, 3] = [position[0], position[1], RSU_LIDAR_HEIGHT_M]
+                T_world_base = T_world_lidar  # camera offsets are added to the RSU (lidar) position
+                pitch, own = RSU_CAMERA_PITCH_DEG, None
+                true_ego = _floats([*position[:2], RSU_LIDAR_HEIGHT_M, 0, 0, 0])
+            else:
+                own = int(agent_id)
+                T_world_base = T_vehicle[own]
+                T_world_lidar = T_world_base @ carla_pose_matrix(np.array([*CAV_LIDAR_M, 0, 0, 0]))
+                pitch = 0.0
+                true_ego = _floats(vehicle_pose[own])
+            boxes = [b for b, act in zip(actor_boxes, actors, strict=True) if act.actor_id != own]
+            box_actor = [act.actor_id for act in actors if act.actor_id != own]
+            scene = Scene(None, boxes + pillar_boxes + buildings)
+            origins = np.broadcast_to(T_world_lidar[:3, 3], rays_lidar.shape)
+            directions = rays_lidar @ T_world_lidar[:3, :3].T
+            no_time = np.zeros(len(rays_lidar))
+            rng_m, intensity, index = cast_rays(origins, directions, no_time, scene, LIDAR_RANGE_M, ground_z_m=0.0)
+            hit = np.isfinite(rng_m)
+            xyz = (rays_lidar[hit] * rng_m[hit, None]).astype(np.float32)
+            intensity = intensity[hit]
+            lookup = np.array(box_actor + [-2] * len(pillar_boxes) + [-3] * len(buildings) + [-1], dtype=np.int64)
+            hit_actor = lookup[index[hit]]  # index -1 (ground) takes the last entry
+            write_pcd_ascii(scenario_dir / agent_id / f"{key}.pcd", xyz, intensity)
+            # labels: vehicles hit by >= 1 ray within range, except the agent itself (OpenCDA)
+            seen = set(hit_actor[hit_actor >= 0].tolist())
+            vehicles = {}
+            for act in actors:
+                if act.actor_id in seen:
+                    p = vehicle_pose[act.actor_id]
+                    vehicles[act.actor_id] = {"location": _floats(p[:3]), "angle": _floats(p[3:]),
+                                              "center": list(act.center_m), "extent": list(act.extent_m),
+                                              "speed": float(act.speed_mps * 3.6)}  # fmt: skip
+            frame = {"lidar_pose": carla_pose_list(T_world_lidar), "true_ego_pos": true_ego,
+                     "predicted_ego_pos": _floats(np.array(true_ego) + rng.normal(0, 0.05, 6) * [1, 1, 0, 0, 1, 0]),
+                     "ego_speed": 0.0 if infra else 8.0 * 3.6, "vehicles": vehicles}  # fmt: skip
+            if config.dataset == "v2xset":
+                frame["RSU"] = infra
+            if not infra:
+                frame["plan_trajectory"] = [[*_floats(road.at(s, 0.0)[0][:2]), 28.8] for s in (10.0, 20.0)]
+            markers: dict[int, dict[int, tuple[float, float]]] = {}
+            for index_cam, (mx, my, mz, yaw) in enumerate(CAMERA_MOUNTS):
+                T_world_cam = T_world_base @ carla_pose_matrix(np.array([mx, my, mz, 0.0, yaw, pitch]))
+                uv, front = project_ue4(T_world_cam, truth.pillars_m)
+                inside = front & (uv[:, 0] >= 1) & (uv[:, 0] < WIDTH - 1) & (uv[:, 1] >= 1) & (uv[:, 1] < HEIGHT - 1)
+                markers[index_cam] = {int(p): (float(uv[p, 0]), float(uv[p, 1])) for p in np.flatnonzero(inside)}
+                (scenario_dir / agent_id / f"{key}_camera{index_cam}.png").write_bytes(
+                    _png(index_cam, list(markers[index_cam].values()))
+                )
+                extrinsic = np.linalg.inv(T_world_cam) @ T_world_lidar
+                frame[f"camera{index_cam}"] = {"cords": carla_pose_list(T_world_cam), "intrinsic": [list(r) for r in K],
+                                               "extrinsic": [_floats(row) for row in extrinsic]}  # fmt: skip
+            (scenario_dir / agent_id / f"{key}.yaml").write_bytes(_yaml(frame))
+            agent_truth = truth.agents[agent_id]
+            agent_truth.lidar_pose[key] = frame["lidar_pose"]
+            agent_truth.n_points[key] = len(xyz)
+            agent_truth.markers[key] = markers
+            if config.keep_truth:
+                agent_truth.hit_actor[key] = hit_actor
+                agent_truth.intensity_u8[key] = intensity
+    return truth
+
+
+def write_dataset(root: UPath, config: SynthConfig, scenarios: int = 1) -> list[ScenarioTruth]:
+    """``scenarios`` scenarios under ``<root>/<split>/``."""
+    return [write_scenario(UPath(root) / config.split, config, k) for k in range(scenarios)]
