@@ -412,6 +412,7 @@ def _write_sensors(
                 "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
                 "mounting": agent.mounts[src.LIDAR]}  # fmt: skip
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
+        not_stored = 0
         for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
             try:
                 xyz_carla, intensity_u8 = src.read_points(agent.agent_dir, key)
@@ -426,8 +427,14 @@ def _write_sensors(
             )
             counts.frames += 1
             counts.points += len(rays)
-            counts.points_not_stored += rays.n_zero_range + rays.n_non_finite
+            not_stored += rays.n_zero_range + rays.n_non_finite
             progress(1)
+        counts.points_not_stored += not_stored
+        if not_stored:
+            counts.warnings.append(
+                f"{agent.agent_dir}: {not_stored} lidar points at zero range or with non-finite"
+                " coordinates not stored"
+            )
     for cam in agent.camera_ids:
         index = agent.camera_index[cam]
         stream = writer.add_camera(names.sensor(cam), {"agent_id": agent.agent_id, "opencood_camera": f"camera{index}",

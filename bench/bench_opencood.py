@@ -1,0 +1,105 @@
+"""Benchmark OPV2V conversion and PCD parsing. Not a test.
+
+1. Conversion of a synthetic 150-frame OPV2V scenario with 4 CAVs (64 x 1024 lidar rays per frame,
+   4 PNG cameras per agent), in a fresh ``ncore-convert opv2v-v4`` process with --workers 1 and 2
+   (the agents' sequences are the jobs). Prints wall time, agent-frames/s and lidar points/s.
+2. PCD parse rate, in points per second, of ``ncore_convert.sources.pcd.read_pcd`` against
+   ``numpy.loadtxt`` on the same ASCII files, interleaved in the same run.
+
+Figures are medians over --repeat runs.
+
+    python bench/bench_opencood.py [--work /tmp/ncore-bench] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from upath import UPath
+
+FRAMES, CAVS, COLUMNS = 150, 4, 1024
+
+
+def synth(work: Path) -> Path:
+    """(Once, cached) the 150-frame, 4-CAV scenario; returns the dataset root."""
+    from ncore_convert.synth.opencood import SynthConfig, write_dataset
+
+    root = work / "opencood-150"
+    if not (root / "DONE").exists():
+        shutil.rmtree(root, ignore_errors=True)
+        started = time.perf_counter()
+        write_dataset(UPath(root), SynthConfig(dataset="opv2v", frames=FRAMES, cavs=CAVS, lidar_columns=COLUMNS))
+        print(f"  synthesised the scenario in {time.perf_counter() - started:.0f} s", flush=True)
+        (root / "DONE").write_text("")
+    return root
+
+
+def convert(root: Path, out: Path, workers: int) -> dict:
+    shutil.rmtree(out, ignore_errors=True)
+    cli = Path(sys.executable).parent / "ncore-convert"
+    started = time.perf_counter()
+    run = subprocess.run([str(cli), "--no-progress", "--workers", str(workers), "--root-dir", str(root),
+                          "--output-dir", str(out), "opv2v-v4", "--split", "test"],
+                         check=True, capture_output=True, text=True)  # fmt: skip
+    seconds = time.perf_counter() - started
+    points = int(re.search(r"lidar frames, (\d+) points", run.stdout).group(1))
+    scenario = next(p for p in out.iterdir() if p.is_dir())
+    manifest = json.loads((scenario / "scenario.json").read_text())
+    frames = sum(a["frames"] for a in manifest["agents"])
+    return {"s": seconds, "frames": frames, "points": points}
+
+
+def pcd_rates(root: Path, repeat: int) -> dict:
+    from ncore_convert.sources.pcd import read_pcd
+
+    files = sorted(root.glob("test/*/*/*.pcd"))[:: max(1, FRAMES // 5)][:8]
+    rates: dict[str, list[float]] = {"read_pcd": [], "numpy.loadtxt": []}
+    points = 0
+    for _ in range(repeat):
+        for path in files:
+            started = time.perf_counter()
+            columns = read_pcd(UPath(path))
+            rates["read_pcd"].append(len(columns["x"]) / (time.perf_counter() - started))
+            started = time.perf_counter()
+            table = np.loadtxt(path, skiprows=11, dtype=np.float32)
+            rates["numpy.loadtxt"].append(len(table) / (time.perf_counter() - started))
+            assert np.array_equal(table[:, 0], columns["x"])  # the same points
+            points = len(table)
+    return {name: statistics.median(r) for name, r in rates.items()} | {"files": len(files), "points": points}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--work", default="/tmp/ncore-bench")
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    root = synth(work)
+    size_mb = sum(p.stat().st_size for p in root.rglob("*") if p.is_file()) / 1e6
+    print(f"OPV2V scenario: {FRAMES} frames x {CAVS} CAVs, {size_mb:.0f} MB; medians of {args.repeat}", flush=True)
+    rates = pcd_rates(root, args.repeat)
+    ratio = rates["read_pcd"] / rates["numpy.loadtxt"]
+    print(f"  PCD parse ({rates['files']} files of ~{rates['points']} points): read_pcd"
+          f" {rates['read_pcd'] / 1e6:.2f} M points/s, numpy.loadtxt {rates['numpy.loadtxt'] / 1e6:.2f} M points/s,"
+          f" ratio {ratio:.1f}x", flush=True)  # fmt: skip
+    for workers in (1, 2):
+        runs = [convert(root, work / "opencood-out", workers) for _ in range(args.repeat)]
+        seconds = statistics.median(r["s"] for r in runs)
+        frames, points = runs[0]["frames"], runs[0]["points"]
+        print(f"  conversion, {workers} worker(s): {seconds:.1f} s, {frames / seconds:.1f} agent-frames/s,"
+              f" {points / seconds / 1e6:.2f} M points/s ({frames} lidar frames, {points} points,"
+              f" {4 * frames} images)", flush=True)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
