@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_argoverse2.py
 	$(PY) bench/bench_runner.py
 	$(PY) bench/bench_tbv.py
+	$(PY) bench/bench_opencood.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info
