@@ -49,7 +49,10 @@ def test_points_and_intensity_read_back_exactly(tmp_path, write):
 @pytest.mark.parametrize(
     "text, cause",
     [
-        (HEADER.format(n=3, data="ascii") + "1 2 3 0\n", "holds 4 values, expected 3 x 4"),
+        (HEADER.format(n=3, data="ascii") + "1 2 3 0\n", "holds 1 points, the header says 3"),
+        (HEADER.format(n=2, data="ascii") + "1 2 3 0\n1 2 3\n", "not 4 numbers per line"),
+        (HEADER.format(n=1, data="ascii") + "1 2 x 0\n", "not 4 numbers per line"),
+        (HEADER.format(n=2, data="ascii"), "body is empty, the header says 2 points"),
         (HEADER.format(n=1, data="binary_compressed"), "DATA binary_compressed is not supported"),
         (HEADER.format(n=1, data="ascii").replace("TYPE F F F F", "TYPE F F F Q"), "unsupported PCD field types"),
         ("VERSION 0.7\nFIELDS x\n", "no DATA line"),

@@ -432,8 +432,7 @@ def _write_sensors(
         counts.points_not_stored += not_stored
         if not_stored:
             counts.warnings.append(
-                f"{agent.agent_dir}: {not_stored} lidar points at zero range or with non-finite"
-                " coordinates not stored"
+                f"{agent.agent_dir}: {not_stored} lidar points at zero range or with non-finite coordinates not stored"
             )
     for cam in agent.camera_ids:
         index = agent.camera_index[cam]

@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pa_csv
 from upath import UPath
 
 from ncore_convert.sources.argoverse2 import SourceError
@@ -81,13 +83,36 @@ def read_pcd(path: UPath) -> dict[str, np.ndarray]:
             raise SourceError(path, f"PCD body holds {len(body) // record.itemsize} of {header.points} points")
         table = np.frombuffer(body, dtype=record, count=header.points)
         return {name: table[f"f{i}"].copy() for i, name in enumerate(header.fields)}
-    # ascii: floats parse exactly through float64 (Open3D writes enough digits for float32 bit patterns)
-    values = np.fromstring(body.decode("ascii", errors="replace"), dtype=np.float64, sep=" ")
-    n_fields = len(header.fields)
-    if values.size != header.points * n_fields:
-        raise SourceError(path, f"PCD body holds {values.size} values, expected {header.points} x {n_fields}")
-    table = values.reshape(header.points, n_fields)
-    return {name: table[:, i].astype(dt) for i, (name, dt) in enumerate(zip(header.fields, header.dtypes, strict=True))}
+    return _parse_ascii(path, header, body)
+
+
+def _parse_ascii(path: UPath, header: PcdHeader, body: bytes) -> dict[str, np.ndarray]:
+    """The ASCII body with Arrow's multi-threaded CSV reader, each field parsed straight into its
+    type (correctly rounded, so the %.10g text Open3D writes gives back the exact float32)."""
+    if not body.strip():
+        if header.points:
+            raise SourceError(path, f"PCD body is empty, the header says {header.points} points")
+        return {name: np.zeros(0, dtype=dt) for name, dt in zip(header.fields, header.dtypes, strict=True)}
+    first = body[: body.find(b"\n")].rstrip(b"\r")
+    extra = max(0, len(first.split(b" ")) - len(header.fields))  # trailing separators give empty columns
+    names = list(header.fields) + [f"_pad{i}" for i in range(extra)]
+    try:
+        table = pa_csv.read_csv(
+            pa.py_buffer(body),
+            read_options=pa_csv.ReadOptions(column_names=names, block_size=1 << 22),
+            parse_options=pa_csv.ParseOptions(delimiter=" ", ignore_empty_lines=True),
+            convert_options=pa_csv.ConvertOptions(
+                column_types={n: pa.from_numpy_dtype(dt) for n, dt in zip(header.fields, header.dtypes, strict=True)},
+                include_columns=list(header.fields),
+            ),
+        )
+    except (pa.ArrowInvalid, pa.ArrowTypeError) as err:
+        raise SourceError(
+            path, f"PCD body is not {len(header.fields)} numbers per line ({str(err).splitlines()[0]})"
+        ) from None
+    if table.num_rows != header.points:
+        raise SourceError(path, f"PCD body holds {table.num_rows} points, the header says {header.points}")
+    return {name: table.column(name).to_numpy() for name in header.fields}
 
 
 def red_from_rgb(rgb: np.ndarray) -> np.ndarray:
