@@ -292,3 +292,14 @@ def test_damaged_frames_are_skipped_and_reported_by_the_cli(tmp_path):
     bad = subprocess.run([*convert, "--split", "test", "--scenario", "nope"], capture_output=True, text=True)
     assert bad.returncode == 2 and "scenario(s) not found" in bad.stderr
     shutil.rmtree(out)
+
+
+def test_sensor_selection(agents, tmp_path):
+    root = agents.truth.scenario_dir.parent.parent
+    options = OpenCoodOptions(dataset="v2xset", split=CONFIG.split, camera_ids=("camera_back",), lidar_ids=())
+    summary = convert_scenario(UPath(root), UPath(tmp_path / "sel"), agents.truth.scenario, options)
+    assert summary.frames == 0 and summary.images == len(agents.truth.keys) * len(agents.truth.agents)
+    for agent_id in agents.truth.agents:
+        sequence = tmp_path / "sel" / agent_id / f"{agents.truth.scenario}_agent{agent_id}.json"
+        loader = SequenceLoaderV4(SequenceComponentGroupsReader([UPath(sequence)]))
+        assert loader.lidar_ids == [] and loader.camera_ids == ["camera_back"]

@@ -211,9 +211,8 @@ def plan_agent(
     lidar_ids = select_sensors(options.lidar_ids, (src.LIDAR,), "lidar")
     T_sensor_rig = {src.LIDAR: T_lidar_rig}
     intrinsics, camera_index = {}, {}
-    for index, cam in enumerate(src.CAMERAS):
-        if cam not in select_sensors(options.camera_ids, src.CAMERAS, "camera"):
-            continue
+    for cam in select_sensors(options.camera_ids, src.CAMERAS, "camera"):
+        index = src.CAMERAS.index(cam)
         with_cam = [i for i, f in enumerate(frames) if index in f.camera_cords]
         size = next((s for i in with_cam if (s := _image_size(src.camera_path(agent_dir, keys[i], index)))), None)
         if not with_cam or size is None:
