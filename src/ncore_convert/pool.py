@@ -17,6 +17,7 @@ import multiprocessing as mp
 import multiprocessing.forkserver
 import os
 import threading
+from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -66,9 +67,10 @@ def _init_worker(queue) -> None:
     _progress_queue = queue
 
 
-def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> tuple[Any, int]:
-    """Run a job; return its result and the frames it reported (the parent tops its bar up to that)."""
-    sent = 0
+def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> tuple[Any, int, list[int]]:
+    """Run a job; return its result, the frames and the totals it reported (the parent delivers
+    what is still in the pipe when the run ends)."""
+    sent, totals = 0, []
 
     def frames(n: int) -> None:
         nonlocal sent
@@ -76,9 +78,10 @@ def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> tuple[Any, int]:
         _progress_queue.put((run_id, False, n))
 
     def total(n: int) -> None:
+        totals.append(n)
         _progress_queue.put((run_id, True, n))
 
-    return fn(*args, progress=Progress(frames, total)), sent
+    return fn(*args, progress=Progress(frames, total)), sent, totals
 
 
 def _warm_up() -> int:
@@ -126,6 +129,7 @@ class JobPool:
         self._ctx = ctx
         self._progress: dict[int, Progress] = {}
         self._delivered: dict[int, int] = {}
+        self._delivered_totals: dict[int, list[int]] = {}
         self._lock = threading.Lock()
         self._next_run = itertools.count()
         self._start_executor()
@@ -153,6 +157,8 @@ class JobPool:
                 progress = self._progress.get(run_id)
                 if progress and not is_total:
                     self._delivered[run_id] += n
+                elif progress:
+                    self._delivered_totals[run_id].append(n)
             if progress:
                 (progress.total if is_total else progress.frames)(n)
 
@@ -181,7 +187,7 @@ class JobPool:
         progress = progress or Progress()
         with self._lock:
             run_id, executor = next(self._next_run), self._executor
-            self._progress[run_id], self._delivered[run_id] = progress, 0
+            self._progress[run_id], self._delivered[run_id], self._delivered_totals[run_id] = progress, 0, []
         try:
             done = self._run(executor, jobs, run_id)
         except BrokenProcessPool as err:
@@ -194,18 +200,22 @@ class JobPool:
         except BaseException:
             self._forget(run_id)
             raise
-        missing = sum(sent for _, sent in done) - self._forget(run_id)
-        if missing > 0:  # messages still in the pipe: deliver their total now, they are dropped later
+        delivered, delivered_totals = self._forget(run_id)
+        missing = sum(sent for _, sent, _ in done) - delivered
+        if missing > 0:  # messages still in the pipe: deliver them now, they are dropped later
             progress(missing)
-        return [result for result, _ in done]
+        for n, count in (Counter(n for _, _, totals in done for n in totals) - Counter(delivered_totals)).items():
+            for _ in range(count):
+                progress.total(n)
+        return [result for result, _, _ in done]
 
-    def _forget(self, run_id: int) -> int:
-        """Stop forwarding a run's progress; returns the frames delivered so far."""
+    def _forget(self, run_id: int) -> tuple[int, list[int]]:
+        """Stop forwarding a run's progress; returns the frames and the totals delivered so far."""
         with self._lock:
             self._progress.pop(run_id, None)
-            return self._delivered.pop(run_id, 0)
+            return self._delivered.pop(run_id, 0), self._delivered_totals.pop(run_id, [])
 
-    def _run(self, executor: ProcessPoolExecutor, jobs: Sequence[Job], run_id: int) -> list[tuple[Any, int]]:
+    def _run(self, executor: ProcessPoolExecutor, jobs: Sequence[Job], run_id: int) -> list[tuple[Any, int, list[int]]]:
         futures: list[Future] = [executor.submit(_call, fn, args, run_id) for fn, args in jobs]
         pending = set(futures)
         while pending:
