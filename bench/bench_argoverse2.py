@@ -28,9 +28,37 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from upath import UPath
+
+
+def bench_parser(doc: str, repeat: int) -> argparse.ArgumentParser:
+    """The options every benchmark has: --work (where synthetic inputs are cached) and --repeat."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--work", default="/tmp/ncore-bench")
+    parser.add_argument("--repeat", type=int, default=repeat)
+    return parser
+
+
+def work_dir(args: argparse.Namespace) -> Path:
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    return work
+
+
+def cached(root: Path, label: str, write: Callable[[Path], str | None]) -> str:
+    """Synthesise into ``root`` once: ``root/DONE`` marks a finished synthesis and holds what
+    ``write(root)`` returned (e.g. a log id); a partial one is redone."""
+    done = root / "DONE"
+    if not done.exists():
+        shutil.rmtree(root, ignore_errors=True)
+        started = time.perf_counter()
+        text = write(root)
+        print(f"  synthesised {label} in {time.perf_counter() - started:.0f} s", flush=True)
+        done.write_text(text or "")
+    return done.read_text()
 
 
 def synth(work: Path, seconds: float) -> Path:
@@ -38,14 +66,10 @@ def synth(work: Path, seconds: float) -> Path:
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     root = work / f"src-{seconds:g}s"
-    done = root / "DONE"
-    if not done.exists():
-        shutil.rmtree(root, ignore_errors=True)
-        t = time.perf_counter()
-        truth = write_log(UPath(root / "val"), SynthConfig(seconds=seconds, seed=7))
-        print(f"  synthesised {seconds:g} s log in {time.perf_counter() - t:.0f} s", flush=True)
-        done.write_text(truth.log_id)
-    return root / "val" / done.read_text()
+    log_id = cached(
+        root, f"{seconds:g} s log", lambda r: write_log(UPath(r / "val"), SynthConfig(seconds=seconds, seed=7)).log_id
+    )
+    return root / "val" / log_id
 
 
 def process_tree(root_pid: int) -> dict[int, tuple[int, float]]:
@@ -159,9 +183,7 @@ def measure(log_dir: Path, work: Path, repeat: int, workers: int, model_source: 
 def main() -> None:
     from ncore_convert.pool import default_workers
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--work", default="/tmp/ncore-bench")
-    parser.add_argument("--repeat", type=int, default=5)
+    parser = bench_parser(__doc__, repeat=5)
     parser.add_argument("--workers", type=int, default=default_workers())
     parser.add_argument("--lidar-model-source", choices=["empirical", "none"], default="empirical")
     parser.add_argument("--child", nargs=4, metavar=("ROOT", "OUT", "LOG_ID", "WORKERS"), help=argparse.SUPPRESS)
@@ -171,8 +193,7 @@ def main() -> None:
         root, out, log_id, workers = args.child
         child_convert(root, out, log_id, int(workers), not args.no_cameras, args.lidar_model_source)
         return
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
+    work = work_dir(args)
     print(
         f"{args.workers} worker process(es), lidar model {args.lidar_model_source},"
         f" medians of {args.repeat} interleaved runs",

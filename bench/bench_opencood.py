@@ -13,7 +13,6 @@ Figures are medians over --repeat runs.
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import shutil
@@ -24,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_argoverse2 import bench_parser, cached, work_dir
 from upath import UPath
 
 FRAMES, CAVS, COLUMNS = 150, 4, 1024
@@ -33,13 +33,9 @@ def synth(work: Path) -> Path:
     """(Once, cached) the 150-frame, 4-CAV scenario; returns the dataset root."""
     from ncore_convert.synth.opencood import SynthConfig, write_dataset
 
+    config = SynthConfig(dataset="opv2v", frames=FRAMES, cavs=CAVS, lidar_columns=COLUMNS)
     root = work / "opencood-150"
-    if not (root / "DONE").exists():
-        shutil.rmtree(root, ignore_errors=True)
-        started = time.perf_counter()
-        write_dataset(UPath(root), SynthConfig(dataset="opv2v", frames=FRAMES, cavs=CAVS, lidar_columns=COLUMNS))
-        print(f"  synthesised the scenario in {time.perf_counter() - started:.0f} s", flush=True)
-        (root / "DONE").write_text("")
+    cached(root, "the scenario", lambda r: write_dataset(UPath(r), config)[0].scenario)
     return root
 
 
@@ -78,12 +74,8 @@ def pcd_rates(root: Path, repeat: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--work", default="/tmp/ncore-bench")
-    parser.add_argument("--repeat", type=int, default=3)
-    args = parser.parse_args()
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
+    args = bench_parser(__doc__, repeat=3).parse_args()
+    work = work_dir(args)
     root = synth(work)
     size_mb = sum(p.stat().st_size for p in root.rglob("*") if p.is_file()) / 1e6
     print(f"OPV2V scenario: {FRAMES} frames x {CAVS} CAVs, {size_mb:.0f} MB; medians of {args.repeat}", flush=True)

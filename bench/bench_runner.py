@@ -29,7 +29,7 @@ import time
 from functools import partial
 from pathlib import Path
 
-from bench_argoverse2 import process_tree
+from bench_argoverse2 import bench_parser, cached, process_tree, work_dir
 from upath import UPath
 
 
@@ -37,12 +37,13 @@ def synth_logs(work: Path, count: int, seconds: float) -> Path:
     """(Once, cached) ``count`` synthetic logs of ``seconds`` each under ``<root>/val``; returns root."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    root = work / f"runner-{count}x{seconds:g}s"
-    if not (root / "DONE").exists():
-        shutil.rmtree(root, ignore_errors=True)
+    def write(root: Path) -> str:
         for seed in range(count):
             write_log(UPath(root / "val"), SynthConfig(seconds=seconds, seed=100 + seed))
-        (root / "DONE").write_text("")
+        return ""
+
+    root = work / f"runner-{count}x{seconds:g}s"
+    cached(root, f"{count} logs of {seconds:g} s", write)
     return root
 
 
@@ -170,11 +171,9 @@ def throughput(work: Path, logs: int, seconds: float, repeat: int) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--work", default="/tmp/ncore-bench")
+    parser = bench_parser(__doc__, repeat=3)
     parser.add_argument("--logs", type=int, default=6)
     parser.add_argument("--seconds", type=float, default=2.0)
-    parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--skip-throughput", action="store_true")
     parser.add_argument("--tbv", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--child-memory", nargs=3, metavar=("ROOT", "OUT", "WORKERS"), help=argparse.SUPPRESS)
@@ -183,8 +182,7 @@ def main() -> None:
         root, out, workers = args.child_memory
         child_memory(root, out, int(workers), args.tbv)
         return
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
+    work = work_dir(args)
     if not args.skip_throughput:
         throughput(work, args.logs, args.seconds, args.repeat)
     print("memory: peak RSS (VmHWM) per process, one log per run", flush=True)

@@ -11,12 +11,11 @@ write), medians over --repeat runs, and the 120 s / 15 s ratio of the worker pea
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import statistics
-import time
 from pathlib import Path
 
+from bench_argoverse2 import bench_parser, cached, work_dir
 from bench_runner import memory
 from upath import UPath
 
@@ -26,22 +25,17 @@ def synth_tbv(work: Path, seconds: float) -> Path:
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     root = work / f"tbv-{seconds:g}s"
-    if not (root / "DONE").exists():
-        shutil.rmtree(root, ignore_errors=True)
-        started = time.perf_counter()
-        write_log(UPath(root), SynthConfig(seconds=seconds, seed=17, tbv=True))
-        print(f"  synthesised {seconds:g} s TbV log in {time.perf_counter() - started:.0f} s", flush=True)
-        (root / "DONE").write_text("")
+    cached(
+        root,
+        f"{seconds:g} s TbV log",
+        lambda r: write_log(UPath(r), SynthConfig(seconds=seconds, seed=17, tbv=True)).log_id,
+    )
     return root
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--work", default="/tmp/ncore-bench")
-    parser.add_argument("--repeat", type=int, default=3)
-    args = parser.parse_args()
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
+    args = bench_parser(__doc__, repeat=3).parse_args()
+    work = work_dir(args)
     print(f"TbV memory: peak RSS (VmHWM) per process, one log per run, medians of {args.repeat}", flush=True)
     figures = {}
     for seconds in (15.0, 120.0):

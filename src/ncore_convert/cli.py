@@ -230,7 +230,8 @@ def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_
     """Run the Argoverse 2 Sensor (split given) or TbV (split None) conversion of the selected logs."""
 
     def prepare(root: UPath):
-        from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log, select_sensors
+        from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+        from ncore_convert.converters.common import select_sensors
         from ncore_convert.sources import argoverse2 as av2
         from ncore_convert.sources import tbv
 
@@ -251,7 +252,7 @@ def _convert_opencood(obj: GroupOptions, dataset: str, split: str, scenarios: tu
     """Run the OPV2V or V2XSet conversion of the selected scenarios."""
 
     def prepare(root: UPath):
-        from ncore_convert.converters.argoverse2 import select_sensors
+        from ncore_convert.converters.common import select_sensors
         from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
         from ncore_convert.sources import opencood as src
 

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from upath import UPath
 
 from ncore_convert import __version__, lidar_timing, vlp32c
+from ncore_convert.converters.common import Tally, select_sensors
 from ncore_convert.geometry import Trajectory, euler_xyz_from_rotation, invert_se3
 from ncore_convert.lidar import (
     MIN_RANGE_M,
@@ -74,7 +75,7 @@ class Argoverse2Options:
 
 
 @dataclass
-class Counts:
+class Counts(Tally):
     """What a conversion, or one writer part of it, produced. Seconds are per-process path times."""
 
     sweeps: int = 0
@@ -86,10 +87,6 @@ class Counts:
     lidar_seconds: float = 0.0  #: read + decompensate + write of all sweeps
     camera_seconds: float = 0.0  #: read + write of all images
     warnings: list[str] = field(default_factory=list)
-
-    def add(self, other: Counts) -> None:
-        for f in fields(Counts):
-            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
 
 
 @dataclass
@@ -140,16 +137,6 @@ def read_log_inputs(
         image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam) for cam in camera_ids},
         annotations=av2.read_annotations(log_dir),
     )
-
-
-def select_sensors(requested: tuple[str, ...] | None, known: tuple[str, ...], kind: str) -> list[str]:
-    """Resolve a sensor selection (None = all) against the dataset's sensor names."""
-    if requested is None:
-        return list(known)
-    unknown = sorted(set(requested) - set(known))
-    if unknown:
-        raise ValueError(f"unknown {kind} id(s) {unknown}; known: {list(known)}")
-    return [s for s in known if s in requested]
 
 
 def ego_trajectory(inputs: LogInputs, needed_us: tuple[int, int], warnings: list[str]) -> tuple[Trajectory, np.ndarray]:

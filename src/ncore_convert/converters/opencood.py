@@ -15,7 +15,7 @@ from __future__ import annotations
 import io
 import json
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -23,7 +23,7 @@ import PIL.Image
 from upath import UPath
 
 from ncore_convert import __version__, carla
-from ncore_convert.converters.argoverse2 import select_sensors
+from ncore_convert.converters.common import Tally, select_sensors
 from ncore_convert.geometry import euler_xyz_from_rotation, invert_se3, rigid_mean
 from ncore_convert.lidar import ray_bundle
 from ncore_convert.pool import JobPool, Progress, run_inline
@@ -84,7 +84,7 @@ class AgentPlan:
 
     @property
     def kind(self) -> str:
-        return "infrastructure" if src.is_infrastructure(self.agent_id) else "cav"
+        return src.agent_kind(self.agent_id)
 
     @property
     def camera_ids(self) -> list[str]:
@@ -122,17 +122,13 @@ class ScenarioPlan:
 
 
 @dataclass
-class Counts:
+class Counts(Tally):
     frames: int = 0  #: lidar frames
     points: int = 0
     points_not_stored: int = 0
     images: int = 0
     cuboids: int = 0
     warnings: list[str] = field(default_factory=list)
-
-    def add(self, other: Counts) -> None:
-        for f in fields(Counts):
-            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
 
 
 @dataclass
@@ -284,22 +280,13 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
     return out
 
 
-def _lidar_spec(scenario_dir: UPath) -> dict:
-    """The CAV lidar parameters recorded in ``data_protocol.yaml`` (metadata; empty if absent)."""
-    protocol = src.load_yaml(scenario_dir / "data_protocol.yaml")
-    try:
-        cav = protocol["scenario"]["single_cav_list"][0]
-        return dict(cav["sensing"]["perception"]["lidar"])
-    except (KeyError, IndexError, TypeError):
-        return {}
-
-
 def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> ScenarioPlan:
     """Read a scenario's YAMLs once; decide every agent's trajectory, calibration and the labels."""
     scenario_dir = options.scenario_dir(root_dir, scenario)
     if not scenario_dir.is_dir():
         raise SourceError(scenario_dir, "scenario folder not found")
-    dt = src.read_fixed_delta_seconds(scenario_dir)
+    protocol = src.read_protocol(scenario_dir)
+    dt = protocol.fixed_delta_seconds
     folders = src.list_agents(scenario_dir)
     keys = {a: src.list_frame_keys(scenario_dir / a) for a in folders}
     all_keys = sorted(set().union(*keys.values()), key=int)
@@ -333,7 +320,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
         agent_folders=folders,
         agents=agents,
         boxes=merge_boxes(frames, warnings),
-        lidar_spec=_lidar_spec(scenario_dir),
+        lidar_spec=protocol.cav_lidar,
         warnings=warnings,
     )
 
@@ -498,7 +485,7 @@ def manifest(plan: ScenarioPlan) -> dict:
     agents = []
     for agent_id in plan.agent_folders:
         agent = plan.agents.get(agent_id)
-        entry = {"agent_id": int(agent_id), "kind": "infrastructure" if src.is_infrastructure(agent_id) else "cav",
+        entry = {"agent_id": int(agent_id), "kind": src.agent_kind(agent_id),
                  "opencood_ego": agent_id == plan.ego, "written": agent is not None}  # fmt: skip
         if agent is not None:
             entry["frames"] = len(agent.keys)

@@ -67,6 +67,11 @@ def is_infrastructure(agent_id: str) -> bool:
     return int(agent_id) < 0
 
 
+def agent_kind(agent_id: str) -> str:
+    """ "infrastructure" (negative id) or "cav" (connected vehicle, positive id)."""
+    return "infrastructure" if is_infrastructure(agent_id) else "cav"
+
+
 def list_scenarios(root: UPath, split: str) -> list[str]:
     """Sorted scenario folder names of a split (SourceError if the split folder is missing)."""
     split_dir = UPath(root) / split
@@ -106,8 +111,21 @@ def list_frame_keys(agent_dir: UPath) -> list[str]:
     return sorted((p.stem for p in agent_dir.iterdir() if p.suffix == ".yaml" and _KEY.match(p.stem)), key=int)
 
 
-def read_fixed_delta_seconds(scenario_dir: UPath) -> float:
-    """``world.fixed_delta_seconds`` (the CARLA tick) from the scenario's ``data_protocol.yaml``."""
+@dataclass(frozen=True)
+class Protocol:
+    """What the converter uses of a scenario's ``data_protocol.yaml`` (OpenCDA's scenario config).
+
+    Attributes:
+        fixed_delta_seconds: the CARLA tick, ``world.fixed_delta_seconds``, seconds.
+        cav_lidar: the first CAV's ``sensing.perception.lidar`` block (empty if absent).
+    """
+
+    fixed_delta_seconds: float
+    cav_lidar: dict
+
+
+def read_protocol(scenario_dir: UPath) -> Protocol:
+    """Read ``data_protocol.yaml`` (SourceError naming it without a plausible tick)."""
     path = scenario_dir / "data_protocol.yaml"
     protocol = load_yaml(path)
     try:
@@ -116,7 +134,11 @@ def read_fixed_delta_seconds(scenario_dir: UPath) -> float:
         raise SourceError(path, "no numeric world.fixed_delta_seconds") from None
     if not 0.0 < dt <= 1.0:
         raise SourceError(path, f"world.fixed_delta_seconds {dt} is not a plausible CARLA tick")
-    return dt
+    try:
+        lidar = dict(protocol["scenario"]["single_cav_list"][0]["sensing"]["perception"]["lidar"])
+    except (KeyError, IndexError, TypeError, ValueError):
+        lidar = {}
+    return Protocol(dt, lidar)
 
 
 @dataclass(frozen=True)
