@@ -195,11 +195,15 @@ class SequenceWriter:
         profile: Profile = "separate-sensors",
         base: bool = True,
         poses_meta: dict | None = None,
+        extra_pose_instances: dict[str, dict] | None = None,
     ) -> None:
         """
         Args:
             interval_us: inclusive (start, end) of the sequence in microseconds.
             camera_ids, lidar_ids: all sensors of the sequence (they fix the store layout).
+            extra_pose_instances: instance name -> metadata of further ``PosesComponent`` instances
+                next to ``default`` (e.g. a trajectory with simulated GPS error). Each holds the
+                whole pose graph: the static edges are written to every instance.
         """
         self._groups = _component_groups(camera_ids, lidar_ids, profile)
         self._writer = SequenceComponentGroupsWriter(
@@ -214,9 +218,10 @@ class SequenceWriter:
         if base:
             register = self._writer.register_component_writer
             groups = self._groups
-            self._poses = register(
-                PosesComponent.Writer, DEFAULT_INSTANCE, groups.poses_component_group, poses_meta or {}
-            )
+            self._poses = {
+                name: register(PosesComponent.Writer, name, groups.poses_component_group, meta)
+                for name, meta in {DEFAULT_INSTANCE: poses_meta or {}, **(extra_pose_instances or {})}.items()
+            }
             self._intrinsics = register(IntrinsicsComponent.Writer, DEFAULT_INSTANCE, groups.intrinsics_component_group)
             self._masks = register(MasksComponent.Writer, DEFAULT_INSTANCE, groups.masks_component_group)
             self._cuboids = register(
@@ -233,22 +238,31 @@ class SequenceWriter:
         T_rig_world: np.ndarray,
         T_world_world_global: np.ndarray | None,
         rig_frame: str = "rig",
+        instance: str = DEFAULT_INSTANCE,
     ) -> None:
-        """Store ``rig->world`` (dynamic, float32) and ``world->world_global`` (static, float64).
+        """Store ``rig->world`` (dynamic, float32) in one poses instance and ``world->world_global``
+        (static, float64) in every instance.
 
         Args:
             timestamps_us: int [N], strictly increasing, within the sequence interval.
             T_rig_world: [N,4,4], stored as float32.
             T_world_world_global: [4,4], stored as float64; None when another call stores it
-                (several rigs in one sequence).
+                (several rigs in one sequence, or a further poses instance).
             rig_frame: the moving frame's name ("rig", or e.g. "agent1732_rig").
+            instance: the ``PosesComponent`` instance of the dynamic edge.
         """
         self._require_base()
-        self._poses.store_dynamic_pose(
+        self._poses[instance].store_dynamic_pose(
             rig_frame, "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64)
         )
         if T_world_world_global is not None:
-            self._poses.store_static_pose("world", "world_global", T_world_world_global.astype(np.float64))
+            for poses in self._poses.values():
+                poses.store_static_pose("world", "world_global", T_world_world_global.astype(np.float64))
+
+    def store_pose_data(self, instance: str, arrays: dict[str, np.ndarray]) -> None:
+        """Add named arrays to a poses instance's component-level generic data (written at finalize)."""
+        self._require_base()
+        self._poses[instance].set_generic_data(arrays)
 
     def store_map(self, vector_map_json: bytes, ground_height_m: np.ndarray, meta: dict) -> None:
         """Attach an HD map to the poses component (which holds ``world_global``) as generic data.
@@ -259,15 +273,16 @@ class SequenceWriter:
             meta: JSON-able description (frame, Sim(2), lookup rule), stored as ``MAP_META``.
         """
         self._require_base()
-        self._poses.set_generic_data(
+        self._poses[DEFAULT_INSTANCE].set_generic_data(
             {MAP_VECTOR_JSON: np.frombuffer(vector_map_json, dtype=np.uint8), MAP_GROUND_HEIGHT: ground_height_m},
             {MAP_META: meta},
         )
 
     def store_extrinsic(self, sensor_id: str, T_sensor_rig: np.ndarray, rig_frame: str = "rig") -> None:
-        """Store a static sensor->rig extrinsic [4,4] (float32)."""
+        """Store a static sensor->rig extrinsic [4,4] (float32) in every poses instance."""
         self._require_base()
-        self._poses.store_static_pose(sensor_id, rig_frame, T_sensor_rig.astype(np.float32))
+        for poses in self._poses.values():
+            poses.store_static_pose(sensor_id, rig_frame, T_sensor_rig.astype(np.float32))
 
     def store_pinhole_camera(
         self,

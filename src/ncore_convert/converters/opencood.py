@@ -24,8 +24,10 @@ from upath import UPath
 
 from ncore_convert import __version__, carla
 from ncore_convert.converters.common import Tally, select_sensors
+from ncore_convert.converters.opencood_noise import AgentNoise, instance_meta, plan_noise
 from ncore_convert.geometry import euler_xyz_from_rotation, invert_se3, rigid_mean
 from ncore_convert.lidar import ray_bundle
+from ncore_convert.noise_config import NoiseSetting
 from ncore_convert.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.argoverse2 import SourceError
@@ -54,6 +56,7 @@ class OpenCoodOptions:
     sequence_meta: bool = True
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
+    noise: tuple[NoiseSetting, ...] = ()  #: GPS-error / delay settings, each a further poses instance
 
     def scenario_dir(self, root_dir: UPath, scenario: str) -> UPath:
         return root_dir / self.split / scenario
@@ -65,6 +68,7 @@ class AgentPlan:
 
     Attributes:
         keys: frame keys with a readable YAML; timestamps_us: their times, int64 [N].
+        lidar_pose_carla: the YAMLs' ``lidar_pose`` [N,6] (CARLA: x, y, z m; roll, yaw, pitch deg).
         world_global_SE3_rig: right-handed rig poses [N,4,4], float64.
         T_sensor_rig: sensor -> rig [4,4] (lidar frame right-handed; cameras in OpenCV axes).
         intrinsics: camera id -> (K [3,3], (width, height)); camera_index: camera id -> file index.
@@ -75,6 +79,7 @@ class AgentPlan:
     agent_dir: UPath
     keys: list[str]
     timestamps_us: np.ndarray
+    lidar_pose_carla: np.ndarray
     world_global_SE3_rig: np.ndarray
     T_sensor_rig: dict[str, np.ndarray]
     intrinsics: dict[str, tuple[np.ndarray, tuple[int, int]]]
@@ -111,11 +116,13 @@ class ScenarioPlan:
     options: OpenCoodOptions
     fixed_delta_seconds: float
     ego: str
+    ego_keys: list[str]  #: the OpenCOOD ego's YAML keys: OpenCOOD's frame index
     agent_folders: list[str]
     agents: dict[str, AgentPlan]
     boxes: dict[str, Boxes]  #: frame key -> merged labels
     lidar_spec: dict
     warnings: list[str]
+    noise: dict[str, dict[str, AgentNoise]]  #: setting name -> agent id -> perturbations
 
     def sequence_id(self, agent_id: str) -> str:
         return f"{self.scenario}_agent{agent_id}"
@@ -197,7 +204,8 @@ def plan_agent(
 ) -> AgentPlan:
     """Trajectory and calibration of one agent from its frames (at least two)."""
     keys = [f.path.stem for f in frames]
-    world_global_SE3_lidar = carla.world_SE3_right_handed(np.array([f.lidar_pose for f in frames]))
+    lidar_pose_carla = np.array([f.lidar_pose for f in frames], dtype=np.float64)
+    world_global_SE3_lidar = carla.world_SE3_right_handed(lidar_pose_carla)
     world_global_SE3_vehicle = carla.world_SE3_right_handed(np.array([f.true_ego_pos for f in frames]))
     mounts: dict[str, dict] = {}
     T_lidar_rig = _mount(
@@ -230,6 +238,7 @@ def plan_agent(
         agent_dir=agent_dir,
         keys=keys,
         timestamps_us=timestamps_us(keys, dt),
+        lidar_pose_carla=lidar_pose_carla,
         world_global_SE3_rig=world_global_SE3_rig,
         T_sensor_rig=T_sensor_rig,
         intrinsics=intrinsics,
@@ -312,16 +321,29 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     if not frames:
         raise SourceError(scenario_dir, "no agent has 2 or more readable frames")
     agents = {a: plan_agent(scenario_dir / a, f, options, dt, warnings) for a, f in frames.items()}
+    ego = src.opencood_ego(folders)
+    ego_times_us = timestamps_us(keys[ego], dt)
+    noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
+    for name, per_agent in noise.items():
+        for agent_id, agent_noise in per_agent.items():
+            unsent = int(np.sum(agent_noise.source_keys < 0))
+            if unsent and agent_id != ego:
+                warnings.append(
+                    f"{scenario_dir / agent_id}: noise setting {name}: no frame of this agent to send at {unsent}"
+                    " ego frame(s) (delay_source_keys = -1)"
+                )
     return ScenarioPlan(
         scenario=scenario,
         options=options,
         fixed_delta_seconds=dt,
-        ego=src.opencood_ego(folders),
+        ego=ego,
+        ego_keys=keys[ego],
         agent_folders=folders,
         agents=agents,
         boxes=merge_boxes(frames, warnings),
         lidar_spec=protocol.cav_lidar,
         warnings=warnings,
+        noise=noise,
     )
 
 
@@ -348,8 +370,16 @@ def _generic_meta(plan: ScenarioPlan, agent_ids: list[str]) -> dict:
         "carla_fixed_delta_seconds": plan.fixed_delta_seconds,
         "time_base": "t_us = CARLA frame key * fixed_delta_seconds * 1e6 (frame keys are CARLA frame counters)",
         "world_global": "the CARLA map frame made right-handed: (x, y, z)_world_global = (x, -y, z)_carla",
-        "converter": {"name": "ncore-convert", "version": __version__, "options": asdict(plan.options)},
+        "noise_settings": {s.name: s.as_dict() for s in plan.options.noise},
+        "converter": {"name": "ncore-convert", "version": __version__, "options": _options_meta(plan.options)},
     }
+
+
+def _options_meta(options: OpenCoodOptions) -> dict:
+    """The conversion options as metadata (the noise settings are listed on their own)."""
+    out = asdict(options)
+    out["noise"] = [s.name for s in options.noise]
+    return out
 
 
 def _cuboids(plan: ScenarioPlan, agent: AgentPlan, names: Names) -> Cuboids:
@@ -376,12 +406,24 @@ def _cuboids(plan: ScenarioPlan, agent: AgentPlan, names: Names) -> Cuboids:
 
 
 def _write_base(
-    writer: SequenceWriter, agent: AgentPlan, names: Names, world_global_SE3_world: np.ndarray, first: bool
+    writer: SequenceWriter,
+    plan: ScenarioPlan,
+    agent: AgentPlan,
+    names: Names,
+    world_global_SE3_world: np.ndarray,
+    first: bool,
 ) -> None:
-    """The agent's trajectory (and, for the first agent of a sequence, world -> world_global) and
-    its camera models and sensor extrinsics."""
-    T_rig_world = invert_se3(world_global_SE3_world) @ agent.world_global_SE3_rig
+    """The agent's trajectory (and, for the first agent of a sequence, world -> world_global), its
+    perturbed trajectory and delays in each noise setting's poses instance, and its camera models
+    and sensor extrinsics."""
+    world_SE3_world_global = invert_se3(world_global_SE3_world)
+    T_rig_world = world_SE3_world_global @ agent.world_global_SE3_rig
     writer.store_trajectory(agent.timestamps_us, T_rig_world, world_global_SE3_world if first else None, names.rig)
+    for name, per_agent in plan.noise.items():
+        noisy = per_agent[agent.agent_id]
+        T_rig_world = world_SE3_world_global @ noisy.world_global_SE3_rig
+        writer.store_trajectory(agent.timestamps_us, T_rig_world, None, names.rig, instance=name)
+        writer.store_pose_data(name, noisy.arrays(agent, names.prefix))
     for sensor in agent.lidar_ids + agent.camera_ids:
         writer.store_extrinsic(names.sensor(sensor), agent.T_sensor_rig[sensor], names.rig)
     for cam, (K, size) in agent.intrinsics.items():
@@ -455,10 +497,13 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
         store_type=plan.options.store_type,
         profile=plan.options.profile,
         poses_meta={"calibration_type": "carla-sensor-transforms", "egomotion_type": "carla-ground-truth-lidar_pose"},
+        extra_pose_instances={
+            s.name: instance_meta(s, plan.ego, src.opencood_order(plan.agent_folders)) for s in plan.options.noise
+        },
     )
     world_global_SE3_world = reference.world_global_SE3_rig[0]
     for i, agent in enumerate(agents):
-        _write_base(writer, agent, names[agent.agent_id], world_global_SE3_world, first=i == 0)
+        _write_base(writer, plan, agent, names[agent.agent_id], world_global_SE3_world, first=i == 0)
     cuboids = _cuboids(plan, reference, names[reference.agent_id])
     writer.store_cuboids(cuboids, source="GT_SYNTHETIC")
     counts.cuboids = len(cuboids)
@@ -506,6 +551,9 @@ def manifest(plan: ScenarioPlan) -> dict:
         "time_base": "t_us = CARLA frame key * fixed_delta_seconds * 1e6",
         "ego": {"agent_id": int(plan.ego), "rule": "OpenCOOD: first agent folder by string sort, infrastructure last"},
         "agents": agents,
+        "noise_settings": [
+            {"name": s.name, "model": s.model, "seed": s.seed, "poses_instance": s.name} for s in plan.options.noise
+        ],
         "labels": "union of every agent's vehicle labels per tick (each agent labels vehicles it hit with >= 1"
         " semantic-lidar ray within 120 m) plus the CAVs' own boxes; not complete scene ground truth",
     }

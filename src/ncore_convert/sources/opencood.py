@@ -97,13 +97,18 @@ def list_agents(scenario_dir: UPath) -> list[str]:
     return sorted(names, key=int)
 
 
-def opencood_ego(agent_ids: list[str]) -> str:
-    """OpenCOOD's ego choice: the first agent by *string* sort, with a leading infrastructure id
-    moved to the end (``basedataset.py``); e.g. ['650', '1732', '-1'] -> '1732'."""
+def opencood_order(agent_ids: list[str]) -> list[str]:
+    """OpenCOOD's scenario-database order (``basedataset.py``): agent folders by *string* sort, with
+    a leading infrastructure id moved to the end; e.g. ['650', '1732', '-1'] -> ['1732', '650', '-1']."""
     order = sorted(agent_ids)
     if is_infrastructure(order[0]):
         order = order[1:] + order[:1]
-    return order[0]
+    return order
+
+
+def opencood_ego(agent_ids: list[str]) -> str:
+    """OpenCOOD's ego: the first agent of :func:`opencood_order`."""
+    return opencood_order(agent_ids)[0]
 
 
 def list_frame_keys(agent_dir: UPath) -> list[str]:
