@@ -248,8 +248,73 @@ def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_
     _convert(obj, command, "ncore_convert.converters.argoverse2", prepare)
 
 
+#: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, help).
+NOISE_FLAGS = [
+    ("--noise-name", "noise_name", "name", str, "Name of the setting built from these flags (its poses instance)."
+     "  [default: the model's name]"),
+    ("--noise-model", "noise_model", "model", click.Choice(["opencood", "realistic"]),
+     "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams.  [default: opencood]"),
+    ("--noise-seed", "noise_seed", "seed", int, "seed.  [default: 25, OpenCOOD's test seed]"),
+    ("--async/--no-async", "async_", "async", None, "async: add communication delay."),
+    ("--async-mode", "async_mode", "async_mode", click.Choice(["sim", "real"]),
+     "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone.  [default: sim]"),
+    ("--async-overhead", "async_overhead", "async_overhead", float, "async_overhead, ms."),
+    ("--backbone-delay", "backbone_delay", "backbone_delay", float, "backbone_delay, ms (real mode)."),
+    ("--data-size", "data_size", "data_size", float, "data_size, Mb (real mode)."),
+    ("--transmission-speed", "transmission_speed", "transmission_speed", float,
+     "transmission_speed, Mb/s (real mode).  [default: 27]"),
+    ("--loc-err/--no-loc-err", "loc_err", "loc_err", None, "loc_err: add localisation (GPS) error."),
+    ("--xyz-std", "xyz_std", "xyz_std", float, "xyz_std: position error std, m."),
+    ("--ryp-std", "ryp_std", "ryp_std", float, "ryp_std: angular error std, deg."),
+    ("--max-cav", "max_cav", "max_cav", int, "OpenCOOD's train_params.max_cav (opencood model).  [default: 7]"),
+    ("--gps-process", "gps_process", "process", click.Choice(["white", "gauss_markov"]),
+     "realistic: per-frame draws or Gauss-Markov drift.  [default: white]"),
+    ("--correlation-time-s", "correlation_time_s", "correlation_time_s", float,
+     "realistic: Gauss-Markov correlation time, s.  [default: 10]"),
+    ("--bias-xyz-std", "bias_xyz_std", "bias_xyz_std", float, "realistic: std of a constant position bias, m."),
+    ("--bias-ryp-std", "bias_ryp_std", "bias_ryp_std", float, "realistic: std of a constant angular bias, deg."),
+    ("--gps-dof", "gps_dof", "dof", click.Choice(["6dof", "xy_yaw"]),
+     "realistic: perturb all 6 DoF or x, y and yaw.  [default: 6dof]"),
+    ("--perturb-ego/--no-perturb-ego", "perturb_ego", "perturb_ego", None,
+     "realistic: perturb the OpenCOOD ego too.  [default: no]"),
+]  # fmt: skip
+
+
+def noise_options(f):
+    """``--noise-config`` (repeatable) and the flags that make one further setting (``NOISE_FLAGS``)."""
+    for decl, param, _, kind, help_text in reversed(NOISE_FLAGS):
+        f = click.option(decl, param, type=kind, default=None, help=help_text)(f)
+    return click.option(
+        "--noise-config", "noise_configs", multiple=True, metavar="FILE",
+        help="YAML with an OpenCOOD wild_setting block (repeatable): GPS error and delay, written as a"
+        " further poses instance named by its 'name' key or the file name.",
+    )(f)  # fmt: skip
+
+
+def noise_settings(noise_configs: tuple[str, ...], flags: dict) -> tuple:
+    """The settings of the ``--noise-config`` files, then the one the flags make (if any flag is given)."""
+    from ncore_convert.noise_config import check_unique, make_setting, read_noise_config
+    from ncore_convert.sources.argoverse2 import SourceError
+
+    try:
+        settings = [read_noise_config(UPath(path)) for path in noise_configs]
+        given = {key: flags[param] for _, param, key, _, _ in NOISE_FLAGS if flags[param] is not None}
+        if given:
+            given.setdefault("name", given.get("model", "opencood"))
+            try:
+                settings.append(make_setting(given))
+            except ValueError as err:
+                raise ValueError(f"noise flags: {err}") from None
+        check_unique(settings)
+    except (SourceError, ValueError) as err:
+        raise click.UsageError(str(err)) from None
+    return tuple(settings)
+
+
 def _convert_opencood(obj: GroupOptions, dataset: str, split: str, scenarios: tuple[str, ...], **options):
     """Run the OPV2V or V2XSet conversion of the selected scenarios."""
+    flags = {param: options.pop(param) for _, param, _, _, _ in NOISE_FLAGS}
+    noise = noise_settings(options.pop("noise_configs"), flags)
 
     def prepare(root: UPath):
         from ncore_convert.converters.common import select_sensors
@@ -257,7 +322,7 @@ def _convert_opencood(obj: GroupOptions, dataset: str, split: str, scenarios: tu
         from ncore_convert.sources import opencood as src
 
         opts = OpenCoodOptions(dataset=dataset, split=split, camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids,
-                               **options)  # fmt: skip
+                               noise=noise, **options)  # fmt: skip
         try:
             select_sensors(opts.camera_ids, src.CAMERAS, "camera")
             select_sensors(opts.lidar_ids, (src.LIDAR,), "lidar")
@@ -283,6 +348,7 @@ def opencood_options(dataset: str):
                          help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
                          " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_)."),
             store_options,
+            noise_options,
         ]):  # fmt: skip
             f = option(f)
         return f

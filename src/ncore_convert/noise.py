@@ -83,11 +83,10 @@ def opencood_delays(setting: NoiseSetting, n_ego_frames: int, agent_order: list[
             frames = int(delay_ms // OPENCOOD_FRAME_MS) if setting.async_ else 0
             out[agent][0][i] = delay_ms if setting.async_ else 0.0
             out[agent][1][i] = i if i - frames <= 0 else frames
-            if setting.loc_err:
-                for _ in range(2):  # add_loc_noise on the delayed and on the current pose
-                    rs.seed(setting.seed)
-                    rs.normal(0, setting.xyz_std, 3)
-                    rs.normal(0, setting.ryp_std, 3)
+            if setting.loc_err:  # add_loc_noise (delayed pose, then current pose): both re-seed, so one call's
+                rs.seed(setting.seed)  # draws leave the generator where the two leave it
+                rs.normal(0, setting.xyz_std, 3)
+                rs.normal(0, setting.ryp_std, 3)
     return out
 
 

@@ -109,11 +109,8 @@ def make_setting(values: dict) -> NoiseSetting:
     """A checked setting from OpenCOOD-named values (``async``, not ``async_``); ValueError with the cause.
 
     Realistic-only keys with the ``opencood`` model, unknown keys, wrong types, negative numbers and
-    a zero transmission speed are errors. ``rpy_std`` (the spelling in OpenCOOD's README) is
-    rejected with a pointer to ``ryp_std``, the key OpenCOOD's code reads.
+    a zero transmission speed are errors.
     """
-    if "rpy_std" in values:
-        raise ValueError("rpy_std is not read by OpenCOOD (its README's spelling); the key is ryp_std")
     unknown = sorted(set(values) - set(_TYPES))
     if unknown:
         raise ValueError(f"unknown key(s) {', '.join(map(str, unknown))}; known: {', '.join(sorted(_TYPES))}")
@@ -140,6 +137,8 @@ def read_noise_config(path: UPath) -> NoiseSetting:
     block = data.get("wild_setting")
     if not isinstance(block, dict):
         raise SourceError(path, "no wild_setting mapping (OpenCOOD's GPS-error and delay block)")
+    if "rpy_std" in block:  # the spelling in OpenCOOD's README
+        raise SourceError(path, "wild_setting: OpenCOOD does not read rpy_std (its README's spelling); the key is ryp_std")
     missing = [key for key in REQUIRED if key not in block]
     if missing:
         raise SourceError(path, f"wild_setting lacks {', '.join(missing)} (OpenCOOD requires {', '.join(REQUIRED)})")
