@@ -114,7 +114,8 @@ def _realistic(
         pose_rng, delay_rng = noise.agent_rngs(setting, scenario, agent_id)
         pose_noise = noise.realistic_pose_noise(setting, pose_rng, agent.timestamps_us)
         if agent_id == ego:
-            pose_noise = pose_noise * setting.perturb_ego
+            if not setting.perturb_ego:
+                pose_noise = np.zeros_like(pose_noise)
             delay_ms = np.zeros(len(ego_timestamps_us))
         else:
             delay_ms = noise.realistic_delays_ms(setting, delay_rng, len(ego_timestamps_us))
