@@ -248,44 +248,45 @@ def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_
     _convert(obj, command, "ncore_convert.converters.argoverse2", prepare)
 
 
-#: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, help).
+#: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, default, help).
+#: Unset flags take OpenCOOD's defaults (shown), set in ``make_setting``.
 NOISE_FLAGS = [
-    ("--noise-name", "noise_name", "name", str, "Name of the setting built from these flags (its poses instance)."
-     "  [default: the model's name]"),
-    ("--noise-model", "noise_model", "model", click.Choice(["opencood", "realistic"]),
-     "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams.  [default: opencood]"),
-    ("--noise-seed", "noise_seed", "seed", int, "seed.  [default: 25, OpenCOOD's test seed]"),
-    ("--async/--no-async", "async_", "async", None, "async: add communication delay."),
-    ("--async-mode", "async_mode", "async_mode", click.Choice(["sim", "real"]),
-     "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone.  [default: sim]"),
-    ("--async-overhead", "async_overhead", "async_overhead", float, "async_overhead, ms."),
-    ("--backbone-delay", "backbone_delay", "backbone_delay", float, "backbone_delay, ms (real mode)."),
-    ("--data-size", "data_size", "data_size", float, "data_size, Mb (real mode)."),
-    ("--transmission-speed", "transmission_speed", "transmission_speed", float,
-     "transmission_speed, Mb/s (real mode).  [default: 27]"),
-    ("--loc-err/--no-loc-err", "loc_err", "loc_err", None, "loc_err: add localisation (GPS) error."),
-    ("--xyz-std", "xyz_std", "xyz_std", float, "xyz_std: position error std, m."),
-    ("--ryp-std", "ryp_std", "ryp_std", float, "ryp_std: angular error std, deg."),
-    ("--max-cav", "max_cav", "max_cav", int, "OpenCOOD's train_params.max_cav (opencood model).  [default: 7]"),
-    ("--gps-process", "gps_process", "process", click.Choice(["white", "gauss_markov"]),
-     "realistic: per-frame draws or Gauss-Markov drift.  [default: white]"),
-    ("--correlation-time-s", "correlation_time_s", "correlation_time_s", float,
-     "realistic: Gauss-Markov correlation time, s.  [default: 10]"),
-    ("--bias-xyz-std", "bias_xyz_std", "bias_xyz_std", float, "realistic: std of a constant position bias, m."),
-    ("--bias-ryp-std", "bias_ryp_std", "bias_ryp_std", float, "realistic: std of a constant angular bias, deg."),
-    ("--gps-dof", "gps_dof", "dof", click.Choice(["6dof", "xy_yaw"]),
-     "realistic: perturb all 6 DoF or x, y and yaw.  [default: 6dof]"),
-    ("--perturb-ego/--no-perturb-ego", "perturb_ego", "perturb_ego", None,
-     "realistic: perturb the OpenCOOD ego too.  [default: no]"),
+    ("--noise-name", "noise_name", "name", str, "the model's name",
+     "Name of the setting these flags make (its poses instance)."),
+    ("--noise-model", "noise_model", "model", click.Choice(["opencood", "realistic"]), "opencood",
+     "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams."),
+    ("--noise-seed", "noise_seed", "seed", int, "25, OpenCOOD's test seed", "seed."),
+    ("--async/--no-async", "async_", "async", None, "off", "async: add communication delay."),
+    ("--async-mode", "async_mode", "async_mode", click.Choice(["sim", "real"]), "sim",
+     "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone."),
+    ("--async-overhead", "async_overhead", "async_overhead", float, "0", "async_overhead, ms."),
+    ("--backbone-delay", "backbone_delay", "backbone_delay", float, "0", "backbone_delay, ms (real mode)."),
+    ("--data-size", "data_size", "data_size", float, "0", "data_size, Mb (real mode)."),
+    ("--transmission-speed", "transmission_speed", "transmission_speed", float, "27",
+     "transmission_speed, Mb/s (real mode)."),
+    ("--loc-err/--no-loc-err", "loc_err", "loc_err", None, "off", "loc_err: add localisation (GPS) error."),
+    ("--xyz-std", "xyz_std", "xyz_std", float, "0", "xyz_std: position error std, m."),
+    ("--ryp-std", "ryp_std", "ryp_std", float, "0", "ryp_std: angular error std, deg."),
+    ("--max-cav", "max_cav", "max_cav", int, "7", "OpenCOOD's train_params.max_cav (opencood model)."),
+    ("--gps-process", "gps_process", "process", click.Choice(["white", "gauss_markov"]), "white",
+     "realistic: per-frame draws or Gauss-Markov drift."),
+    ("--correlation-time-s", "correlation_time_s", "correlation_time_s", float, "10",
+     "realistic: Gauss-Markov correlation time, s."),
+    ("--bias-xyz-std", "bias_xyz_std", "bias_xyz_std", float, "0", "realistic: std of a constant position bias, m."),
+    ("--bias-ryp-std", "bias_ryp_std", "bias_ryp_std", float, "0", "realistic: std of a constant angular bias, deg."),
+    ("--gps-dof", "gps_dof", "dof", click.Choice(["6dof", "xy_yaw"]), "6dof",
+     "realistic: perturb all 6 DoF or x, y and yaw."),
+    ("--perturb-ego/--no-perturb-ego", "perturb_ego", "perturb_ego", None, "off",
+     "realistic: perturb the OpenCOOD ego too."),
 ]  # fmt: skip
 
 
 def noise_options(f):
     """``--noise-config`` (repeatable) and the flags that make one further setting (``NOISE_FLAGS``)."""
-    for decl, param, _, kind, help_text in reversed(NOISE_FLAGS):
-        f = click.option(decl, param, type=kind, default=None, help=help_text)(f)
+    for decl, param, _, kind, shown, help_text in reversed(NOISE_FLAGS):
+        f = click.option(decl, param, type=kind, default=None, show_default=shown, help=help_text)(f)
     return click.option(
-        "--noise-config", "noise_configs", multiple=True, metavar="FILE",
+        "--noise-config", "noise_configs", multiple=True, metavar="FILE", show_default="none",
         help="YAML with an OpenCOOD wild_setting block (repeatable): GPS error and delay, written as a"
         " further poses instance named by its 'name' key or the file name.",
     )(f)  # fmt: skip
@@ -298,7 +299,7 @@ def noise_settings(noise_configs: tuple[str, ...], flags: dict) -> tuple:
 
     try:
         settings = [read_noise_config(UPath(path)) for path in noise_configs]
-        given = {key: flags[param] for _, param, key, _, _ in NOISE_FLAGS if flags[param] is not None}
+        given = {key: flags[param] for _, param, key, _, _, _ in NOISE_FLAGS if flags[param] is not None}
         if given:
             given.setdefault("name", given.get("model", "opencood"))
             try:
@@ -313,7 +314,7 @@ def noise_settings(noise_configs: tuple[str, ...], flags: dict) -> tuple:
 
 def _convert_opencood(obj: GroupOptions, dataset: str, split: str, scenarios: tuple[str, ...], **options):
     """Run the OPV2V or V2XSet conversion of the selected scenarios."""
-    flags = {param: options.pop(param) for _, param, _, _, _ in NOISE_FLAGS}
+    flags = {param: options.pop(param) for _, param, _, _, _, _ in NOISE_FLAGS}
     noise = noise_settings(options.pop("noise_configs"), flags)
 
     def prepare(root: UPath):
