@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_runner.py
 	$(PY) bench/bench_tbv.py
 	$(PY) bench/bench_opencood.py
+	$(PY) bench/bench_noise.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info

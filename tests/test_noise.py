@@ -501,3 +501,18 @@ def test_same_seed_same_output_other_seed_other_output(tmp_path, converted):
     first = converted.pose_data(agent, "gm_drift").get_generic_data("pose_noise")
     assert np.all(np.abs(other.get_generic_data("pose_noise") - first)[:, :3] > 0)
     shutil.rmtree(tmp_path / "again")
+
+
+def test_the_command_rejects_a_bad_noise_config_naming_the_file(tmp_path):
+    from click.testing import CliRunner
+
+    from ncore_convert.cli import cli
+
+    bad = tmp_path / "typo.yaml"
+    bad.write_text(DOC_BLOCK.replace("ryp_std", "rpy_std"))
+    args = ["--root-dir", str(tmp_path), "--output-dir", str(tmp_path / "out"), "v2xset-v4", "--split", "test"]
+    result = CliRunner().invoke(cli, [*args, "--noise-config", str(bad)])
+    assert result.exit_code == 2 and f"{bad}: wild_setting: OpenCOOD does not read rpy_std" in result.output
+    result = CliRunner().invoke(cli, [*args, "--noise-model", "opencood", "--gps-dof", "xy_yaw"])
+    assert result.exit_code == 2 and "only apply to the realistic model" in result.output
+    assert not (tmp_path / "out").exists()
