@@ -324,13 +324,17 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     ego = src.opencood_ego(folders)
     ego_times_us = timestamps_us(keys[ego], dt)
     noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
-    for name, per_agent in noise.items():
-        for agent_id, agent_noise in per_agent.items():
+    for setting in options.noise:
+        loaded = src.opencood_order(folders)[: setting.max_cav] if setting.model == "opencood" else folders
+        for agent_id, agent_noise in noise[setting.name].items():
             unsent = int(np.sum(agent_noise.source_keys < 0))
-            if unsent and agent_id != ego:
+            if agent_id not in loaded:
+                warnings.append(f"{scenario_dir / agent_id}: noise setting {setting.name}: past max_cav"
+                                f" ({setting.max_cav}), so OpenCOOD does not load this agent; no delay data")  # fmt: skip
+            elif unsent and agent_id != ego:
                 warnings.append(
-                    f"{scenario_dir / agent_id}: noise setting {name}: no frame of this agent to send at {unsent}"
-                    " ego frame(s) (delay_source_keys = -1)"
+                    f"{scenario_dir / agent_id}: noise setting {setting.name}: no frame of this agent to send at"
+                    f" {unsent} ego frame(s) (delay_source_keys = -1)"
                 )
     return ScenarioPlan(
         scenario=scenario,
