@@ -131,3 +131,21 @@ def test_validate_passes_on_opv2v_and_v2xset_conversions(tmp_path, layout):
         report = validate_sequence(meta)
         assert report.ok, failed(report)
         assert json.loads(json.dumps(report.to_dict()))["ok"] is True
+
+
+def test_the_validate_command_prints_failures_writes_json_and_exits_non_zero(directory_log, tmp_path):
+    from click.testing import CliRunner
+
+    from ncore_convert.cli import cli
+
+    good = CliRunner().invoke(cli, ["validate", str(directory_log.seq_dir), "--json", str(tmp_path / "good.json")])
+    assert good.exit_code == 0 and "1 sequence(s) passed, 0 failed" in good.output
+    assert json.loads((tmp_path / "good.json").read_text())[0]["ok"] is True
+    bad_dir = tmp_path / "bad"
+    corrupt(directory_log, bad_dir, lambda g: g[f"lidars/up_lidar/frames/{frame_keys(g, 'up_lidar')[0]}"
+                                              "/ray_bundle/direction"].__setitem__((0, 0), 3.0))  # fmt: skip
+    bad = CliRunner().invoke(cli, ["validate", str(bad_dir), "--json", str(tmp_path / "bad.json")])
+    assert bad.exit_code == 1 and "FAIL" in bad.output and "lidar up_lidar: unit directions" in bad.output
+    report = json.loads((tmp_path / "bad.json").read_text())[0]
+    assert report["ok"] is False and any(c["name"] == "lidar up_lidar: unit directions" and not c["ok"]
+                                         for c in report["checks"])  # fmt: skip

@@ -390,6 +390,38 @@ def v2xset_v4(obj: GroupOptions, split, scenarios, **options):
     _convert_opencood(obj, "v2xset", split, scenarios, **options)
 
 
+@cli.command("validate")
+@click.argument("path", type=click.Path(exists=True))
+@click.option("--json", "json_file", type=click.Path(dir_okay=False, writable=True), show_default="none",
+              help="Also write the reports to this JSON file.")  # fmt: skip
+def validate_command(path, json_file):
+    """Check converted sequences (PATH: a <sequence_id>.json, or an output folder to search).
+
+    Prints each failed check, a line per sequence, and exits 1 if any check failed.
+    """
+    import json
+
+    from ncore_convert.validate import find_sequences, validate_sequence
+
+    sequences = find_sequences(UPath(path))
+    if not sequences:
+        raise click.UsageError(f"no sequence meta (<sequence_id>.json) under {path}")
+    reports = []
+    for meta in sequences:
+        report = validate_sequence(meta)
+        reports.append(report)
+        passed = sum(c.ok for c in report.checks)
+        click.echo(f"{'ok  ' if report.ok else 'FAIL'}  {meta}: {passed} of {len(report.checks)} checks passed")
+        for check in report.checks:
+            if not check.ok:
+                click.echo(f"        {check.name}: {check.detail}")
+    if json_file:
+        UPath(json_file).write_text(json.dumps([r.to_dict() for r in reports], indent=2))
+    failed = sum(not r.ok for r in reports)
+    click.echo(f"{len(reports) - failed} sequence(s) passed, {failed} failed")
+    sys.exit(1 if failed else 0)
+
+
 @cli.command("evaluate-lidar-model")
 @click.argument("sequence", type=click.Path(exists=True, dir_okay=False))
 @click.option("--lidar-id", "lidar_ids", multiple=True, show_default="every lidar", help="Evaluate only this lidar.")
