@@ -113,5 +113,6 @@ def main() -> None:
           f" three settings, ratio {noisy / plain:.3f}; output {size[False] / 1e6:.1f} MB ->"
           f" {size[True] / 1e6:.1f} MB (+{(size[True] - size[False]) / 1e3:.0f} kB)", flush=True)  # fmt: skip
 
+
 if __name__ == "__main__":
     main()

@@ -275,7 +275,14 @@ def test_the_documented_wild_setting_block_is_read_with_opencood_names(tmp_path)
     path = tmp_path / "v2xvit_test.yaml"
     path.write_text("train_params:\n  max_cav: 5\n" + DOC_BLOCK)
     s = read_noise_config(UPath(path))
-    assert (s.name, s.model, s.seed, s.async_, s.async_mode, s.max_cav) == ("v2xvit_test", "opencood", 25, True, "sim", 5)
+    assert (s.name, s.model, s.seed, s.async_, s.async_mode, s.max_cav) == (
+        "v2xvit_test",
+        "opencood",
+        25,
+        True,
+        "sim",
+        5,
+    )
     assert (s.async_overhead, s.backbone_delay, s.data_size, s.transmission_speed) == (100, 10, 1.06, 27)
     assert (s.loc_err, s.xyz_std, s.ryp_std) == (True, 0.2, 0.2)
     assert s.as_dict()["async"] is True and "process" not in s.as_dict()
@@ -340,7 +347,9 @@ class Converted:
         return json.loads((self.out / "scenario.json").read_text())
 
     def reader(self, agent_id: str) -> SequenceComponentGroupsReader:
-        return SequenceComponentGroupsReader([UPath(self.out / agent_id / f"{self.truth.scenario}_agent{agent_id}.json")])
+        return SequenceComponentGroupsReader(
+            [UPath(self.out / agent_id / f"{self.truth.scenario}_agent{agent_id}.json")]
+        )
 
     def loader(self, agent_id: str, instance: str = "default") -> SequenceLoaderV4:
         return SequenceLoaderV4(self.reader(agent_id), poses_component_group_name=instance)

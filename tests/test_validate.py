@@ -26,7 +26,9 @@ from ncore_convert.validate import find_sequences, validate_sequence
 def directory_log(tmp_path_factory):
     """A 0.6 s synthetic AV2 log (6 sweeps per lidar, no images) in one directory store."""
     options = Argoverse2Options(split="val", store_type="directory", profile="default", camera_ids=())
-    return synth_and_convert(tmp_path_factory.mktemp("validate"), SynthConfig(seconds=0.6, seed=4, camera_fps=0), options)
+    return synth_and_convert(
+        tmp_path_factory.mktemp("validate"), SynthConfig(seconds=0.6, seed=4, camera_fps=0), options
+    )
 
 
 def failed(report) -> dict[str, str]:

@@ -138,7 +138,9 @@ def read_noise_config(path: UPath) -> NoiseSetting:
     if not isinstance(block, dict):
         raise SourceError(path, "no wild_setting mapping (OpenCOOD's GPS-error and delay block)")
     if "rpy_std" in block:  # the spelling in OpenCOOD's README
-        raise SourceError(path, "wild_setting: OpenCOOD does not read rpy_std (its README's spelling); the key is ryp_std")
+        raise SourceError(
+            path, "wild_setting: OpenCOOD does not read rpy_std (its README's spelling); the key is ryp_std"
+        )
     missing = [key for key in REQUIRED if key not in block]
     if missing:
         raise SourceError(path, f"wild_setting lacks {', '.join(missing)} (OpenCOOD requires {', '.join(REQUIRED)})")

@@ -24,7 +24,7 @@ from upath import UPath
 
 from ncore_convert import __version__, carla
 from ncore_convert.converters.common import Tally, select_sensors
-from ncore_convert.converters.opencood_noise import AgentNoise, instance_meta, plan_noise
+from ncore_convert.converters.opencood_noise import AgentNoise, instance_meta, opencood_loaded, plan_noise
 from ncore_convert.geometry import euler_xyz_from_rotation, invert_se3, rigid_mean
 from ncore_convert.lidar import ray_bundle
 from ncore_convert.noise_config import NoiseSetting
@@ -325,12 +325,14 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     ego_times_us = timestamps_us(keys[ego], dt)
     noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
     for setting in options.noise:
-        loaded = src.opencood_order(folders)[: setting.max_cav] if setting.model == "opencood" else folders
+        loaded = opencood_loaded(setting, folders)
         for agent_id, agent_noise in noise[setting.name].items():
             unsent = int(np.sum(agent_noise.source_keys < 0))
             if agent_id not in loaded:
-                warnings.append(f"{scenario_dir / agent_id}: noise setting {setting.name}: past max_cav"
-                                f" ({setting.max_cav}), so OpenCOOD does not load this agent; no delay data")  # fmt: skip
+                warnings.append(
+                    f"{scenario_dir / agent_id}: noise setting {setting.name}: past max_cav ({setting.max_cav}),"
+                    " so OpenCOOD does not load this agent; no delay data"
+                )
             elif unsent and agent_id != ego:
                 warnings.append(
                     f"{scenario_dir / agent_id}: noise setting {setting.name}: no frame of this agent to send at"
@@ -501,9 +503,7 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
         store_type=plan.options.store_type,
         profile=plan.options.profile,
         poses_meta={"calibration_type": "carla-sensor-transforms", "egomotion_type": "carla-ground-truth-lidar_pose"},
-        extra_pose_instances={
-            s.name: instance_meta(s, plan.ego, src.opencood_order(plan.agent_folders)) for s in plan.options.noise
-        },
+        extra_pose_instances={s.name: instance_meta(s, plan.agent_folders) for s in plan.options.noise},
     )
     world_global_SE3_world = reference.world_global_SE3_rig[0]
     for i, agent in enumerate(agents):

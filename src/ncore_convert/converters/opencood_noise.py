@@ -70,6 +70,13 @@ class AgentNoise:
         return {f"{prefix}{name}": value for name, value in out.items()}
 
 
+def opencood_loaded(setting: NoiseSetting, agent_folders: list[str]) -> list[str]:
+    """The agents a setting perturbs and delays: OpenCOOD's order cut at ``max_cav`` (the ``opencood``
+    model, as OpenCOOD loads them), or every agent (``realistic``). The first is OpenCOOD's ego."""
+    order = src.opencood_order(agent_folders)
+    return order[: setting.max_cav] if setting.model == "opencood" else order
+
+
 def _sources(agent: AgentPlan, source_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     keys = np.array([int(k) for k in agent.keys], dtype=np.int64)
     found = source_index != noise.NO_SOURCE
@@ -81,11 +88,10 @@ def _sources(agent: AgentPlan, source_index: np.ndarray) -> tuple[np.ndarray, np
 
 
 def _opencood(
-    setting: NoiseSetting, agents: dict[str, AgentPlan], order: list[str], ego_keys: list[str]
+    setting: NoiseSetting, agents: dict[str, AgentPlan], loaded: list[str], ego_keys: list[str]
 ) -> dict[str, tuple[np.ndarray, np.ndarray, noise.Delays]]:
     """Per agent: (world_global_SE3_rig, pose_noise, delays) under OpenCOOD's semantics."""
-    loaded = order[: setting.max_cav]
-    ego = order[0]
+    ego = loaded[0]
     schedule = noise.opencood_delays(setting, len(ego_keys), loaded, ego)
     offset = noise.opencood_loc_offset(setting)
     out = {}
@@ -140,11 +146,11 @@ def plan_noise(
         ego_keys: the OpenCOOD ego's frame keys (its YAML files), which index OpenCOOD's frames;
         ego_timestamps_us: their times, int64 [T].
     """
-    order = src.opencood_order(agent_folders)
+    loaded = opencood_loaded(setting, agent_folders)
     if setting.model == "opencood":
-        models = _opencood(setting, agents, order, ego_keys)
+        models = _opencood(setting, agents, loaded, ego_keys)
     else:
-        models = _realistic(setting, scenario, agents, order[0], ego_timestamps_us)
+        models = _realistic(setting, scenario, agents, loaded[0], ego_timestamps_us)
     out = {}
     for agent_id, (world_global_SE3_rig, pose_noise, delays) in models.items():
         keys, times = _sources(agents[agent_id], delays.source_index)
@@ -152,7 +158,7 @@ def plan_noise(
     return out
 
 
-def instance_meta(setting: NoiseSetting, ego: str, order: list[str]) -> dict:
+def instance_meta(setting: NoiseSetting, agent_folders: list[str]) -> dict:
     """The generic metadata of a setting's poses instance: the full setting, model, seed and layout."""
     meta = {
         "calibration_type": "carla-sensor-transforms",
@@ -160,12 +166,12 @@ def instance_meta(setting: NoiseSetting, ego: str, order: list[str]) -> dict:
         "noise_setting": setting.as_dict(),
         "noise_model": setting.model,
         "noise_seed": setting.seed,
-        "opencood_ego": int(ego),
+        "opencood_ego": int(src.opencood_ego(agent_folders)),
         "pose_noise_layout": POSE_NOISE_LAYOUT[setting.model],
         "generic_data": {k: v for k, v in ARRAYS.items() if k != "delay_frames" or setting.model == "opencood"},
     }
     if setting.model == "opencood":
-        meta["agents_loaded_by_opencood"] = [int(a) for a in order[: setting.max_cav]]
+        meta["agents_loaded_by_opencood"] = [int(a) for a in opencood_loaded(setting, agent_folders)]
         meta["generator_state"] = (
             "numpy legacy RandomState seeded with the seed at the scenario's first frame; real-mode draws"
             " follow OpenCOOD's order (per ego frame, per non-ego agent), and add_loc_noise re-seeds it"
