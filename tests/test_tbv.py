@@ -159,3 +159,18 @@ def test_synthetic_tbv_map_round_trips_exactly(synth_tbv):
     assert summary.maps == 1 and vector == source.vector_map_json
     assert raster.tobytes() == source.ground_height_m.tobytes() and np.isnan(raster).any()
     assert meta["img_Sim2_city"] == source.img_Sim2_city
+
+
+def test_tbv_conversions_validate_against_their_source(real_tbv, synth_tbv, tmp_path):
+    from ncore_convert.validate import validate_tree
+
+    _, seq_dir, _ = real_tbv
+    entry = json.loads((seq_dir.parent / "conversion-report.json").read_text())["logs"][AV2_SAMPLE_LOG]
+    assert entry["validation"]["ok"] is True and entry["validation"]["failed"] == []  # the command validated it
+    truth, _, loader = synth_tbv
+    root = truth.log_dir.parent
+    (report,) = validate_tree(UPath(truth.log_dir.parent.parent / "out" / truth.log_id), UPath(root))
+    assert report.ok, [(c.name, c.detail) for c in report.checks if not c.ok]
+    names = {c.name for c in report.checks}
+    assert "source: lidar points" in names and "source: cuboids" in names  # TbV: no annotations, so 0 cuboids
+    assert {f"source: {cam} images" for cam in loader.camera_ids} <= names

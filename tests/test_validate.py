@@ -16,10 +16,17 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+from ncore_convert.coregister import check_coregistration
+from ncore_convert.runner import RunReport, convert_one
 from ncore_convert.synth.argoverse2 import SynthConfig
 from ncore_convert.synth.opencood import SynthConfig as OpenCoodConfig
 from ncore_convert.synth.opencood import write_dataset
-from ncore_convert.validate import find_sequences, validate_sequence
+from ncore_convert.validate import (
+    convert_and_validate,
+    find_sequences,
+    validate_sequence,
+    validate_tree,
+)
 
 
 @pytest.fixture(scope="module")
@@ -31,20 +38,40 @@ def directory_log(tmp_path_factory):
     )
 
 
+def source_root(converted) -> Path:
+    """The dataset root a ``synth_and_convert`` log was converted from."""
+    return converted.seq_dir.parent.parent / "src"
+
+
 def failed(report) -> dict[str, str]:
     return {c.name: c.detail for c in report.checks if not c.ok}
 
 
-def corrupt(directory_log, tmp_path: Path, edit) -> dict[str, str]:
-    """Copy the sequence, apply ``edit(group)`` to its zarr store, re-consolidate, validate; the failures."""
-    seq_dir = tmp_path / directory_log.seq_dir.name
-    shutil.copytree(directory_log.seq_dir, seq_dir)
+def edit_store(seq_dir: Path, edit) -> None:
+    """Apply ``edit(group)`` to a sequence's one directory store through zarr and re-consolidate it."""
     (store_path,) = seq_dir.glob("*.ncore4.zarr")
     store = zarr.DirectoryStore(str(store_path))
     edit(zarr.open_group(store, mode="r+"))
     consolidate_compressed_metadata(store)
+
+
+def corrupt(directory_log, tmp_path: Path, edit, source: Path | None = None) -> dict[str, str]:
+    """Copy the sequence, apply ``edit(group)`` to its zarr store, validate (against ``source`` if
+    given); the failures."""
+    seq_dir = tmp_path / directory_log.seq_dir.name
+    shutil.copytree(directory_log.seq_dir, seq_dir)
+    edit_store(seq_dir, edit)
     (meta,) = seq_dir.glob("*.json")
-    return failed(validate_sequence(UPath(meta)))
+    return failed(validate_sequence(UPath(meta), None if source is None else UPath(source)))
+
+
+def flip_up_lidar(group) -> None:
+    """Turn the up_lidar's extrinsic upside down."""
+    attrs = dict(group["poses/default/static_poses"].attrs)
+    pose = np.array(attrs["('up_lidar', 'rig')"]["pose"])
+    pose[:3, :3] = pose[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    attrs["('up_lidar', 'rig')"]["pose"] = pose.tolist()
+    group["poses/default/static_poses"].attrs.put(attrs)
 
 
 def frame_keys(group, lidar: str) -> list[str]:
@@ -56,14 +83,7 @@ def test_the_uncorrupted_copy_passes(directory_log, tmp_path):
 
 
 def test_a_flipped_extrinsic_empties_the_cuboids(directory_log, tmp_path):
-    def flip(group):
-        attrs = dict(group["poses/default/static_poses"].attrs)
-        pose = np.array(attrs["('up_lidar', 'rig')"]["pose"])
-        pose[:3, :3] = pose[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # upside down
-        attrs["('up_lidar', 'rig')"]["pose"] = pose.tolist()
-        group["poses/default/static_poses"].attrs.put(attrs)
-
-    failures = corrupt(directory_log, tmp_path, flip)
+    failures = corrupt(directory_log, tmp_path, flip_up_lidar)
     assert list(failures) == ["lidar up_lidar: cuboids hold points"], failures
 
 
@@ -141,7 +161,7 @@ def test_the_validate_command_prints_failures_writes_json_and_exits_non_zero(dir
     from ncore_convert.cli import cli
 
     good = CliRunner().invoke(cli, ["validate", str(directory_log.seq_dir), "--json", str(tmp_path / "good.json")])
-    assert good.exit_code == 0 and "1 sequence(s) passed, 0 failed" in good.output
+    assert good.exit_code == 0 and "1 passed, 0 failed" in good.output
     assert json.loads((tmp_path / "good.json").read_text())[0]["ok"] is True
     bad_dir = tmp_path / "bad"
     corrupt(directory_log, bad_dir, lambda g: g[f"lidars/up_lidar/frames/{frame_keys(g, 'up_lidar')[0]}"
@@ -151,3 +171,174 @@ def test_the_validate_command_prints_failures_writes_json_and_exits_non_zero(dir
     report = json.loads((tmp_path / "bad.json").read_text())[0]
     assert report["ok"] is False and any(c["name"] == "lidar up_lidar: unit directions" and not c["ok"]
                                          for c in report["checks"])  # fmt: skip
+
+
+# --- against the source (--source) ---------------------------------------------------------------
+
+
+def test_source_counts_match_on_the_synthetic_and_real_conversions(synth_log, real_log, av2_sample_root):
+    for converted, root in ((synth_log, source_root(synth_log)), (real_log, av2_sample_root)):
+        (meta,) = converted.seq_dir.glob("*.json")
+        report = validate_sequence(UPath(meta), UPath(root))
+        assert report.ok, failed(report)
+        source = {c.name: c.detail for c in report.checks if c.name.startswith("source:")}
+        assert {"source: lidar points", "source: cuboids", "source: points inside each box match num_interior_pts",
+                "source: up_lidar frames (one per sweep)"} <= set(source), source  # fmt: skip
+        assert source["source: points inside each box match num_interior_pts"].startswith("0 of ")
+    # the counts are the generator's truth, not the converter's
+    truth = synth_log.truth
+    (meta,) = synth_log.seq_dir.glob("*.json")
+    details = {c.name: c.detail for c in validate_sequence(UPath(meta), UPath(source_root(synth_log))).checks}
+    points = sum(len(s.offset_ns) for s in truth.sweeps)
+    assert details["source: lidar points"].endswith(f"{points} in the source")
+    assert details["source: cuboids"] == f"{truth.n_cuboids} converted, {truth.n_cuboids} in the source"
+
+
+def test_a_flipped_extrinsic_breaks_the_interior_point_counts(directory_log, tmp_path):
+    failures = corrupt(directory_log, tmp_path, flip_up_lidar, source=source_root(directory_log))
+    assert "source: points inside each box match num_interior_pts" in failures, failures
+
+
+def test_a_dropped_frame_is_missing_against_the_source(directory_log, tmp_path):
+    def drop(group):
+        frames = group["lidars/down_lidar/frames"]
+        key = frame_keys(group, "down_lidar")[-1]
+        del frames[key]
+        frames.attrs["frames_timestamps_us"] = [r for r in frames.attrs["frames_timestamps_us"] if r[1] != int(key)]
+
+    failures = corrupt(directory_log, tmp_path, drop, source=source_root(directory_log))
+    sweeps = len(directory_log.truth.sweeps)
+    assert failures["source: down_lidar frames (one per sweep)"] == f"{sweeps - 1} converted, {sweeps} in the source"
+    assert "source: lidar points" in failures
+
+
+def test_a_source_image_the_sequence_lacks_is_reported(synth_log, tmp_path):
+    root = tmp_path / "src"
+    shutil.copytree(source_root(synth_log), root)
+    log_dir = root / "val" / synth_log.truth.log_id
+    extra = log_dir / "sensors" / "cameras" / "ring_front_center" / "1.jpg"
+    extra.write_bytes(b"\xff\xd8")
+    (meta,) = synth_log.seq_dir.glob("*.json")
+    failures = failed(validate_sequence(UPath(meta), UPath(root)))
+    n = synth_log.loader.get_camera_sensor("ring_front_center").frames_count
+    assert failures == {"source: ring_front_center images": f"{n} converted, {n + 1} in the source"}
+
+
+# --- cooperative scenarios --------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def v2x_directory(tmp_path_factory):
+    """A V2XSet scenario (2 CAVs and an RSU, 4 frames), one directory store per agent sequence."""
+    tmp = tmp_path_factory.mktemp("coreg")
+    config = OpenCoodConfig(dataset="v2xset", frames=4, seed=6, cavs=2, infrastructure=True, lidar_columns=360)
+    (truth,) = write_dataset(UPath(tmp / "src"), config)
+    convert_scenario(UPath(tmp / "src"), UPath(tmp / "out" / truth.scenario), truth.scenario,
+                     OpenCoodOptions(dataset="v2xset", split=config.split, store_type="directory",
+                                     profile="default"))  # fmt: skip
+    return truth, tmp
+
+
+def _move_world_global(seq_dir: Path, T_fix: np.ndarray) -> None:
+    def edit(group):
+        attrs = dict(group["poses/default/static_poses"].attrs)
+        key = "('world', 'world_global')"
+        attrs[key]["pose"] = (np.array(attrs[key]["pose"]) @ T_fix).tolist()
+        group["poses/default/static_poses"].attrs.put(attrs)
+
+    edit_store(seq_dir, edit)
+
+
+@pytest.mark.parametrize("error", ["1 m", "3 deg"])
+def test_a_misregistered_agent_fails_co_registration(v2x_directory, tmp_path, error):
+    truth, tmp = v2x_directory
+    scenario = tmp_path / truth.scenario
+    shutil.copytree(tmp / "out" / truth.scenario, scenario)
+    assert check_coregistration(UPath(scenario / "scenario.json")).ok
+    manifest = json.loads((scenario / "scenario.json").read_text())
+    moved = next(a for a in manifest["agents"] if a["agent_id"] != manifest["ego"]["agent_id"])
+    T = np.eye(4)
+    if error == "1 m":
+        T[:2, 3] = [0.6, 0.8]
+    else:
+        c, s = np.cos(np.radians(3)), np.sin(np.radians(3))
+        T[:2, :2] = [[c, -s], [s, c]]
+    _move_world_global(scenario / str(moved["agent_id"]), T)
+    report = check_coregistration(UPath(scenario / "scenario.json"))
+    bad = failed(report)
+    assert list(bad) == [f"co-registration: agent {moved['agent_id']} on agent {manifest['ego']['agent_id']}"], bad
+
+
+def test_co_registration_passes_in_both_layouts_and_is_in_the_tree_report(v2x_directory, tmp_path):
+    truth, tmp = v2x_directory
+    out = tmp_path / "scenario-layout"
+    convert_scenario(UPath(tmp / "src"), UPath(out / truth.scenario), truth.scenario,
+                     OpenCoodOptions(dataset="v2xset", split="test", layout="scenario"))  # fmt: skip
+    for root in (tmp / "out", out):
+        reports = validate_tree(UPath(root), UPath(tmp / "src"))
+        assert all(r.ok for r in reports), [failed(r) for r in reports]
+        (coreg,) = [r for r in reports if r.sequence.endswith("scenario.json")]
+        assert len(coreg.checks) == len(truth.agents) - 1
+        assert all(c.name.startswith("co-registration: agent") for c in coreg.checks)
+
+
+# --- in the conversion ------------------------------------------------------------------------------
+
+
+def test_a_log_failing_validation_is_not_published_and_its_failures_are_reported(tmp_path):
+    from ncore_convert.converters.argoverse2 import convert_log
+    from ncore_convert.synth.argoverse2 import write_log
+
+    truth = write_log(UPath(tmp_path / "src" / "val"), SynthConfig(seconds=0.6, seed=4, camera_fps=0))
+    options = Argoverse2Options(split="val", store_type="directory", profile="default", camera_ids=())
+
+    def convert_then_flip(sequence_dir, log_id, progress=None):
+        summary = convert_log(UPath(tmp_path / "src"), sequence_dir, log_id, options)
+        edit_store(Path(sequence_dir.path), flip_up_lidar)
+        return summary
+
+    def plain(sequence_dir, log_id, progress=None):
+        return convert_log(UPath(tmp_path / "src"), sequence_dir, log_id, options)
+
+    out = UPath(tmp_path / "out")
+    report = RunReport(out, {"name": "test"})
+    for name, task in (("bad", convert_then_flip), ("good", plain)):
+
+        def convert(sequence_dir, log_id, progress, task=task):  # what the executors make of a log task
+            return convert_and_validate(
+                task, sequence_dir, log_id, source_root=UPath(tmp_path / "src"), progress=progress
+            )
+
+        (out / name).mkdir(parents=True, exist_ok=True)
+        result = convert_one(out / name, truth.log_id, convert, show_progress=False)
+        report.record(result, 0, 0)
+        if name == "bad":
+            assert not result.ok and result.error.startswith("validation: ")
+            assert not (tmp_path / "out" / name / truth.log_id).exists()
+            assert not list((tmp_path / "out" / name).iterdir())  # no partial folder either
+            assert any("cuboids hold points" in f for f in result.validation["failed"])
+        else:
+            assert result.ok and result.summary.validation["ok"] and result.summary.validation["checks"] > 20
+            assert (tmp_path / "out" / name / truth.log_id / f"{truth.log_id}.json").exists()
+    entries = json.loads(report.path.read_text())["logs"]
+    assert entries[truth.log_id]["validation"]["ok"] is True  # the later record of the same log id
+
+
+def test_the_conversion_command_validates_unless_told_not_to(tmp_path):
+    from click.testing import CliRunner
+
+    from ncore_convert.cli import cli
+    from ncore_convert.synth.argoverse2 import write_log
+
+    truth = write_log(UPath(tmp_path / "src" / "val"), SynthConfig(seconds=0.3, seed=8, camera_fps=0))
+    for flag, out in (("--validate", "on"), ("--no-validate", "off")):
+        result = CliRunner().invoke(cli, ["--no-progress", "--workers", "1", "--root-dir", str(tmp_path / "src"),
+                                          "--output-dir", str(tmp_path / out), flag, "argoverse2-v4", "--split", "val"],
+                                    catch_exceptions=False)  # fmt: skip
+        assert result.exit_code == 0, result.output
+        entry = json.loads((tmp_path / out / "conversion-report.json").read_text())["logs"][truth.log_id]
+        if out == "on":
+            assert entry["validation"]["ok"] is True and entry["validation"]["failed"] == []
+            assert "validated:" in result.output
+        else:
+            assert entry["validation"] is None and "validated:" not in result.output

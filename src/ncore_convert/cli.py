@@ -31,6 +31,7 @@ class GroupOptions:
     shard: tuple[int, int] | None
     executor: str
     ray_address: str | None
+    validate: bool
 
     def require_paths(self) -> tuple[UPath, UPath]:
         if not self.root_dir:
@@ -107,6 +108,11 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     "--ray-address", type=str, default=None, show_default="RAY_ADDRESS, else a cluster started on this machine",
     help="host:port of the Ray head node (with --executor ray).",
 )  # fmt: skip
+@click.option(
+    "--validate/--no-validate", default=True,
+    help="Validate each converted log (the checks of 'ncore-convert validate --source', against --root-dir)"
+    " before publishing it; a log that fails is not published and counts as failed.",
+)  # fmt: skip
 @click.pass_context
 def cli(
     ctx,
@@ -123,6 +129,7 @@ def cli(
     shard,
     executor,
     ray_address,
+    validate,
 ):
     """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences."""
     ctx.obj = GroupOptions(
@@ -136,6 +143,7 @@ def cli(
         shard=_parse_shard(shard),
         executor=executor,
         ray_address=ray_address,
+        validate=validate,
     )
     if overwrite and retry_failed:
         raise click.UsageError("--overwrite and --retry-failed exclude each other")
@@ -211,6 +219,10 @@ def _convert(obj: GroupOptions, command: str, preload: str, prepare) -> None:
         from ncore_convert.runner import report_name, run_logs, shard_logs
 
         options, todo, task, input_dir = prepare(root)
+        if obj.validate:
+            from ncore_convert.validate import convert_and_validate
+
+            task = partial(convert_and_validate, task, source_root=root)
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
         results = run_logs(
@@ -392,33 +404,40 @@ def v2xset_v4(obj: GroupOptions, split, scenarios, **options):
 
 @cli.command("validate")
 @click.argument("path", type=click.Path(exists=True))
+@click.option("--source", "source_root", type=str, default=None, show_default="none: no source comparison",
+              help="The dataset root the sequences were converted from (the converter's --root-dir): also"
+              " compare frames, points, images and cuboids with it.")  # fmt: skip
 @click.option("--json", "json_file", type=click.Path(dir_okay=False, writable=True), show_default="none",
-              help="Also write the reports to this JSON file.")  # fmt: skip
-def validate_command(path, json_file):
-    """Check converted sequences (PATH: a <sequence_id>.json, or an output folder to search).
+              help="Also write every check of every sequence to this JSON file.")  # fmt: skip
+@off_flag("--details", help="Print every check with its detail, not only the failed ones.")
+def validate_command(path, source_root, json_file, details):
+    """Check converted sequences and cooperative scenarios (PATH: a <sequence_id>.json, or an output
+    folder to search).
 
-    Prints each failed check, a line per sequence, and exits 1 if any check failed.
+    Prints a table (one row per sequence or scenario.json), each failed check, and exits 1 if any
+    check failed.
     """
     import json
 
-    from ncore_convert.validate import find_sequences, validate_sequence
+    from ncore_convert.validate import find_sequences, validate_tree
 
-    sequences = find_sequences(UPath(path))
-    if not sequences:
+    if not find_sequences(UPath(path)):
         raise click.UsageError(f"no sequence meta (<sequence_id>.json) under {path}")
-    reports = []
-    for meta in sequences:
-        report = validate_sequence(meta)
-        reports.append(report)
-        passed = sum(c.ok for c in report.checks)
-        click.echo(f"{'ok  ' if report.ok else 'FAIL'}  {meta}: {passed} of {len(report.checks)} checks passed")
+    if source_root is not None and not UPath(source_root).is_dir():
+        raise click.UsageError(f"--source {source_root}: directory not found")
+    reports = validate_tree(UPath(path), UPath(source_root) if source_root else None)
+    width = max(len(r.sequence) for r in reports)
+    click.echo(f"{'result':6}  {'checks':>6}  {'failed':>6}  {'file':{width}}")
+    for report in reports:
+        failed = sum(not c.ok for c in report.checks)
+        click.echo(f"{'ok' if report.ok else 'FAIL':6}  {len(report.checks):6}  {failed:6}  {report.sequence}")
         for check in report.checks:
-            if not check.ok:
-                click.echo(f"        {check.name}: {check.detail}")
+            if details or not check.ok:
+                click.echo(f"{'':8}{'' if check.ok else 'FAIL '}{check.name}: {check.detail}")
     if json_file:
         UPath(json_file).write_text(json.dumps([r.to_dict() for r in reports], indent=2))
     failed = sum(not r.ok for r in reports)
-    click.echo(f"{len(reports) - failed} sequence(s) passed, {failed} failed")
+    click.echo(f"{len(reports) - failed} passed, {failed} failed")
     sys.exit(1 if failed else 0)
 
 

@@ -27,10 +27,12 @@ from upath import UPath
 from ncore_convert.pool import Progress
 from ncore_convert.sources.argoverse2 import SourceError
 from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
+from ncore_convert.validate import ValidationFailed
 
 
 class Summary(Protocol):
     warnings: list[str]
+    validation: dict | None  #: ``validate.summarise`` of the log's output, when validated
 
     def line(self) -> str: ...
 
@@ -72,6 +74,7 @@ class LogResult:
     error_file: str | None = None  #: the input file at fault, when known
     skipped: bool = False
     seconds: float = 0.0
+    validation: dict | None = None  #: of a log that failed validation (a converted log's is in its summary)
 
     @property
     def warnings(self) -> list[str]:
@@ -116,6 +119,8 @@ def convert_one(
         result = LogResult(log_id, True, summary=summary)
     except SourceError as err:
         result = LogResult(log_id, False, error=str(err), error_file=err.path)
+    except ValidationFailed as err:  # the output is not published: a failed log leaves none
+        result = LogResult(log_id, False, error=str(err), validation=err.validation)
     except Exception as err:  # noqa: BLE001 - one log's failure must not stop the others
         result = LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
     finally:
@@ -172,11 +177,12 @@ class RunReport:
             "output_bytes": output_bytes,
             "warnings": result.warnings,
             "error": None if result.ok else {"file": result.error_file, "reason": result.error},
+            "validation": result.summary.validation if result.summary is not None else result.validation,
             "fingerprint": self.fingerprint,
             "finished": datetime.now(UTC).isoformat(timespec="seconds"),
         }
         if result.skipped:  # keep what the converting run measured
-            entry.update({k: self.logs[result.log_id][k] for k in ("seconds", "warnings")})
+            entry.update({k: self.logs[result.log_id].get(k) for k in ("seconds", "warnings", "validation")})
         self.logs[result.log_id] = entry
         self._write()
 
@@ -260,6 +266,8 @@ def run_logs(
         for result in executor.results(task, output_root, todo, show_progress):
             if result.ok:
                 lines = [f"ok    {result.summary.line()}"] + [f"      warning: {w}" for w in result.warnings]
+                if (validation := result.summary.validation) is not None:
+                    lines.append(f"      validated: {validation['checks']} checks passed")
             else:
                 lines = [f"FAIL  {result.log_id}: {result.error}"]
             finish(result, lines)

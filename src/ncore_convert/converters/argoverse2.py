@@ -95,6 +95,7 @@ class LogSummary(Counts):
 
     log_id: str = ""
     seconds: float = 0.0  #: wall time of the whole log
+    validation: dict | None = None  #: set by validate.convert_and_validate (None: not validated)
     lidar_model_seconds: float = 0.0  #: slowest per-unit lidar model derivation
 
     def line(self) -> str:

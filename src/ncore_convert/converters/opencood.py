@@ -144,6 +144,7 @@ class ScenarioSummary(Counts):
     agents: list[str] = field(default_factory=list)
     tracks: int = 0
     seconds: float = 0.0
+    validation: dict | None = None  #: set by validate.convert_and_validate (None: not validated)
 
     def line(self) -> str:
         return (

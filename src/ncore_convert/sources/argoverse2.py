@@ -290,6 +290,11 @@ def read_sweep(log_dir: UPath, timestamp_ns: int, with_offsets: bool = True) -> 
     return Sweep(timestamp_ns, xyz, _column(table, "intensity"), laser_number, offset_ns, path)
 
 
+def count_sweep_points(log_dir: UPath, timestamp_ns: int) -> int:
+    """Rows of a sweep file (its ``laser_number`` column only is read)."""
+    return read_table(sweep_path(log_dir, timestamp_ns), LIDAR_SCHEMA, columns=["laser_number"]).num_rows
+
+
 def read_sweep_offset_range_ns(log_dir: UPath, timestamp_ns: int) -> tuple[int, int]:
     """(min, max) of a sweep's ``offset_ns`` column without reading the points."""
     path = sweep_path(log_dir, timestamp_ns)
@@ -335,6 +340,30 @@ def read_annotations(log_dir: UPath) -> Annotations | None:
         categories=table.column("category").to_pylist(),
         dims_m=dims,
         ego_SE3_object=_poses_from_table(table),
+    )
+
+
+@dataclass(frozen=True)
+class InteriorPoints:
+    """``num_interior_pts`` of each annotation row: how many sweep points AV2 found inside the box.
+
+    Attributes:
+        timestamps_ns: int64 [M]; track_uuids: list of str [M]; counts: int64 [M].
+    """
+
+    timestamps_ns: np.ndarray
+    track_uuids: list[str]
+    counts: np.ndarray
+
+
+def read_interior_points(log_dir: UPath) -> InteriorPoints | None:
+    """The annotations' point counts, or None when the log has no ``annotations.feather``."""
+    path = log_dir / "annotations.feather"
+    if not path.exists():
+        return None
+    table = read_table(path, ANNOTATIONS_SCHEMA, columns=["timestamp_ns", "track_uuid", "num_interior_pts"])
+    return InteriorPoints(
+        _column(table, "timestamp_ns"), table.column("track_uuid").to_pylist(), _column(table, "num_interior_pts")
     )
 
 

@@ -19,7 +19,7 @@ from ncore_convert.sources.argoverse2 import SourceError
 
 _TYPES = {("F", 4): np.float32, ("F", 8): np.float64, ("U", 1): np.uint8, ("U", 2): np.uint16,
           ("U", 4): np.uint32, ("I", 1): np.int8, ("I", 2): np.int16, ("I", 4): np.int32}  # fmt: skip
-_HEADER_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+HEADER_BYTES = 65536  #: a PCD header (at most 65 lines) fits in this
 
 
 @dataclass(frozen=True)
@@ -56,13 +56,8 @@ def _parse_header(path: UPath, lines: list[bytes]) -> PcdHeader:
     return PcdHeader(tuple(fields), dtypes, points, data)
 
 
-def read_pcd(path: UPath) -> dict[str, np.ndarray]:
-    """Read a PCD file: {field name: column [N]} in file order, each in its stored type (ascii:
-    float fields as float32 parsed from text, integer fields as their type).
-
-    Raises SourceError naming the file on a bad header, a short body or unsupported encodings.
-    """
-    raw = UPath(path).read_bytes()
+def _header_lines(path: UPath, raw: bytes) -> tuple[list[bytes], int]:
+    """The header lines of a PCD file's bytes (through DATA) and the offset of its body."""
     lines, offset = [], 0
     while True:
         end = raw.find(b"\n", offset)
@@ -72,9 +67,26 @@ def read_pcd(path: UPath) -> dict[str, np.ndarray]:
         lines.append(line)
         offset = end + 1
         if line.strip().upper().startswith(b"DATA"):
-            break
+            return lines, offset
         if len(lines) > 64:
             raise SourceError(path, "PCD header has no DATA line in its first 64 lines")
+
+
+def read_pcd_header(path: UPath) -> PcdHeader:
+    """Only the header of a PCD file (its first 64 KiB are read): fields, types and point count."""
+    with UPath(path).open("rb") as f:
+        head = f.read(HEADER_BYTES)
+    return _parse_header(path, _header_lines(path, head)[0])
+
+
+def read_pcd(path: UPath) -> dict[str, np.ndarray]:
+    """Read a PCD file: {field name: column [N]} in file order, each in its stored type (ascii:
+    float fields as float32 parsed from text, integer fields as their type).
+
+    Raises SourceError naming the file on a bad header, a short body or unsupported encodings.
+    """
+    raw = UPath(path).read_bytes()
+    lines, offset = _header_lines(path, raw)
     header = _parse_header(path, lines)
     body = raw[offset:]
     if header.data == "binary":

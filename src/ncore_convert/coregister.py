@@ -1,0 +1,193 @@
+"""Cooperative scenarios: do the agents co-register in ``world_global``?
+
+At a few frames every agent shares, each agent's lidar points are taken to ``world_global``
+through its own sequence's pose graph (default poses). Structure above the ground (ground: the
+lowest point of each GROUND_CELL_M cell) that both agents see (within OVERLAP_RANGE_M of both
+lidars) must land on the other agent's points as well as under any nearby wrong registration (shifts of
+0.5-2 m, yaws of 1-5 degrees about the agent's lidar) does: the fraction of structure points within
+MATCH_M of the other agent's must be at least MIN_RATIO of the best alternative's. This makes the
+test independent of point density and viewpoint (a roadside unit sees roofs a car sees the sides
+of). Ground is left out because a horizontal shift of a flat ground still lands on ground. The
+agents are compared at the same instant, so moving objects co-register too.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from scipy.spatial import cKDTree
+from upath import UPath
+
+from ncore_convert.validate import Report
+
+MANIFEST = "scenario.json"
+FRAMES = 3  #: common frames compared, spread over the scenario
+OVERLAP_RANGE_M = 50.0
+GROUND_CELL_M = 2.0
+ABOVE_GROUND_M = 0.3
+MATCH_M = 0.3  #: a point lands on the other agent's structure within this distance
+SHIFTS_M = (0.5, 1.0, 2.0)  #: alternative registrations: shifts ...
+YAWS_DEG = (1.0, 2.0, 5.0)  #: ... and yaws about the agent's lidar
+MIN_RATIO = 0.85  #: the registration must score at least this fraction of the best alternative
+MIN_POINTS = 200  #: fewer shared structure points than this: not decisive
+
+
+@dataclass(frozen=True)
+class AgentLidar:
+    """One agent's lidar as a sequence holds it."""
+
+    agent_id: str
+    loader: SequenceLoaderV4
+    lidar_id: str
+
+    def frame_ends_us(self) -> np.ndarray:
+        return self.loader.get_lidar_sensor(self.lidar_id).frames_timestamps_us[:, 1]
+
+    def points_world_global(self, frame_end_us: int) -> tuple[np.ndarray, np.ndarray]:
+        """Motion-compensated points of the frame ending at ``frame_end_us``, world_global, float64 [N,3],
+        and the lidar's position there, float64 [3]."""
+        lidar = self.loader.get_lidar_sensor(self.lidar_id)
+        frame = int(np.flatnonzero(self.frame_ends_us() == frame_end_us)[0])
+        t = np.array([frame_end_us], dtype=np.uint64)
+        T = self.loader.pose_graph.evaluate_poses(self.lidar_id, "world_global", t)[0].astype(np.float64)
+        xyz = lidar.get_frame_point_cloud(frame, motion_compensation=True, with_start_points=False).xyz_m_end
+        return xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3], T[:3, 3]
+
+
+def scenario_lidars(manifest_path: UPath) -> list[AgentLidar]:
+    """Every written agent's lidar, from ``scenario.json`` (either layout)."""
+    manifest = json.loads(UPath(manifest_path).read_text())
+    folder = UPath(manifest_path).parent
+    lidars = []
+    shared = None
+    if manifest["layout"] == "scenario":
+        shared = SequenceLoaderV4(SequenceComponentGroupsReader([folder / manifest["sequence"]]))
+    for agent in manifest["agents"]:
+        if not agent.get("written"):
+            continue
+        lidar = next((s for s in agent["sensors"] if "lidar" in s), None)
+        if lidar is None:
+            continue
+        if shared is not None:
+            lidars.append(AgentLidar(str(agent["agent_id"]), shared, agent["frame_prefix"] + lidar))
+        else:
+            loader = SequenceLoaderV4(SequenceComponentGroupsReader([folder / agent["sequence"]]))
+            lidars.append(AgentLidar(str(agent["agent_id"]), loader, lidar))
+    return lidars
+
+
+def structure_mask(xyz_m: np.ndarray) -> np.ndarray:
+    """Points more than ABOVE_GROUND_M above the lowest point of their GROUND_CELL_M cell, bool [N]
+    (``xyz_m``: float64 [N,3], z up)."""
+    cells = np.floor(xyz_m[:, :2] / GROUND_CELL_M).astype(np.int64)
+    _, cell = np.unique(cells, axis=0, return_inverse=True)
+    ground = np.full(cell.max() + 1 if len(cell) else 0, np.inf)
+    np.minimum.at(ground, cell, xyz_m[:, 2])
+    return xyz_m[:, 2] > ground[cell] + ABOVE_GROUND_M
+
+
+def _alternatives() -> list[tuple[str, np.ndarray]]:
+    """Nearby wrong registrations of one agent: (label, 4x4 about the agent's lidar) for shifts of
+    SHIFTS_M in 8 directions and yaws of ±YAWS_DEG."""
+    out = []
+    for r in SHIFTS_M:
+        for k in range(8):
+            T = np.eye(4)
+            T[:2, 3] = r * np.cos(k * np.pi / 4), r * np.sin(k * np.pi / 4)
+            out.append((f"{T[0, 3]:+.1f} m x, {T[1, 3]:+.1f} m y", T))
+    for deg in YAWS_DEG:
+        for sign in (1, -1):
+            T = np.eye(4)
+            c, s = np.cos(np.radians(sign * deg)), np.sin(np.radians(sign * deg))
+            T[:2, :2] = [[c, -s], [s, c]]
+            out.append((f"{sign * deg:+g} deg yaw", T))
+    return out
+
+
+@dataclass(frozen=True)
+class Peak:
+    """How well agent A's shared structure lands on B's as registered, against nearby alternatives."""
+
+    overlap: float  #: fraction of A's shared structure points within MATCH_M of one of B's
+    best_alternative: float  #: the same fraction under the best alternative registration
+    best_label: str
+    points: int
+
+    @property
+    def ratio(self) -> float:
+        return self.overlap / self.best_alternative if self.best_alternative > 0 else np.inf
+
+
+def registration_peak(a_xyz: np.ndarray, a_origin: np.ndarray, b_xyz: np.ndarray, b_origin: np.ndarray) -> Peak | None:
+    """Agent A's structure on agent B's, as registered and under each of ``_alternatives()``.
+
+    Args:
+        a_xyz, b_xyz: the agents' points at one instant, world_global, float64 [N,3] (z up).
+        a_origin, b_origin: the lidars' positions, world_global, float64 [3].
+
+    Returns:
+        None when either agent has fewer than MIN_POINTS shared structure points.
+    """
+    structure = structure_mask(np.concatenate([a_xyz, b_xyz]))
+    a_struct, b_struct = a_xyz[structure[: len(a_xyz)]], b_xyz[structure[len(a_xyz) :]]
+
+    def shared(xyz: np.ndarray) -> np.ndarray:
+        near_a = np.linalg.norm(xyz - a_origin, axis=1) <= OVERLAP_RANGE_M
+        return xyz[near_a & (np.linalg.norm(xyz - b_origin, axis=1) <= OVERLAP_RANGE_M)]
+
+    a_shared, b_shared = shared(a_struct), shared(b_struct)
+    if len(a_shared) < MIN_POINTS or len(b_shared) < MIN_POINTS:
+        return None
+    tree = cKDTree(b_shared)
+    local = a_shared - a_origin
+
+    def overlap(T: np.ndarray) -> float:
+        moved = local @ T[:3, :3].T + T[:3, 3] + a_origin
+        return float(np.mean(tree.query(moved, k=1, distance_upper_bound=MATCH_M)[0] <= MATCH_M))
+
+    scores = [(overlap(T), label) for label, T in _alternatives()]
+    best, label = max(scores)
+    return Peak(overlap(np.eye(4)), best, label, len(a_shared))
+
+
+def check_coregistration(manifest_path: UPath) -> Report:
+    """Compare every agent with the first (OpenCOOD's ego comes first in ``scenario.json`` order
+    when it is written) at FRAMES common frames."""
+    report = Report(str(manifest_path))
+    try:
+        lidars = scenario_lidars(manifest_path)
+    except Exception as err:  # noqa: BLE001 - any failure to open is the finding
+        report.add("co-registration: sequences open", False, f"{type(err).__name__}: {err}".splitlines()[0])
+        return report
+    if len(lidars) < 2:
+        report.add("co-registration", True, f"{len(lidars)} agent(s) with a lidar: nothing to compare")
+        return report
+    manifest = json.loads(UPath(manifest_path).read_text())
+    ego = str(manifest.get("ego", {}).get("agent_id"))
+    lidars.sort(key=lambda a: a.agent_id != ego)
+    reference = lidars[0]
+    for other in lidars[1:]:
+        common = np.intersect1d(reference.frame_ends_us(), other.frame_ends_us())
+        name = f"co-registration: agent {other.agent_id} on agent {reference.agent_id}"
+        if not len(common):
+            report.add(name, False, "no common frame time")
+            continue
+        picks = common[np.unique(np.linspace(0, len(common) - 1, FRAMES).round().astype(int))]
+        peaks = []
+        for t in picks:
+            a_xyz, a_origin = other.points_world_global(int(t))
+            b_xyz, b_origin = reference.points_world_global(int(t))
+            if (peak := registration_peak(a_xyz, a_origin, b_xyz, b_origin)) is not None:
+                peaks.append(peak)
+        if not peaks:
+            report.add(name, True, f"fewer than {MIN_POINTS} shared structure points: not decisive")
+            continue
+        worst = min(peaks, key=lambda p: p.ratio)
+        report.add(name, worst.ratio >= MIN_RATIO,
+                   f"{worst.overlap:.0%} of {worst.points} shared structure points land within {MATCH_M} m;"
+                   f" best nearby alternative ({worst.best_label}) {worst.best_alternative:.0%}"
+                   f" (worst of {len(peaks)} frame(s); must be >= {MIN_RATIO:.0%} of it)")  # fmt: skip
+    return report

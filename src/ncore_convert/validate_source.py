@@ -1,0 +1,179 @@
+"""``validate --source ROOT``: a converted sequence's counts against its source files.
+
+Which source a sequence came from is read from its generic metadata (``source_dataset`` and the
+log or scenario id the converters write). The source side is counted from the files themselves
+(sweep rows, PCD headers, image files, annotation rows, YAML labels), not from anything the
+converter recorded, except the points it declared not representable (zero range or non-finite),
+which are in each lidar's metadata and are added back.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from ncore.data.v4 import LidarSensorComponent, SequenceComponentGroupsReader, SequenceLoaderV4
+from upath import UPath
+
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import opencood as ocd
+from ncore_convert.sources.pcd import read_pcd_header
+from ncore_convert.validate import Report, box_point_counts, boxes_at, sample_frames, world_points
+
+AV2_DATASETS = ("argoverse2-sensor", "argoverse2-tbv")
+OPENCOOD_DATASETS = ("opv2v", "v2xset")
+#: converted points inside a box may differ from AV2's num_interior_pts by this fraction (or 1 point):
+#: points on a box face can fall either side after the float16 -> float32 -> direction round trip
+INTERIOR_TOLERANCE = 0.02
+
+
+def compare_with_source(report: Report, loader: SequenceLoaderV4, reader: SequenceComponentGroupsReader,
+                        source_root: UPath) -> None:  # fmt: skip
+    """Add the ``source:`` checks of one sequence (read from ``source_root``, the converter's --root-dir)."""
+    meta = loader.generic_meta_data
+    dataset = meta.get("source_dataset")
+    try:
+        if dataset in AV2_DATASETS:
+            _compare_av2(report, loader, reader, UPath(source_root), meta)
+        elif dataset in OPENCOOD_DATASETS:
+            _compare_opencood(report, loader, reader, UPath(source_root), meta)
+        else:
+            report.add("source: dataset known", False, f"source_dataset {dataset!r} is not one this tool converts")
+    except av2.SourceError as err:
+        report.add("source: readable", False, str(err))
+
+
+def _count(report: Report, what: str, converted: int, source: int) -> None:
+    report.add(f"source: {what}", converted == source, f"{converted} converted, {source} in the source")
+
+
+def _stored_points(loader: SequenceLoaderV4, lidar_id: str) -> int:
+    lidar = loader.get_lidar_sensor(lidar_id)
+    return sum(lidar.get_frame_ray_bundle_count(i) for i in range(lidar.frames_count))
+
+
+def _selected(options: dict, kind: str) -> Callable[[str], bool]:
+    """Whether the conversion was asked for a sensor (``camera_ids``/``lidar_ids`` None: all)."""
+    chosen = options.get(f"{kind}_ids")
+    return lambda sensor: chosen is None or sensor in chosen
+
+
+def _compare_av2(report: Report, loader: SequenceLoaderV4, reader: SequenceComponentGroupsReader,
+                 root: UPath, meta: dict) -> None:  # fmt: skip
+    log_id = meta["argoverse2_log_id"]
+    split = meta.get("argoverse2_split")
+    log_dir = root / split / log_id if split else root / log_id
+    if not log_dir.is_dir():
+        report.add("source: log found", False, f"{log_dir}: not a directory")
+        return
+    options = meta.get("converter", {}).get("options", {})
+    sweeps = av2.list_sweep_timestamps_ns(log_dir)
+    for lidar_id in loader.lidar_ids:
+        _count(report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count,
+               len(sweeps))  # fmt: skip
+    if set(loader.lidar_ids) == set(av2.LIDARS):
+        lidar_meta = reader.open_component_readers(LidarSensorComponent.Reader)
+        not_stored = sum(sum(lidar_meta[u].generic_meta_data["points_not_stored"].values()) for u in av2.LIDARS)
+        stored = sum(_stored_points(loader, u) for u in av2.LIDARS)
+        source = sum(av2.count_sweep_points(log_dir, int(t)) for t in sweeps)
+        report.add("source: lidar points", stored + not_stored == source,
+                   f"{stored} stored + {not_stored} not representable, {source} in the source")  # fmt: skip
+    cameras_dir = log_dir / "sensors" / "cameras"
+    in_source = sorted(p.name for p in cameras_dir.iterdir() if p.is_dir()) if cameras_dir.is_dir() else []
+    for camera in in_source:
+        images = len(av2.list_image_timestamps_ns(log_dir, camera))
+        if camera in loader.camera_ids:
+            _count(report, f"{camera} images", loader.get_camera_sensor(camera).frames_count, images)
+        elif images and _selected(options, "camera")(camera):
+            report.add(f"source: {camera} images", False, f"0 converted, {images} in the source")
+    observations = list(loader.get_cuboid_track_observations())
+    interior = av2.read_interior_points(log_dir)
+    _count(report, "cuboids", len(observations), 0 if interior is None else len(interior.counts))
+    if interior is not None and set(loader.lidar_ids) == set(av2.LIDARS):
+        _interior_points(report, loader, observations, interior)
+
+
+def _interior_points(
+    report: Report, loader: SequenceLoaderV4, observations: list, interior: av2.InteriorPoints
+) -> None:
+    """On sampled sweeps: the converted points inside each box (both lidars, motion-compensated with
+    the per-point times) equal AV2's ``num_interior_pts``, within INTERIOR_TOLERANCE."""
+    source_points = {
+        (track, int(t_ns) // 1000): int(n)
+        for track, t_ns, n in zip(interior.track_uuids, interior.timestamps_ns, interior.counts, strict=True)
+    }
+    frames_us = loader.get_lidar_sensor(av2.LIDARS[0]).frames_timestamps_us
+    sampled = sample_frames(len(frames_us))
+    checked, off = 0, []
+    for i in sampled:
+        boxes = [b for b in boxes_at(observations, int(frames_us[i, 0]), int(frames_us[i, 1]))
+                 if (b.track_id, b.timestamp_us) in source_points]  # fmt: skip
+        if not boxes:
+            continue
+        same_sweep = [_frame_starting_at(loader, unit, int(frames_us[i, 0])) for unit in av2.LIDARS]
+        if None in same_sweep:  # a unit lacks this sweep: the frame counts above already fail
+            continue
+        xyz_world = np.concatenate([world_points(loader, u, f)[0] for u, f in zip(av2.LIDARS, same_sweep, strict=True)])
+        counts, _ = box_point_counts(loader, boxes, xyz_world)
+        expected = np.array([source_points[(b.track_id, b.timestamp_us)] for b in boxes])
+        bad = np.abs(counts - expected) > np.maximum(1, INTERIOR_TOLERANCE * expected)
+        checked += len(boxes)
+        for k in np.flatnonzero(bad):
+            off.append(f"{boxes[k].track_id[:8]}@{boxes[k].timestamp_us}: {counts[k]} vs {expected[k]}")
+    detail = f"{len(off)} of {checked} boxes differ on {len(sampled)} sampled sweeps"
+    report.add("source: points inside each box match num_interior_pts", not off,
+               detail + (f": {off[:3]}" if off else ""))  # fmt: skip
+
+
+def _frame_starting_at(loader: SequenceLoaderV4, lidar_id: str, start_us: int) -> int | None:
+    """The index of the lidar's frame starting at ``start_us`` (the sweep time), or None."""
+    index = np.flatnonzero(loader.get_lidar_sensor(lidar_id).frames_timestamps_us[:, 0] == start_us)
+    return int(index[0]) if len(index) else None
+
+
+def _compare_opencood(report: Report, loader: SequenceLoaderV4, reader: SequenceComponentGroupsReader,
+                      root: UPath, meta: dict) -> None:  # fmt: skip
+    scenario_dir = root / meta["opencood_split"] / meta["scenario"]
+    if not scenario_dir.is_dir():
+        report.add("source: scenario found", False, f"{scenario_dir}: not a directory")
+        return
+    options = meta.get("converter", {}).get("options", {})
+    agents = list(meta["agents"])
+    prefixed = len(agents) > 1 or options.get("layout") == "scenario"
+    keys = {a: ocd.list_frame_keys(scenario_dir / a) for a in ocd.list_agents(scenario_dir)}
+    for agent in agents:
+        prefix = f"agent{agent}_" if prefixed else ""
+        agent_dir = scenario_dir / agent
+        lidar_id = prefix + ocd.LIDAR
+        if lidar_id in loader.lidar_ids:
+            lidar = loader.get_lidar_sensor(lidar_id)
+            _count(report, f"{lidar_id} frames (one per YAML)", lidar.frames_count, len(keys[agent]))
+            not_stored = sum(
+                int(lidar.get_frame_generic_meta_data(i).get("points_not_stored", 0)) for i in range(lidar.frames_count)
+            )
+            stored = _stored_points(loader, lidar_id)
+            source = sum(read_pcd_header(ocd.pcd_path(agent_dir, k)).points for k in keys[agent])
+            report.add(f"source: {lidar_id} points", stored + not_stored == source,
+                       f"{stored} stored + {not_stored} not representable, {source} in the source")  # fmt: skip
+        for index, camera in enumerate(ocd.CAMERAS):
+            images = sum(ocd.camera_path(agent_dir, k, index).exists() for k in keys[agent])
+            if prefix + camera in loader.camera_ids:
+                _count(report, f"{prefix}{camera} images", loader.get_camera_sensor(prefix + camera).frames_count,
+                       images)  # fmt: skip
+            elif images and _selected(options, "camera")(camera):
+                report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")
+    reference = next((a for a in agents if meta["agents"][a].get("opencood_ego")), agents[0])
+    labels = sum(len(_labelled(scenario_dir, keys, key)) for key in keys[reference])
+    _count(report, "cuboids (every agent's labels per frame, plus the CAVs)",
+           sum(1 for _ in loader.get_cuboid_track_observations()), labels)  # fmt: skip
+
+
+def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str) -> set[int]:
+    """Actor ids at one frame key: every agent's labelled vehicles and the CAVs themselves."""
+    ids: set[int] = set()
+    for agent, agent_keys in keys.items():
+        if key in agent_keys:
+            ids.update(ocd.read_agent_frame(scenario_dir / agent, key).vehicles.actor_ids.tolist())
+            if not ocd.is_infrastructure(agent):
+                ids.add(int(agent))
+    return ids
