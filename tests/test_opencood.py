@@ -279,6 +279,7 @@ def test_damaged_frames_are_skipped_and_reported_by_the_cli(tmp_path):
     assert run.returncode == 0, run.stdout + run.stderr
     entry = json.loads((out / "conversion-report.json").read_text())["logs"][scenario_dir.name]
     assert entry["status"] == "ok"
+    assert entry["validation"]["ok"] is True  # every skipped file is declared in the sensors' skipped_frames
     text = "\n".join(entry["warnings"])
     assert f"{scenario_dir / a}: no frame for key(s) {keys[1]}" in text
     assert f"{scenario_dir / b / (keys[2] + '_camera1.png')}: file not found; image skipped" in text

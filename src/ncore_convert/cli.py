@@ -441,6 +441,33 @@ def validate_command(path, source_root, json_file, details):
     sys.exit(1 if failed else 0)
 
 
+@cli.command("preview")
+@click.argument("path", type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Folder for the PNGs.")
+@click.option("--frame", type=click.IntRange(min=0), default=None, show_default="the middle frame",
+              help="Frame index: of the first lidar (a sequence), or of the frames all agents share"
+              " (scenario.json).")  # fmt: skip
+def preview_command(path, out_dir, frame):
+    """PNGs of a converted sequence or cooperative scenario (PATH: <sequence_id>.json or scenario.json).
+
+    A sequence: lidar points projected into every camera (coloured by range, motion-aware) and a
+    bird's-eye view with cuboids and the ego trajectory. A scenario.json: every agent in one
+    bird's-eye view of world_global, with each noisy poses instance beside the ground truth.
+    """
+    from ncore_convert.preview import preview_scenario, preview_sequence
+
+    try:
+        if UPath(path).name == "scenario.json":
+            written = [preview_scenario(UPath(path), UPath(out_dir), frame)]
+        else:
+            result = preview_sequence(UPath(path), UPath(out_dir), frame)
+            written = [result.bev] + [p.png for p in result.cameras]
+    except ValueError as err:
+        raise click.UsageError(str(err)) from None
+    for png in written:
+        click.echo(f"wrote {png}")
+
+
 @cli.command("evaluate-lidar-model")
 @click.argument("sequence", type=click.Path(exists=True, dir_okay=False))
 @click.option("--lidar-id", "lidar_ids", multiple=True, show_default="every lidar", help="Evaluate only this lidar.")

@@ -33,6 +33,7 @@ SHIFTS_M = (0.5, 1.0, 2.0)  #: alternative registrations: shifts ...
 YAWS_DEG = (1.0, 2.0, 5.0)  #: ... and yaws about the agent's lidar
 MIN_RATIO = 0.85  #: the registration must score at least this fraction of the best alternative
 MIN_POINTS = 200  #: fewer shared structure points than this: not decisive
+MAX_SPACING_M = 0.2  #: sparser shared structure than this (median horizontal point spacing) is not decisive
 
 
 @dataclass(frozen=True)
@@ -89,6 +90,15 @@ def structure_mask(xyz_m: np.ndarray) -> np.ndarray:
     return xyz_m[:, 2] > ground[cell] + ABOVE_GROUND_M
 
 
+def horizontal_spacing_m(xyz_m: np.ndarray) -> float:
+    """Median distance (m) from each point's ground position to the nearest other one, float64 [N,3] in;
+    points stacked in one vertical scan column count once (a lidar's rows are close, its columns not)."""
+    columns = np.unique(np.round(xyz_m[:, :2] / 0.05).astype(np.int64), axis=0) * 0.05
+    if len(columns) < 2:
+        return float("inf")
+    return float(np.median(cKDTree(columns).query(columns, k=2)[0][:, 1]))
+
+
 def _alternatives() -> list[tuple[str, np.ndarray]]:
     """Nearby wrong registrations of one agent: (label, 4x4 about the agent's lidar) for shifts of
     SHIFTS_M in 8 directions and yaws of ±YAWS_DEG."""
@@ -115,6 +125,11 @@ class Peak:
     best_alternative: float  #: the same fraction under the best alternative registration
     best_label: str
     points: int
+    spacing_m: float  #: median distance between B's shared structure points
+
+    @property
+    def decisive(self) -> bool:
+        return self.spacing_m <= MAX_SPACING_M
 
     @property
     def ratio(self) -> float:
@@ -142,6 +157,9 @@ def registration_peak(a_xyz: np.ndarray, a_origin: np.ndarray, b_xyz: np.ndarray
     if len(a_shared) < MIN_POINTS or len(b_shared) < MIN_POINTS:
         return None
     tree = cKDTree(b_shared)
+    spacing = horizontal_spacing_m(b_shared)
+    if spacing > MAX_SPACING_M:  # too sparse to resolve the alternatives
+        return Peak(float("nan"), float("nan"), "", len(a_shared), spacing)
     local = a_shared - a_origin
 
     def overlap(T: np.ndarray) -> float:
@@ -150,7 +168,7 @@ def registration_peak(a_xyz: np.ndarray, a_origin: np.ndarray, b_xyz: np.ndarray
 
     scores = [(overlap(T), label) for label, T in _alternatives()]
     best, label = max(scores)
-    return Peak(overlap(np.eye(4)), best, label, len(a_shared))
+    return Peak(overlap(np.eye(4)), best, label, len(a_shared), spacing)
 
 
 def check_coregistration(manifest_path: UPath) -> Report:
@@ -185,6 +203,12 @@ def check_coregistration(manifest_path: UPath) -> Report:
         if not peaks:
             report.add(name, True, f"fewer than {MIN_POINTS} shared structure points: not decisive")
             continue
+        if not any(p.decisive for p in peaks):
+            spacing = min(p.spacing_m for p in peaks)
+            report.add(name, True, f"shared structure too sparse to decide (point spacing {spacing:.2f} m >"
+                       f" {MAX_SPACING_M} m)")  # fmt: skip
+            continue
+        peaks = [p for p in peaks if p.decisive]
         worst = min(peaks, key=lambda p: p.ratio)
         report.add(name, worst.ratio >= MIN_RATIO,
                    f"{worst.overlap:.0%} of {worst.points} shared structure points land within {MATCH_M} m;"

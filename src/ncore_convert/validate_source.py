@@ -12,9 +12,10 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from ncore.data.v4 import LidarSensorComponent, SequenceComponentGroupsReader, SequenceLoaderV4
+from ncore.data.v4 import CameraSensorComponent, LidarSensorComponent, SequenceComponentGroupsReader, SequenceLoaderV4
 from upath import UPath
 
+from ncore_convert.converters.opencood import SKIPPED_FRAMES
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.pcd import read_pcd_header
@@ -47,6 +48,19 @@ def _count(report: Report, what: str, converted: int, source: int) -> None:
     report.add(f"source: {what}", converted == source, f"{converted} converted, {source} in the source")
 
 
+def _accounted(report: Report, what: str, converted: int, skipped: dict[str, str], source: int) -> None:
+    """Every source frame is converted or declared skipped (in the sensor's ``skipped_frames`` metadata)."""
+    causes = sorted(set(skipped.values()))
+    report.add(f"source: {what}", converted + len(skipped) == source,
+               f"{converted} converted + {len(skipped)} declared skipped {causes if causes else ''}".rstrip()
+               + f", {source} in the source")  # fmt: skip
+
+
+def _component_meta(reader: SequenceComponentGroupsReader, component) -> dict[str, dict]:
+    """Each sensor component's generic metadata, by sensor id."""
+    return {name: r.generic_meta_data for name, r in reader.open_component_readers(component.Reader).items()}
+
+
 def _stored_points(loader: SequenceLoaderV4, lidar_id: str) -> int:
     lidar = loader.get_lidar_sensor(lidar_id)
     return sum(lidar.get_frame_ray_bundle_count(i) for i in range(lidar.frames_count))
@@ -72,8 +86,8 @@ def _compare_av2(report: Report, loader: SequenceLoaderV4, reader: SequenceCompo
         _count(report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count,
                len(sweeps))  # fmt: skip
     if set(loader.lidar_ids) == set(av2.LIDARS):
-        lidar_meta = reader.open_component_readers(LidarSensorComponent.Reader)
-        not_stored = sum(sum(lidar_meta[u].generic_meta_data["points_not_stored"].values()) for u in av2.LIDARS)
+        lidar_meta = _component_meta(reader, LidarSensorComponent)
+        not_stored = sum(sum(lidar_meta[u]["points_not_stored"].values()) for u in av2.LIDARS)
         stored = sum(_stored_points(loader, u) for u in av2.LIDARS)
         source = sum(av2.count_sweep_points(log_dir, int(t)) for t in sweeps)
         report.add("source: lidar points", stored + not_stored == source,
@@ -141,27 +155,31 @@ def _compare_opencood(report: Report, loader: SequenceLoaderV4, reader: Sequence
     agents = list(meta["agents"])
     prefixed = len(agents) > 1 or options.get("layout") == "scenario"
     keys = {a: ocd.list_frame_keys(scenario_dir / a) for a in ocd.list_agents(scenario_dir)}
+    sensor_meta = {**_component_meta(reader, LidarSensorComponent), **_component_meta(reader, CameraSensorComponent)}
     for agent in agents:
         prefix = f"agent{agent}_" if prefixed else ""
         agent_dir = scenario_dir / agent
         lidar_id = prefix + ocd.LIDAR
         if lidar_id in loader.lidar_ids:
             lidar = loader.get_lidar_sensor(lidar_id)
-            _count(report, f"{lidar_id} frames (one per YAML)", lidar.frames_count, len(keys[agent]))
+            skipped = sensor_meta[lidar_id].get(SKIPPED_FRAMES, {})
+            _accounted(report, f"{lidar_id} frames", lidar.frames_count, skipped, len(keys[agent]))
             not_stored = sum(
                 int(lidar.get_frame_generic_meta_data(i).get("points_not_stored", 0)) for i in range(lidar.frames_count)
             )
             stored = _stored_points(loader, lidar_id)
-            source = sum(read_pcd_header(ocd.pcd_path(agent_dir, k)).points for k in keys[agent])
+            source = sum(read_pcd_header(ocd.pcd_path(agent_dir, k)).points for k in keys[agent] if k not in skipped)
             report.add(f"source: {lidar_id} points", stored + not_stored == source,
-                       f"{stored} stored + {not_stored} not representable, {source} in the source")  # fmt: skip
+                       f"{stored} stored + {not_stored} not representable, {source} in the source's"
+                       " frames not declared skipped")  # fmt: skip
         for index, camera in enumerate(ocd.CAMERAS):
-            images = sum(ocd.camera_path(agent_dir, k, index).exists() for k in keys[agent])
             if prefix + camera in loader.camera_ids:
-                _count(report, f"{prefix}{camera} images", loader.get_camera_sensor(prefix + camera).frames_count,
-                       images)  # fmt: skip
-            elif images and _selected(options, "camera")(camera):
-                report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")
+                skipped = sensor_meta[prefix + camera].get(SKIPPED_FRAMES, {})
+                converted = loader.get_camera_sensor(prefix + camera).frames_count
+                _accounted(report, f"{prefix}{camera} images", converted, skipped, len(keys[agent]))
+            elif _selected(options, "camera")(camera):
+                if images := sum(ocd.camera_path(agent_dir, k, index).exists() for k in keys[agent]):
+                    report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")
     reference = next((a for a in agents if meta["agents"][a].get("opencood_ego")), agents[0])
     labels = sum(len(_labelled(scenario_dir, keys, key)) for key in keys[reference])
     _count(report, "cuboids (every agent's labels per frame, plus the CAVs)",

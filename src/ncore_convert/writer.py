@@ -74,6 +74,10 @@ class CameraStream:
     def __init__(self, writer: CameraSensorComponent.Writer) -> None:
         self._writer = writer
 
+    def set_meta(self, generic_meta_data: dict) -> None:
+        """Replace the component-level metadata (written at finalize)."""
+        self._writer.set_generic_data({}, generic_meta_data)
+
     def store_frame(self, image_bytes: bytes, image_format: str, timestamps_us: tuple[int, int]) -> None:
         """Store one encoded image with its (start, end) exposure times in microseconds."""
         self._writer.store_frame(

@@ -35,6 +35,8 @@ from ncore_convert.storage import flush_to_disk
 from ncore_convert.writer import Cuboids, Profile, SequenceWriter, StoreType, write_sequence_meta
 
 Layout = Literal["agents", "scenario"]
+#: sensor metadata: frame key -> why the source frame was not written (unreadable YAML, PCD or image)
+SKIPPED_FRAMES = "skipped_frames"
 MANIFEST = "scenario.json"
 VEHICLE_CLASS = "vehicle"
 #: A sensor's mounting, re-measured every frame, may move this much before it is reported.
@@ -86,6 +88,7 @@ class AgentPlan:
     camera_index: dict[str, int]
     lidar_ids: list[str]
     mounts: dict[str, dict]
+    skipped_keys: dict[str, str]  #: frame key -> why its YAML was unreadable (the frame is not written)
 
     @property
     def kind(self) -> str:
@@ -163,13 +166,17 @@ def timestamps_us(keys: list[str], fixed_delta_seconds: float) -> np.ndarray:
     return np.round(np.array([int(k) for k in keys], dtype=np.float64) * fixed_delta_seconds * 1e6).astype(np.int64)
 
 
-def _read_frames(agent_dir: UPath, keys: list[str], warnings: list[str]) -> list[src.AgentFrame]:
+def _read_frames(
+    agent_dir: UPath, keys: list[str], warnings: list[str], skipped: dict[str, str]
+) -> list[src.AgentFrame]:
+    """The readable frames; an unreadable YAML is a warning and ``skipped[key]`` (its cause)."""
     frames = []
     for key in keys:
         try:
             frames.append(src.read_agent_frame(agent_dir, key))
         except SourceError as err:
             warnings.append(f"{err}; frame skipped")
+            skipped[key] = err.cause
     return frames
 
 
@@ -201,9 +208,15 @@ def _mount(name: str, samples: np.ndarray, mounts: dict, warnings: list[str], wh
 
 
 def plan_agent(
-    agent_dir: UPath, frames: list[src.AgentFrame], options: OpenCoodOptions, dt: float, warnings: list[str]
+    agent_dir: UPath,
+    frames: list[src.AgentFrame],
+    options: OpenCoodOptions,
+    dt: float,
+    warnings: list[str],
+    skipped_keys: dict[str, str] | None = None,
 ) -> AgentPlan:
-    """Trajectory and calibration of one agent from its frames (at least two)."""
+    """Trajectory and calibration of one agent from its frames (at least two); ``skipped_keys``:
+    the keys whose YAML could not be read, with the cause."""
     keys = [f.path.stem for f in frames]
     lidar_pose_carla = np.array([f.lidar_pose for f in frames], dtype=np.float64)
     world_global_SE3_lidar = carla.world_SE3_right_handed(lidar_pose_carla)
@@ -246,6 +259,7 @@ def plan_agent(
         camera_index=camera_index,
         lidar_ids=lidar_ids,
         mounts=mounts,
+        skipped_keys=dict(skipped_keys or {}),
     )
 
 
@@ -306,7 +320,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     steps = np.diff([int(k) for k in all_keys])
     if len(steps) and np.any(steps != np.median(steps)):
         warnings.append(f"{scenario_dir}: frame keys do not step uniformly (steps {sorted(set(steps.tolist()))})")
-    frames = {}
+    frames, skipped_keys = {}, {}
     for agent in folders:
         missing = sorted(set(all_keys) - set(keys[agent]), key=int)
         if missing:
@@ -314,14 +328,15 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
                 f"{scenario_dir / agent}: no frame for key(s) {_keys_text(missing)} that other agents have;"
                 " skipped for this agent"
             )
-        agent_frames = _read_frames(scenario_dir / agent, keys[agent], warnings)
+        skipped_keys[agent] = {}
+        agent_frames = _read_frames(scenario_dir / agent, keys[agent], warnings, skipped_keys[agent])
         if len(agent_frames) < 2:
             warnings.append(f"{scenario_dir / agent}: fewer than 2 readable frames; agent not written")
             continue
         frames[agent] = agent_frames
     if not frames:
         raise SourceError(scenario_dir, "no agent has 2 or more readable frames")
-    agents = {a: plan_agent(scenario_dir / a, f, options, dt, warnings) for a, f in frames.items()}
+    agents = {a: plan_agent(scenario_dir / a, f, options, dt, warnings, skipped_keys[a]) for a, f in frames.items()}
     ego = src.opencood_ego(folders)
     ego_times_us = timestamps_us(keys[ego], dt)
     noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
@@ -448,11 +463,13 @@ def _write_sensors(
                 "mounting": agent.mounts[src.LIDAR]}  # fmt: skip
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
         not_stored = 0
+        skipped = dict(agent.skipped_keys)
         for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
             try:
                 xyz_carla, intensity_u8 = src.read_points(agent.agent_dir, key)
             except SourceError as err:
                 counts.warnings.append(f"{err}; lidar frame skipped")
+                skipped[key] = err.cause
                 progress(1)
                 continue
             xyz = carla.points_right_handed(xyz_carla.astype(np.float64))
@@ -464,6 +481,7 @@ def _write_sensors(
             counts.points += len(rays)
             not_stored += rays.n_zero_range + rays.n_non_finite
             progress(1)
+        lidar.set_meta({**meta, SKIPPED_FRAMES: skipped})
         counts.points_not_stored += not_stored
         if not_stored:
             counts.warnings.append(
@@ -471,8 +489,9 @@ def _write_sensors(
             )
     for cam in agent.camera_ids:
         index = agent.camera_index[cam]
-        stream = writer.add_camera(names.sensor(cam), {"agent_id": agent.agent_id, "opencood_camera": f"camera{index}",
-                                                       "mounting": agent.mounts[cam]})  # fmt: skip
+        meta = {"agent_id": agent.agent_id, "opencood_camera": f"camera{index}", "mounting": agent.mounts[cam]}
+        stream = writer.add_camera(names.sensor(cam), meta)
+        skipped = {}
         for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
             path = src.camera_path(agent.agent_dir, key, index)
             try:
@@ -480,11 +499,13 @@ def _write_sensors(
             except FileNotFoundError:
                 data = None
             if data is None or not data.startswith(PNG_SIGNATURE):
-                counts.warnings.append(f"{path}: {'file not found' if data is None else 'not a PNG'}; image skipped")
+                skipped[key] = "file not found" if data is None else "not a PNG"
+                counts.warnings.append(f"{path}: {skipped[key]}; image skipped")
             else:
                 stream.store_frame(data, "png", (int(t_us), int(t_us)))
                 counts.images += 1
             progress(1)
+        stream.set_meta({**meta, SKIPPED_FRAMES: {**agent.skipped_keys, **skipped}})
 
 
 def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id: str, progress: Progress) -> Counts:

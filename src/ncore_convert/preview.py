@@ -1,0 +1,274 @@
+"""``ncore-convert preview``: pictures of a converted sequence or cooperative scenario.
+
+- Lidar points projected into every camera at one frame, coloured by range. Motion-aware: each
+  point is taken to ``world`` at its own timestamp, and projected with the camera's rolling-shutter
+  poses (the camera model and poses are NCore's, read through ``SequenceLoaderV4``).
+- A bird's-eye view of the lidar with the cuboids and the ego trajectory (``world``, metres).
+- For a cooperative scenario (``scenario.json``): every agent in one bird's-eye view of
+  ``world_global``; with noise settings, the ground truth and each noisy poses instance side by side.
+
+Figures are drawn on matplotlib's Agg canvas without pyplot (no global state, no display).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
+from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from ncore.sensors import camera_model_from_parameters
+from upath import UPath
+
+from ncore_convert.validate import boxes_at, world_points
+
+BEV_HALF_SIZE_M = 60.0  #: the bird's-eye view spans this far around the ego in x and y
+SCENARIO_MARGIN_M = 50.0  #: the cooperative view spans the agents plus this much around them
+MAX_RANGE_M = 80.0  #: colour scale of the projections
+DPI = 100
+
+
+@dataclass(frozen=True)
+class CameraProjection:
+    """Lidar points as seen by one camera frame.
+
+    Attributes:
+        camera_id, frame: the camera and its frame index; timestamp_us: the frame's end time.
+        pixels: image coordinates (x right, y down, px) of the points in the image, float64 [M,2].
+        xyz_world_m: the same points in ``world``, float64 [M,3]; range_m: their distance to the camera [M].
+        png: the file written.
+    """
+
+    camera_id: str
+    frame: int
+    timestamp_us: int
+    pixels: np.ndarray
+    xyz_world_m: np.ndarray
+    range_m: np.ndarray
+    png: UPath
+
+
+def open_loader(sequence_json: UPath, poses_instance: str = "default") -> SequenceLoaderV4:
+    return SequenceLoaderV4(
+        SequenceComponentGroupsReader([UPath(sequence_json)]), poses_component_group_name=poses_instance
+    )
+
+
+def _nearest_frame(frames_us: np.ndarray, t_us: float) -> int:
+    """The frame (of a [N,2] start/end table, µs) whose middle is nearest ``t_us``."""
+    return int(np.argmin(np.abs(frames_us.astype(np.float64).mean(axis=1) - t_us)))
+
+
+def lidar_world_points(loader: SequenceLoaderV4, t_us: float) -> np.ndarray:
+    """Every lidar's frame nearest ``t_us``, motion-compensated into ``world``, float64 [N,3]."""
+    clouds = [np.zeros((0, 3))]
+    for lidar_id in loader.lidar_ids:
+        frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us
+        clouds.append(world_points(loader, lidar_id, _nearest_frame(frames_us, t_us))[0])
+    return np.concatenate(clouds)
+
+
+def project_into_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_m: np.ndarray):
+    """Project world points (float64 [N,3]) into a camera frame with its rolling-shutter poses.
+
+    Returns:
+        (image points float64 [M,2], indices into ``xyz_world_m`` of those points [M]).
+    """
+    camera = loader.get_camera_sensor(camera_id)
+    model = camera_model_from_parameters(camera.model_parameters, device="cpu", dtype=torch.float64)
+    t_us = camera.frames_timestamps_us[frame].astype(np.uint64)
+    T_world_camera = loader.pose_graph.evaluate_poses(camera_id, "world", t_us).astype(np.float64)
+    T_camera_world = np.linalg.inv(T_world_camera)  # NCore's projection takes world -> sensor poses
+    in_front = np.einsum("ij,nj->ni", T_camera_world[1, :3, :3], xyz_world_m)[:, 2] + T_camera_world[1, 2, 3] > 0.1
+    candidates = np.flatnonzero(in_front)
+    if not len(candidates):
+        return np.zeros((0, 2)), candidates
+    result = model.world_points_to_image_points_shutter_pose(
+        xyz_world_m[candidates], T_camera_world[0], T_camera_world[1], return_valid_indices=True
+    )
+    valid = np.atleast_1d(result.valid_indices.cpu().numpy())
+    return result.image_points.cpu().numpy().reshape(-1, 2), candidates[valid]
+
+
+def _title(loader: SequenceLoaderV4, what: str, t_us: int) -> str:
+    return f"{loader.sequence_id}  |  {what}  |  t = {t_us} µs"
+
+
+def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_m: np.ndarray, png: UPath):
+    """The camera image with the projected lidar points coloured by range; returns a CameraProjection."""
+    camera = loader.get_camera_sensor(camera_id)
+    image = camera.get_frame_image_array(frame)
+    pixels, index = project_into_camera(loader, camera_id, frame, xyz_world_m)
+    t_us = camera.frames_timestamps_us[frame].astype(np.uint64)
+    centre = loader.pose_graph.evaluate_poses(camera_id, "world", t_us[1:])[0][:3, 3]
+    range_m = np.linalg.norm(xyz_world_m[index] - centre, axis=1)
+    height, width = image.shape[:2]
+    fig = Figure(figsize=(12, 12 * height / width + 0.6), dpi=DPI)
+    ax = fig.add_axes((0.07, 0.05, 0.82, 0.89))
+    ax.imshow(image)
+    order = np.argsort(-range_m)  # near points drawn last, on top
+    dots = ax.scatter(pixels[order, 0], pixels[order, 1], c=range_m[order], s=1.5, cmap="turbo",
+                      vmin=0, vmax=MAX_RANGE_M, linewidths=0, label=f"lidar points ({len(index)})")  # fmt: skip
+    ax.set_xlim(0, width)
+    ax.set_ylim(height, 0)
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    legend = ax.legend(loc="upper right", fontsize=8)
+    legend.legend_handles[0].set_sizes([20])
+    fig.colorbar(dots, cax=fig.add_axes((0.91, 0.05, 0.02, 0.89)), label="range from the camera (m)")
+    ax.set_title(_title(loader, f"{camera_id} frame {frame}", int(t_us[1])), fontsize=10)
+    fig.savefig(str(png))
+    return CameraProjection(camera_id, frame, int(t_us[1]), pixels, xyz_world_m[index], range_m, png)
+
+
+def box_corners_world(loader: SequenceLoaderV4, box) -> np.ndarray:
+    """The 8 corners of a cuboid observation in ``world``, float64 [8,3]."""
+    from scipy.spatial.transform import Rotation
+
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    local = signs * np.asarray(box.bbox3.dim) / 2
+    R_ref_box = Rotation.from_euler("xyz", box.bbox3.rot).as_matrix()
+    xyz_ref = local @ R_ref_box.T + np.asarray(box.bbox3.centroid)
+    t = np.array([box.reference_frame_timestamp_us], dtype=np.uint64)
+    T_world_ref = loader.pose_graph.evaluate_poses(box.reference_frame_id, "world", t)[0].astype(np.float64)
+    return xyz_ref @ T_world_ref[:3, :3].T + T_world_ref[:3, 3]
+
+
+def _footprint(corners: np.ndarray) -> np.ndarray:
+    """The bottom rectangle of a box's corners ([8,3], as box_corners_world orders them), closed, [5,2]."""
+    return corners[[0, 2, 6, 4, 0], :2]
+
+
+def draw_bev(loader: SequenceLoaderV4, t_us: int, png: UPath) -> None:
+    """Bird's-eye view of ``world`` around the ego at ``t_us``: lidar points by height, cuboids, trajectory."""
+    xyz = lidar_world_points(loader, t_us)
+    ego = loader.pose_graph.evaluate_poses("rig", "world", np.array([t_us], dtype=np.uint64))[0]
+    pose_times = np.unique(np.concatenate([loader.get_lidar_sensor(s).frames_timestamps_us[:, 1]
+                                           for s in loader.lidar_ids]))  # fmt: skip
+    trajectory = loader.pose_graph.evaluate_poses("rig", "world", pose_times.astype(np.uint64))[:, :2, 3]
+    near = np.all(np.abs(xyz[:, :2] - ego[:2, 3]) < BEV_HALF_SIZE_M, axis=1)
+    fig = Figure(figsize=(10, 9.4), dpi=DPI)
+    ax = fig.add_axes((0.08, 0.06, 0.78, 0.86))
+    dots = ax.scatter(xyz[near, 0], xyz[near, 1], c=xyz[near, 2] - ego[2, 3], s=0.3, cmap="viridis",
+                      vmin=-2.0, vmax=3.0, linewidths=0, label="lidar points")  # fmt: skip
+    frame_end = int(t_us)
+    lidar0 = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us
+    f = _nearest_frame(lidar0, t_us)
+    boxes = boxes_at(list(loader.get_cuboid_track_observations()), int(lidar0[f, 0]), int(lidar0[f, 1]))
+    outlines = [_footprint(box_corners_world(loader, b)) for b in boxes]
+    ax.add_collection(LineCollection(outlines, colors="red", linewidths=1.0, label=f"cuboids ({len(boxes)})"))
+    ax.plot(trajectory[:, 0], trajectory[:, 1], "-", color="orange", lw=1.5, label="ego trajectory")
+    ax.plot(*ego[:2, 3], marker=(3, 0, np.degrees(np.arctan2(ego[1, 0], ego[0, 0])) - 90), ms=10, color="black",
+            ls="none", label="ego now")  # fmt: skip
+    ax.set_xlim(ego[0, 3] - BEV_HALF_SIZE_M, ego[0, 3] + BEV_HALF_SIZE_M)
+    ax.set_ylim(ego[1, 3] - BEV_HALF_SIZE_M, ego[1, 3] + BEV_HALF_SIZE_M)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x world (m)")
+    ax.set_ylabel("y world (m)")
+    ax.grid(alpha=0.3)
+    legend = ax.legend(loc="upper right", fontsize=8)
+    legend.legend_handles[0].set_sizes([20])  # the points' legend dot, readable
+    fig.colorbar(dots, cax=fig.add_axes((0.88, 0.06, 0.02, 0.86)), label="height above the ego origin (m)")
+    ax.set_title(_title(loader, "bird's-eye view", frame_end), fontsize=10)
+    fig.savefig(str(png))
+
+
+@dataclass(frozen=True)
+class Preview:
+    """What ``preview_sequence`` wrote: the bird's-eye view and one projection per camera."""
+
+    bev: UPath
+    cameras: list[CameraProjection]
+
+
+def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = None) -> Preview:
+    """Write ``<sequence_id>_f<frame>_bev.png`` and ``<sequence_id>_f<frame>_<camera>.png`` in ``out_dir``.
+
+    Args:
+        frame: index of the first lidar's frame to show (default: the middle one); each camera shows
+            its frame nearest in time.
+    """
+    loader = open_loader(sequence_json)
+    if not loader.lidar_ids:
+        raise ValueError(f"{sequence_json}: the sequence has no lidar to preview")
+    frames_us = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us
+    frame = len(frames_us) // 2 if frame is None else frame
+    if not 0 <= frame < len(frames_us):
+        raise ValueError(f"{sequence_json}: frame {frame} outside 0..{len(frames_us) - 1}")
+    out_dir = UPath(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = f"{loader.sequence_id}_f{frame:04d}"
+    t_mid = float(frames_us[frame].astype(np.float64).mean())
+    draw_bev(loader, int(frames_us[frame, 1]), out_dir / f"{stem}_bev.png")
+    xyz = lidar_world_points(loader, t_mid)
+    projections = []
+    for camera_id in loader.camera_ids:
+        camera_frame = _nearest_frame(loader.get_camera_sensor(camera_id).frames_timestamps_us, t_mid)
+        projections.append(draw_camera(loader, camera_id, camera_frame, xyz, out_dir / f"{stem}_{camera_id}.png"))
+    return Preview(out_dir / f"{stem}_bev.png", projections)
+
+
+def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = None) -> UPath:
+    """Every agent of a cooperative scenario in one bird's-eye view of ``world_global``; with noise
+    settings, one panel per poses instance (ground truth first). Returns the PNG written."""
+    from ncore_convert.coregister import scenario_lidars
+
+    manifest = json.loads(UPath(manifest_path).read_text())
+    instances = ["default"] + [s["poses_instance"] for s in manifest.get("noise_settings", [])]
+    agents = scenario_lidars(UPath(manifest_path))
+    if not agents:
+        raise ValueError(f"{manifest_path}: no agent with a lidar")
+    common = agents[0].frame_ends_us()
+    for agent in agents[1:]:
+        common = np.intersect1d(common, agent.frame_ends_us())
+    if not len(common):
+        raise ValueError(f"{manifest_path}: the agents share no frame time")
+    frame = len(common) // 2 if frame is None else frame
+    if not 0 <= frame < len(common):
+        raise ValueError(f"{manifest_path}: frame {frame} outside 0..{len(common) - 1} (frames all agents share)")
+    t_us = int(common[frame])
+    folder = UPath(manifest_path).parent
+    sequences = {str(a["agent_id"]): manifest["sequence"] if manifest["layout"] == "scenario" else a.get("sequence")
+                 for a in manifest["agents"]}  # fmt: skip
+    fig = Figure(figsize=(8 * len(instances), 8.4), dpi=DPI, layout="constrained")
+    colours = [f"C{i}" for i in range(10)]
+    for panel, instance in enumerate(instances):
+        ax = fig.add_subplot(1, len(instances), panel + 1)
+        positions = []
+        for k, agent in enumerate(agents):
+            loader = open_loader(folder / sequences[agent.agent_id], instance)
+            frames_us = loader.get_lidar_sensor(agent.lidar_id).frames_timestamps_us
+            i = int(np.flatnonzero(frames_us[:, 1] == t_us)[0])
+            T = loader.pose_graph.evaluate_poses(agent.lidar_id, "world_global", frames_us[i, 1:].astype(np.uint64))[0]
+            xyz = (
+                loader.get_lidar_sensor(agent.lidar_id)
+                .get_frame_point_cloud(i, motion_compensation=True, with_start_points=False)
+                .xyz_m_end.astype(np.float64)
+                @ T[:3, :3].T
+                + T[:3, 3]
+            )
+            track = loader.pose_graph.evaluate_poses(agent.lidar_id, "world_global", frames_us[:, 1].astype(np.uint64))
+            colour = colours[k % len(colours)]
+            positions.append(T[:2, 3])
+            ax.scatter(xyz[::2, 0], xyz[::2, 1], s=0.2, color=colour, linewidths=0, alpha=0.6)
+            ax.plot(track[:, 0, 3], track[:, 1, 3], "-", color=colour, lw=1.2)
+            ax.plot(T[0, 3], T[1, 3], "o", color=colour, mec="black", ms=8, label=f"agent {agent.agent_id}")
+        centre = np.mean(positions, axis=0)
+        half = np.max(np.abs(np.array(positions) - centre)) + SCENARIO_MARGIN_M
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x world_global (m)")
+        ax.set_ylabel("y world_global (m)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8, title="points, trajectory, lidar now")
+        label = "ground truth poses" if instance == "default" else f"noisy poses: {instance}"
+        ax.set_title(f"{manifest['scenario']}  |  {label}  |  t = {t_us} µs", fontsize=10)
+    out_dir = UPath(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    png = out_dir / f"{manifest['scenario']}_f{frame:04d}_agents_bev.png"
+    fig.savefig(str(png))
+    return png
