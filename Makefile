@@ -36,6 +36,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_tbv.py
 	$(PY) bench/bench_opencood.py
 	$(PY) bench/bench_noise.py
+	$(PY) bench/bench_validate.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info

@@ -140,7 +140,7 @@ def convert_cli(log_dir: Path, out: Path, workers: int, model_source: str) -> fl
     t = time.perf_counter()
     subprocess.run(
         [str(cli), "--root-dir", str(log_dir.parent.parent), "--output-dir", str(out), "--workers", str(workers),
-         "--no-progress", "argoverse2-v4", "--split", "val", "--lidar-model-source", model_source],
+         "--no-progress", "--no-validate", "argoverse2-v4", "--split", "val", "--lidar-model-source", model_source],
         check=True, capture_output=True,
     )  # fmt: skip
     subprocess.run(["sync"], check=True)

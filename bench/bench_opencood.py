@@ -43,8 +43,8 @@ def convert(root: Path, out: Path, workers: int) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     cli = Path(sys.executable).parent / "ncore-convert"
     started = time.perf_counter()
-    run = subprocess.run([str(cli), "--no-progress", "--workers", str(workers), "--root-dir", str(root),
-                          "--output-dir", str(out), "opv2v-v4", "--split", "test"],
+    run = subprocess.run([str(cli), "--no-progress", "--no-validate", "--workers", str(workers),
+                          "--root-dir", str(root), "--output-dir", str(out), "opv2v-v4", "--split", "test"],
                          check=True, capture_output=True, text=True)  # fmt: skip
     seconds = time.perf_counter() - started
     points = int(re.search(r"lidar frames, (\d+) points", run.stdout).group(1))

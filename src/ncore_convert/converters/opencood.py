@@ -88,7 +88,7 @@ class AgentPlan:
     camera_index: dict[str, int]
     lidar_ids: list[str]
     mounts: dict[str, dict]
-    skipped_keys: dict[str, str]  #: frame key -> why its YAML was unreadable (the frame is not written)
+    skipped_keys: dict[str, str] = field(default_factory=dict)  #: frame key -> why its YAML was unreadable
 
     @property
     def kind(self) -> str:
