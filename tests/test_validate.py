@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +79,14 @@ def frame_keys(group, lidar: str) -> list[str]:
     return sorted(group[f"lidars/{lidar}/frames"].group_keys(), key=int)
 
 
+def drop_frame(group, lidar: str, index: int) -> None:
+    """Delete a lidar frame: its data and its entry in the frame list."""
+    frames = group[f"lidars/{lidar}/frames"]
+    key = frame_keys(group, lidar)[index]
+    del frames[key]
+    frames.attrs["frames_timestamps_us"] = [r for r in frames.attrs["frames_timestamps_us"] if r[1] != int(key)]
+
+
 def test_the_uncorrupted_copy_passes(directory_log, tmp_path):
     assert corrupt(directory_log, tmp_path, lambda g: None) == {}
 
@@ -99,13 +108,7 @@ def test_a_shifted_timestamp_leaves_points_outside_their_frame(directory_log, tm
 
 
 def test_a_dropped_frame_breaks_the_frame_spacing(directory_log, tmp_path):
-    def drop(group):
-        frames = group["lidars/up_lidar/frames"]
-        key = frame_keys(group, "up_lidar")[3]
-        del frames[key]  # the frame's data and its entry in the frame list
-        frames.attrs["frames_timestamps_us"] = [r for r in frames.attrs["frames_timestamps_us"] if r[1] != int(key)]
-
-    failures = corrupt(directory_log, tmp_path, drop)
+    failures = corrupt(directory_log, tmp_path, partial(drop_frame, lidar="up_lidar", index=3))
     assert list(failures) == ["lidar up_lidar: frame spacing"], failures
     assert "a dropped or shifted frame" in failures["lidar up_lidar: frame spacing"]
 
@@ -200,12 +203,7 @@ def test_a_flipped_extrinsic_breaks_the_interior_point_counts(directory_log, tmp
 
 
 def test_a_dropped_frame_is_missing_against_the_source(directory_log, tmp_path):
-    def drop(group):
-        frames = group["lidars/down_lidar/frames"]
-        key = frame_keys(group, "down_lidar")[-1]
-        del frames[key]
-        frames.attrs["frames_timestamps_us"] = [r for r in frames.attrs["frames_timestamps_us"] if r[1] != int(key)]
-
+    drop = partial(drop_frame, lidar="down_lidar", index=-1)
     failures = corrupt(directory_log, tmp_path, drop, source=source_root(directory_log))
     sweeps = len(directory_log.truth.sweeps)
     assert failures["source: down_lidar frames (one per sweep)"] == f"{sweeps - 1} converted, {sweeps} in the source"

@@ -419,13 +419,13 @@ def validate_command(path, source_root, json_file, details):
     """
     import json
 
-    from ncore_convert.validate import find_sequences, validate_tree
+    from ncore_convert.validate import validate_tree
 
-    if not find_sequences(UPath(path)):
-        raise click.UsageError(f"no sequence meta (<sequence_id>.json) under {path}")
     if source_root is not None and not UPath(source_root).is_dir():
         raise click.UsageError(f"--source {source_root}: directory not found")
     reports = validate_tree(UPath(path), UPath(source_root) if source_root else None)
+    if not reports:
+        raise click.UsageError(f"no sequence meta (<sequence_id>.json) under {path}")
     width = max(len(r.sequence) for r in reports)
     click.echo(f"{'result':6}  {'checks':>6}  {'failed':>6}  {'file':{width}}")
     for report in reports:
@@ -454,10 +454,11 @@ def preview_command(path, out_dir, frame):
     bird's-eye view with cuboids and the ego trajectory. A scenario.json: every agent in one
     bird's-eye view of world_global, with each noisy poses instance beside the ground truth.
     """
+    from ncore_convert.converters.opencood import MANIFEST
     from ncore_convert.preview import preview_scenario, preview_sequence
 
     try:
-        if UPath(path).name == "scenario.json":
+        if UPath(path).name == MANIFEST:
             written = [preview_scenario(UPath(path), UPath(out_dir), frame)]
         else:
             result = preview_sequence(UPath(path), UPath(out_dir), frame)

@@ -21,9 +21,9 @@ from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from scipy.spatial import cKDTree
 from upath import UPath
 
-from ncore_convert.validate import Report
+from ncore_convert.sources import opencood as ocd
+from ncore_convert.validate import Report, world_points
 
-MANIFEST = "scenario.json"
 FRAMES = 3  #: common frames compared, spread over the scenario
 OVERLAP_RANGE_M = 50.0
 GROUND_CELL_M = 2.0
@@ -41,43 +41,37 @@ class AgentLidar:
     """One agent's lidar as a sequence holds it."""
 
     agent_id: str
+    sequence_json: UPath
     loader: SequenceLoaderV4
     lidar_id: str
 
     def frame_ends_us(self) -> np.ndarray:
         return self.loader.get_lidar_sensor(self.lidar_id).frames_timestamps_us[:, 1]
 
-    def points_world_global(self, frame_end_us: int) -> tuple[np.ndarray, np.ndarray]:
-        """Motion-compensated points of the frame ending at ``frame_end_us``, world_global, float64 [N,3],
-        and the lidar's position there, float64 [3]."""
-        lidar = self.loader.get_lidar_sensor(self.lidar_id)
-        frame = int(np.flatnonzero(self.frame_ends_us() == frame_end_us)[0])
-        t = np.array([frame_end_us], dtype=np.uint64)
-        T = self.loader.pose_graph.evaluate_poses(self.lidar_id, "world_global", t)[0].astype(np.float64)
-        xyz = lidar.get_frame_point_cloud(frame, motion_compensation=True, with_start_points=False).xyz_m_end
-        return xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3], T[:3, 3]
+    def frame_ending_at(self, frame_end_us: int) -> int:
+        return int(np.flatnonzero(self.frame_ends_us() == frame_end_us)[0])
 
 
-def scenario_lidars(manifest_path: UPath) -> list[AgentLidar]:
-    """Every written agent's lidar, from ``scenario.json`` (either layout)."""
-    manifest = json.loads(UPath(manifest_path).read_text())
+def read_manifest(manifest_path: UPath) -> dict:
+    return json.loads(UPath(manifest_path).read_text())
+
+
+def scenario_lidars(manifest_path: UPath, manifest: dict) -> list[AgentLidar]:
+    """Every written agent's lidar, from ``scenario.json`` (either layout), the OpenCOOD ego first."""
     folder = UPath(manifest_path).parent
+    loaders: dict[str, SequenceLoaderV4] = {}  # one per sequence: the scenario layout shares one
     lidars = []
-    shared = None
-    if manifest["layout"] == "scenario":
-        shared = SequenceLoaderV4(SequenceComponentGroupsReader([folder / manifest["sequence"]]))
     for agent in manifest["agents"]:
-        if not agent.get("written"):
+        if not agent.get("written") or ocd.LIDAR not in agent["sensors"]:
             continue
-        lidar = next((s for s in agent["sensors"] if "lidar" in s), None)
-        if lidar is None:
-            continue
-        if shared is not None:
-            lidars.append(AgentLidar(str(agent["agent_id"]), shared, agent["frame_prefix"] + lidar))
-        else:
-            loader = SequenceLoaderV4(SequenceComponentGroupsReader([folder / agent["sequence"]]))
-            lidars.append(AgentLidar(str(agent["agent_id"]), loader, lidar))
-    return lidars
+        scenario_layout = manifest["layout"] == "scenario"
+        sequence = folder / (manifest["sequence"] if scenario_layout else agent["sequence"])
+        if str(sequence) not in loaders:
+            loaders[str(sequence)] = SequenceLoaderV4(SequenceComponentGroupsReader([sequence]))
+        lidar_id = (agent["frame_prefix"] if scenario_layout else "") + ocd.LIDAR
+        lidars.append(AgentLidar(str(agent["agent_id"]), sequence, loaders[str(sequence)], lidar_id))
+    ego = str(manifest.get("ego", {}).get("agent_id"))
+    return sorted(lidars, key=lambda a: a.agent_id != ego)
 
 
 def structure_mask(xyz_m: np.ndarray) -> np.ndarray:
@@ -117,6 +111,9 @@ def _alternatives() -> list[tuple[str, np.ndarray]]:
     return out
 
 
+ALTERNATIVES = _alternatives()
+
+
 @dataclass(frozen=True)
 class Peak:
     """How well agent A's shared structure lands on B's as registered, against nearby alternatives."""
@@ -137,7 +134,7 @@ class Peak:
 
 
 def registration_peak(a_xyz: np.ndarray, a_origin: np.ndarray, b_xyz: np.ndarray, b_origin: np.ndarray) -> Peak | None:
-    """Agent A's structure on agent B's, as registered and under each of ``_alternatives()``.
+    """Agent A's structure on agent B's, as registered and under each of ALTERNATIVES.
 
     Args:
         a_xyz, b_xyz: the agents' points at one instant, world_global, float64 [N,3] (z up).
@@ -166,26 +163,23 @@ def registration_peak(a_xyz: np.ndarray, a_origin: np.ndarray, b_xyz: np.ndarray
         moved = local @ T[:3, :3].T + T[:3, 3] + a_origin
         return float(np.mean(tree.query(moved, k=1, distance_upper_bound=MATCH_M)[0] <= MATCH_M))
 
-    scores = [(overlap(T), label) for label, T in _alternatives()]
+    scores = [(overlap(T), label) for label, T in ALTERNATIVES]
     best, label = max(scores)
     return Peak(overlap(np.eye(4)), best, label, len(a_shared), spacing)
 
 
 def check_coregistration(manifest_path: UPath) -> Report:
-    """Compare every agent with the first (OpenCOOD's ego comes first in ``scenario.json`` order
-    when it is written) at FRAMES common frames."""
+    """Compare every agent with the OpenCOOD ego (or the first agent, when the ego was not written)
+    at FRAMES common frames."""
     report = Report(str(manifest_path))
     try:
-        lidars = scenario_lidars(manifest_path)
+        lidars = scenario_lidars(manifest_path, read_manifest(manifest_path))
     except Exception as err:  # noqa: BLE001 - any failure to open is the finding
         report.add("co-registration: sequences open", False, f"{type(err).__name__}: {err}".splitlines()[0])
         return report
     if len(lidars) < 2:
         report.add("co-registration", True, f"{len(lidars)} agent(s) with a lidar: nothing to compare")
         return report
-    manifest = json.loads(UPath(manifest_path).read_text())
-    ego = str(manifest.get("ego", {}).get("agent_id"))
-    lidars.sort(key=lambda a: a.agent_id != ego)
     reference = lidars[0]
     for other in lidars[1:]:
         common = np.intersect1d(reference.frame_ends_us(), other.frame_ends_us())
@@ -196,8 +190,10 @@ def check_coregistration(manifest_path: UPath) -> Report:
         picks = common[np.unique(np.linspace(0, len(common) - 1, FRAMES).round().astype(int))]
         peaks = []
         for t in picks:
-            a_xyz, a_origin = other.points_world_global(int(t))
-            b_xyz, b_origin = reference.points_world_global(int(t))
+            a_xyz, a_origin = world_points(other.loader, other.lidar_id, other.frame_ending_at(t), "world_global")
+            b_xyz, b_origin = world_points(
+                reference.loader, reference.lidar_id, reference.frame_ending_at(t), "world_global"
+            )
             if (peak := registration_peak(a_xyz, a_origin, b_xyz, b_origin)) is not None:
                 peaks.append(peak)
         if not peaks:

@@ -12,7 +12,6 @@ Figures are drawn on matplotlib's Agg canvas without pyplot (no global state, no
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +20,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from ncore.sensors import camera_model_from_parameters
+from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.validate import boxes_at, world_points
@@ -126,8 +126,6 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
 
 def box_corners_world(loader: SequenceLoaderV4, box) -> np.ndarray:
     """The 8 corners of a cuboid observation in ``world``, float64 [8,3]."""
-    from scipy.spatial.transform import Rotation
-
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
     local = signs * np.asarray(box.bbox3.dim) / 2
     R_ref_box = Rotation.from_euler("xyz", box.bbox3.rot).as_matrix()
@@ -142,9 +140,9 @@ def _footprint(corners: np.ndarray) -> np.ndarray:
     return corners[[0, 2, 6, 4, 0], :2]
 
 
-def draw_bev(loader: SequenceLoaderV4, t_us: int, png: UPath) -> None:
-    """Bird's-eye view of ``world`` around the ego at ``t_us``: lidar points by height, cuboids, trajectory."""
-    xyz = lidar_world_points(loader, t_us)
+def draw_bev(loader: SequenceLoaderV4, t_us: int, xyz: np.ndarray, png: UPath) -> None:
+    """Bird's-eye view of ``world`` around the ego at ``t_us``: the lidar points (world, float64 [N,3])
+    by height, the cuboids of that sweep, the ego trajectory."""
     ego = loader.pose_graph.evaluate_poses("rig", "world", np.array([t_us], dtype=np.uint64))[0]
     pose_times = np.unique(np.concatenate([loader.get_lidar_sensor(s).frames_timestamps_us[:, 1]
                                            for s in loader.lidar_ids]))  # fmt: skip
@@ -202,8 +200,8 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
     out_dir.mkdir(parents=True, exist_ok=True)
     stem = f"{loader.sequence_id}_f{frame:04d}"
     t_mid = float(frames_us[frame].astype(np.float64).mean())
-    draw_bev(loader, int(frames_us[frame, 1]), out_dir / f"{stem}_bev.png")
     xyz = lidar_world_points(loader, t_mid)
+    draw_bev(loader, int(frames_us[frame, 1]), xyz, out_dir / f"{stem}_bev.png")
     projections = []
     for camera_id in loader.camera_ids:
         camera_frame = _nearest_frame(loader.get_camera_sensor(camera_id).frames_timestamps_us, t_mid)
@@ -214,11 +212,11 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
 def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = None) -> UPath:
     """Every agent of a cooperative scenario in one bird's-eye view of ``world_global``; with noise
     settings, one panel per poses instance (ground truth first). Returns the PNG written."""
-    from ncore_convert.coregister import scenario_lidars
+    from ncore_convert.coregister import read_manifest, scenario_lidars
 
-    manifest = json.loads(UPath(manifest_path).read_text())
+    manifest = read_manifest(manifest_path)
     instances = ["default"] + [s["poses_instance"] for s in manifest.get("noise_settings", [])]
-    agents = scenario_lidars(UPath(manifest_path))
+    agents = scenario_lidars(UPath(manifest_path), manifest)
     if not agents:
         raise ValueError(f"{manifest_path}: no agent with a lidar")
     common = agents[0].frame_ends_us()
@@ -230,32 +228,24 @@ def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = N
     if not 0 <= frame < len(common):
         raise ValueError(f"{manifest_path}: frame {frame} outside 0..{len(common) - 1} (frames all agents share)")
     t_us = int(common[frame])
-    folder = UPath(manifest_path).parent
-    sequences = {str(a["agent_id"]): manifest["sequence"] if manifest["layout"] == "scenario" else a.get("sequence")
-                 for a in manifest["agents"]}  # fmt: skip
     fig = Figure(figsize=(8 * len(instances), 8.4), dpi=DPI, layout="constrained")
     colours = [f"C{i}" for i in range(10)]
     for panel, instance in enumerate(instances):
         ax = fig.add_subplot(1, len(instances), panel + 1)
         positions = []
+        loaders: dict[str, SequenceLoaderV4] = {}  # the scenario layout: one sequence for every agent
         for k, agent in enumerate(agents):
-            loader = open_loader(folder / sequences[agent.agent_id], instance)
-            frames_us = loader.get_lidar_sensor(agent.lidar_id).frames_timestamps_us
-            i = int(np.flatnonzero(frames_us[:, 1] == t_us)[0])
-            T = loader.pose_graph.evaluate_poses(agent.lidar_id, "world_global", frames_us[i, 1:].astype(np.uint64))[0]
-            xyz = (
-                loader.get_lidar_sensor(agent.lidar_id)
-                .get_frame_point_cloud(i, motion_compensation=True, with_start_points=False)
-                .xyz_m_end.astype(np.float64)
-                @ T[:3, :3].T
-                + T[:3, 3]
-            )
-            track = loader.pose_graph.evaluate_poses(agent.lidar_id, "world_global", frames_us[:, 1].astype(np.uint64))
+            if str(agent.sequence_json) not in loaders:
+                loaders[str(agent.sequence_json)] = open_loader(agent.sequence_json, instance)
+            loader = loaders[str(agent.sequence_json)]
+            xyz, origin = world_points(loader, agent.lidar_id, agent.frame_ending_at(t_us), "world_global")
+            ends_us = agent.frame_ends_us().astype(np.uint64)
+            track = loader.pose_graph.evaluate_poses(agent.lidar_id, "world_global", ends_us)
             colour = colours[k % len(colours)]
-            positions.append(T[:2, 3])
+            positions.append(origin[:2])
             ax.scatter(xyz[::2, 0], xyz[::2, 1], s=0.2, color=colour, linewidths=0, alpha=0.6)
             ax.plot(track[:, 0, 3], track[:, 1, 3], "-", color=colour, lw=1.2)
-            ax.plot(T[0, 3], T[1, 3], "o", color=colour, mec="black", ms=8, label=f"agent {agent.agent_id}")
+            ax.plot(origin[0], origin[1], "o", color=colour, mec="black", ms=8, label=f"agent {agent.agent_id}")
         centre = np.mean(positions, axis=0)
         half = np.max(np.abs(np.array(positions) - centre)) + SCENARIO_MARGIN_M
         ax.set_xlim(centre[0] - half, centre[0] + half)

@@ -95,15 +95,18 @@ def sample_frames(n_frames: int) -> np.ndarray:
     return np.unique(np.linspace(0, n_frames - 1, OCCUPANCY_FRAMES).round().astype(int))
 
 
-def world_points(loader: SequenceLoaderV4, lidar_id: str, frame: int) -> tuple[np.ndarray, np.ndarray]:
-    """A lidar frame's points, motion-compensated with the per-point times, in ``world``.
+def world_points(
+    loader: SequenceLoaderV4, lidar_id: str, frame: int, target: str = "world"
+) -> tuple[np.ndarray, np.ndarray]:
+    """A lidar frame's points, motion-compensated with the per-point times, in ``target`` (``world``
+    or ``world_global``).
 
     Returns:
-        xyz_world_m float64 [N,3] and the sensor's position in world at the frame end, float64 [3].
+        xyz_m in target, float64 [N,3], and the sensor's position there at the frame end, float64 [3].
     """
     lidar = loader.get_lidar_sensor(lidar_id)
     t_end = lidar.frames_timestamps_us[frame, 1:2].astype(np.uint64)
-    T_world_sensor = loader.pose_graph.evaluate_poses(lidar_id, "world", t_end)[0].astype(np.float64)
+    T_world_sensor = loader.pose_graph.evaluate_poses(lidar_id, target, t_end)[0].astype(np.float64)
     xyz = lidar.get_frame_point_cloud(frame, motion_compensation=True, with_start_points=False).xyz_m_end
     return xyz.astype(np.float64) @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3], T_world_sensor[:3, 3]
 
@@ -243,7 +246,8 @@ def validate_tree(path: UPath, source_root: UPath | None = None, relative_to: UP
     """Validate a sequence meta, or every sequence and cooperative scenario (``scenario.json``:
     co-registration of its agents) below a folder. Reports name their file relative to
     ``relative_to`` when given."""
-    from ncore_convert.coregister import MANIFEST, check_coregistration
+    from ncore_convert.converters.opencood import MANIFEST
+    from ncore_convert.coregister import check_coregistration
 
     path = UPath(path)
     reports = [validate_sequence(meta, source_root) for meta in find_sequences(path)]

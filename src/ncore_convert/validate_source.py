@@ -9,7 +9,7 @@ which are in each lidar's metadata and are added back.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from functools import lru_cache
 
 import numpy as np
 from ncore.data.v4 import CameraSensorComponent, LidarSensorComponent, SequenceComponentGroupsReader, SequenceLoaderV4
@@ -66,10 +66,9 @@ def _stored_points(loader: SequenceLoaderV4, lidar_id: str) -> int:
     return sum(lidar.get_frame_ray_bundle_count(i) for i in range(lidar.frames_count))
 
 
-def _selected(options: dict, kind: str) -> Callable[[str], bool]:
-    """Whether the conversion was asked for a sensor (``camera_ids``/``lidar_ids`` None: all)."""
-    chosen = options.get(f"{kind}_ids")
-    return lambda sensor: chosen is None or sensor in chosen
+def _camera_selected(options: dict, camera: str) -> bool:
+    """Whether the conversion was asked for this camera (``camera_ids`` None: all)."""
+    return options.get("camera_ids") is None or camera in options["camera_ids"]
 
 
 def _compare_av2(report: Report, loader: SequenceLoaderV4, reader: SequenceComponentGroupsReader,
@@ -98,7 +97,7 @@ def _compare_av2(report: Report, loader: SequenceLoaderV4, reader: SequenceCompo
         images = len(av2.list_image_timestamps_ns(log_dir, camera))
         if camera in loader.camera_ids:
             _count(report, f"{camera} images", loader.get_camera_sensor(camera).frames_count, images)
-        elif images and _selected(options, "camera")(camera):
+        elif images and _camera_selected(options, camera):
             report.add(f"source: {camera} images", False, f"0 converted, {images} in the source")
     observations = list(loader.get_cuboid_track_observations())
     interior = av2.read_interior_points(log_dir)
@@ -177,7 +176,7 @@ def _compare_opencood(report: Report, loader: SequenceLoaderV4, reader: Sequence
                 skipped = sensor_meta[prefix + camera].get(SKIPPED_FRAMES, {})
                 converted = loader.get_camera_sensor(prefix + camera).frames_count
                 _accounted(report, f"{prefix}{camera} images", converted, skipped, len(keys[agent]))
-            elif _selected(options, "camera")(camera):
+            elif _camera_selected(options, camera):
                 if images := sum(ocd.camera_path(agent_dir, k, index).exists() for k in keys[agent]):
                     report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")
     reference = next((a for a in agents if meta["agents"][a].get("opencood_ego")), agents[0])
@@ -191,7 +190,13 @@ def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str) -> set[
     ids: set[int] = set()
     for agent, agent_keys in keys.items():
         if key in agent_keys:
-            ids.update(ocd.read_agent_frame(scenario_dir / agent, key).vehicles.actor_ids.tolist())
+            ids.update(_vehicle_ids(str(scenario_dir / agent), key))
             if not ocd.is_infrastructure(agent):
                 ids.add(int(agent))
     return ids
+
+
+@lru_cache(maxsize=8192)
+def _vehicle_ids(agent_dir: str, key: str) -> frozenset[int]:
+    """The vehicles one agent's YAML labels (cached: every agent's sequence of a scenario needs them all)."""
+    return frozenset(ocd.read_agent_frame(UPath(agent_dir), key).vehicles.actor_ids.tolist())

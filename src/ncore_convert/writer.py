@@ -68,15 +68,19 @@ class Cuboids:
         return len(self.track_ids)
 
 
-class CameraStream:
-    """Frames of one camera. Image bytes are stored as given (no re-encode)."""
+class _SensorStream:
+    """A sensor component writer; its component-level metadata can be set after the frames."""
 
-    def __init__(self, writer: CameraSensorComponent.Writer) -> None:
+    def __init__(self, writer: CameraSensorComponent.Writer | LidarSensorComponent.Writer) -> None:
         self._writer = writer
 
     def set_meta(self, generic_meta_data: dict) -> None:
         """Replace the component-level metadata (written at finalize)."""
         self._writer.set_generic_data({}, generic_meta_data)
+
+
+class CameraStream(_SensorStream):
+    """Frames of one camera. Image bytes are stored as given (no re-encode)."""
 
     def store_frame(self, image_bytes: bytes, image_format: str, timestamps_us: tuple[int, int]) -> None:
         """Store one encoded image with its (start, end) exposure times in microseconds."""
@@ -89,11 +93,8 @@ class CameraStream:
         )
 
 
-class LidarStream:
+class LidarStream(_SensorStream):
     """Frames of one lidar, stored as single-return ray bundles."""
-
-    def __init__(self, writer: LidarSensorComponent.Writer) -> None:
-        self._writer = writer
 
     def store_frame(self, rays: RayBundle, generic_meta_data: dict, model_element: np.ndarray | None = None) -> None:
         """Store one frame; ``model_element`` is uint16 [N,2] (row, column) of the lidar's model, or None."""
@@ -107,10 +108,6 @@ class LidarStream:
             generic_data={},
             generic_meta_data=generic_meta_data,
         )
-
-    def set_meta(self, generic_meta_data: dict) -> None:
-        """Add or replace component-level metadata (written at finalize)."""
-        self._writer.set_generic_data({}, generic_meta_data)
 
 
 #: Names of the HD map in the poses component's generic data and generic metadata.
