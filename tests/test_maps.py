@@ -14,7 +14,7 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError
 from ncore_convert.writer import MAP_GROUND_HEIGHT, MAP_META, MAP_VECTOR_JSON
 
 

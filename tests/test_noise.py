@@ -21,7 +21,7 @@ from ncore_convert.cli import noise_settings
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.noise_config import NoiseSetting, check_unique, make_setting, read_noise_config
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError
 from ncore_convert.synth.opencood import ScenarioTruth, SynthConfig, carla_pose_matrix, write_dataset
 
 MIRROR = np.diag([1.0, -1.0, 1.0, 1.0])

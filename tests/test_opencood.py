@@ -20,7 +20,7 @@ from upath import UPath
 
 from ncore_convert.converters.opencood import OpenCoodOptions, ScenarioSummary, convert_scenario
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError
 from ncore_convert.synth.opencood import (
     PILLAR_DIMS_M,
     ScenarioTruth,
@@ -283,7 +283,7 @@ def test_damaged_frames_are_skipped_and_reported_by_the_cli(tmp_path):
     text = "\n".join(entry["warnings"])
     assert f"{scenario_dir / a}: no frame for key(s) {keys[1]}" in text
     assert f"{scenario_dir / b / (keys[2] + '_camera1.png')}: file not found; image skipped" in text
-    assert f"{scenario_dir / c / (keys[0] + '_camera3.png')}: not a PNG; image skipped" in text
+    assert f"{scenario_dir / c / (keys[0] + '_camera3.png')}: not a PNG file (missing signature); image skipped" in text
     sequence = out / scenario_dir.name / a / f"{scenario_dir.name}_agent{a}.json"
     loader = SequenceLoaderV4(SequenceComponentGroupsReader([UPath(sequence)]))
     assert loader.get_lidar_sensor(src.LIDAR).frames_count == len(keys) - 1

@@ -32,6 +32,7 @@ class GroupOptions:
     executor: str
     ray_address: str | None
     validate: bool
+    verbose: bool
 
     def require_paths(self) -> tuple[UPath, UPath]:
         if not self.root_dir:
@@ -113,6 +114,7 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     help="Validate each converted log (the checks of 'ncore-convert validate --source', against --root-dir)"
     " before publishing it; a log that fails is not published and counts as failed.",
 )  # fmt: skip
+@off_flag("--verbose", "-v", help="Print the traceback of each failed log under its one-line error.")
 @click.pass_context
 def cli(
     ctx,
@@ -130,6 +132,7 @@ def cli(
     executor,
     ray_address,
     validate,
+    verbose,
 ):
     """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences."""
     ctx.obj = GroupOptions(
@@ -144,6 +147,7 @@ def cli(
         executor=executor,
         ray_address=ray_address,
         validate=validate,
+        verbose=verbose,
     )
     if overwrite and retry_failed:
         raise click.UsageError("--overwrite and --retry-failed exclude each other")
@@ -228,6 +232,7 @@ def _convert(obj: GroupOptions, command: str, preload: str, prepare) -> None:
         results = run_logs(
             out, shard_logs(todo, obj.shard), task, executor, echo=click.echo, show_progress=obj.progress,
             fingerprint=fingerprint, mode=obj.mode, input_dir=input_dir, report_file=report_name(obj.shard),
+            verbose=obj.verbose,
         )  # fmt: skip
     failed = sum(not r.ok for r in results)
     skipped = sum(r.skipped for r in results)
@@ -307,7 +312,7 @@ def noise_options(f):
 def noise_settings(noise_configs: tuple[str, ...], flags: dict) -> tuple:
     """The settings of the ``--noise-config`` files, then the one the flags make (if any flag is given)."""
     from ncore_convert.noise_config import check_unique, make_setting, read_noise_config
-    from ncore_convert.sources.argoverse2 import SourceError
+    from ncore_convert.sources.files import SourceError
 
     try:
         settings = [read_noise_config(UPath(path)) for path in noise_configs]

@@ -14,7 +14,7 @@ from typing import Literal
 
 from upath import UPath
 
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError
 from ncore_convert.sources.opencood import load_yaml
 
 Model = Literal["opencood", "realistic"]

@@ -25,7 +25,7 @@ from tqdm import tqdm
 from upath import UPath
 
 from ncore_convert.pool import Progress
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError
 from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
 from ncore_convert.validate import ValidationFailed
 
@@ -75,6 +75,7 @@ class LogResult:
     skipped: bool = False
     seconds: float = 0.0
     validation: dict | None = None  #: of a log that failed validation (a converted log's is in its summary)
+    traceback: str | None = None  #: of a failure, also from a worker process (printed with --verbose)
 
     @property
     def warnings(self) -> list[str]:
@@ -117,18 +118,27 @@ def convert_one(
         summary = convert(work, log_id, Progress(bar.update, lambda n: bar.reset(total=n)))
         publish(work, final)
         result = LogResult(log_id, True, summary=summary)
-    except SourceError as err:
-        result = LogResult(log_id, False, error=str(err), error_file=err.path)
-    except ValidationFailed as err:  # the output is not published: a failed log leaves none
-        result = LogResult(log_id, False, error=str(err), validation=err.validation)
     except Exception as err:  # noqa: BLE001 - one log's failure must not stop the others
-        result = LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
+        result = _failure(log_id, err)
     finally:
         bar.close()
         remove_tree(work)
         if staging is not None:
             shutil.rmtree(staging, ignore_errors=True)
     result.seconds = time.perf_counter() - started
+    return result
+
+
+def _failure(log_id: str, err: Exception) -> LogResult:
+    """A failed log's result: one line naming the file and the cause (bad input), the failed
+    checks (validation; the output was not published), or the error and where it was raised."""
+    if isinstance(err, SourceError):
+        result = LogResult(log_id, False, error=str(err), error_file=err.path)
+    elif isinstance(err, ValidationFailed):
+        result = LogResult(log_id, False, error=str(err), validation=err.validation)
+    else:
+        result = LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
+    result.traceback = "".join(traceback.format_exception(err))
     return result
 
 
@@ -218,6 +228,7 @@ def run_logs(
     mode: Mode = "resume",
     input_dir: Callable[[str], UPath] | None = None,
     report_file: str = REPORT_NAME,
+    verbose: bool = False,
 ) -> list[LogResult]:
     """Convert logs on ``executor``; print a one-line summary (or error) per log; keep the report;
     show an overall bar (done, failed, skipped, ETA) above the executor's per-log bars.
@@ -229,6 +240,7 @@ def run_logs(
             every log; ``retry-failed`` redoes only the logs the last run reported as failed.
         input_dir: a log's source folder (for the input bytes in the report).
         report_file: the report's name in ``output_root`` (one per shard, see :func:`report_name`).
+        verbose: print the traceback of each failed log under its one-line error.
     """
     output_root.mkdir(parents=True, exist_ok=True)
     report = RunReport(output_root, fingerprint or {}, report_file)
@@ -270,6 +282,8 @@ def run_logs(
                     lines.append(f"      validated: {validation['checks']} checks passed")
             else:
                 lines = [f"FAIL  {result.log_id}: {result.error}"]
+                if verbose and result.traceback:
+                    lines.append(result.traceback.rstrip())
             finish(result, lines)
     overall.close()
     order = {log_id: i for i, log_id in enumerate(log_ids)}

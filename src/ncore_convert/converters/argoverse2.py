@@ -28,7 +28,7 @@ from ncore_convert.lidar import (
 from ncore_convert.lidar_model import SpinningLidarModel, column_time_remap, derive_model
 from ncore_convert.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError
 from ncore_convert.writer import (
     BASE,
     Cuboids,
@@ -45,6 +45,8 @@ CALIBRATION_SWEEPS = 5
 #: Columns of the empirical lidar model per native VLP-32C column (firing cycle): its azimuth
 #: quantisation (mean 0.003°) then stays below the float16 noise of AV2's coordinates.
 MODEL_UPSAMPLE = 16
+#: Sensor data may reach this far (µs) beyond the pose table, or across a gap in it; further fails.
+MAX_POSE_EXTRAPOLATION_US = 200_000
 #: Below this margin the unit decision is reported as a warning.
 UNIT_DECISION_MIN_MARGIN = 2.0
 
@@ -125,8 +127,6 @@ def read_log_inputs(
     log_dir: UPath, camera_ids: list[str], intrinsics: dict[str, av2.CameraIntrinsics] | None = None
 ) -> LogInputs:
     """Read a log's small inputs; ``intrinsics``: already read (TbV reads them to pick the cameras)."""
-    if not log_dir.is_dir():
-        raise SourceError(log_dir, "log directory not found")
     pose_ts, city_SE3_ego = av2.read_city_SE3_ego(log_dir)
     return LogInputs(
         log_dir=log_dir,
@@ -143,27 +143,51 @@ def read_log_inputs(
 def ego_trajectory(inputs: LogInputs, needed_us: tuple[int, int], warnings: list[str]) -> tuple[Trajectory, np.ndarray]:
     """``T_rig_world`` relative to the first pose, and ``T_world_world_global`` (= first city_SE3_ego).
 
-    Timestamps go ns -> µs (floor) with duplicate µs dropped (first kept). The trajectory is extended
-    at constant velocity when sensor data reach outside the pose table (reported as a warning).
-    The returned trajectory holds the float32-rounded poses that are stored, so every transform
-    computed from it matches what NCore readers reconstruct.
+    Timestamps go ns -> µs (floor) with duplicate µs dropped (first kept). Where sensor data reach
+    up to ``MAX_POSE_EXTRAPOLATION_US`` outside the pose table, the trajectory is extended at
+    constant velocity (reported as a warning); further, or across a gap in the poses longer than
+    that, the log fails naming the pose table. The returned trajectory holds the float32-rounded
+    poses that are stored, so every transform computed from it matches what NCore readers reconstruct.
     """
+    path = inputs.log_dir / "city_SE3_egovehicle.feather"
     ts_us, first = np.unique(inputs.pose_timestamps_ns // 1000, return_index=True)
     city_SE3_ego = inputs.city_SE3_ego[first]
     T_world_world_global = city_SE3_ego[0]
     T_rig_world = invert_se3(T_world_world_global) @ city_SE3_ego
     traj = Trajectory(ts_us.astype(np.int64), T_rig_world)
     start_us, end_us = needed_us
+    _check_pose_gaps(path, ts_us, needed_us)
     if start_us < traj.start_us or end_us > traj.end_us:
         before = max(0, traj.start_us - start_us) / 1e3
         after = max(0, end_us - traj.end_us) / 1e3
+        if max(before, after) > MAX_POSE_EXTRAPOLATION_US / 1e3:
+            raise SourceError(
+                path,
+                f"poses do not cover the sensor data: {before:.1f} ms missing before and {after:.1f} ms after"
+                f" (at most {MAX_POSE_EXTRAPOLATION_US / 1e3:g} ms is extrapolated)",
+            )
         warnings.append(
-            f"{inputs.log_dir / 'city_SE3_egovehicle.feather'}: poses do not cover the sensor data;"
+            f"{path}: poses do not cover the sensor data;"
             f" extended at constant velocity by {before:.3f} ms before and {after:.3f} ms after"
         )
         traj = traj.extended(min(start_us, traj.start_us), max(end_us, traj.end_us))
     stored = traj.poses.astype(np.float32).astype(np.float64)
     return Trajectory(traj.timestamps_us, stored), T_world_world_global
+
+
+def _check_pose_gaps(path: UPath, pose_us: np.ndarray, needed_us: tuple[int, int]) -> None:
+    """SourceError if consecutive poses inside the sensor time range are further apart than
+    ``MAX_POSE_EXTRAPOLATION_US`` (interpolating across the gap would invent the motion)."""
+    gaps = np.diff(pose_us)
+    inside = (pose_us[1:] > needed_us[0]) & (pose_us[:-1] < needed_us[1])
+    bad = np.flatnonzero(inside & (gaps > MAX_POSE_EXTRAPOLATION_US))
+    if bad.size:
+        i = int(bad[0])
+        raise SourceError(
+            path,
+            f"no pose for {gaps[i] / 1e3:.1f} ms between timestamp_ns {pose_us[i] * 1000} and"
+            f" {pose_us[i + 1] * 1000}, where sensor data exist (at most {MAX_POSE_EXTRAPOLATION_US / 1e3:g} ms)",
+        )
 
 
 def unit_rows(
@@ -467,10 +491,14 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
     """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split)."""
     warnings: list[str] = []
     log_dir = options.log_dir(root_dir, log_id)
+    if not log_dir.is_dir():
+        raise SourceError(log_dir, "log directory not found")
+    if not any(log_dir.iterdir()):
+        raise SourceError(log_dir, "empty log directory (an interrupted download?)")
     lidar_ids = select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
     intrinsics = None
     if options.tbv:  # the cameras are those of the log's calibration
-        intrinsics = av2.read_intrinsics(log_dir) if log_dir.is_dir() else {}
+        intrinsics = av2.read_intrinsics(log_dir)
         try:
             camera_ids = select_sensors(options.camera_ids, tuple(intrinsics), "camera")
         except ValueError as err:

@@ -30,7 +30,7 @@ from ncore_convert.lidar import ray_bundle
 from ncore_convert.noise_config import NoiseSetting
 from ncore_convert.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import PNG_SIGNATURE, SourceError
 from ncore_convert.storage import flush_to_disk
 from ncore_convert.writer import Cuboids, Profile, SequenceWriter, StoreType, write_sequence_meta
 
@@ -43,7 +43,6 @@ VEHICLE_CLASS = "vehicle"
 MOUNT_TOLERANCE = (0.02, 0.2)  # metres, degrees
 #: Two agents' labels of one actor at one tick further apart than this are reported.
 LABEL_TOLERANCE_M = 0.05
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 @dataclass(frozen=True)
@@ -493,14 +492,11 @@ def _write_sensors(
         stream = writer.add_camera(names.sensor(cam), meta)
         skipped = {}
         for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
-            path = src.camera_path(agent.agent_dir, key, index)
             try:
-                data = path.read_bytes()
-            except FileNotFoundError:
-                data = None
-            if data is None or not data.startswith(PNG_SIGNATURE):
-                skipped[key] = "file not found" if data is None else "not a PNG"
-                counts.warnings.append(f"{path}: {skipped[key]}; image skipped")
+                data = src.read_png(agent.agent_dir, key, index)
+            except SourceError as err:
+                skipped[key] = err.cause
+                counts.warnings.append(f"{err}; image skipped")
             else:
                 stream.store_frame(data, "png", (int(t_us), int(t_us)))
                 counts.images += 1

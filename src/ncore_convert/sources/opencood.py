@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 from upath import UPath
 
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError, png_defect, read_bytes
 from ncore_convert.sources.pcd import read_pcd, red_from_rgb
 
 SPLITS = {
@@ -52,10 +52,9 @@ _Loader.add_implicit_resolver(
 
 def load_yaml(path: UPath) -> dict:
     """Parse a YAML mapping safely; SourceError naming the file if it is unreadable or not a mapping."""
+    raw = read_bytes(UPath(path))
     try:
-        data = yaml.load(UPath(path).read_bytes(), Loader=_Loader)  # noqa: S506 - _Loader is a SafeLoader
-    except FileNotFoundError:
-        raise SourceError(path, "file not found") from None
+        data = yaml.load(raw, Loader=_Loader)  # noqa: S506 - _Loader is a SafeLoader
     except yaml.YAMLError as err:
         raise SourceError(path, f"not valid YAML ({str(err).splitlines()[0]})") from None
     if not isinstance(data, dict):
@@ -248,6 +247,16 @@ def camera_path(agent_dir: UPath, key: str, index: int) -> UPath:
     return agent_dir / f"{key}_camera{index}.png"
 
 
+def read_png(agent_dir: UPath, key: str, index: int) -> bytes:
+    """The encoded bytes of ``<key>_camera<index>.png``, checked to be a complete PNG (SourceError
+    naming the file if it is missing, unreadable, not a PNG or cut short)."""
+    path = camera_path(agent_dir, key, index)
+    data = read_bytes(path)
+    if (defect := png_defect(data)) is not None:
+        raise SourceError(path, defect)
+    return data
+
+
 def read_points(agent_dir: UPath, key: str) -> tuple[np.ndarray, np.ndarray]:
     """A sweep in the CARLA lidar frame (left-handed: x forward, y right, z up).
 
@@ -256,10 +265,7 @@ def read_points(agent_dir: UPath, key: str) -> tuple[np.ndarray, np.ndarray]:
         where OpenCDA stores the lidar intensity (intensity = value / 255).
     """
     path = pcd_path(agent_dir, key)
-    try:
-        columns = read_pcd(path)
-    except FileNotFoundError:
-        raise SourceError(path, "file not found") from None
+    columns = read_pcd(path)
     missing = [f for f in ("x", "y", "z", "rgb") if f not in columns]
     if missing:
         raise SourceError(path, f"PCD lacks field(s) {', '.join(missing)}")

@@ -15,7 +15,7 @@ import pyarrow as pa
 import pyarrow.csv as pa_csv
 from upath import UPath
 
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError, read_bytes
 
 _TYPES = {("F", 4): np.float32, ("F", 8): np.float64, ("U", 1): np.uint8, ("U", 2): np.uint16,
           ("U", 4): np.uint32, ("I", 1): np.int8, ("I", 2): np.int16, ("I", 4): np.int32}  # fmt: skip
@@ -74,8 +74,13 @@ def _header_lines(path: UPath, raw: bytes) -> tuple[list[bytes], int]:
 
 def read_pcd_header(path: UPath) -> PcdHeader:
     """Only the header of a PCD file (its first 64 KiB are read): fields, types and point count."""
-    with UPath(path).open("rb") as f:
-        head = f.read(HEADER_BYTES)
+    try:
+        with UPath(path).open("rb") as f:
+            head = f.read(HEADER_BYTES)
+    except FileNotFoundError:
+        raise SourceError(path, "file not found") from None
+    except OSError as err:
+        raise SourceError(path, f"unreadable ({err.strerror or type(err).__name__})") from None
     return _parse_header(path, _header_lines(path, head)[0])
 
 
@@ -85,7 +90,7 @@ def read_pcd(path: UPath) -> dict[str, np.ndarray]:
 
     Raises SourceError naming the file on a bad header, a short body or unsupported encodings.
     """
-    raw = UPath(path).read_bytes()
+    raw = read_bytes(UPath(path))
     lines, offset = _header_lines(path, raw)
     header = _parse_header(path, lines)
     body = raw[offset:]

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from upath import UPath
 
-from ncore_convert.sources.argoverse2 import SourceError
+from ncore_convert.sources.files import SourceError
 
 
 def list_log_ids(root: UPath) -> list[str]:

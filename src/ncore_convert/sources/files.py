@@ -1,0 +1,63 @@
+"""Source files as bytes: the project's error type for bad input, reading with clear causes, and
+cheap completeness checks of encoded images.
+
+Images are stored byte-identical, so the converter never decodes them; the checks catch the damage
+that interrupted downloads cause (a file cut short, or not an image at all) from the first and last
+bytes only.
+"""
+
+from __future__ import annotations
+
+from upath import UPath
+
+from ncore_convert.storage import is_local
+
+
+class SourceError(Exception):
+    """Bad or missing source input. ``str(err)`` is one line: ``<file>: <cause>``."""
+
+    def __init__(self, path: object, cause: str) -> None:
+        super().__init__(f"{path}: {cause}")
+        self.path = str(path)
+        self.cause = cause
+
+    def __reduce__(self):  # keep (path, cause) when raised in a worker process
+        return SourceError, (self.path, self.cause)
+
+
+def read_bytes(path: UPath) -> bytes:
+    """A whole file; SourceError naming it if it is missing or unreadable."""
+    try:
+        if is_local(path):  # plain open is ~3x cheaper per file than going through fsspec
+            with open(path.path, "rb") as f:
+                return f.read()
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise SourceError(path, "file not found") from None
+    except OSError as err:
+        raise SourceError(path, f"unreadable ({err.strerror or type(err).__name__})") from None
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_IEND = b"IEND\xaeB`\x82"  #: the IEND chunk's type and CRC, the last 8 bytes of a PNG
+_JPEG_SOI = b"\xff\xd8"
+_JPEG_EOI = b"\xff\xd9"
+_TAIL_BYTES = 1024  #: encoders may pad after the end marker; a marker this close to the end counts
+
+
+def jpeg_defect(data: bytes) -> str | None:
+    """Why ``data`` is not a complete JPEG (missing start or end-of-image marker), or None."""
+    if not data.startswith(_JPEG_SOI):
+        return "not a JPEG file (missing SOI marker)"
+    if data.rfind(_JPEG_EOI, max(2, len(data) - _TAIL_BYTES)) < 0:
+        return "truncated JPEG (no EOI marker at the end)"
+    return None
+
+
+def png_defect(data: bytes) -> str | None:
+    """Why ``data`` is not a complete PNG (missing signature or IEND chunk), or None."""
+    if not data.startswith(PNG_SIGNATURE):
+        return "not a PNG file (missing signature)"
+    if data.rfind(_PNG_IEND, len(PNG_SIGNATURE), len(data)) < max(len(PNG_SIGNATURE), len(data) - _TAIL_BYTES):
+        return "truncated PNG (no IEND chunk at the end)"
+    return None
