@@ -203,7 +203,8 @@ def _check_increasing(path: UPath, timestamps_ns: np.ndarray) -> None:
         kind = "duplicate" if timestamps_ns[i] == timestamps_ns[i - 1] else "non-monotonic"
         raise SourceError(
             path,
-            f"{kind} timestamp_ns at row {i} ({timestamps_ns[i]} after {timestamps_ns[i - 1]}); rows must be strictly increasing",
+            f"{kind} timestamp_ns at row {i} ({timestamps_ns[i]} after {timestamps_ns[i - 1]});"
+            " rows must be strictly increasing",
         )
 
 
