@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
-import pyarrow as pa
-import pyarrow.feather as feather
 import pytest
 from click.testing import CliRunner
 from conftest import open_sequence
@@ -129,59 +129,47 @@ def _copy_log(truth, dest):
     return dest / "val" / truth.log_id
 
 
-@pytest.mark.parametrize(
-    "damage,cause",
-    [
-        ("drop_offset_ns", "offset_ns"),
-        ("truncate_sweep", "not a readable feather table"),
-        ("wrong_pose_dtype", "column 'tx_m' has type float"),
-        ("no_calibration", "file not found"),
-        ("offset_beyond_log", "point times reach outside the log's time range"),
-    ],
-)
-def test_bad_input_fails_that_log_with_one_line_naming_the_file(small_root, tmp_path, damage, cause):
-    _, truth = small_root
-    log_dir = _copy_log(truth, tmp_path / "root")
-    sweep = av2.sweep_path(UPath(log_dir), truth.sweeps[1].timestamp_ns)
-    if damage == "drop_offset_ns":
-        feather.write_feather(feather.read_table(sweep.path).drop_columns(["offset_ns"]), sweep.path)
-        bad = sweep.path
-    elif damage == "truncate_sweep":
-        data = open(sweep.path, "rb").read()
-        open(sweep.path, "wb").write(data[: len(data) // 2])
-        bad = sweep.path
-    elif damage == "wrong_pose_dtype":
-        bad = log_dir / "city_SE3_egovehicle.feather"
-        table = feather.read_table(bad)
-        table = table.set_column(table.schema.get_field_index("tx_m"), "tx_m", table["tx_m"].cast(pa.float32()))
-        feather.write_feather(table, bad)
-    elif damage == "offset_beyond_log":  # a middle sweep whose points claim to fire 2 s later
-        table = feather.read_table(sweep.path)
-        late = pa.array(table["offset_ns"].to_numpy() + 2_000_000_000, pa.int32())
-        table = table.set_column(table.schema.get_field_index("offset_ns"), "offset_ns", late)
-        feather.write_feather(table, sweep.path)
-        bad = sweep.path
-    else:
-        bad = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
-        bad.unlink()
-    out = tmp_path / "out"
-    result = run("--root-dir", str(tmp_path / "root"), "--output-dir", str(out), "argoverse2-v4", "--split", "val")
-    assert result.exit_code == 1
-    fail = [line for line in result.output.splitlines() if line.startswith("FAIL")]
-    assert len(fail) == 1 and str(bad) in fail[0] and cause in fail[0], result.output
-    assert not (out / truth.log_id).exists() and not list(out.glob(".*"))
+def _truncate_sweep(log_dir, timestamp_ns):
+    sweep = av2.sweep_path(UPath(log_dir), timestamp_ns)
+    data = open(sweep.path, "rb").read()
+    open(sweep.path, "wb").write(data[: len(data) // 2])
+    return sweep.path
 
 
-def test_one_failing_log_does_not_stop_the_others(small_root, tmp_path):
+def test_a_failure_is_one_line_and_its_traceback_needs_verbose(small_root, tmp_path):
+    """Bad input prints one FAIL line naming the file and the cause; --verbose adds the traceback."""
     _, truth = small_root
+    bad = _truncate_sweep(_copy_log(truth, tmp_path / "root"), truth.sweeps[1].timestamp_ns)
+    for verbose in ([], ["--verbose"]):
+        args = ["--root-dir", str(tmp_path / "root"), "--output-dir", str(tmp_path / "out"), *verbose]
+        result = run(*args, "argoverse2-v4", "--split", "val")
+        assert result.exit_code == 1
+        fail = [line for line in result.output.splitlines() if line.startswith("FAIL")]
+        assert fail == [f"FAIL  {truth.log_id}: {bad}: not a readable feather table" + fail[0].split("table", 1)[1]]
+        assert ("Traceback (most recent call last)" in result.output) == bool(verbose), result.output
+        assert not list((tmp_path / "out").glob(f"*{truth.log_id}*"))
+
+
+def test_three_good_logs_and_one_damaged_give_three_sequences_and_one_failure(tmp_path):
     root = tmp_path / "root"
-    _copy_log(truth, root)
-    broken = root / "val" / "00000000-0000-3000-8000-000000000000"
-    broken.mkdir()
-    result = run("--root-dir", str(root), "--output-dir", str(tmp_path / "out"), "argoverse2-v4", "--split", "val")
+    logs = [write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=s, camera_fps=0)) for s in (21, 22, 23, 24)]
+    damaged = logs[2]
+    bad = _truncate_sweep(damaged.log_dir.path, damaged.sweeps[0].timestamp_ns)
+    out = tmp_path / "out"
+    result = run("--root-dir", str(root), "--output-dir", str(out), "--workers", "2", "argoverse2-v4", "--split", "val")
     assert result.exit_code == 1
-    assert "1 converted, 0 skipped, 1 failed" in result.output
-    assert (tmp_path / "out" / truth.log_id / f"{truth.log_id}.json").exists()
+    assert "3 converted, 0 skipped, 1 failed" in result.output
+    report = json.loads((out / "conversion-report.json").read_text())["logs"]
+    assert report[damaged.log_id]["status"] == "failed" and report[damaged.log_id]["error"]["file"] == str(bad)
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["conversion-report.json"] + [t.log_id for t in logs if t is not damaged]
+    )
+    for truth in logs:
+        if truth is not damaged:
+            assert report[truth.log_id]["status"] == "ok" and report[truth.log_id]["validation"]["ok"]
+            loader = open_sequence(out / truth.log_id, truth.log_id)
+            assert loader.get_lidar_sensor("up_lidar").frames_count == len(truth.sweeps)
+            assert len(list(loader.get_cuboid_track_observations())) == truth.n_cuboids
 
 
 def test_synth_command_writes_a_log(tmp_path):

@@ -10,6 +10,7 @@ same options.
 
 from __future__ import annotations
 
+import errno
 import json
 import re
 import shutil
@@ -47,6 +48,8 @@ ConvertFn = Callable[[UPath, str, Progress], Summary]
 
 
 REPORT_NAME = "conversion-report.json"
+#: Write errors that mean the output storage is full (or a file may not grow): no space, quota, size limit.
+OUTPUT_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 def report_name(shard: tuple[int, int] | None) -> str:
@@ -119,7 +122,7 @@ def convert_one(
         publish(work, final)
         result = LogResult(log_id, True, summary=summary)
     except Exception as err:  # noqa: BLE001 - one log's failure must not stop the others
-        result = _failure(log_id, err)
+        result = _failure(log_id, err, final)
     finally:
         bar.close()
         remove_tree(work)
@@ -129,15 +132,20 @@ def convert_one(
     return result
 
 
-def _failure(log_id: str, err: Exception) -> LogResult:
-    """A failed log's result: one line naming the file and the cause (bad input), the failed
-    checks (validation; the output was not published), or the error and where it was raised."""
+def _failure(log_id: str, err: Exception, output: UPath) -> LogResult:
+    """A failed log's result, in one line: the file and the cause (bad input), the failed checks
+    (validation), the output that could not be written (a full disk), or the error and where it was
+    raised. In every case nothing was published."""
     if isinstance(err, SourceError):
         result = LogResult(log_id, False, error=str(err), error_file=err.path)
     elif isinstance(err, ValidationFailed):
         result = LogResult(log_id, False, error=str(err), validation=err.validation)
+    elif isinstance(err, OSError) and err.errno in OUTPUT_FULL:
+        cause = f"{err.strerror or errno.errorcode[err.errno]} [{errno.errorcode[err.errno]}]"
+        result = LogResult(log_id, False, error=f"{output}: output not written ({cause}); nothing published")
     else:
-        result = LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})".replace("\n", " "))
+        result = LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})")
+    result.error = " ".join(result.error.split("\n")).strip()
     result.traceback = "".join(traceback.format_exception(err))
     return result
 

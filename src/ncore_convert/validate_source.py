@@ -18,6 +18,7 @@ from upath import UPath
 from ncore_convert.converters.opencood import SKIPPED_FRAMES
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import opencood as ocd
+from ncore_convert.sources.files import SourceError
 from ncore_convert.sources.pcd import read_pcd_header
 from ncore_convert.validate import Report, box_point_counts, boxes_at, sample_frames, world_points
 
@@ -180,23 +181,29 @@ def _compare_opencood(report: Report, loader: SequenceLoaderV4, reader: Sequence
                 if images := sum(ocd.camera_path(agent_dir, k, index).exists() for k in keys[agent]):
                     report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")
     reference = next((a for a in agents if meta["agents"][a].get("opencood_ego")), agents[0])
-    labels = sum(len(_labelled(scenario_dir, keys, key)) for key in keys[reference])
+    readable = [k for k in keys[reference] if _vehicle_ids(str(scenario_dir / reference), k) is not None]
+    labels = sum(len(_labelled(scenario_dir, keys, key)) for key in readable)  # the reference's frames
     _count(report, "cuboids (every agent's labels per frame, plus the CAVs)",
            sum(1 for _ in loader.get_cuboid_track_observations()), labels)  # fmt: skip
 
 
 def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str) -> set[int]:
-    """Actor ids at one frame key: every agent's labelled vehicles and the CAVs themselves."""
+    """Actor ids at one frame key: every agent's labelled vehicles and the CAVs themselves (an agent
+    whose YAML is unreadable adds nothing, as in the converter, which skipped and declared it)."""
     ids: set[int] = set()
     for agent, agent_keys in keys.items():
-        if key in agent_keys:
-            ids.update(_vehicle_ids(str(scenario_dir / agent), key))
+        if key in agent_keys and (vehicles := _vehicle_ids(str(scenario_dir / agent), key)) is not None:
+            ids.update(vehicles)
             if not ocd.is_infrastructure(agent):
                 ids.add(int(agent))
     return ids
 
 
 @lru_cache(maxsize=8192)
-def _vehicle_ids(agent_dir: str, key: str) -> frozenset[int]:
-    """The vehicles one agent's YAML labels (cached: every agent's sequence of a scenario needs them all)."""
-    return frozenset(ocd.read_agent_frame(UPath(agent_dir), key).vehicles.actor_ids.tolist())
+def _vehicle_ids(agent_dir: str, key: str) -> frozenset[int] | None:
+    """The vehicles one agent's YAML labels, None if it is unreadable (cached: every agent's
+    sequence of a scenario needs them all)."""
+    try:
+        return frozenset(ocd.read_agent_frame(UPath(agent_dir), key).vehicles.actor_ids.tolist())
+    except SourceError:
+        return None

@@ -308,6 +308,8 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     scenario_dir = options.scenario_dir(root_dir, scenario)
     if not scenario_dir.is_dir():
         raise SourceError(scenario_dir, "scenario folder not found")
+    if not any(scenario_dir.iterdir()):
+        raise SourceError(scenario_dir, "empty scenario folder (an interrupted download?)")
     protocol = src.read_protocol(scenario_dir)
     dt = protocol.fixed_delta_seconds
     folders = src.list_agents(scenario_dir)

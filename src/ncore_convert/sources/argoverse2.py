@@ -79,7 +79,7 @@ def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None)
     except FileNotFoundError:
         raise SourceError(path, "file not found") from None
     except PermissionError:
-        raise SourceError(path, "unreadable (permission denied)") from None
+        raise SourceError(path, "unreadable (Permission denied)") from None
     except (pa.ArrowException, KeyError, OSError) as err:
         cause = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise SourceError(path, f"not a readable feather table with columns {wanted} ({cause})") from None
