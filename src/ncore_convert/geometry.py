@@ -104,7 +104,7 @@ class Trajectory:
             raise ValueError("a trajectory needs at least two poses")
         if np.any(np.diff(self.timestamps_us) <= 0):
             raise ValueError("trajectory timestamps must be strictly increasing")
-        t_rel_s = (self.timestamps_us - self.timestamps_us[0]).astype(np.float64) * 1e-6
+        t_rel_s = self.relative_seconds(self.timestamps_us * 1000)  # as query times are computed: exact at knots
         quats = quat_wxyz_from_se3(self.poses)
         # sign-align consecutive quaternions so every segment interpolates along the short arc
         flips = np.cumprod(np.where(np.einsum("ij,ij->i", quats[1:], quats[:-1]) < 0, -1.0, 1.0))
@@ -181,7 +181,7 @@ class Trajectory:
     def interpolate_us(self, t_us: npt.ArrayLike) -> np.ndarray:
         """Poses at absolute integer microsecond times [M] -> [M,4,4]."""
         t_us = np.asarray(t_us, dtype=np.int64)
-        return self.interpolate((t_us - self.timestamps_us[0]).astype(np.float64) * 1e-6)
+        return self.interpolate(self.relative_seconds(t_us * 1000))
 
     def relative_seconds(self, times_ns: np.ndarray) -> np.ndarray:
         """Absolute int64 ns times [M] -> float64 seconds relative to the first sample."""

@@ -114,8 +114,10 @@ def _poses_from_table(path: UPath, table: pa.Table) -> np.ndarray:
     row that is not a pose (non-finite values or a zero quaternion)."""
     quat = np.stack([_column(table, c) for c in POSE_COLUMNS[:4]], axis=1)
     t = np.stack([_column(table, c) for c in POSE_COLUMNS[4:]], axis=1)
-    bad = ~np.all(np.isfinite(quat) & np.isfinite(t).all(axis=1, keepdims=True), axis=1)
-    bad |= np.linalg.norm(np.nan_to_num(quat), axis=1) < 1e-6
+    finite = np.isfinite(quat).all(axis=1) & np.isfinite(t).all(axis=1)
+    with np.errstate(over="ignore"):
+        norm = np.linalg.norm(np.where(finite[:, None], quat, 0.0), axis=1)
+    bad = ~finite | ~np.isfinite(norm) | (norm < 1e-6)
     if bad.any():
         raise SourceError(path, f"row {int(np.argmax(bad))}: not a pose (non-finite values or a zero quaternion)")
     return se3_from_quat_wxyz(quat, t).reshape(-1, 4, 4)
