@@ -26,7 +26,7 @@ from tqdm import tqdm
 from upath import UPath
 
 from ncore_convert.pool import Progress
-from ncore_convert.sources.files import SourceError
+from ncore_convert.sources.files import SAFE_NAME, SourceError
 from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
 from ncore_convert.validate import ValidationFailed
 
@@ -105,6 +105,8 @@ def convert_one(
     complete (see :func:`~ncore_convert.storage.publish`).
     """
     started = time.perf_counter()
+    if not SAFE_NAME.match(log_id):  # sources check the names they list; this guards every other caller
+        return LogResult(log_id, False, error=f"{log_id!r} is not a safe output folder name; nothing written")
     final = output_root / log_id
     staging = None if is_local(output_root) else tempfile.mkdtemp(prefix=f"ncore-convert-{log_id[:40]}-")
     work = output_root / f".{log_id}.partial" if staging is None else UPath(staging) / log_id

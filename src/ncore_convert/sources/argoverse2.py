@@ -20,7 +20,7 @@ import pyarrow.feather as feather
 from upath import UPath
 
 from ncore_convert.geometry import se3_from_quat_wxyz
-from ncore_convert.sources.files import SourceError, jpeg_defect, read_bytes
+from ncore_convert.sources.files import SourceError, check_safe_names, jpeg_defect, read_bytes
 from ncore_convert.storage import is_local
 
 SPLITS = ("train", "val", "test")
@@ -133,7 +133,9 @@ def list_log_ids(root: UPath, split: str) -> list[str]:
     split_dir = root / split
     if not split_dir.is_dir():
         raise SourceError(split_dir, "split directory not found")
-    return sorted(p.name for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+    names = sorted(p.name for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+    check_safe_names(split_dir, names, "log folder")
+    return names
 
 
 def sweep_path(log_dir: UPath, timestamp_ns: int) -> UPath:
@@ -215,11 +217,13 @@ def read_ego_SE3_sensors(log_dir: UPath) -> dict[str, np.ndarray]:
     path = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
     table = read_table(path, EXTRINSICS_SCHEMA)
     names = table.column("sensor_name").to_pylist()
-    _check_unique_names(path, names)
+    _check_sensor_names(path, names)
     return dict(zip(names, _poses_from_table(path, table), strict=True))
 
 
-def _check_unique_names(path: UPath, names: list[str]) -> None:
+def _check_sensor_names(path: UPath, names: list[str]) -> None:
+    """Sensor names are unique, and safe as parts of output file names."""
+    check_safe_names(path, names, "sensor_name")
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
         raise SourceError(path, f"sensor(s) listed more than once: {', '.join(repeated)}")
@@ -244,7 +248,7 @@ def read_intrinsics(log_dir: UPath) -> dict[str, CameraIntrinsics]:
     """Camera intrinsics by camera name from ``calibration/intrinsics.feather``."""
     path = log_dir / "calibration" / "intrinsics.feather"
     rows = read_table(path, INTRINSICS_SCHEMA).to_pylist()
-    _check_unique_names(path, [row["sensor_name"] for row in rows])
+    _check_sensor_names(path, [row["sensor_name"] for row in rows])
     out = {}
     for row in rows:
         name = row.pop("sensor_name")

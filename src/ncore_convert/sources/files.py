@@ -8,6 +8,8 @@ bytes only.
 
 from __future__ import annotations
 
+import re
+
 from upath import UPath
 
 from ncore_convert.storage import is_local
@@ -23,6 +25,18 @@ class SourceError(Exception):
 
     def __reduce__(self):  # keep (path, cause) when raised in a worker process
         return SourceError, (self.path, self.cause)
+
+
+#: Names from the data that become output paths (log ids, sensor names): one path component, no
+#: separators, not hidden, not "." or "..", at most 128 characters.
+SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+
+
+def check_safe_names(path: object, names: list[str], what: str) -> None:
+    """SourceError naming ``path`` if a name could escape, or hide in, the output folder."""
+    bad = [name for name in names if not SAFE_NAME.match(name)]
+    if bad:
+        raise SourceError(path, f"{what} {bad[0]!r} is not a safe name (letters, digits, '_', '-', '.'; 128 at most)")
 
 
 def read_bytes(path: UPath) -> bytes:

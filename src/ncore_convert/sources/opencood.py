@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 from upath import UPath
 
-from ncore_convert.sources.files import SourceError, png_defect, read_bytes
+from ncore_convert.sources.files import SourceError, check_safe_names, png_defect, read_bytes
 from ncore_convert.sources.pcd import read_pcd, red_from_rgb
 
 SPLITS = {
@@ -32,7 +32,6 @@ CAV_BOX_EXTENT_M = (2.4508, 1.0642, 0.7554)
 
 _AGENT = re.compile(r"^-?[0-9]{1,9}$")
 _KEY = re.compile(r"^[0-9]{4,9}$")
-_SCENARIO = re.compile(r"^[A-Za-z0-9_.-]{1,128}$")
 
 
 class _Loader(yaml.CSafeLoader if hasattr(yaml, "CSafeLoader") else yaml.SafeLoader):
@@ -77,9 +76,7 @@ def list_scenarios(root: UPath, split: str) -> list[str]:
     if not split_dir.is_dir():
         raise SourceError(split_dir, "split folder not found")
     names = sorted(p.name for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
-    for name in names:
-        if not _SCENARIO.match(name):
-            raise SourceError(split_dir / name, "not a scenario folder name (letters, digits, '_', '-', '.')")
+    check_safe_names(split_dir, names, "scenario folder")
     return names
 
 

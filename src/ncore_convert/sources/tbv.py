@@ -13,11 +13,13 @@ from __future__ import annotations
 
 from upath import UPath
 
-from ncore_convert.sources.files import SourceError
+from ncore_convert.sources.files import SourceError, check_safe_names
 
 
 def list_log_ids(root: UPath) -> list[str]:
     """Log ids (directory names) directly under the TbV root, sorted."""
     if not root.is_dir():
         raise SourceError(root, "TbV root directory not found")
-    return sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    names = sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    check_safe_names(root, names, "log folder")
+    return names

@@ -1,0 +1,66 @@
+"""Determinism: converting the same input twice (into other folders, with other worker counts)
+writes byte-identical sequences; the run report differs only in the fields the README lists
+(``RUN_DEPENDENT``: wall-clock times)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import BIN
+
+#: Run-report fields that may differ between runs of the same conversion (README, "Determinism").
+RUN_DEPENDENT = {("seconds",), ("finished",), ("validation", "seconds")}
+
+SYNTH = {
+    "argoverse2-v4": (
+        ["argoverse2", "--seconds", "0.4", "--seed", "8", "--camera-fps", "5"],
+        "val",
+        ["--split", "val"],
+    ),
+    "v2xset-v4": (
+        ["v2xset", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "8"],
+        "",
+        ["--split", "test", "--loc-err", "--xyz-std", "1", "--ryp-std", "2", "--async", "--async-overhead", "100"],
+    ),
+}
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _without(entry: dict, fields: set[tuple[str, ...]]) -> dict:
+    out = json.loads(json.dumps(entry))
+    for path in fields:
+        parent = out
+        for key in path[:-1]:
+            parent = parent.get(key) or {}
+        parent.pop(path[-1], None)
+    return out
+
+
+@pytest.mark.parametrize("command", list(SYNTH))
+def test_two_runs_write_identical_sequences(command, tmp_path):
+    synth_args, split_folder, command_args = SYNTH[command]
+    cli = str(BIN / "ncore-convert")
+    subprocess.run([cli, "synth", *synth_args, "--out", str(tmp_path / "src" / split_folder)], check=True)
+    outputs = []
+    for run, workers in (("a", "1"), ("b", "2")):
+        out = tmp_path / run
+        convert = [cli, "--no-progress", "--workers", workers, "--root-dir", str(tmp_path / "src"), "--output-dir"]
+        subprocess.run([*convert, str(out), command, *command_args], check=True, capture_output=True)
+        outputs.append(out)
+    first, second = (_files(out) for out in outputs)
+    report = "conversion-report.json"
+    assert first.keys() == second.keys() and len(first) > 3
+    differing = sorted(name for name in first if first[name] != second[name])
+    assert differing == [report], differing  # every sequence file is byte-identical
+    logs = [json.loads(first[report])["logs"], json.loads(second[report])["logs"]]
+    assert logs[0].keys() == logs[1].keys()
+    for log_id in logs[0]:
+        a, b = (_without(entry[log_id], RUN_DEPENDENT) for entry in logs)
+        assert a == b
+        assert logs[0][log_id]["seconds"] > 0 and "finished" in logs[0][log_id]
