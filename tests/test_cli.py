@@ -178,3 +178,13 @@ def test_synth_command_writes_a_log(tmp_path):
     (log_dir,) = list(tmp_path.iterdir())
     assert len(av2.list_sweep_timestamps_ns(UPath(log_dir))) == 2
     assert np.all(np.diff(av2.read_city_SE3_ego(UPath(log_dir))[0]) > 0)
+
+
+def test_an_output_that_cannot_be_written_stops_the_run_with_one_line(small_root, tmp_path):
+    root, _ = small_root
+    out = tmp_path / "out"
+    out.write_text("a file where the output folder should be")
+    result = run("--root-dir", str(root), "--output-dir", str(out), "argoverse2-v4", "--split", "val")
+    assert result.exit_code == 1
+    assert result.output.strip().splitlines()[-1] == f"Error: {out}: File exists; run stopped"
+    assert "Traceback" not in result.output

@@ -134,8 +134,8 @@ def test_a_run_killed_mid_log_is_completed_by_the_rerun(tmp_path):
     assert proc.returncode == 1, output
     assert f"FAIL  {truth.log_id}: WorkerDied: a worker process died" in output
     assert not (out / truth.log_id).exists() and not (out / f".{truth.log_id}.partial").exists()
-    rerun = run(root, out)
-    assert rerun.exit_code == 0 and f"ok    {truth.log_id}" in rerun.output
+    rerun = subprocess.run(av2_command(root, out), capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0 and f"ok    {truth.log_id}" in rerun.stdout, rerun.stdout + rerun.stderr
     loader = open_sequence(out / truth.log_id, truth.log_id)
     assert loader.get_lidar_sensor("up_lidar").frames_count == len(truth.sweeps)
     assert sum(loader.get_camera_sensor(c).frames_count for c in loader.camera_ids) == truth.n_images

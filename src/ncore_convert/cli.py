@@ -229,11 +229,14 @@ def _convert(obj: GroupOptions, command: str, preload: str, prepare) -> None:
             task = partial(convert_and_validate, task, source_root=root)
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
-        results = run_logs(
-            out, shard_logs(todo, obj.shard), task, executor, echo=click.echo, show_progress=obj.progress,
-            fingerprint=fingerprint, mode=obj.mode, input_dir=input_dir, report_file=report_name(obj.shard),
-            verbose=obj.verbose,
-        )  # fmt: skip
+        try:
+            results = run_logs(
+                out, shard_logs(todo, obj.shard), task, executor, echo=click.echo, show_progress=obj.progress,
+                fingerprint=fingerprint, mode=obj.mode, input_dir=input_dir, report_file=report_name(obj.shard),
+                verbose=obj.verbose,
+            )  # fmt: skip
+        except OSError as err:  # the output storage itself fails (full, read-only): not even the report is kept
+            raise click.ClickException(f"{out}: {err.strerror or err}; run stopped") from None
     failed = sum(not r.ok for r in results)
     skipped = sum(r.skipped for r in results)
     click.echo(

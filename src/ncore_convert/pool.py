@@ -194,7 +194,9 @@ class JobPool:
             self._forget(run_id)
             with self._lock:  # several runs may see the same broken pool: replace it once
                 if self._executor is executor:
-                    executor.shutdown(wait=True, cancel_futures=True)
+                    # no wait: a broken pool has terminated its workers, and joining its management
+                    # thread after a worker was killed mid-message can block for good
+                    executor.shutdown(wait=False, cancel_futures=True)
                     self._start_executor()
             raise WorkerDied("a worker process died (killed or out of memory) before its job finished") from err
         except BaseException:
