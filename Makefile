@@ -37,6 +37,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_opencood.py
 	$(PY) bench/bench_noise.py
 	$(PY) bench/bench_validate.py
+	$(PY) bench/bench_input_checks.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info
