@@ -81,12 +81,10 @@ def main() -> None:
     print(f"medians of {args.repeat}, interleaved")
     for name, seconds in med.items():
         print(f"  {name:40s} {seconds * 1e3:8.2f} ms")
-    print(
-        f"validate(full=True) / plain feather read: {med['feather read + validate(full=True)'] / med['feather read']:.2f}"
-    )
-    print(
-        f"JPEG marker check / plain read:           {med['200 JPEGs read + marker check'] / med['200 JPEGs read']:.3f}"
-    )
+    validated = med["feather read + validate(full=True)"] / med["feather read"]
+    checked = med["200 JPEGs read + marker check"] / med["200 JPEGs read"]
+    print(f"validate(full=True) / plain feather read: {validated:.2f}")
+    print(f"JPEG marker check / plain read:           {checked:.3f}")
 
 
 if __name__ == "__main__":
