@@ -28,7 +28,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.feather as feather
 import pytest
-from conftest import REPO
+from conftest import AV2_SAMPLE_LOG, REPO
 from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
@@ -44,7 +44,7 @@ CAMERAS = ("ring_front_center", "ring_side_left")
 
 @dataclass(frozen=True)
 class Case:
-    dataset: str  #: "av2", "tbv" or "opv2v"
+    dataset: str  #: "av2", "real" (the real AV2 sample), "tbv" or "opv2v"
     damage: Callable[[Path], Path]  #: damages the log (or scenario) folder, returns the file at fault
     outcome: str  #: "fail" or "warn"
     cause: str
@@ -285,6 +285,12 @@ CASES: dict[str, Case] = {
     "empty-log-directory": Case("av2", _empty, "fail", "empty log directory"),
     "unreadable-file": Case("av2", _image, "fail", "unreadable (Permission denied)"),
     "full-output-disk": Case("av2", lambda log: log, "fail", "output not written (File too large [EFBIG])"),
+    "real-truncated-sweep": Case(
+        "real", lambda log: _truncate(_sweeps(log)[1]), "fail", "not a readable feather table"
+    ),
+    "real-non-monotonic-timestamps": Case(
+        "real", _pose_rows(lambda n: [0, 2, 1, *range(3, n)]), "fail", "non-monotonic timestamp_ns at row 2"
+    ),
     "tbv-without-map": Case("tbv", lambda log: _remove(log / "map"), "warn", "no map folder; no HD map written"),
     "tbv-corrupt-map": Case(
         "tbv", lambda log: _garble(next((log / "map").glob("log_map_archive_*.json"))), "fail", "not JSON"
@@ -328,25 +334,32 @@ UNREADABLE = {"unreadable-file", "unreadable-pcd"}
 
 
 @pytest.fixture(scope="module")
-def bases(tmp_path_factory) -> dict[str, tuple[Path, str]]:
-    """One small intact dataset per converter: {dataset: (root, log id or scenario)}."""
+def bases(tmp_path_factory, av2_sample_root) -> dict[str, tuple[Path, str]]:
+    """One small intact dataset per converter, and the real sample: {dataset: (root, log id or scenario)}."""
     tmp = tmp_path_factory.mktemp("corpus")
     av2_log = write_log(UPath(tmp / "av2" / "val"), SynthConfig(seconds=0.3, seed=11, camera_fps=5)).log_id
     tbv_log = write_log(UPath(tmp / "tbv"), SynthConfig(seconds=0.5, seed=12, camera_fps=0, tbv=True)).log_id
     config = synth_opencood.SynthConfig(dataset="opv2v", frames=4, cavs=2, lidar_columns=64, seed=13)
     scenario = synth_opencood.write_scenario(UPath(tmp / "opv2v" / config.split), config).scenario
-    return {"av2": (tmp / "av2", av2_log), "tbv": (tmp / "tbv", tbv_log), "opv2v": (tmp / "opv2v", scenario)}
+    return {
+        "av2": (tmp / "av2", av2_log),
+        "real": (av2_sample_root, AV2_SAMPLE_LOG),
+        "tbv": (tmp / "tbv", tbv_log),
+        "opv2v": (tmp / "opv2v", scenario),
+    }
 
 
 def source_folder(dataset: str, root: Path, name: str) -> Path:
-    return {"av2": root / "val" / name, "tbv": root / name, "opv2v": root / "test" / name}[dataset]
+    return {"av2": root / "val" / name, "real": root / "val" / name, "tbv": root / name, "opv2v": root / "test" / name}[
+        dataset
+    ]
 
 
 def task_for(dataset: str, root: Path):
     """The per-log task, as the CLI builds it (sensor selection kept small for speed)."""
     if dataset == "opv2v":
         return partial(convert_scenario, UPath(root), options=OpenCoodOptions(dataset="opv2v", split="test"))
-    options = Argoverse2Options(split="val", camera_ids=CAMERAS) if dataset == "av2" else Argoverse2Options(None)
+    options = Argoverse2Options(None) if dataset == "tbv" else Argoverse2Options(split="val", camera_ids=CAMERAS)
     return partial(convert_log, UPath(root), options=options)
 
 
