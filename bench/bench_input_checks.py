@@ -13,6 +13,7 @@ Side by side in one run, interleaved, medians over --repeat rounds:
 from __future__ import annotations
 
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -24,14 +25,13 @@ from upath import UPath
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.files import jpeg_defect, read_bytes
 
-SAMPLE_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
-
 
 def sample_log() -> UPath:
-    for root in (Path(__file__).resolve().parents[2] / "shared", Path("/work/shared")):
-        if (root / "data" / "av2-sample" / "val" / SAMPLE_LOG).is_dir():
-            return UPath(root / "data" / "av2-sample" / "val" / SAMPLE_LOG)
-    raise SystemExit("the real AV2 sample is needed (../shared/data/av2-sample)")
+    """The real AV2 sample's log, found as the tests find it."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from conftest import AV2_SAMPLE_LOG, find_av2_sample
+
+    return UPath(find_av2_sample() / "val" / AV2_SAMPLE_LOG)
 
 
 def jpegs(folder: Path, n: int = 200, size: int = 400_000) -> list[UPath]:

@@ -28,7 +28,7 @@ from ncore_convert.lidar import (
 from ncore_convert.lidar_model import SpinningLidarModel, column_time_remap, derive_model
 from ncore_convert.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources.files import SourceError
+from ncore_convert.sources.files import SourceError, require_folder
 from ncore_convert.writer import (
     BASE,
     Cuboids,
@@ -491,10 +491,7 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
     """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split)."""
     warnings: list[str] = []
     log_dir = options.log_dir(root_dir, log_id)
-    if not log_dir.is_dir():
-        raise SourceError(log_dir, "log directory not found")
-    if not any(log_dir.iterdir()):
-        raise SourceError(log_dir, "empty log directory (an interrupted download?)")
+    require_folder(log_dir, "log directory")
     lidar_ids = select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
     intrinsics = None
     if options.tbv:  # the cameras are those of the log's calibration

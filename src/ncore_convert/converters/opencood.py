@@ -30,7 +30,7 @@ from ncore_convert.lidar import ray_bundle
 from ncore_convert.noise_config import NoiseSetting
 from ncore_convert.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.files import PNG_SIGNATURE, SourceError
+from ncore_convert.sources.files import PNG_SIGNATURE, SourceError, require_folder
 from ncore_convert.storage import flush_to_disk
 from ncore_convert.writer import Cuboids, Profile, SequenceWriter, StoreType, write_sequence_meta
 
@@ -306,10 +306,7 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
 def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> ScenarioPlan:
     """Read a scenario's YAMLs once; decide every agent's trajectory, calibration and the labels."""
     scenario_dir = options.scenario_dir(root_dir, scenario)
-    if not scenario_dir.is_dir():
-        raise SourceError(scenario_dir, "scenario folder not found")
-    if not any(scenario_dir.iterdir()):
-        raise SourceError(scenario_dir, "empty scenario folder (an interrupted download?)")
+    require_folder(scenario_dir, "scenario folder")
     protocol = src.read_protocol(scenario_dir)
     dt = protocol.fixed_delta_seconds
     folders = src.list_agents(scenario_dir)

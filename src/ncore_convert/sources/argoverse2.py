@@ -20,7 +20,7 @@ import pyarrow.feather as feather
 from upath import UPath
 
 from ncore_convert.geometry import se3_from_quat_wxyz
-from ncore_convert.sources.files import SourceError, check_safe_names, jpeg_defect, read_bytes
+from ncore_convert.sources.files import SourceError, check_safe_names, jpeg_defect, list_folders, read_bytes, unreadable
 from ncore_convert.storage import is_local
 
 SPLITS = ("train", "val", "test")
@@ -76,10 +76,8 @@ def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None)
             with path.open("rb") as f:
                 table = feather.read_table(f, columns=wanted, use_threads=False)
         table.validate(full=True)  # a damaged body must not reach numpy as garbage offsets
-    except FileNotFoundError:
-        raise SourceError(path, "file not found") from None
-    except PermissionError:
-        raise SourceError(path, "unreadable (Permission denied)") from None
+    except (FileNotFoundError, PermissionError) as err:
+        raise unreadable(path, err) from None
     except (pa.ArrowException, KeyError, OSError) as err:
         cause = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise SourceError(path, f"not a readable feather table with columns {wanted} ({cause})") from None
@@ -133,9 +131,7 @@ def list_log_ids(root: UPath, split: str) -> list[str]:
     split_dir = root / split
     if not split_dir.is_dir():
         raise SourceError(split_dir, "split directory not found")
-    names = sorted(p.name for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
-    check_safe_names(split_dir, names, "log folder")
-    return names
+    return list_folders(split_dir, "log folder")
 
 
 def sweep_path(log_dir: UPath, timestamp_ns: int) -> UPath:

@@ -39,17 +39,40 @@ def check_safe_names(path: object, names: list[str], what: str) -> None:
         raise SourceError(path, f"{what} {bad[0]!r} is not a safe name (letters, digits, '_', '-', '.'; 128 at most)")
 
 
-def read_bytes(path: UPath) -> bytes:
-    """A whole file; SourceError naming it if it is missing or unreadable."""
+def list_folders(directory: UPath, what: str) -> list[str]:
+    """The sorted names of the visible folders in ``directory`` (logs, scenarios), each checked to
+    be a safe name (SourceError naming ``directory`` otherwise)."""
+    names = sorted(p.name for p in directory.iterdir() if p.is_dir() and not p.name.startswith("."))
+    check_safe_names(directory, names, what)
+    return names
+
+
+def require_folder(path: UPath, noun: str) -> None:
+    """SourceError unless ``path`` is a folder with something in it (``noun``: "log directory", ...)."""
+    if not path.is_dir():
+        raise SourceError(path, f"{noun} not found")
+    if not any(path.iterdir()):
+        raise SourceError(path, f"empty {noun} (an interrupted download?)")
+
+
+def unreadable(path: object, err: OSError) -> SourceError:
+    """The SourceError for a file that could not be read: missing, or refused with the OS's reason."""
+    if isinstance(err, FileNotFoundError):
+        return SourceError(path, "file not found")
+    return SourceError(path, f"unreadable ({err.strerror or type(err).__name__})")
+
+
+def read_bytes(path: UPath, max_bytes: int = -1) -> bytes:
+    """A file's bytes (its first ``max_bytes`` only, if given); SourceError naming it if it is
+    missing or unreadable."""
     try:
         if is_local(path):  # plain open is ~3x cheaper per file than going through fsspec
             with open(path.path, "rb") as f:
-                return f.read()
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise SourceError(path, "file not found") from None
+                return f.read(max_bytes)
+        with path.open("rb") as f:
+            return f.read(max_bytes)
     except OSError as err:
-        raise SourceError(path, f"unreadable ({err.strerror or type(err).__name__})") from None
+        raise unreadable(path, err) from None
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

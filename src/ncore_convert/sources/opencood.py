@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 from upath import UPath
 
-from ncore_convert.sources.files import SourceError, check_safe_names, png_defect, read_bytes
+from ncore_convert.sources.files import SourceError, list_folders, png_defect, read_bytes
 from ncore_convert.sources.pcd import read_pcd, red_from_rgb
 
 SPLITS = {
@@ -75,9 +75,7 @@ def list_scenarios(root: UPath, split: str) -> list[str]:
     split_dir = UPath(root) / split
     if not split_dir.is_dir():
         raise SourceError(split_dir, "split folder not found")
-    names = sorted(p.name for p in split_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
-    check_safe_names(split_dir, names, "scenario folder")
-    return names
+    return list_folders(split_dir, "scenario folder")
 
 
 def list_agents(scenario_dir: UPath) -> list[str]:

@@ -74,13 +74,7 @@ def _header_lines(path: UPath, raw: bytes) -> tuple[list[bytes], int]:
 
 def read_pcd_header(path: UPath) -> PcdHeader:
     """Only the header of a PCD file (its first 64 KiB are read): fields, types and point count."""
-    try:
-        with UPath(path).open("rb") as f:
-            head = f.read(HEADER_BYTES)
-    except FileNotFoundError:
-        raise SourceError(path, "file not found") from None
-    except OSError as err:
-        raise SourceError(path, f"unreadable ({err.strerror or type(err).__name__})") from None
+    head = read_bytes(UPath(path), HEADER_BYTES)
     return _parse_header(path, _header_lines(path, head)[0])
 
 

@@ -13,13 +13,11 @@ from __future__ import annotations
 
 from upath import UPath
 
-from ncore_convert.sources.files import SourceError, check_safe_names
+from ncore_convert.sources.files import SourceError, list_folders
 
 
 def list_log_ids(root: UPath) -> list[str]:
     """Log ids (directory names) directly under the TbV root, sorted."""
     if not root.is_dir():
         raise SourceError(root, "TbV root directory not found")
-    names = sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
-    check_safe_names(root, names, "log folder")
-    return names
+    return list_folders(root, "log folder")
