@@ -98,7 +98,7 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool,
     """One log through a warm worker pool (as every log after the first in a dataset run);
     prints its figures as JSON. Time and CPU run from the start of the log to its synced files."""
     from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
-    from ncore_convert.pool import JobPool
+    from ncore_convert.run.pool import JobPool
 
     shutil.rmtree(out, ignore_errors=True)
     peak, cpu = [0], {}
@@ -181,7 +181,7 @@ def measure(log_dir: Path, work: Path, repeat: int, workers: int, model_source: 
 
 
 def main() -> None:
-    from ncore_convert.pool import default_workers
+    from ncore_convert.run.pool import default_workers
 
     parser = bench_parser(__doc__, repeat=5)
     parser.add_argument("--workers", type=int, default=default_workers())

@@ -27,9 +27,9 @@ from bench_argoverse2 import bench_parser, cached, work_dir
 from upath import UPath
 
 from ncore_convert.converters.opencood import AgentPlan, timestamps_us
-from ncore_convert.converters.opencood_noise import plan_noise
-from ncore_convert.noise_config import make_setting
+from ncore_convert.converters.opencood.noise import plan_noise
 from ncore_convert.sources import opencood as src
+from ncore_convert.sources.noise_config import make_setting
 
 COMMON = {"seed": 25, "async": True, "loc_err": True, "xyz_std": 0.2, "ryp_std": 0.2}
 SETTINGS = {
@@ -54,7 +54,7 @@ def stand_in_agents(n_agents: int, n_frames: int) -> tuple[dict[str, AgentPlan],
         T_rig[:, :3, 3] = pose[:, :3]
         agents[agent_id] = AgentPlan(
             agent_id=agent_id, agent_dir=UPath("/nonexistent"), keys=keys, timestamps_us=timestamps_us(keys, 0.05),
-            lidar_pose_carla=pose, world_global_SE3_rig=T_rig, T_sensor_rig={src.LIDAR: np.eye(4)}, intrinsics={},
+            lidar_pose_carla=pose, T_rig_world_global=T_rig, T_sensor_rig={src.LIDAR: np.eye(4)}, intrinsics={},
             camera_index={}, lidar_ids=[src.LIDAR], mounts={},
         )  # fmt: skip
     return agents, keys

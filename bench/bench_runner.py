@@ -67,7 +67,7 @@ def run_dataset(executor, root: Path, out: Path, tbv: bool = False) -> tuple[flo
     """Convert every log under root/val (TbV: under root) with the runner; returns the seconds to
     synced files and the per-log results."""
     from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
-    from ncore_convert.runner import run_logs
+    from ncore_convert.run.runner import run_logs
     from ncore_convert.sources import argoverse2
     from ncore_convert.sources import tbv as tbv_source
 
@@ -116,8 +116,8 @@ def _vm_hwm_bytes(pid: int) -> int:
 def child_memory(root: str, out: str, workers: int, tbv: bool) -> None:
     """Convert the one log under root/val (TbV: root) in a fresh process; print the peak RSS of the
     largest worker and of this process, the time and the lidar path per sweep as JSON."""
-    from ncore_convert.executors import LocalExecutor
-    from ncore_convert.pool import JobPool
+    from ncore_convert.run.executors import LocalExecutor
+    from ncore_convert.run.pool import JobPool
 
     with LocalExecutor(JobPool(workers, preload=["ncore_convert.converters.argoverse2"])) as executor:
         executor.pool.run([(_ready, ())] * workers)
@@ -138,8 +138,8 @@ def memory(root: Path, out: Path, workers: int, tbv: bool = False) -> dict:
 
 
 def throughput(work: Path, logs: int, seconds: float, repeat: int) -> None:
-    from ncore_convert.executors import LocalExecutor
-    from ncore_convert.pool import JobPool
+    from ncore_convert.run.executors import LocalExecutor
+    from ncore_convert.run.pool import JobPool
 
     root = synth_logs(work, logs, seconds)
     print(f"throughput: {logs} logs of {seconds:g} s, medians of {repeat} interleaved runs", flush=True)

@@ -23,7 +23,7 @@ from pathlib import Path
 from bench_argoverse2 import bench_parser, cached, work_dir
 from upath import UPath
 
-from ncore_convert.validate import validate_tree
+from ncore_convert.validate.tree import validate_tree
 
 CLI = Path(sys.executable).parent / "ncore-convert"
 

@@ -33,11 +33,11 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
-from ncore_convert.runner import convert_one
+from ncore_convert.run.runner import convert_one
 from ncore_convert.sources import files
 from ncore_convert.synth import opencood as synth_opencood
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-from ncore_convert.validate import convert_and_validate
+from ncore_convert.validate.tree import convert_and_validate
 
 CAMERAS = ("ring_front_center", "ring_side_left")
 

@@ -177,7 +177,7 @@ def test_synth_command_writes_a_log(tmp_path):
     assert result.exit_code == 0, result.output
     (log_dir,) = list(tmp_path.iterdir())
     assert len(av2.list_sweep_timestamps_ns(UPath(log_dir))) == 2
-    assert np.all(np.diff(av2.read_city_SE3_ego(UPath(log_dir))[0]) > 0)
+    assert np.all(np.diff(av2.read_ego_poses(UPath(log_dir))[0]) > 0)
 
 
 def test_an_output_that_cannot_be_written_stops_the_run_with_one_line(small_root, tmp_path):

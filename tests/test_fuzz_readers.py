@@ -23,9 +23,9 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from upath import UPath
 
+from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import opencood as ocd
-from ncore_convert.sources.files import SourceError
 from ncore_convert.sources.pcd import read_pcd, read_pcd_header
 
 FUZZ_EXAMPLES = int(os.environ.get("NCORE_CONVERT_FUZZ_EXAMPLES", "3000"))
@@ -239,7 +239,7 @@ feather_inputs = st.one_of(st.binary(max_size=512), *(damaged(v) for v in VALID_
 AV2_READERS = {
     "sweep": lambda log, stamp: av2.read_sweep(log, stamp),
     "TbV sweep": lambda log, stamp: av2.read_sweep(log, stamp, with_offsets=False),
-    "poses": lambda log, stamp: av2.read_city_SE3_ego(log),
+    "poses": lambda log, stamp: av2.read_ego_poses(log),
     "annotations": lambda log, stamp: av2.read_annotations(log),
 }
 

@@ -12,10 +12,10 @@ from conftest import AV2_SAMPLE_LOG, open_sequence
 from ncore.data.v4 import PosesComponent
 from upath import UPath
 
+from ncore_convert.contract import MAP_GROUND_HEIGHT, MAP_META, MAP_VECTOR_JSON
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources.files import SourceError
-from ncore_convert.writer import MAP_GROUND_HEIGHT, MAP_META, MAP_VECTOR_JSON
 
 
 def stored_map(loader) -> tuple[bytes, np.ndarray, dict]:
@@ -55,7 +55,7 @@ def test_real_map_sits_under_the_converted_trajectory(real_log, av2_sample_root)
     T_world_global = poses.get_static_pose("world", "world_global")
     ego_global = (T_world_global @ T_rig_world.astype(np.float64))[:, :3, 3]
     height = ego_global[:, 2] - ground_height_at(raster, meta["img_Sim2_city"], ego_global[:, :2])
-    _, city_SE3_ego = av2.read_city_SE3_ego(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
+    _, city_SE3_ego = av2.read_ego_poses(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
     source = av2.read_log_map(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
     xyz = city_SE3_ego[:, :3, 3]
     source_height = xyz[:, 2] - ground_height_at(source.ground_height_m, source.img_Sim2_city, xyz[:, :2])

@@ -16,13 +16,14 @@ from ncore.data.v4 import PosesComponent, SequenceComponentGroupsReader, Sequenc
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
-from ncore_convert import noise
 from ncore_convert.cli import noise_settings
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
-from ncore_convert.noise_config import NoiseSetting, check_unique, make_setting, read_noise_config
+from ncore_convert.errors import SourceError
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.files import SourceError
+from ncore_convert.sources.noise_config import check_unique, make_setting, read_noise_config
 from ncore_convert.synth.opencood import ScenarioTruth, SynthConfig, carla_pose_matrix, write_dataset
+from ncore_convert.transforms import noise
+from ncore_convert.transforms.noise import NoiseSetting
 
 MIRROR = np.diag([1.0, -1.0, 1.0, 1.0])
 #: OpenCOOD's documented example block (data-preparation page), as a user would paste it.
@@ -261,7 +262,7 @@ def test_perturbation_moves_and_turns_about_the_world_axes():
     T[1, :3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
     T[:, :3, 3] = [[1, 2, 3], [4, 5, 6]]
     e = np.array([[0.1, -0.2, 0.3, 0, 0, 90.0], [0, 0, 0, 1.0, 2.0, 3.0]])
-    out = noise.perturb_world_SE3(T, e)
+    out = noise.perturb_poses(T, e)
     np.testing.assert_allclose(out[:, :3, 3], T[:, :3, 3] + e[:, :3])
     np.testing.assert_allclose(out[0, :3, 0], [0, 1, 0], atol=1e-12)  # x axis yawed +90 deg about world z
     turn = out[1, :3, :3] @ T[1, :3, :3].T

@@ -19,8 +19,8 @@ from ncore.impl.sensors.camera import camera_model_from_parameters
 from upath import UPath
 
 from ncore_convert.converters.opencood import OpenCoodOptions, ScenarioSummary, convert_scenario
+from ncore_convert.errors import SourceError
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.files import SourceError
 from ncore_convert.synth.opencood import (
     PILLAR_DIMS_M,
     ScenarioTruth,

@@ -11,10 +11,10 @@ from upath import UPath
 
 from ncore_convert.cli import cli
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
-from ncore_convert.pool import JobPool, Progress
+from ncore_convert.run.pool import JobPool, Progress
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-from ncore_convert.writer import BASE, independent_parts
+from ncore_convert.writer import BASE_JOB, WriteJob, independent_parts
 
 PRELOAD = ["ncore_convert.converters.argoverse2"]
 
@@ -80,12 +80,13 @@ def test_joined_sequence_meta_equals_the_library_meta_of_all_stores(camera_root,
 
 def test_independent_parts_never_share_a_store():
     cams, lidars = ["cam_a", "cam_b"], ["up", "down"]
-    jobs = [(BASE,), ("up", "down"), ("cam_a",), ("cam_b",)]
+    jobs = [BASE_JOB, WriteJob(("up", "down")), WriteJob(("cam_a",)), WriteJob(("cam_b",))]
     assert independent_parts(jobs, cams, lidars, "default") == [[0, 1, 2, 3]]
     assert independent_parts(jobs, cams, lidars, "separate-sensors") == [[0], [1], [2], [3]]
     assert independent_parts(jobs, cams, lidars, "separate-all") == [[0], [1], [2], [3]]
     # a job touching the stores of two others joins them
-    assert independent_parts([(BASE,), ("cam_a",), ("up",), ("cam_a", "up")], cams, lidars, "separate-sensors") == [
+    four = [BASE_JOB, WriteJob(("cam_a",)), WriteJob(("up",)), WriteJob(("cam_a", "up"))]
+    assert independent_parts(four, cams, lidars, "separate-sensors") == [
         [0],
         [1, 2, 3],
     ]
@@ -133,7 +134,7 @@ def _fail(progress) -> None:
 
 
 def test_an_unexpected_worker_error_is_reported_where_the_worker_raised_it(pool, tmp_path):
-    from ncore_convert.runner import convert_one
+    from ncore_convert.run.runner import convert_one
 
     def convert(seq_dir, log_id, progress):
         return pool.run([(_fail, ())])
@@ -144,7 +145,7 @@ def test_an_unexpected_worker_error_is_reported_where_the_worker_raised_it(pool,
 
 
 def test_a_killed_worker_fails_that_run_and_fresh_workers_serve_the_next(pool):
-    from ncore_convert.pool import WorkerDied
+    from ncore_convert.run.pool import WorkerDied
 
     with pytest.raises(WorkerDied, match="worker process died"):
         pool.run([(_kill_self, ()), (_count_to, (2,))])

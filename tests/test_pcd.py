@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from upath import UPath
 
-from ncore_convert.sources.files import SourceError
+from ncore_convert.errors import SourceError
 from ncore_convert.sources.pcd import intensity_from_rgb, read_pcd
 
 HEADER = (

@@ -15,9 +15,9 @@ from upath import UPath
 
 from ncore_convert.cli import cli
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
-from ncore_convert.noise_config import make_setting
 from ncore_convert.preview import preview_scenario, preview_sequence
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources.noise_config import make_setting
 from ncore_convert.synth.opencood import SynthConfig as OpenCoodConfig
 from ncore_convert.synth.opencood import write_dataset
 

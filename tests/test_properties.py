@@ -11,14 +11,14 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from ncore_convert.carla import (
+from ncore_convert.transforms.carla import (
     boxes_world_right_handed,
-    carla_world_SE3,
+    carla_pose_matrix,
+    mirror_transform,
     points_right_handed,
-    right_handed_SE3,
-    world_SE3_right_handed,
+    right_handed_pose,
 )
-from ncore_convert.geometry import (
+from ncore_convert.transforms.geometry import (
     Trajectory,
     euler_xyz_from_rotation,
     invert_se3,
@@ -27,7 +27,7 @@ from ncore_convert.geometry import (
     se3_from_quat_wxyz,
     transform_points,
 )
-from ncore_convert.lidar import compensate, decompensate
+from ncore_convert.transforms.lidar import compensate, decompensate
 
 PROPERTY = settings(max_examples=300, deadline=None)
 
@@ -100,13 +100,13 @@ def test_xyz_euler_round_trip_through_quaternions(q):
 def test_carla_mirroring_is_an_involution_and_a_homomorphism(pose_a, pose_b, p):
     """Left-handed -> right-handed twice is the identity; mirroring commutes with composition and
     inversion, so chains of CARLA transforms can be mirrored link by link."""
-    A, B = carla_world_SE3(pose_a), carla_world_SE3(pose_b)
-    np.testing.assert_allclose(right_handed_SE3(right_handed_SE3(A)), A, atol=1e-12)
+    A, B = carla_pose_matrix(pose_a), carla_pose_matrix(pose_b)
+    np.testing.assert_allclose(mirror_transform(mirror_transform(A)), A, atol=1e-12)
     np.testing.assert_allclose(points_right_handed(points_right_handed(p)), p, atol=0)
-    np.testing.assert_allclose(right_handed_SE3(A @ B), right_handed_SE3(A) @ right_handed_SE3(B), atol=1e-8)
-    np.testing.assert_allclose(right_handed_SE3(np.linalg.inv(A)), invert_se3(right_handed_SE3(A)), atol=1e-8)
-    assert_proper_rigid(world_SE3_right_handed(pose_a))
-    mirrored = transform_points(right_handed_SE3(A), points_right_handed(p))
+    np.testing.assert_allclose(mirror_transform(A @ B), mirror_transform(A) @ mirror_transform(B), atol=1e-8)
+    np.testing.assert_allclose(mirror_transform(np.linalg.inv(A)), invert_se3(mirror_transform(A)), atol=1e-8)
+    assert_proper_rigid(right_handed_pose(pose_a))
+    mirrored = transform_points(mirror_transform(A), points_right_handed(p))
     np.testing.assert_allclose(mirrored, points_right_handed(transform_points(A, p)), atol=1e-8)
 
 
@@ -120,7 +120,7 @@ def test_carla_box_corners_mirror_onto_the_right_handed_box(pose, center, extent
     """Each corner of a CARLA box, mirrored, is a corner of the converted right-handed box."""
     world_SE3_box, dims = boxes_world_right_handed(pose[None, :3], pose[None, 3:], center[None], extent[None])
     signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
-    corners_carla = transform_points(carla_world_SE3(pose), center + signs * extent)
+    corners_carla = transform_points(carla_pose_matrix(pose), center + signs * extent)
     corners_rh = transform_points(world_SE3_box[0], signs * dims[0] / 2)
     np.testing.assert_allclose(
         np.sort(points_right_handed(corners_carla), axis=0), np.sort(corners_rh, axis=0), atol=1e-8

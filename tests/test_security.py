@@ -11,10 +11,10 @@ from click.testing import CliRunner
 from upath import UPath
 
 from ncore_convert.cli import cli
-from ncore_convert.noise_config import read_noise_config
-from ncore_convert.runner import convert_one
+from ncore_convert.errors import SourceError
+from ncore_convert.run.runner import convert_one
 from ncore_convert.sources import opencood as ocd
-from ncore_convert.sources.files import SourceError
+from ncore_convert.sources.noise_config import read_noise_config
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
 UNSAFE = ["..", "../escape", "a/b", ".hidden", "name with space", "x" * 129, "-leading-dash"]

@@ -7,8 +7,8 @@ import pyarrow.feather as feather
 import pyarrow.ipc as ipc
 from conftest import AV2_SAMPLE_LOG
 
-from ncore_convert import vlp32c
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.transforms import vlp32c
 
 TABLES = [
     "city_SE3_egovehicle.feather",
@@ -38,7 +38,7 @@ def test_calibration_has_all_sensors_and_real_resolutions(synth_log, av2_sample_
     assert list(synth) == list(real) == list(av2.CAMERAS)
     for cam in av2.CAMERAS:
         assert (synth[cam].width_px, synth[cam].height_px) == (real[cam].width_px, real[cam].height_px)
-    extrinsics = av2.read_ego_SE3_sensors(synth_log.truth.log_dir)
+    extrinsics = av2.read_sensor_extrinsics(synth_log.truth.log_dir)
     assert list(extrinsics) == list(av2.CAMERAS) + list(av2.LIDARS)
     assert extrinsics["down_lidar"][2, 2] < -0.99 < 0.99 < extrinsics["up_lidar"][2, 2]  # mounted upside down
 
@@ -51,7 +51,7 @@ def test_jpegs_have_realistic_size_and_are_valid(synth_log):
 
 
 def test_a_pose_at_every_sensor_timestamp(synth_log):
-    pose_ns, _ = av2.read_city_SE3_ego(synth_log.truth.log_dir)
+    pose_ns, _ = av2.read_ego_poses(synth_log.truth.log_dir)
     sensor_ns = [s.timestamp_ns for s in synth_log.truth.sweeps] + [int(p.stem) for p in synth_log.truth.image_paths]
     assert np.isin(sensor_ns, pose_ns).all()
     last_point_ns = max(s.timestamp_ns + int(s.offset_ns.max()) for s in synth_log.truth.sweeps)

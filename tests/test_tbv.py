@@ -162,7 +162,7 @@ def test_synthetic_tbv_map_round_trips_exactly(synth_tbv):
 
 
 def test_tbv_conversions_validate_against_their_source(real_tbv, synth_tbv, tmp_path):
-    from ncore_convert.validate import validate_tree
+    from ncore_convert.validate.tree import validate_tree
 
     _, seq_dir, _ = real_tbv
     entry = json.loads((seq_dir.parent / "conversion-report.json").read_text())["logs"][AV2_SAMPLE_LOG]

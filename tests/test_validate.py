@@ -17,17 +17,13 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
-from ncore_convert.coregister import check_coregistration
-from ncore_convert.runner import RunReport, convert_one
+from ncore_convert.run.runner import RunReport, convert_one
 from ncore_convert.synth.argoverse2 import SynthConfig
 from ncore_convert.synth.opencood import SynthConfig as OpenCoodConfig
 from ncore_convert.synth.opencood import write_dataset
-from ncore_convert.validate import (
-    convert_and_validate,
-    find_sequences,
-    validate_sequence,
-    validate_tree,
-)
+from ncore_convert.validate.coregister import check_coregistration
+from ncore_convert.validate.sequence import validate_sequence
+from ncore_convert.validate.tree import convert_and_validate, find_sequences, validate_tree
 
 
 @pytest.fixture(scope="module")

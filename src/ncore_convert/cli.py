@@ -1,7 +1,10 @@
 """Command line: ``ncore-convert [GROUP OPTIONS] COMMAND [OPTIONS]``.
 
 Group options (input/output roots, sensor selection) come before the dataset command, as in the
-NCore converters. Tool commands (``synth``) need no ``--root-dir/--output-dir``.
+NCore converters. Every dataset command builds its options and runs through one path
+(:func:`_convert`) with the dataset's record (``converters.common.Dataset``). Tool commands
+(``validate``, ``preview``, ``evaluate-lidar-model``, ``synth``) need no ``--root-dir/--output-dir``.
+Choices come from the ``Literal`` types the code uses.
 """
 
 from __future__ import annotations
@@ -9,14 +12,28 @@ from __future__ import annotations
 import sys
 from dataclasses import asdict, dataclass
 from functools import partial
+from typing import get_args
 
 import click
 from upath import UPath
 
 from ncore_convert import __version__
-from ncore_convert.pool import JobPool, default_workers
+from ncore_convert.contract import MANIFEST, Layout, LidarModelSource, Profile, StoreType
+from ncore_convert.errors import SourceError
+from ncore_convert.run.executors import ExecutorKind
+from ncore_convert.run.pool import JobPool, default_workers
 from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
+from ncore_convert.transforms.noise import ASYNC_MODES, DOFS, MODELS, PROCESSES
+
+#: The package each dataset command's converter lives in: its workers import it while the main
+#: process starts up.
+DATASET_PACKAGES = {
+    "argoverse2-v4": "ncore_convert.converters.argoverse2",
+    "tbv-v4": "ncore_convert.converters.argoverse2",
+    "opv2v-v4": "ncore_convert.converters.opencood",
+    "v2xset-v4": "ncore_convert.converters.opencood",
+}
 
 
 @dataclass(frozen=True)
@@ -29,7 +46,7 @@ class GroupOptions:
     workers: int
     mode: str
     shard: tuple[int, int] | None
-    executor: str
+    executor: ExecutorKind
     ray_address: str | None
     validate: bool
     verbose: bool
@@ -46,13 +63,10 @@ class GroupOptions:
 
     def make_executor(self, preload: list[str]):
         """The executor of this run (a context manager); local workers start here, in the background."""
+        from ncore_convert.run.executors import LocalExecutor, RayExecutor
+
         if self.executor == "local":
-            pool = JobPool(self.workers, preload=preload)  # its fork server imports while this process does
-            from ncore_convert.executors import LocalExecutor
-
-            return LocalExecutor(pool)
-        from ncore_convert.executors import RayExecutor
-
+            return LocalExecutor(JobPool(self.workers, preload=preload))  # its fork server imports meanwhile
         try:
             return RayExecutor(self.ray_address)
         except (ImportError, ConnectionError) as err:
@@ -89,7 +103,11 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     "--lidar-id", "lidar_ids", multiple=True, show_default="all", help="Convert only this lidar (repeatable)."
 )
 @off_flag("--no-lidars", help="Convert no lidars.")
-@click.option("--progress/--no-progress", default=True, help="Show per-log progress bars.")
+@click.option(
+    "--progress/--no-progress", default=None, show_default="on when stderr is a terminal",
+    help="Show progress bars (on stderr). Off, only the per-log summary lines are printed: no cursor escapes"
+    " in CI or batch logs.",
+)  # fmt: skip
 @click.option(
     "--workers", type=click.IntRange(min=1), default=None, show_default="the number of CPUs",
     help="Local worker processes: a log per worker when there are enough logs, else a log's stores (per sensor)"
@@ -102,7 +120,7 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     help="I/N: convert only every N-th log of the sorted list, starting at I (array jobs without Ray).",
 )  # fmt: skip
 @click.option(
-    "--executor", type=click.Choice(["local", "ray"]), default="local",
+    "--executor", type=click.Choice(get_args(ExecutorKind)), default="local",
     help="Where logs run: this machine's worker processes, or the tasks of an existing Ray cluster.",
 )  # fmt: skip
 @click.option(
@@ -140,7 +158,7 @@ def cli(
         output_dir=output_dir,
         camera_ids=_selection(camera_ids, no_cameras),
         lidar_ids=_selection(lidar_ids, no_lidars),
-        progress=progress,
+        progress=sys.stderr.isatty() if progress is None else progress,
         workers=workers or default_workers(),
         mode="overwrite" if overwrite else ("retry-failed" if retry_failed else "resume"),
         shard=_parse_shard(shard),
@@ -170,10 +188,9 @@ def _parse_shard(text: str | None) -> tuple[int, int] | None:
 def store_options(f):
     """Store layout options shared by every dataset command."""
     for option in reversed([
-        click.option("--store-type", type=click.Choice(["itar", "directory"]), default="itar",
+        click.option("--store-type", type=click.Choice(get_args(StoreType)), default="itar",
                      help="Zarr store container."),
-        click.option("--profile", type=click.Choice(["default", "separate-sensors", "separate-all"]),
-                     default="separate-sensors",
+        click.option("--profile", type=click.Choice(get_args(Profile)), default="separate-sensors",
                      help="Component group layout: one store, one store per sensor, or also separate"
                      " poses/intrinsics/masks/cuboids."),
         click.option("--sequence-meta/--no-sequence-meta", default=True,
@@ -193,7 +210,7 @@ def av2_family_options(log_scope: str):
             store_options,
             click.option("--maps/--no-maps", default=True,
                          help="Store the log's HD map (vector map, ground-height raster, Sim(2)) with the poses."),
-            click.option("--lidar-model-source", type=click.Choice(["empirical", "none"]), default="empirical",
+            click.option("--lidar-model-source", type=click.Choice(get_args(LidarModelSource)), default="empirical",
                          help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's"
                          " model element; 'none': raw per-point-time ray bundles only."),
         ]):  # fmt: skip
@@ -215,24 +232,43 @@ def _pick(requested: tuple[str, ...], available: list[str], where: UPath, noun: 
     return available
 
 
-def _convert(obj: GroupOptions, command: str, preload: str, prepare) -> None:
-    """Run a dataset conversion: ``prepare(root)`` -> (options, ids, task, input_dir), after the
-    executor has started (its workers import ``preload`` meanwhile)."""
+def _dataset(command: str):
+    """The dataset record of a command (``converters.common.Dataset``), imported on demand: after the
+    executor has started, so that its workers import the converter while this process does."""
+    if DATASET_PACKAGES[command] == "ncore_convert.converters.argoverse2":
+        from ncore_convert.converters.argoverse2 import DATASETS
+    else:
+        from ncore_convert.converters.opencood import DATASETS
+    return DATASETS[command]
+
+
+def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **option_values) -> None:
+    """Run a dataset command: the requested logs or scenarios (all if none), each converted, validated
+    (unless --no-validate) and published by the runner on the chosen executor. ``option_values``
+    build the dataset's options (with the group's sensor selection)."""
     root, out = obj.require_paths()
-    with obj.make_executor(preload=[preload]) as executor:
-        from ncore_convert.runner import report_name, run_logs, shard_logs
+    with obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
+        from ncore_convert.run.runner import report_name, run_logs, shard_logs
+        from ncore_convert.validate.tree import convert_and_validate
 
-        options, todo, task, input_dir = prepare(root)
+        dataset = _dataset(command)
+        options = dataset.options(camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids, **option_values)
+        try:
+            dataset.check_sensors(options)
+            available = dataset.list_ids(root, options)
+        except (ValueError, SourceError) as err:
+            raise click.UsageError(str(err)) from None
+        todo = _pick(requested, available, dataset.ids_dir(root, options), dataset.noun)
+        task = partial(dataset.convert, root, options=options)
         if obj.validate:
-            from ncore_convert.validate import convert_and_validate
-
             task = partial(convert_and_validate, task, source_root=root)
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
         try:
             results = run_logs(
                 out, shard_logs(todo, obj.shard), task, executor, echo=click.echo, show_progress=obj.progress,
-                fingerprint=fingerprint, mode=obj.mode, input_dir=input_dir, report_file=report_name(obj.shard),
+                fingerprint=fingerprint, mode=obj.mode, input_dir=partial(dataset.input_dir, root, options),
+                report_file=report_name(obj.shard),
                 verbose=obj.verbose,
             )  # fmt: skip
         except OSError as err:  # the output storage itself fails (full, read-only): not even the report is kept
@@ -248,24 +284,7 @@ def _convert(obj: GroupOptions, command: str, preload: str, prepare) -> None:
 
 def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_ids: tuple[str, ...], **options):
     """Run the Argoverse 2 Sensor (split given) or TbV (split None) conversion of the selected logs."""
-
-    def prepare(root: UPath):
-        from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
-        from ncore_convert.converters.common import select_sensors
-        from ncore_convert.sources import argoverse2 as av2
-        from ncore_convert.sources import tbv
-
-        opts = Argoverse2Options(split=split, camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids, **options)
-        try:
-            select_sensors(opts.camera_ids, av2.RING_CAMERAS if opts.tbv else av2.CAMERAS, "camera")
-            select_sensors(opts.lidar_ids, av2.LIDARS, "lidar")
-            available = tbv.list_log_ids(root) if opts.tbv else av2.list_log_ids(root, split)
-        except (ValueError, av2.SourceError) as err:
-            raise click.UsageError(str(err)) from None
-        todo = _pick(log_ids, available, root if opts.tbv else root / split, "log")
-        return opts, todo, partial(convert_log, root, options=opts), lambda log_id: opts.log_dir(root, log_id)
-
-    _convert(obj, command, "ncore_convert.converters.argoverse2", prepare)
+    _convert(obj, command, log_ids, split=split, **options)
 
 
 #: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, default, help).
@@ -273,11 +292,11 @@ def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_
 NOISE_FLAGS = [
     ("--noise-name", "noise_name", "name", str, "the model's name",
      "Name of the setting these flags make (its poses instance)."),
-    ("--noise-model", "noise_model", "model", click.Choice(["opencood", "realistic"]), "opencood",
+    ("--noise-model", "noise_model", "model", click.Choice(MODELS), "opencood",
      "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams."),
     ("--noise-seed", "noise_seed", "seed", int, "25, OpenCOOD's test seed", "seed."),
     ("--async/--no-async", "async_", "async", None, "off", "async: add communication delay."),
-    ("--async-mode", "async_mode", "async_mode", click.Choice(["sim", "real"]), "sim",
+    ("--async-mode", "async_mode", "async_mode", click.Choice(ASYNC_MODES), "sim",
      "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone."),
     ("--async-overhead", "async_overhead", "async_overhead", float, "0", "async_overhead, ms."),
     ("--backbone-delay", "backbone_delay", "backbone_delay", float, "0", "backbone_delay, ms (real mode)."),
@@ -288,13 +307,13 @@ NOISE_FLAGS = [
     ("--xyz-std", "xyz_std", "xyz_std", float, "0", "xyz_std: position error std, m."),
     ("--ryp-std", "ryp_std", "ryp_std", float, "0", "ryp_std: angular error std, deg."),
     ("--max-cav", "max_cav", "max_cav", int, "7", "OpenCOOD's train_params.max_cav (opencood model)."),
-    ("--gps-process", "gps_process", "process", click.Choice(["white", "gauss_markov"]), "white",
+    ("--gps-process", "gps_process", "process", click.Choice(PROCESSES), "white",
      "realistic: per-frame draws or Gauss-Markov drift."),
     ("--correlation-time-s", "correlation_time_s", "correlation_time_s", float, "10",
      "realistic: Gauss-Markov correlation time, s."),
     ("--bias-xyz-std", "bias_xyz_std", "bias_xyz_std", float, "0", "realistic: std of a constant position bias, m."),
     ("--bias-ryp-std", "bias_ryp_std", "bias_ryp_std", float, "0", "realistic: std of a constant angular bias, deg."),
-    ("--gps-dof", "gps_dof", "dof", click.Choice(["6dof", "xy_yaw"]), "6dof",
+    ("--gps-dof", "gps_dof", "dof", click.Choice(DOFS), "6dof",
      "realistic: perturb all 6 DoF or x, y and yaw."),
     ("--perturb-ego/--no-perturb-ego", "perturb_ego", "perturb_ego", None, "off",
      "realistic: perturb the OpenCOOD ego too."),
@@ -314,8 +333,7 @@ def noise_options(f):
 
 def noise_settings(noise_configs: tuple[str, ...], flags: dict) -> tuple:
     """The settings of the ``--noise-config`` files, then the one the flags make (if any flag is given)."""
-    from ncore_convert.noise_config import check_unique, make_setting, read_noise_config
-    from ncore_convert.sources.files import SourceError
+    from ncore_convert.sources.noise_config import check_unique, make_setting, read_noise_config
 
     try:
         settings = [read_noise_config(UPath(path)) for path in noise_configs]
@@ -337,23 +355,7 @@ def _convert_opencood(obj: GroupOptions, dataset: str, split: str, scenarios: tu
     flags = {param: options.pop(param) for _, param, _, _, _, _ in NOISE_FLAGS}
     noise = noise_settings(options.pop("noise_configs"), flags)
 
-    def prepare(root: UPath):
-        from ncore_convert.converters.common import select_sensors
-        from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
-        from ncore_convert.sources import opencood as src
-
-        opts = OpenCoodOptions(dataset=dataset, split=split, camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids,
-                               noise=noise, **options)  # fmt: skip
-        try:
-            select_sensors(opts.camera_ids, src.CAMERAS, "camera")
-            select_sensors(opts.lidar_ids, (src.LIDAR,), "lidar")
-            available = src.list_scenarios(root, split)
-        except (ValueError, src.SourceError) as err:
-            raise click.UsageError(str(err)) from None
-        todo = _pick(scenarios, available, root / split, "scenario")
-        return opts, todo, partial(convert_scenario, root, options=opts), lambda s: opts.scenario_dir(root, s)
-
-    _convert(obj, f"{dataset}-v4", "ncore_convert.converters.opencood", prepare)
+    _convert(obj, f"{dataset}-v4", scenarios, dataset=dataset, split=split, noise=noise, **options)
 
 
 def opencood_options(dataset: str):
@@ -365,7 +367,7 @@ def opencood_options(dataset: str):
                          help="Dataset split folder."),
             click.option("--scenario", "scenarios", multiple=True, show_default="every scenario of the split",
                          help="Convert only this scenario (repeatable)."),
-            click.option("--layout", type=click.Choice(["agents", "scenario"]), default="agents",
+            click.option("--layout", type=click.Choice(get_args(Layout)), default="agents",
                          help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
                          " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_)."),
             store_options,
@@ -427,7 +429,7 @@ def validate_command(path, source_root, json_file, details):
     """
     import json
 
-    from ncore_convert.validate import validate_tree
+    from ncore_convert.validate.tree import validate_tree
 
     if source_root is not None and not UPath(source_root).is_dir():
         raise click.UsageError(f"--source {source_root}: directory not found")
@@ -462,7 +464,6 @@ def preview_command(path, out_dir, frame):
     bird's-eye view with cuboids and the ego trajectory. A scenario.json: every agent in one
     bird's-eye view of world_global, with each noisy poses instance beside the ground truth.
     """
-    from ncore_convert.converters.opencood import MANIFEST
     from ncore_convert.preview import preview_scenario, preview_sequence
 
     try:
@@ -488,11 +489,10 @@ def evaluate_lidar_model_command(sequence, lidar_ids, far_range_m, as_json):
     """Compare each stored ray with the model ray of its model_element (SEQUENCE: <log_id>.json)."""
     import json
 
-    from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
-
     from ncore_convert.evaluate import evaluate_lidar_model
+    from ncore_convert.validate.readback import open_sequence
 
-    loader = SequenceLoaderV4(SequenceComponentGroupsReader([UPath(sequence)]))
+    loader = open_sequence(UPath(sequence)).loader
     unknown = sorted(set(lidar_ids) - set(loader.lidar_ids))
     if unknown:
         raise click.UsageError(f"lidar(s) {unknown} not in {sequence}; it has {loader.lidar_ids}")

@@ -18,12 +18,13 @@ import numpy as np
 import torch
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
-from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from ncore.data.v4 import SequenceLoaderV4
 from ncore.sensors import camera_model_from_parameters
-from scipy.spatial.transform import Rotation
 from upath import UPath
 
-from ncore_convert.validate import boxes_at, world_points
+from ncore_convert.contract import DEFAULT_INSTANCE
+from ncore_convert.validate.coregister import scenario_lidars
+from ncore_convert.validate.readback import box_corners_world, boxes_at, open_sequence, read_manifest, world_points
 
 BEV_HALF_SIZE_M = 60.0  #: the bird's-eye view spans this far around the ego in x and y
 SCENARIO_MARGIN_M = 50.0  #: the cooperative view spans the agents plus this much around them
@@ -51,12 +52,6 @@ class CameraProjection:
     png: UPath
 
 
-def open_loader(sequence_json: UPath, poses_instance: str = "default") -> SequenceLoaderV4:
-    return SequenceLoaderV4(
-        SequenceComponentGroupsReader([UPath(sequence_json)]), poses_component_group_name=poses_instance
-    )
-
-
 def _nearest_frame(frames_us: np.ndarray, t_us: float) -> int:
     """The frame (of a [N,2] start/end table, µs) whose middle is nearest ``t_us``."""
     return int(np.argmin(np.abs(frames_us.astype(np.float64).mean(axis=1) - t_us)))
@@ -79,15 +74,15 @@ def project_into_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xy
     """
     camera = loader.get_camera_sensor(camera_id)
     model = camera_model_from_parameters(camera.model_parameters, device="cpu", dtype=torch.float64)
-    t_us = camera.frames_timestamps_us[frame].astype(np.uint64)
-    T_world_camera = loader.pose_graph.evaluate_poses(camera_id, "world", t_us).astype(np.float64)
-    T_camera_world = np.linalg.inv(T_world_camera)  # NCore's projection takes world -> sensor poses
-    in_front = np.einsum("ij,nj->ni", T_camera_world[1, :3, :3], xyz_world_m)[:, 2] + T_camera_world[1, 2, 3] > 0.1
+    frame_us = camera.frames_timestamps_us[frame].astype(np.uint64)  # (start, end)
+    T_camera_world = loader.pose_graph.evaluate_poses(camera_id, "world", frame_us).astype(np.float64)
+    T_world_camera = np.linalg.inv(T_camera_world)  # NCore's projection takes world -> sensor poses
+    in_front = np.einsum("ij,nj->ni", T_world_camera[1, :3, :3], xyz_world_m)[:, 2] + T_world_camera[1, 2, 3] > 0.1
     candidates = np.flatnonzero(in_front)
     if not len(candidates):
         return np.zeros((0, 2)), candidates
     result = model.world_points_to_image_points_shutter_pose(
-        xyz_world_m[candidates], T_camera_world[0], T_camera_world[1], return_valid_indices=True
+        xyz_world_m[candidates], T_world_camera[0], T_world_camera[1], return_valid_indices=True
     )
     valid = np.atleast_1d(result.valid_indices.cpu().numpy())
     return result.image_points.cpu().numpy().reshape(-1, 2), candidates[valid]
@@ -102,8 +97,8 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
     camera = loader.get_camera_sensor(camera_id)
     image = camera.get_frame_image_array(frame)
     pixels, index = project_into_camera(loader, camera_id, frame, xyz_world_m)
-    t_us = camera.frames_timestamps_us[frame].astype(np.uint64)
-    centre = loader.pose_graph.evaluate_poses(camera_id, "world", t_us[1:])[0][:3, 3]
+    frame_us = camera.frames_timestamps_us[frame].astype(np.uint64)
+    centre = loader.pose_graph.evaluate_poses(camera_id, "world", frame_us[1:])[0][:3, 3]
     range_m = np.linalg.norm(xyz_world_m[index] - centre, axis=1)
     height, width = image.shape[:2]
     fig = Figure(figsize=(12, 12 * height / width + 0.6), dpi=DPI)
@@ -119,20 +114,9 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
     legend = ax.legend(loc="upper right", fontsize=8)
     legend.legend_handles[0].set_sizes([20])
     fig.colorbar(dots, cax=fig.add_axes((0.91, 0.05, 0.02, 0.89)), label="range from the camera (m)")
-    ax.set_title(_title(loader, f"{camera_id} frame {frame}", int(t_us[1])), fontsize=10)
+    ax.set_title(_title(loader, f"{camera_id} frame {frame}", int(frame_us[1])), fontsize=10)
     fig.savefig(str(png))
-    return CameraProjection(camera_id, frame, int(t_us[1]), pixels, xyz_world_m[index], range_m, png)
-
-
-def box_corners_world(loader: SequenceLoaderV4, box) -> np.ndarray:
-    """The 8 corners of a cuboid observation in ``world``, float64 [8,3]."""
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-    local = signs * np.asarray(box.bbox3.dim) / 2
-    R_ref_box = Rotation.from_euler("xyz", box.bbox3.rot).as_matrix()
-    xyz_ref = local @ R_ref_box.T + np.asarray(box.bbox3.centroid)
-    t = np.array([box.reference_frame_timestamp_us], dtype=np.uint64)
-    T_world_ref = loader.pose_graph.evaluate_poses(box.reference_frame_id, "world", t)[0].astype(np.float64)
-    return xyz_ref @ T_world_ref[:3, :3].T + T_world_ref[:3, 3]
+    return CameraProjection(camera_id, frame, int(frame_us[1]), pixels, xyz_world_m[index], range_m, png)
 
 
 def _footprint(corners: np.ndarray) -> np.ndarray:
@@ -143,14 +127,14 @@ def _footprint(corners: np.ndarray) -> np.ndarray:
 def draw_bev(loader: SequenceLoaderV4, t_us: int, xyz: np.ndarray, png: UPath) -> None:
     """Bird's-eye view of ``world`` around the ego at ``t_us``: the lidar points (world, float64 [N,3])
     by height, the cuboids of that sweep, the ego trajectory."""
-    ego = loader.pose_graph.evaluate_poses("rig", "world", np.array([t_us], dtype=np.uint64))[0]
+    T_rig_world = loader.pose_graph.evaluate_poses("rig", "world", np.array([t_us], dtype=np.uint64))[0]
     pose_times = np.unique(np.concatenate([loader.get_lidar_sensor(s).frames_timestamps_us[:, 1]
                                            for s in loader.lidar_ids]))  # fmt: skip
     trajectory = loader.pose_graph.evaluate_poses("rig", "world", pose_times.astype(np.uint64))[:, :2, 3]
-    near = np.all(np.abs(xyz[:, :2] - ego[:2, 3]) < BEV_HALF_SIZE_M, axis=1)
+    near = np.all(np.abs(xyz[:, :2] - T_rig_world[:2, 3]) < BEV_HALF_SIZE_M, axis=1)
     fig = Figure(figsize=(10, 9.4), dpi=DPI)
     ax = fig.add_axes((0.08, 0.06, 0.78, 0.86))
-    dots = ax.scatter(xyz[near, 0], xyz[near, 1], c=xyz[near, 2] - ego[2, 3], s=0.3, cmap="viridis",
+    dots = ax.scatter(xyz[near, 0], xyz[near, 1], c=xyz[near, 2] - T_rig_world[2, 3], s=0.3, cmap="viridis",
                       vmin=-2.0, vmax=3.0, linewidths=0, label="lidar points")  # fmt: skip
     frame_end = int(t_us)
     lidar0 = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us
@@ -159,10 +143,10 @@ def draw_bev(loader: SequenceLoaderV4, t_us: int, xyz: np.ndarray, png: UPath) -
     outlines = [_footprint(box_corners_world(loader, b)) for b in boxes]
     ax.add_collection(LineCollection(outlines, colors="red", linewidths=1.0, label=f"cuboids ({len(boxes)})"))
     ax.plot(trajectory[:, 0], trajectory[:, 1], "-", color="orange", lw=1.5, label="ego trajectory")
-    ax.plot(*ego[:2, 3], marker=(3, 0, np.degrees(np.arctan2(ego[1, 0], ego[0, 0])) - 90), ms=10, color="black",
-            ls="none", label="ego now")  # fmt: skip
-    ax.set_xlim(ego[0, 3] - BEV_HALF_SIZE_M, ego[0, 3] + BEV_HALF_SIZE_M)
-    ax.set_ylim(ego[1, 3] - BEV_HALF_SIZE_M, ego[1, 3] + BEV_HALF_SIZE_M)
+    heading_deg = np.degrees(np.arctan2(T_rig_world[1, 0], T_rig_world[0, 0]))
+    ax.plot(*T_rig_world[:2, 3], marker=(3, 0, heading_deg - 90), ms=10, color="black", ls="none", label="ego now")
+    ax.set_xlim(T_rig_world[0, 3] - BEV_HALF_SIZE_M, T_rig_world[0, 3] + BEV_HALF_SIZE_M)
+    ax.set_ylim(T_rig_world[1, 3] - BEV_HALF_SIZE_M, T_rig_world[1, 3] + BEV_HALF_SIZE_M)
     ax.set_aspect("equal")
     ax.set_xlabel("x world (m)")
     ax.set_ylabel("y world (m)")
@@ -189,7 +173,7 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
         frame: index of the first lidar's frame to show (default: the middle one); each camera shows
             its frame nearest in time.
     """
-    loader = open_loader(sequence_json)
+    loader = open_sequence(sequence_json).loader
     if not loader.lidar_ids:
         raise ValueError(f"{sequence_json}: the sequence has no lidar to preview")
     frames_us = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us
@@ -212,10 +196,8 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
 def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = None) -> UPath:
     """Every agent of a cooperative scenario in one bird's-eye view of ``world_global``; with noise
     settings, one panel per poses instance (ground truth first). Returns the PNG written."""
-    from ncore_convert.coregister import read_manifest, scenario_lidars
-
     manifest = read_manifest(manifest_path)
-    instances = ["default"] + [s["poses_instance"] for s in manifest.get("noise_settings", [])]
+    instances = [DEFAULT_INSTANCE] + [s.poses_instance for s in manifest.noise_settings]
     agents = scenario_lidars(UPath(manifest_path), manifest)
     if not agents:
         raise ValueError(f"{manifest_path}: no agent with a lidar")
@@ -236,7 +218,7 @@ def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = N
         loaders: dict[str, SequenceLoaderV4] = {}  # the scenario layout: one sequence for every agent
         for k, agent in enumerate(agents):
             if str(agent.sequence_json) not in loaders:
-                loaders[str(agent.sequence_json)] = open_loader(agent.sequence_json, instance)
+                loaders[str(agent.sequence_json)] = open_sequence(agent.sequence_json, instance).loader
             loader = loaders[str(agent.sequence_json)]
             xyz, origin = world_points(loader, agent.lidar_id, agent.frame_ending_at(t_us), "world_global")
             ends_us = agent.frame_ends_us().astype(np.uint64)
@@ -255,10 +237,10 @@ def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = N
         ax.set_ylabel("y world_global (m)")
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize=8, title="points, trajectory, lidar now")
-        label = "ground truth poses" if instance == "default" else f"noisy poses: {instance}"
-        ax.set_title(f"{manifest['scenario']}  |  {label}  |  t = {t_us} µs", fontsize=10)
+        label = "ground truth poses" if instance == DEFAULT_INSTANCE else f"noisy poses: {instance}"
+        ax.set_title(f"{manifest.scenario}  |  {label}  |  t = {t_us} µs", fontsize=10)
     out_dir = UPath(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    png = out_dir / f"{manifest['scenario']}_f{frame:04d}_agents_bev.png"
+    png = out_dir / f"{manifest.scenario}_f{frame:04d}_agents_bev.png"
     fig.savefig(str(png))
     return png

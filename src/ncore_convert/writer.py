@@ -1,7 +1,9 @@
 """The one place that talks to the nvidia-ncore V4 writer.
 
 Converters hand over plain numpy arrays and Python values; this module builds the NCore types,
-registers the components under their default instance names, and writes the sequence-meta JSON.
+registers the components under their default instance names, and writes the sequence-meta JSON and
+the cooperative ``scenario.json``. Frame ids are passed by keyword. The names it writes that
+readers look up again are defined in :mod:`ncore_convert.contract`.
 """
 
 from __future__ import annotations
@@ -10,7 +12,6 @@ import dataclasses
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from ncore.data.v4 import (
@@ -36,13 +37,19 @@ from ncore.impl.data.v4.components import SequenceMeta
 from ncore.impl.data.v4.types import ComponentGroupAssignments
 from upath import UPath
 
-from ncore_convert.lidar import RayBundle
-from ncore_convert.lidar_model import SpinningLidarModel
+from ncore_convert.contract import (
+    DEFAULT_INSTANCE,
+    MANIFEST,
+    MAP_GROUND_HEIGHT,
+    MAP_META,
+    MAP_VECTOR_JSON,
+    Profile,
+    ScenarioManifest,
+    StoreType,
+)
 from ncore_convert.storage import flush_to_disk
-
-StoreType = Literal["itar", "directory"]
-Profile = Literal["default", "separate-sensors", "separate-all"]
-DEFAULT_INSTANCE = "default"
+from ncore_convert.transforms.lidar import RayBundle
+from ncore_convert.transforms.lidar_model import SpinningLidarModel
 
 
 @dataclass(frozen=True)
@@ -110,20 +117,23 @@ class LidarStream(_SensorStream):
         )
 
 
-#: Names of the HD map in the poses component's generic data and generic metadata.
-MAP_VECTOR_JSON = "hd_map_vector_json"
-MAP_GROUND_HEIGHT = "hd_map_ground_height_m"
-MAP_META = "hd_map"
-BASE = "base"  #: job marker for the poses, intrinsics, masks and cuboids components
+@dataclass(frozen=True)
+class WriteJob:
+    """One writing job: the base components (poses, intrinsics, masks, cuboids), or the frames of
+    the sensors ``sensor_ids``."""
+
+    sensor_ids: tuple[str, ...] = ()
+    base: bool = False
+
+
+BASE_JOB = WriteJob(base=True)
 
 
 def independent_parts(
-    jobs: list[tuple[str, ...]], camera_ids: list[str], lidar_ids: list[str], profile: Profile
+    jobs: list[WriteJob], camera_ids: list[str], lidar_ids: list[str], profile: Profile
 ) -> list[list[int]]:
     """Group jobs so that no two groups write to the same component store.
 
-    Args:
-        jobs: per job, the sensor ids it writes (``BASE`` for the poses/intrinsics/masks/cuboids).
     Returns:
         lists of job indices; each list can be written by its own :class:`SequenceWriter` (and
         process). With ``profile="default"`` everything shares one store, so there is one group.
@@ -138,7 +148,7 @@ def independent_parts(
     sensor_group = {**groups.camera_component_groups, **groups.lidar_component_groups}
     parts: list[tuple[set, list[int]]] = []
     for index, job in enumerate(jobs):
-        touched = set().union(*(base_groups if sensor == BASE else {sensor_group.get(sensor)} for sensor in job))
+        touched = set(base_groups) if job.base else {sensor_group.get(sensor) for sensor in job.sensor_ids}
         overlapping = [part for part in parts if part[0] & touched]
         merged = (touched.union(*(p[0] for p in overlapping)), sorted([index] + [i for p in overlapping for i in p[1]]))
         parts = [part for part in parts if not part[0] & touched] + [merged]
@@ -238,6 +248,7 @@ class SequenceWriter:
         timestamps_us: np.ndarray,
         T_rig_world: np.ndarray,
         T_world_world_global: np.ndarray | None,
+        *,
         rig_frame: str = "rig",
         instance: str = DEFAULT_INSTANCE,
     ) -> None:
@@ -279,7 +290,7 @@ class SequenceWriter:
             {MAP_META: meta},
         )
 
-    def store_extrinsic(self, sensor_id: str, T_sensor_rig: np.ndarray, rig_frame: str = "rig") -> None:
+    def store_extrinsic(self, sensor_id: str, T_sensor_rig: np.ndarray, *, rig_frame: str = "rig") -> None:
         """Store a static sensor->rig extrinsic [4,4] (float32) in every poses instance."""
         self._require_base()
         for poses in self._poses.values():
@@ -381,5 +392,13 @@ def write_sequence_meta(output_dir: UPath, sequence_id: str, parts: list[Sequenc
     meta = dataclasses.replace(parts[0], component_stores=stores)
     path = output_dir / f"{sequence_id}.json"
     path.write_text(json.dumps(meta.to_dict(), indent=2))
+    flush_to_disk(path)
+    return path
+
+
+def write_scenario_manifest(output_dir: UPath, manifest: ScenarioManifest) -> UPath:
+    """Write ``<output_dir>/scenario.json`` (the last file of a scenario) and flush it to disk."""
+    path = output_dir / MANIFEST
+    path.write_text(json.dumps(manifest.to_dict(), indent=2))
     flush_to_disk(path)
     return path

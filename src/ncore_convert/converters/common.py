@@ -1,8 +1,37 @@
-"""What every dataset converter shares: sensor selection and the counters of a conversion."""
+"""What every dataset converter shares: the dataset record the CLI runs, sensor selection, and the
+counters of a conversion."""
 
 from __future__ import annotations
 
-from dataclasses import fields
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import Any
+
+from upath import UPath
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """One dataset command, as the CLI runs it (``options``: the dataset's options dataclass).
+
+    Attributes:
+        options: the options dataclass, built from the command's keyword arguments.
+        noun: what one unit of work is called ("log", "scenario").
+        ids_dir: ``(root, options)`` -> the folder the ids are listed from (for messages).
+        list_ids: ``(root, options)`` -> every id available (SourceError if the layout is wrong).
+        input_dir: ``(root, options, id)`` -> the id's source folder.
+        check_sensors: ``(options)`` -> None, or ValueError naming an unknown sensor id.
+        convert: ``(root, sequence_dir, id, *, options, pool, progress)`` -> a summary with
+            ``line()``, ``warnings`` and ``validation``; a module-level function, shipped to workers.
+    """
+
+    options: Callable[..., Any]
+    noun: str
+    ids_dir: Callable[[UPath, Any], UPath]
+    list_ids: Callable[[UPath, Any], list[str]]
+    input_dir: Callable[[UPath, Any, str], UPath]
+    check_sensors: Callable[[Any], None]
+    convert: Callable[..., Any]
 
 
 def select_sensors(requested: tuple[str, ...] | None, known: tuple[str, ...], kind: str) -> list[str]:

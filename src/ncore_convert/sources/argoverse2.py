@@ -19,9 +19,10 @@ import pyarrow as pa
 import pyarrow.feather as feather
 from upath import UPath
 
-from ncore_convert.geometry import se3_from_quat_wxyz
-from ncore_convert.sources.files import SourceError, check_safe_names, jpeg_defect, list_folders, read_bytes, unreadable
+from ncore_convert.errors import SourceError
+from ncore_convert.sources.files import check_safe_names, jpeg_defect, list_folders, read_bytes, unreadable
 from ncore_convert.storage import is_local
+from ncore_convert.transforms.geometry import se3_from_quat_wxyz
 
 SPLITS = ("train", "val", "test")
 RING_CAMERAS = (
@@ -126,12 +127,29 @@ def _poses_from_table(path: UPath, table: pa.Table) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 
+def log_dir(root: UPath, split: str | None, log_id: str) -> UPath:
+    """A log's folder: ``<root>/<split>/<log_id>`` (AV2 Sensor), or ``<root>/<log_id>`` (TbV: split None)."""
+    return root / log_id if split is None else root / split / log_id
+
+
 def list_log_ids(root: UPath, split: str) -> list[str]:
     """Log ids (directory names) under ``<root>/<split>``, sorted."""
     split_dir = root / split
     if not split_dir.is_dir():
         raise SourceError(split_dir, "split directory not found")
     return list_folders(split_dir, "log folder")
+
+
+def poses_path(log_dir: UPath) -> UPath:
+    return log_dir / "city_SE3_egovehicle.feather"
+
+
+def extrinsics_path(log_dir: UPath) -> UPath:
+    return log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
+
+
+def intrinsics_path(log_dir: UPath) -> UPath:
+    return log_dir / "calibration" / "intrinsics.feather"
 
 
 def sweep_path(log_dir: UPath, timestamp_ns: int) -> UPath:
@@ -179,14 +197,14 @@ def list_image_timestamps_ns(log_dir: UPath, camera: str) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 
-def read_city_SE3_ego(log_dir: UPath) -> tuple[np.ndarray, np.ndarray]:
-    """Ego poses from ``city_SE3_egovehicle.feather``.
+def read_ego_poses(log_dir: UPath) -> tuple[np.ndarray, np.ndarray]:
+    """Ego poses from ``city_SE3_egovehicle.feather`` (av2's ``city_SE3_ego``).
 
     Returns:
-        timestamps_ns: int64 [N], sorted ascending.
-        city_SE3_ego: float64 [N,4,4], maps ego-frame points to the city frame.
+        timestamps_ns: int64 [N], strictly increasing.
+        T_ego_city: float64 [N,4,4], maps ego-frame points to the city frame.
     """
-    path = log_dir / "city_SE3_egovehicle.feather"
+    path = poses_path(log_dir)
     table = read_table(path, POSES_SCHEMA)
     if table.num_rows < 2:
         raise SourceError(path, f"needs at least 2 poses, has {table.num_rows}")
@@ -208,9 +226,10 @@ def _check_increasing(path: UPath, timestamps_ns: np.ndarray) -> None:
         )
 
 
-def read_ego_SE3_sensors(log_dir: UPath) -> dict[str, np.ndarray]:
-    """Static extrinsics ``ego_SE3_sensor`` (float64 [4,4]) by sensor name."""
-    path = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
+def read_sensor_extrinsics(log_dir: UPath) -> dict[str, np.ndarray]:
+    """Static extrinsics by sensor name: ``T_sensor_ego`` (av2's ``ego_SE3_sensor``), float64 [4,4],
+    maps sensor-frame points to the ego frame."""
+    path = extrinsics_path(log_dir)
     table = read_table(path, EXTRINSICS_SCHEMA)
     names = table.column("sensor_name").to_pylist()
     _check_sensor_names(path, names)
@@ -242,7 +261,7 @@ class CameraIntrinsics:
 
 def read_intrinsics(log_dir: UPath) -> dict[str, CameraIntrinsics]:
     """Camera intrinsics by camera name from ``calibration/intrinsics.feather``."""
-    path = log_dir / "calibration" / "intrinsics.feather"
+    path = intrinsics_path(log_dir)
     rows = read_table(path, INTRINSICS_SCHEMA).to_pylist()
     _check_sensor_names(path, [row["sensor_name"] for row in rows])
     out = {}
@@ -328,14 +347,15 @@ class Annotations:
     Attributes:
         timestamps_ns: int64 [M]; track_uuids, categories: lists of str [M].
         dims_m: (length, width, height) along the object x, y, z axes, float64 [M,3].
-        ego_SE3_object: float64 [M,4,4], box centre and orientation in the ego frame.
+        T_object_ego: float64 [M,4,4] (av2's ``ego_SE3_object``), box centre and orientation in the
+            ego frame: maps box-frame points to the ego frame.
     """
 
     timestamps_ns: np.ndarray
     track_uuids: list[str]
     categories: list[str]
     dims_m: np.ndarray
-    ego_SE3_object: np.ndarray
+    T_object_ego: np.ndarray
 
     def __len__(self) -> int:
         return len(self.timestamps_ns)
@@ -364,7 +384,7 @@ def read_annotations(log_dir: UPath) -> Annotations | None:
         track_uuids=track_uuids,
         categories=table.column("category").to_pylist(),
         dims_m=dims,
-        ego_SE3_object=ego_SE3_object,
+        T_object_ego=ego_SE3_object,
     )
 
 

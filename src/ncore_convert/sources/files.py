@@ -1,5 +1,5 @@
-"""Source files as bytes: the project's error type for bad input, reading with clear causes, and
-cheap completeness checks of encoded images.
+"""Source files as bytes: reading with clear causes (``errors.SourceError``), folder listings with
+safe names, and cheap completeness checks of encoded images.
 
 Images are stored byte-identical, so the converter never decodes them; the checks catch the damage
 that interrupted downloads cause (a file cut short, or not an image at all) from the first and last
@@ -8,28 +8,11 @@ bytes only.
 
 from __future__ import annotations
 
-import re
-
 from upath import UPath
 
+from ncore_convert.contract import SAFE_NAME
+from ncore_convert.errors import SourceError
 from ncore_convert.storage import is_local
-
-
-class SourceError(Exception):
-    """Bad or missing source input. ``str(err)`` is one line: ``<file>: <cause>``."""
-
-    def __init__(self, path: object, cause: str) -> None:
-        super().__init__(f"{path}: {cause}")
-        self.path = str(path)
-        self.cause = cause
-
-    def __reduce__(self):  # keep (path, cause) when raised in a worker process
-        return SourceError, (self.path, self.cause)
-
-
-#: Names from the data that become output paths (log ids, sensor names): one path component, no
-#: separators, not hidden, not "." or "..", at most 128 characters.
-SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 
 
 def check_safe_names(path: object, names: list[str], what: str) -> None:

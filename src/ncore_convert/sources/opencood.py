@@ -8,14 +8,17 @@ Layout: ``<root>/<split>/<scenario>/<agent>/<key>.{yaml,pcd}`` and ``<key>_camer
 
 from __future__ import annotations
 
+import io
 import re
 from dataclasses import dataclass
 
 import numpy as np
+import PIL.Image
 import yaml
 from upath import UPath
 
-from ncore_convert.sources.files import SourceError, list_folders, png_defect, read_bytes
+from ncore_convert.errors import SourceError
+from ncore_convert.sources.files import PNG_SIGNATURE, list_folders, png_defect, read_bytes
 from ncore_convert.sources.pcd import read_pcd, red_from_rgb
 
 SPLITS = {
@@ -68,6 +71,11 @@ def is_infrastructure(agent_id: str) -> bool:
 def agent_kind(agent_id: str) -> str:
     """ "infrastructure" (negative id) or "cav" (connected vehicle, positive id)."""
     return "infrastructure" if is_infrastructure(agent_id) else "cav"
+
+
+def scenario_dir(root: UPath, split: str, scenario: str) -> UPath:
+    """A scenario's folder: ``<root>/<split>/<scenario>``."""
+    return UPath(root) / split / scenario
 
 
 def list_scenarios(root: UPath, split: str) -> list[str]:
@@ -266,3 +274,15 @@ def read_points(agent_dir: UPath, key: str) -> tuple[np.ndarray, np.ndarray]:
         raise SourceError(path, f"PCD lacks field(s) {', '.join(missing)}")
     xyz = np.stack([columns["x"], columns["y"], columns["z"]], axis=1).astype(np.float32, copy=False)
     return xyz, red_from_rgb(columns["rgb"])
+
+
+def read_png_size(path: UPath) -> tuple[int, int] | None:
+    """(width, height) of a PNG from its header, or None if it is missing or not a PNG."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(64)
+        if not head.startswith(PNG_SIGNATURE):
+            return None
+        return PIL.Image.open(io.BytesIO(head)).size
+    except (OSError, PIL.UnidentifiedImageError):
+        return None

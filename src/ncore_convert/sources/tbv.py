@@ -13,7 +13,8 @@ from __future__ import annotations
 
 from upath import UPath
 
-from ncore_convert.sources.files import SourceError, list_folders
+from ncore_convert.errors import SourceError
+from ncore_convert.sources.files import list_folders
 
 
 def list_log_ids(root: UPath) -> list[str]:

@@ -23,11 +23,11 @@ import pyarrow.feather as feather
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
-from ncore_convert import vlp32c
-from ncore_convert.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.maps import write_map
 from ncore_convert.synth.scene import Scene, cast_rays, make_scene
+from ncore_convert.transforms import vlp32c
+from ncore_convert.transforms.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
 
 MAX_RANGE_M = 200.0
 TBV_LIDAR_SCHEMA = pa.schema([f for f in av2.LIDAR_SCHEMA if f.name != "offset_ns"])

@@ -1,6 +1,6 @@
 """Synthetic OPV2V / V2XSet scenarios, written the way OpenCDA writes them, with known truth.
 
-Everything is built in CARLA's own conventions, independently of :mod:`ncore_convert.carla`:
+Everything is built in CARLA's own conventions, independently of :mod:`ncore_convert.transforms.carla`:
 a left-handed world (z up, +y 90° clockwise from +x seen from above), poses
 ``[x, y, z, roll, yaw, pitch]`` in degrees with ``R = Rz(yaw) · Ry(-pitch) · Rx(-roll)``, UE4
 camera axes (x optical axis, y right, z up). On disk: ``<root>/<split>/<scenario>/<agent>/`` with

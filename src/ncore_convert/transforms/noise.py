@@ -1,6 +1,7 @@
 """GPS-error and communication-delay models: pure numpy functions of a setting and the frame times.
 
-Two models (README, "GPS error and communication delay"):
+A setting (:class:`NoiseSetting`) is OpenCOOD's ``wild_setting`` block; ``sources.noise_config``
+reads and checks it. Two models (docs/noise.md):
 - ``opencood`` restates OpenCOOD's ``BaseDataset`` (``time_delay_calculation``, ``add_loc_noise``,
   ``retrieve_base_data``) draw for draw: numpy's legacy generator, re-seeded with the setting's seed
   inside every localisation-noise call, so every non-ego agent gets the same offset in every frame;
@@ -13,12 +14,60 @@ Two models (README, "GPS error and communication delay"):
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from typing import Literal, get_args
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ncore_convert.noise_config import NoiseSetting
+Model = Literal["opencood", "realistic"]
+AsyncMode = Literal["sim", "real"]
+Process = Literal["white", "gauss_markov"]
+Dof = Literal["6dof", "xy_yaw"]
+MODELS, ASYNC_MODES, PROCESSES, DOFS = get_args(Model), get_args(AsyncMode), get_args(Process), get_args(Dof)
+#: Keys only the ``realistic`` model reads.
+REALISTIC_ONLY = ("process", "correlation_time_s", "bias_xyz_std", "bias_ryp_std", "dof", "perturb_ego")
+
+
+@dataclass(frozen=True)
+class NoiseSetting:
+    """One named GPS-error / delay setting. Field names are OpenCOOD's ``wild_setting`` keys
+    (``async_`` for ``async``, a Python keyword).
+
+    Units: ``async_overhead`` and ``backbone_delay`` ms, ``data_size`` Mb, ``transmission_speed``
+    Mb/s, ``xyz_std`` and ``bias_xyz_std`` m, ``ryp_std`` and ``bias_ryp_std`` degrees,
+    ``correlation_time_s`` s. ``max_cav`` is OpenCOOD's ``train_params.max_cav`` (default 7): the
+    ``opencood`` model leaves agents past it in OpenCOOD's order out, as OpenCOOD does.
+    """
+
+    name: str
+    model: Model = "opencood"
+    seed: int = 25
+    async_: bool = False
+    async_mode: AsyncMode = "sim"
+    async_overhead: float = 0.0
+    backbone_delay: float = 0.0
+    data_size: float = 0.0
+    transmission_speed: float = 27.0
+    loc_err: bool = False
+    xyz_std: float = 0.0
+    ryp_std: float = 0.0
+    process: Process = "white"
+    correlation_time_s: float = 10.0
+    bias_xyz_std: float = 0.0
+    bias_ryp_std: float = 0.0
+    dof: Dof = "6dof"
+    perturb_ego: bool = False
+    max_cav: int = 7
+
+    def as_dict(self) -> dict:
+        """The setting with OpenCOOD's key names (``async``), for metadata."""
+        out = asdict(self)
+        out["async"] = out.pop("async_")
+        for key in REALISTIC_ONLY if self.model == "opencood" else ("max_cav",):
+            out.pop(key)
+        return out
+
 
 #: OpenCOOD turns a delay into frames as ``delay_ms // 100`` ("the data is 10 hz").
 OPENCOOD_FRAME_MS = 100
@@ -133,11 +182,11 @@ def realistic_pose_noise(setting: NoiseSetting, rng: np.random.Generator, timest
     return bias + gauss_markov(rng, timestamps_us, std, tau)
 
 
-def perturb_world_SE3(world_SE3_x: np.ndarray, noise: np.ndarray) -> np.ndarray:
-    """Apply :func:`realistic_pose_noise` to poses [N,4,4]: the translation moves by ``noise[:, :3]``
-    and the rotation turns by the extrinsic x-y-z Euler angles ``noise[:, 3:]`` (deg) about the
-    world axes, at the posed frame's origin."""
-    out = np.array(world_SE3_x, dtype=np.float64)
+def perturb_poses(T_x_world: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """Apply :func:`realistic_pose_noise` to poses ``T_x_world`` [N,4,4] (frame x -> world): the
+    translation moves by ``noise[:, :3]`` and the rotation turns by the extrinsic x-y-z Euler angles
+    ``noise[:, 3:]`` (deg) about the world axes, at the posed frame's origin."""
+    out = np.array(T_x_world, dtype=np.float64)
     turn = Rotation.from_euler("xyz", noise[:, 3:], degrees=True).as_matrix()
     out[:, :3, :3] = turn @ out[:, :3, :3]
     out[:, :3, 3] += noise[:, :3]

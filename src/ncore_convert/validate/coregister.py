@@ -13,16 +13,17 @@ agents are compared at the same instant, so moving objects co-register too.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 
 import numpy as np
-from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from ncore.data.v4 import SequenceLoaderV4
 from scipy.spatial import cKDTree
 from upath import UPath
 
+from ncore_convert.contract import ScenarioManifest
 from ncore_convert.sources import opencood as ocd
-from ncore_convert.validate import Report, world_points
+from ncore_convert.validate.readback import open_sequence, read_manifest, world_points
+from ncore_convert.validate.report import Report
 
 FRAMES = 3  #: common frames compared, spread over the scenario
 OVERLAP_RANGE_M = 50.0
@@ -52,25 +53,20 @@ class AgentLidar:
         return int(np.flatnonzero(self.frame_ends_us() == frame_end_us)[0])
 
 
-def read_manifest(manifest_path: UPath) -> dict:
-    return json.loads(UPath(manifest_path).read_text())
-
-
-def scenario_lidars(manifest_path: UPath, manifest: dict) -> list[AgentLidar]:
+def scenario_lidars(manifest_path: UPath, manifest: ScenarioManifest) -> list[AgentLidar]:
     """Every written agent's lidar, from ``scenario.json`` (either layout), the OpenCOOD ego first."""
     folder = UPath(manifest_path).parent
     loaders: dict[str, SequenceLoaderV4] = {}  # one per sequence: the scenario layout shares one
     lidars = []
-    for agent in manifest["agents"]:
-        if not agent.get("written") or ocd.LIDAR not in agent["sensors"]:
+    for agent in manifest.agents:
+        if not agent.written or ocd.LIDAR not in agent.sensors:
             continue
-        scenario_layout = manifest["layout"] == "scenario"
-        sequence = folder / (manifest["sequence"] if scenario_layout else agent["sequence"])
+        sequence = folder / manifest.sequence_of(agent)
         if str(sequence) not in loaders:
-            loaders[str(sequence)] = SequenceLoaderV4(SequenceComponentGroupsReader([sequence]))
-        lidar_id = (agent["frame_prefix"] if scenario_layout else "") + ocd.LIDAR
-        lidars.append(AgentLidar(str(agent["agent_id"]), sequence, loaders[str(sequence)], lidar_id))
-    ego = str(manifest.get("ego", {}).get("agent_id"))
+            loaders[str(sequence)] = open_sequence(sequence).loader
+        lidar_id = manifest.prefix_of(agent) + ocd.LIDAR
+        lidars.append(AgentLidar(str(agent.agent_id), sequence, loaders[str(sequence)], lidar_id))
+    ego = str(manifest.ego_agent_id)
     return sorted(lidars, key=lambda a: a.agent_id != ego)
 
 

@@ -1,6 +1,6 @@
 """Where per-log tasks run: this machine's worker processes, or an existing Ray cluster.
 
-Both run the same task per log through :func:`~ncore_convert.runner.convert_one`, so a log's output
+Both run the same task per log through :func:`~ncore_convert.run.runner.convert_one`, so a log's output
 does not depend on the executor.
 """
 
@@ -11,11 +11,15 @@ import socket
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from functools import partial
+from typing import Literal
 
 from upath import UPath
 
-from ncore_convert.pool import JobPool, Progress
-from ncore_convert.runner import LogResult, LogTask, Summary, convert_one
+from ncore_convert.run.pool import JobPool, Progress
+from ncore_convert.run.runner import LogResult, LogTask, Summary, convert_one
+
+#: Where logs run (``--executor``): this machine's worker processes, or an existing Ray cluster.
+ExecutorKind = Literal["local", "ray"]
 
 
 def _log_as_one_job(task: LogTask, sequence_dir: UPath, log_id: str, progress: Progress) -> Summary:
@@ -32,7 +36,7 @@ def _workers_share_log(pool: JobPool, task: LogTask, sequence_dir: UPath, log_id
 
 
 class LocalExecutor:
-    """Logs on this machine's worker processes (:class:`~ncore_convert.pool.JobPool`).
+    """Logs on this machine's worker processes (:class:`~ncore_convert.run.pool.JobPool`).
 
     With at least as many logs as workers, each log is one job: a worker plans and writes it
     alone, and ``workers`` logs run at a time. With fewer logs, every log in flight is planned in

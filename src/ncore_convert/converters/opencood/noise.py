@@ -1,21 +1,35 @@
-"""GPS error and communication delay of a scenario's agents under one setting (README, "GPS error
-and communication delay"): the models of :mod:`ncore_convert.noise` applied to a scenario plan,
-and the arrays and metadata the writer stores in the setting's ``PosesComponent`` instance."""
+"""GPS error and communication delay of a scenario's agents under one setting (docs/noise.md): the
+models of :mod:`ncore_convert.transforms.noise` applied to the agents of a scenario plan, and the
+arrays and metadata the writer stores in the setting's ``PosesComponent`` instance."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
-from ncore_convert import carla, noise
-from ncore_convert.geometry import invert_se3
-from ncore_convert.noise_config import NoiseSetting
 from ncore_convert.sources import opencood as src
+from ncore_convert.transforms import carla, noise
+from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.noise import NoiseSetting
 
-if TYPE_CHECKING:
-    from ncore_convert.converters.opencood import AgentPlan
+
+class AgentMotion(Protocol):
+    """What the noise models read of an agent (``plan.AgentPlan`` has it).
+
+    Attributes:
+        keys: the agent's frame keys [N]; timestamps_us: their times, int64 [N].
+        lidar_pose_carla: the YAMLs' ``lidar_pose`` [N,6] (CARLA: x, y, z m; roll, yaw, pitch deg).
+        T_rig_world_global: rig -> world_global [N,4,4]; T_sensor_rig: sensor -> rig [4,4] by sensor id.
+    """
+
+    keys: list[str]
+    timestamps_us: np.ndarray
+    lidar_pose_carla: np.ndarray
+    T_rig_world_global: np.ndarray
+    T_sensor_rig: dict[str, np.ndarray]
+
 
 #: What each generic-data array of a noisy poses instance holds (prefixed ``agent<id>_`` in the
 #: scenario layout). T = the OpenCOOD ego's frames, N = the agent's frames.
@@ -41,24 +55,25 @@ class AgentNoise:
     """One agent under one setting.
 
     Attributes:
-        world_global_SE3_rig: the perturbed rig poses [N,4,4] at the agent's frames.
+        T_rig_world_global: the perturbed rig poses (rig -> world_global) [N,4,4] at the agent's frames.
         pose_noise: the error applied [N,6] (layout: ``POSE_NOISE_LAYOUT[model]``).
         ego_timestamps_us: the ego's frame times, int64 [T].
         delays: delay and source frame at each ego frame.
         source_keys, source_timestamps_us: CARLA key and time of that source frame, int64 [T] (-1: none).
     """
 
-    world_global_SE3_rig: np.ndarray
+    T_rig_world_global: np.ndarray
     pose_noise: np.ndarray
     ego_timestamps_us: np.ndarray
     delays: noise.Delays
     source_keys: np.ndarray
     source_timestamps_us: np.ndarray
 
-    def arrays(self, agent: AgentPlan, prefix: str = "") -> dict[str, np.ndarray]:
-        """The generic data of this agent in a noisy poses instance (see ``ARRAYS``)."""
+    def arrays(self, agent_timestamps_us: np.ndarray, prefix: str = "") -> dict[str, np.ndarray]:
+        """The generic data of this agent in a noisy poses instance (see ``ARRAYS``);
+        ``agent_timestamps_us``: the agent's frame times, int64 [N]."""
         out = {
-            "pose_noise_timestamps_us": agent.timestamps_us.astype(np.uint64),
+            "pose_noise_timestamps_us": agent_timestamps_us.astype(np.uint64),
             "pose_noise": self.pose_noise,
             "delay_ego_timestamps_us": self.ego_timestamps_us.astype(np.uint64),
             "delay_ms": self.delays.delay_ms,
@@ -77,7 +92,7 @@ def opencood_loaded(setting: NoiseSetting, agent_folders: list[str]) -> list[str
     return order[: setting.max_cav] if setting.model == "opencood" else order
 
 
-def _sources(agent: AgentPlan, source_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _sources(agent: AgentMotion, source_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     keys = np.array([int(k) for k in agent.keys], dtype=np.int64)
     found = source_index != noise.NO_SOURCE
     index = np.where(found, source_index, 0)
@@ -88,9 +103,9 @@ def _sources(agent: AgentPlan, source_index: np.ndarray) -> tuple[np.ndarray, np
 
 
 def _opencood(
-    setting: NoiseSetting, agents: dict[str, AgentPlan], loaded: list[str], ego_keys: list[str]
+    setting: NoiseSetting, agents: dict[str, AgentMotion], loaded: list[str], ego_keys: list[str]
 ) -> dict[str, tuple[np.ndarray, np.ndarray, noise.Delays]]:
-    """Per agent: (world_global_SE3_rig, pose_noise, delays) under OpenCOOD's semantics."""
+    """Per agent: (T_rig_world_global, pose_noise, delays) under OpenCOOD's semantics."""
     ego = loaded[0]
     schedule = noise.opencood_delays(setting, len(ego_keys), loaded, ego)
     offset = noise.opencood_loc_offset(setting)
@@ -98,8 +113,8 @@ def _opencood(
     for agent_id, agent in agents.items():
         n = len(agent.keys)
         pose_noise = np.zeros((n, 6)) if agent_id == ego or agent_id not in loaded else np.tile(offset, (n, 1))
-        world_global_SE3_lidar = carla.world_SE3_right_handed(agent.lidar_pose_carla + pose_noise)
-        world_global_SE3_rig = world_global_SE3_lidar @ invert_se3(agent.T_sensor_rig[src.LIDAR])
+        T_lidar_world_global = carla.right_handed_pose(agent.lidar_pose_carla + pose_noise)
+        T_rig_world_global = T_lidar_world_global @ invert_se3(agent.T_sensor_rig[src.LIDAR])
         if agent_id in loaded:
             delay_ms, frames = schedule[agent_id]
             index_in_agent = {k: i for i, k in enumerate(agent.keys)}
@@ -108,12 +123,12 @@ def _opencood(
         else:  # OpenCOOD does not load agents past max_cav
             t = len(ego_keys)
             delays = noise.Delays(np.zeros(t), np.full(t, noise.NO_SOURCE), np.zeros(t, dtype=np.int64))
-        out[agent_id] = (world_global_SE3_rig, pose_noise, delays)
+        out[agent_id] = (T_rig_world_global, pose_noise, delays)
     return out
 
 
 def _realistic(
-    setting: NoiseSetting, scenario: str, agents: dict[str, AgentPlan], ego: str, ego_timestamps_us: np.ndarray
+    setting: NoiseSetting, scenario: str, agents: dict[str, AgentMotion], ego: str, ego_timestamps_us: np.ndarray
 ) -> dict[str, tuple[np.ndarray, np.ndarray, noise.Delays]]:
     out = {}
     for agent_id, agent in agents.items():
@@ -126,15 +141,15 @@ def _realistic(
         else:
             delay_ms = noise.realistic_delays_ms(setting, delay_rng, len(ego_timestamps_us))
         source = noise.latest_source(agent.timestamps_us, ego_timestamps_us, delay_ms)
-        world_global_SE3_rig = noise.perturb_world_SE3(agent.world_global_SE3_rig, pose_noise)
-        out[agent_id] = (world_global_SE3_rig, pose_noise, noise.Delays(delay_ms, source))
+        T_rig_world_global = noise.perturb_poses(agent.T_rig_world_global, pose_noise)
+        out[agent_id] = (T_rig_world_global, pose_noise, noise.Delays(delay_ms, source))
     return out
 
 
 def plan_noise(
     setting: NoiseSetting,
     scenario: str,
-    agents: dict[str, AgentPlan],
+    agents: dict[str, AgentMotion],
     agent_folders: list[str],
     ego_keys: list[str],
     ego_timestamps_us: np.ndarray,
@@ -152,9 +167,9 @@ def plan_noise(
     else:
         models = _realistic(setting, scenario, agents, loaded[0], ego_timestamps_us)
     out = {}
-    for agent_id, (world_global_SE3_rig, pose_noise, delays) in models.items():
+    for agent_id, (T_rig_world_global, pose_noise, delays) in models.items():
         keys, times = _sources(agents[agent_id], delays.source_index)
-        out[agent_id] = AgentNoise(world_global_SE3_rig, pose_noise, ego_timestamps_us, delays, keys, times)
+        out[agent_id] = AgentNoise(T_rig_world_global, pose_noise, ego_timestamps_us, delays, keys, times)
     return out
 
 

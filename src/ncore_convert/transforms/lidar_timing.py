@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from ncore_convert import vlp32c
-from ncore_convert.geometry import Trajectory
-from ncore_convert.lidar import decompensate
+from ncore_convert.transforms import vlp32c
+from ncore_convert.transforms.geometry import Trajectory
+from ncore_convert.transforms.lidar import decompensate
 
 PERIOD_NS = 100_000_000  #: trigger grid and nominal revolution
 PERIOD_MS = PERIOD_NS / 1e6
@@ -51,7 +52,14 @@ class TimingError(ValueError):
     """The data do not allow reconstructing firing times (no trigger grid, too few triggers)."""
 
 
-def trigger_phases_ns(times_ns: np.ndarray, period_ns: int = PERIOD_NS) -> tuple[int, np.ndarray]:
+class TriggerGrid(NamedTuple):
+    """The camera-trigger grid: a reference time and the phases that recur every period."""
+
+    epoch_ns: int  #: time origin of the grid
+    phases_ns: np.ndarray  #: sorted distinct phases, ns within one period after the epoch, int64 [P]
+
+
+def trigger_phases_ns(times_ns: np.ndarray, period_ns: int = PERIOD_NS) -> TriggerGrid:
     """The recurring phases of a set of timestamps: camera triggers on a fixed grid.
 
     Args:
@@ -78,7 +86,7 @@ def trigger_phases_ns(times_ns: np.ndarray, period_ns: int = PERIOD_NS) -> tuple
         c + np.median((phase[bins == b] - c + period_ns / 2) % period_ns - period_ns / 2)
         for b, c in zip(keep, centers, strict=True)
     ]
-    return epoch, np.sort(np.asarray(phases) % period_ns)
+    return TriggerGrid(epoch, np.sort(np.asarray(phases) % period_ns))
 
 
 @dataclass(frozen=True)
@@ -255,7 +263,7 @@ def reconstruct_times(
 def unit_rotation(
     camera_azimuth_deg: np.ndarray,
     sweeps: list[tuple[np.ndarray, np.ndarray, int]],
-    trigger_grid: tuple[int, np.ndarray],
+    trigger_grid: TriggerGrid,
     T_rig_world: Trajectory,
     T_sensor_rig: np.ndarray,
 ) -> RotationKnots:
@@ -264,7 +272,7 @@ def unit_rotation(
     Args:
         camera_azimuth_deg: camera axes in the unit's frame, [C] degrees (:func:`camera_azimuths_deg`).
         sweeps: (xyz_rig_ref_m [N,3], beam [N], sweep_ts_ns) of the unit's returns in row order.
-        trigger_grid: (epoch_ns, phases_ns) from :func:`trigger_phases_ns`.
+        trigger_grid: from :func:`trigger_phases_ns`.
 
     The spin direction is the majority over the sweeps; of the two fits 180° apart, the one that
     puts the sweeps' first firings within FIRST_FIRING_WINDOW_MS of their timestamps is kept (or,
@@ -279,7 +287,7 @@ def unit_rotation(
     if not any(len(az) > BLOCK_ROWS for az, _ in static):
         raise TimingError("no sweep with enough returns to find the spin direction")
     spin = 1 if sum(spin_direction(az) for az, _ in static if len(az) > BLOCK_ROWS) >= 0 else -1
-    epoch, phases = trigger_grid
+    epoch, phases = trigger_grid.epoch_ns, trigger_grid.phases_ns
     fits = []
     for half_turn in (False, True):
         knots = fit_rotation_knots(camera_azimuth_deg, spin, epoch, phases, half_turn=half_turn)

@@ -1,4 +1,5 @@
-"""GPS-error and communication-delay settings: OpenCOOD's ``wild_setting`` block, read and checked.
+"""GPS-error and communication-delay settings (``transforms.noise.NoiseSetting``): OpenCOOD's
+``wild_setting`` block, read and checked.
 
 A setting is one named set of parameters (README, "GPS error and communication delay"). It comes
 from a YAML file holding a ``wild_setting`` block (an OpenCOOD model YAML works as it is) or from
@@ -9,65 +10,18 @@ the ``realistic`` model reads are extensions that OpenCOOD ignores.
 from __future__ import annotations
 
 import re
-from dataclasses import asdict, dataclass, fields
-from typing import Literal
+from dataclasses import fields
 
 from upath import UPath
 
-from ncore_convert.sources.files import SourceError
+from ncore_convert.errors import SourceError
 from ncore_convert.sources.opencood import load_yaml
+from ncore_convert.transforms.noise import ASYNC_MODES, DOFS, MODELS, PROCESSES, REALISTIC_ONLY, NoiseSetting
 
-Model = Literal["opencood", "realistic"]
-MODELS = ("opencood", "realistic")
-ASYNC_MODES = ("sim", "real")
-PROCESSES = ("white", "gauss_markov")
-DOFS = ("6dof", "xy_yaw")
 #: OpenCOOD requires these whenever a ``wild_setting`` block is present (basedataset.py).
 REQUIRED = ("seed", "async", "async_overhead", "loc_err", "xyz_std", "ryp_std")
-#: Keys only the ``realistic`` model reads.
-REALISTIC_ONLY = ("process", "correlation_time_s", "bias_xyz_std", "bias_ryp_std", "dof", "perturb_ego")
 #: A setting's name becomes a PosesComponent instance name and generic-data keys.
 NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,63}$")
-
-
-@dataclass(frozen=True)
-class NoiseSetting:
-    """One named GPS-error / delay setting. Field names are OpenCOOD's ``wild_setting`` keys
-    (``async_`` for ``async``, a Python keyword).
-
-    Units: ``async_overhead`` and ``backbone_delay`` ms, ``data_size`` Mb, ``transmission_speed``
-    Mb/s, ``xyz_std`` and ``bias_xyz_std`` m, ``ryp_std`` and ``bias_ryp_std`` degrees,
-    ``correlation_time_s`` s. ``max_cav`` is OpenCOOD's ``train_params.max_cav`` (default 7): the
-    ``opencood`` model leaves agents past it in OpenCOOD's order out, as OpenCOOD does.
-    """
-
-    name: str
-    model: Model = "opencood"
-    seed: int = 25
-    async_: bool = False
-    async_mode: Literal["sim", "real"] = "sim"
-    async_overhead: float = 0.0
-    backbone_delay: float = 0.0
-    data_size: float = 0.0
-    transmission_speed: float = 27.0
-    loc_err: bool = False
-    xyz_std: float = 0.0
-    ryp_std: float = 0.0
-    process: Literal["white", "gauss_markov"] = "white"
-    correlation_time_s: float = 10.0
-    bias_xyz_std: float = 0.0
-    bias_ryp_std: float = 0.0
-    dof: Literal["6dof", "xy_yaw"] = "6dof"
-    perturb_ego: bool = False
-    max_cav: int = 7
-
-    def as_dict(self) -> dict:
-        """The setting with OpenCOOD's key names (``async``), for metadata."""
-        out = asdict(self)
-        out["async"] = out.pop("async_")
-        for key in REALISTIC_ONLY if self.model == "opencood" else ("max_cav",):
-            out.pop(key)
-        return out
 
 
 def _key(field_name: str) -> str:

@@ -12,36 +12,35 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from ncore.data.v4 import CameraSensorComponent, LidarSensorComponent, SequenceComponentGroupsReader, SequenceLoaderV4
+from ncore.data.v4 import SequenceLoaderV4
 from upath import UPath
 
-from ncore_convert.converters.opencood import SKIPPED_FRAMES
+from ncore_convert import contract
+from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import opencood as ocd
-from ncore_convert.sources.files import SourceError
 from ncore_convert.sources.pcd import read_pcd_header
-from ncore_convert.validate import Report, box_point_counts, boxes_at, sample_frames, world_points
+from ncore_convert.transforms.timebase import floor_us
+from ncore_convert.validate.readback import OpenSequence, box_point_counts, boxes_at, sample_frames, world_points
+from ncore_convert.validate.report import Report
 
-AV2_DATASETS = ("argoverse2-sensor", "argoverse2-tbv")
-OPENCOOD_DATASETS = ("opv2v", "v2xset")
 #: converted points inside a box may differ from AV2's num_interior_pts by this fraction (or 1 point):
 #: points on a box face can fall either side after the float16 -> float32 -> direction round trip
 INTERIOR_TOLERANCE = 0.02
 
 
-def compare_with_source(report: Report, loader: SequenceLoaderV4, reader: SequenceComponentGroupsReader,
-                        source_root: UPath) -> None:  # fmt: skip
+def compare_with_source(report: Report, sequence: OpenSequence, source_root: UPath) -> None:
     """Add the ``source:`` checks of one sequence (read from ``source_root``, the converter's --root-dir)."""
-    meta = loader.generic_meta_data
-    dataset = meta.get("source_dataset")
+    meta = sequence.loader.generic_meta_data
+    dataset = meta.get(contract.SOURCE_DATASET)
     try:
-        if dataset in AV2_DATASETS:
-            _compare_av2(report, loader, reader, UPath(source_root), meta)
-        elif dataset in OPENCOOD_DATASETS:
-            _compare_opencood(report, loader, reader, UPath(source_root), meta)
+        if dataset in contract.ARGOVERSE2_DATASETS:
+            _compare_av2(report, sequence, UPath(source_root), meta)
+        elif dataset in contract.OPENCOOD_DATASETS:
+            _compare_opencood(report, sequence, UPath(source_root), meta)
         else:
             report.add("source: dataset known", False, f"source_dataset {dataset!r} is not one this tool converts")
-    except av2.SourceError as err:
+    except SourceError as err:
         report.add("source: readable", False, str(err))
 
 
@@ -57,11 +56,6 @@ def _accounted(report: Report, what: str, converted: int, skipped: dict[str, str
                + f", {source} in the source")  # fmt: skip
 
 
-def _component_meta(reader: SequenceComponentGroupsReader, component) -> dict[str, dict]:
-    """Each sensor component's generic metadata, by sensor id."""
-    return {name: r.generic_meta_data for name, r in reader.open_component_readers(component.Reader).items()}
-
-
 def _stored_points(loader: SequenceLoaderV4, lidar_id: str) -> int:
     lidar = loader.get_lidar_sensor(lidar_id)
     return sum(lidar.get_frame_ray_bundle_count(i) for i in range(lidar.frames_count))
@@ -72,22 +66,20 @@ def _camera_selected(options: dict, camera: str) -> bool:
     return options.get("camera_ids") is None or camera in options["camera_ids"]
 
 
-def _compare_av2(report: Report, loader: SequenceLoaderV4, reader: SequenceComponentGroupsReader,
-                 root: UPath, meta: dict) -> None:  # fmt: skip
-    log_id = meta["argoverse2_log_id"]
-    split = meta.get("argoverse2_split")
-    log_dir = root / split / log_id if split else root / log_id
+def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict) -> None:
+    loader = sequence.loader
+    log_dir = av2.log_dir(root, meta.get(contract.AV2_SPLIT), meta[contract.AV2_LOG_ID])
     if not log_dir.is_dir():
         report.add("source: log found", False, f"{log_dir}: not a directory")
         return
-    options = meta.get("converter", {}).get("options", {})
+    options = meta.get(contract.CONVERTER, {}).get("options", {})
     sweeps = av2.list_sweep_timestamps_ns(log_dir)
     for lidar_id in loader.lidar_ids:
         _count(report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count,
                len(sweeps))  # fmt: skip
     if set(loader.lidar_ids) == set(av2.LIDARS):
-        lidar_meta = _component_meta(reader, LidarSensorComponent)
-        not_stored = sum(sum(lidar_meta[u]["points_not_stored"].values()) for u in av2.LIDARS)
+        lidar_meta = sequence.sensor_meta()
+        not_stored = sum(sum(lidar_meta[u][contract.POINTS_NOT_STORED].values()) for u in av2.LIDARS)
         stored = sum(_stored_points(loader, u) for u in av2.LIDARS)
         source = sum(av2.count_sweep_points(log_dir, int(t)) for t in sweeps)
         report.add("source: lidar points", stored + not_stored == source,
@@ -113,7 +105,7 @@ def _interior_points(
     """On sampled sweeps: the converted points inside each box (both lidars, motion-compensated with
     the per-point times) equal AV2's ``num_interior_pts``, within INTERIOR_TOLERANCE."""
     source_points = {
-        (track, int(t_ns) // 1000): int(n)
+        (track, floor_us(int(t_ns))): int(n)
         for track, t_ns, n in zip(interior.track_uuids, interior.timestamps_ns, interior.counts, strict=True)
     }
     frames_us = loader.get_lidar_sensor(av2.LIDARS[0]).frames_timestamps_us
@@ -145,27 +137,28 @@ def _frame_starting_at(loader: SequenceLoaderV4, lidar_id: str, start_us: int) -
     return int(index[0]) if len(index) else None
 
 
-def _compare_opencood(report: Report, loader: SequenceLoaderV4, reader: SequenceComponentGroupsReader,
-                      root: UPath, meta: dict) -> None:  # fmt: skip
-    scenario_dir = root / meta["opencood_split"] / meta["scenario"]
+def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta: dict) -> None:
+    loader = sequence.loader
+    scenario_dir = ocd.scenario_dir(root, meta[contract.OPENCOOD_SPLIT], meta[contract.SCENARIO])
     if not scenario_dir.is_dir():
         report.add("source: scenario found", False, f"{scenario_dir}: not a directory")
         return
-    options = meta.get("converter", {}).get("options", {})
-    agents = list(meta["agents"])
+    options = meta.get(contract.CONVERTER, {}).get("options", {})
+    agents = list(meta[contract.AGENTS])
     prefixed = len(agents) > 1 or options.get("layout") == "scenario"
     keys = {a: ocd.list_frame_keys(scenario_dir / a) for a in ocd.list_agents(scenario_dir)}
-    sensor_meta = {**_component_meta(reader, LidarSensorComponent), **_component_meta(reader, CameraSensorComponent)}
+    sensor_meta = sequence.sensor_meta()
     for agent in agents:
-        prefix = f"agent{agent}_" if prefixed else ""
+        prefix = contract.agent_prefix(agent) if prefixed else ""
         agent_dir = scenario_dir / agent
         lidar_id = prefix + ocd.LIDAR
         if lidar_id in loader.lidar_ids:
             lidar = loader.get_lidar_sensor(lidar_id)
-            skipped = sensor_meta[lidar_id].get(SKIPPED_FRAMES, {})
+            skipped = sensor_meta[lidar_id].get(contract.SKIPPED_FRAMES, {})
             _accounted(report, f"{lidar_id} frames", lidar.frames_count, skipped, len(keys[agent]))
             not_stored = sum(
-                int(lidar.get_frame_generic_meta_data(i).get("points_not_stored", 0)) for i in range(lidar.frames_count)
+                int(lidar.get_frame_generic_meta_data(i).get(contract.POINTS_NOT_STORED, 0))
+                for i in range(lidar.frames_count)
             )
             stored = _stored_points(loader, lidar_id)
             source = sum(read_pcd_header(ocd.pcd_path(agent_dir, k)).points for k in keys[agent] if k not in skipped)
@@ -174,13 +167,13 @@ def _compare_opencood(report: Report, loader: SequenceLoaderV4, reader: Sequence
                        " frames not declared skipped")  # fmt: skip
         for index, camera in enumerate(ocd.CAMERAS):
             if prefix + camera in loader.camera_ids:
-                skipped = sensor_meta[prefix + camera].get(SKIPPED_FRAMES, {})
+                skipped = sensor_meta[prefix + camera].get(contract.SKIPPED_FRAMES, {})
                 converted = loader.get_camera_sensor(prefix + camera).frames_count
                 _accounted(report, f"{prefix}{camera} images", converted, skipped, len(keys[agent]))
             elif _camera_selected(options, camera):
                 if images := sum(ocd.camera_path(agent_dir, k, index).exists() for k in keys[agent]):
                     report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")
-    reference = next((a for a in agents if meta["agents"][a].get("opencood_ego")), agents[0])
+    reference = next((a for a in agents if meta[contract.AGENTS][a].get("opencood_ego")), agents[0])
     readable = [k for k in keys[reference] if _vehicle_ids(str(scenario_dir / reference), k) is not None]
     labels = sum(len(_labelled(scenario_dir, keys, key)) for key in readable)  # the reference's frames
     _count(report, "cuboids (every agent's labels per frame, plus the CAVs)",

@@ -25,15 +25,15 @@ from typing import Literal, Protocol
 from tqdm import tqdm
 from upath import UPath
 
-from ncore_convert.pool import Progress
-from ncore_convert.sources.files import SAFE_NAME, SourceError
+from ncore_convert.contract import SAFE_NAME
+from ncore_convert.errors import SourceError, ValidationFailed
+from ncore_convert.run.pool import Progress
 from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
-from ncore_convert.validate import ValidationFailed
 
 
 class Summary(Protocol):
     warnings: list[str]
-    validation: dict | None  #: ``validate.summarise`` of the log's output, when validated
+    validation: dict | None  #: ``validate.report.summarise`` of the log's output, when validated
 
     def line(self) -> str: ...
 
@@ -218,7 +218,7 @@ class RunReport:
 
 
 class Executor(Protocol):
-    """Where per-log tasks run (see :mod:`ncore_convert.executors`)."""
+    """Where per-log tasks run (see :mod:`ncore_convert.run.executors`)."""
 
     def results(
         self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool

@@ -1,51 +1,27 @@
-"""Checks of a converted NCore V4 sequence, read back through ``SequenceLoaderV4``.
+"""Checks of one converted NCore V4 sequence, read back through ``SequenceLoaderV4`` (``readback``).
 
-Each check is a :class:`Check` (name, pass/fail, one-line detail). Lidar frames are streamed one at
-a time, so memory does not grow with log length. The cuboid-occupancy check, which needs the
-motion-compensated points of a frame, runs on ``OCCUPANCY_FRAMES`` frames spread over the log.
+Each check is a :class:`~ncore_convert.validate.report.Check` (name, pass/fail, one-line detail).
+Lidar frames are streamed one at a time, so memory does not grow with log length. The
+cuboid-occupancy check, which needs the motion-compensated points of a frame, runs on
+``readback.SAMPLED_FRAMES`` frames spread over the log.
 """
 
 from __future__ import annotations
 
-import json
-import time
-from dataclasses import asdict, dataclass, field
-
 import numpy as np
-from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
-from ncore.impl.common.transformations import is_within_3d_bboxes
+from ncore.data.v4 import SequenceLoaderV4
 from upath import UPath
+
+from ncore_convert.validate.readback import box_point_counts, boxes_at, open_sequence, sample_frames, world_points
+from ncore_convert.validate.report import Report
+from ncore_convert.validate.source import compare_with_source
 
 UNIT_TOLERANCE = 1e-4  #: |‖direction‖ − 1| allowed (directions are stored as float32)
 #: A frame interval more than this times the median is a dropped frame; less than 1/this, a shifted one.
 GAP_FACTOR = 1.5
-OCCUPANCY_FRAMES = 5
 OCCUPANCY_RANGE_M = 30.0  #: boxes whose centre is within this range of the lidar are expected to hold points
 OCCUPANCY_MIN_FRACTION = 0.5  #: of those boxes, at least this fraction must hold a point
 OCCUPANCY_MIN_BOXES = 5  #: fewer near boxes than this: the occupancy check is not decisive
-
-
-@dataclass(frozen=True)
-class Check:
-    name: str
-    ok: bool
-    detail: str
-
-
-@dataclass
-class Report:
-    sequence: str
-    checks: list[Check] = field(default_factory=list)
-
-    @property
-    def ok(self) -> bool:
-        return all(c.ok for c in self.checks)
-
-    def add(self, name: str, ok: bool, detail: str) -> None:
-        self.checks.append(Check(name, bool(ok), detail))
-
-    def to_dict(self) -> dict:
-        return {"sequence": self.sequence, "ok": self.ok, "checks": [asdict(c) for c in self.checks]}
 
 
 def _regularity(report: Report, name: str, end_us: np.ndarray) -> None:
@@ -81,53 +57,8 @@ def _covered(loader: SequenceLoaderV4, sensor_id: str, timestamps_us: np.ndarray
     return True
 
 
-def boxes_at(observations: list, t0_us: int, t1_us: int) -> list:
-    """The cuboid observations of one labelled instant in a frame [t0_us, t1_us]: the earliest
-    label time within it (consecutive lidar frames can overlap by a few ms, so a frame's interval
-    may also hold the next sweep's label time)."""
-    inside = [o for o in observations if t0_us <= o.timestamp_us <= t1_us]
-    first = min((o.timestamp_us for o in inside), default=None)
-    return [o for o in inside if o.timestamp_us == first]
-
-
-def sample_frames(n_frames: int) -> np.ndarray:
-    """OCCUPANCY_FRAMES frame indices spread evenly over a sensor's ``n_frames`` frames."""
-    return np.unique(np.linspace(0, n_frames - 1, OCCUPANCY_FRAMES).round().astype(int))
-
-
-def world_points(
-    loader: SequenceLoaderV4, lidar_id: str, frame: int, target: str = "world"
-) -> tuple[np.ndarray, np.ndarray]:
-    """A lidar frame's points, motion-compensated with the per-point times, in ``target`` (``world``
-    or ``world_global``).
-
-    Returns:
-        xyz_m in target, float64 [N,3], and the sensor's position there at the frame end, float64 [3].
-    """
-    lidar = loader.get_lidar_sensor(lidar_id)
-    t_end = lidar.frames_timestamps_us[frame, 1:2].astype(np.uint64)
-    T_world_sensor = loader.pose_graph.evaluate_poses(lidar_id, target, t_end)[0].astype(np.float64)
-    xyz = lidar.get_frame_point_cloud(frame, motion_compensation=True, with_start_points=False).xyz_m_end
-    return xyz.astype(np.float64) @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3], T_world_sensor[:3, 3]
-
-
-def box_point_counts(loader: SequenceLoaderV4, boxes: list, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """How many of the points (world, float64 [N,3]) lie inside each box, int [B], and the box centres
-    in world, float64 [B,3]; each box is tested in its own reference frame at its reference time."""
-    counts, centres = np.zeros(len(boxes), dtype=np.int64), np.zeros((len(boxes), 3))
-    for k, box in enumerate(boxes):
-        T_world_ref = loader.pose_graph.evaluate_poses(
-            box.reference_frame_id, "world", np.array([box.reference_frame_timestamp_us], dtype=np.uint64)
-        )[0].astype(np.float64)
-        centres[k] = T_world_ref[:3, :3] @ np.asarray(box.bbox3.centroid) + T_world_ref[:3, 3]
-        xyz_ref = (xyz_world_m - T_world_ref[:3, 3]) @ T_world_ref[:3, :3]
-        bbox = np.array([[*box.bbox3.centroid, *box.bbox3.dim, *box.bbox3.rot]], dtype=np.float32)
-        counts[k] = int(is_within_3d_bboxes(xyz_ref.astype(np.float32), bbox).sum())
-    return counts, centres
-
-
 def _occupancy(loader: SequenceLoaderV4, lidar_id: str, observations: list) -> tuple[int, int]:
-    """(near boxes holding a point, near boxes) over OCCUPANCY_FRAMES frames of one lidar."""
+    """(near boxes holding a point, near boxes) over the sampled frames of one lidar."""
     frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us
     held = near = 0
     for i in sample_frames(len(frames_us)):
@@ -213,8 +144,7 @@ def validate_sequence(sequence_json: UPath, source_root: UPath | None = None) ->
     with ``source_root`` (the converter's --root-dir), also compare its counts with the source."""
     report = Report(str(sequence_json))
     try:
-        reader = SequenceComponentGroupsReader([UPath(sequence_json)])
-        loader = SequenceLoaderV4(reader)
+        sequence = open_sequence(sequence_json)
     except Exception as err:  # noqa: BLE001 - any failure to open is the finding
         report.add(
             "opens with SequenceLoaderV4",
@@ -222,6 +152,7 @@ def validate_sequence(sequence_json: UPath, source_root: UPath | None = None) ->
             f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}",
         )
         return report
+    loader = sequence.loader
     report.add(
         "opens with SequenceLoaderV4", True, f"{len(loader.lidar_ids)} lidar(s), {len(loader.camera_ids)} camera(s)"
     )
@@ -236,83 +167,5 @@ def validate_sequence(sequence_json: UPath, source_root: UPath | None = None) ->
     for camera_id in loader.camera_ids:
         _check_camera(report, loader, camera_id, lidar_frames)
     if source_root is not None:
-        from ncore_convert.validate_source import compare_with_source
-
-        compare_with_source(report, loader, reader, source_root)
+        compare_with_source(report, sequence, source_root)
     return report
-
-
-def validate_tree(path: UPath, source_root: UPath | None = None, relative_to: UPath | None = None) -> list[Report]:
-    """Validate a sequence meta, or every sequence and cooperative scenario (``scenario.json``:
-    co-registration of its agents) below a folder. Reports name their file relative to
-    ``relative_to`` when given."""
-    from ncore_convert.converters.opencood import MANIFEST
-    from ncore_convert.coregister import check_coregistration
-
-    path = UPath(path)
-    reports = [validate_sequence(meta, source_root) for meta in find_sequences(path)]
-    if path.is_dir():
-        reports += [check_coregistration(m) for m in sorted(path.rglob(MANIFEST), key=str) if _visible(m, path)]
-    if relative_to is not None:
-        for report in reports:
-            report.sequence = str(UPath(report.sequence).relative_to(UPath(relative_to)))
-    return reports
-
-
-def find_sequences(path: UPath) -> list[UPath]:
-    """A sequence meta file itself, or every sequence meta (``<sequence_id>.json``) below an output folder
-    (unfinished ``.<log>.partial`` folders are skipped)."""
-    path = UPath(path)
-    if path.is_file():
-        return [path]
-    return sorted((p for p in path.rglob("*.json") if _visible(p, path) and _is_sequence_meta(p)), key=str)
-
-
-def _visible(path: UPath, root: UPath) -> bool:
-    return not any(part.startswith(".") for part in path.relative_to(root).parts)
-
-
-def _is_sequence_meta(path: UPath) -> bool:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(data, dict) and "sequence_id" in data and "component_stores" in data
-
-
-def summarise(reports: list[Report]) -> dict:
-    """The run report's record of a log's validation: counts and the failed checks, one line each."""
-    failed = [f"{r.sequence}: {c.name}: {c.detail}" for r in reports for c in r.checks if not c.ok]
-    return {
-        "ok": not failed,
-        "files": len(reports),
-        "checks": sum(len(r.checks) for r in reports),
-        "failed": failed,
-    }
-
-
-class ValidationFailed(Exception):
-    """A converted log failed validation; ``validation`` is its :func:`summarise` record."""
-
-    def __init__(self, message: str, validation: dict) -> None:
-        super().__init__(message, validation)  # both in args: survives pickling from a worker
-        self.validation = validation
-
-    def __str__(self) -> str:
-        return self.args[0]
-
-
-def convert_and_validate(task, sequence_dir: UPath, log_id: str, *, source_root: UPath | None = None, **kwargs):
-    """A log task followed by :func:`validate_tree` of its output (with the source counts when
-    ``source_root`` is given). Raises ValidationFailed, so the log is not published, on any failure."""
-    summary = task(sequence_dir, log_id, **kwargs)
-    started = time.perf_counter()
-    record = summarise(validate_tree(sequence_dir, source_root, relative_to=sequence_dir))
-    record["seconds"] = round(time.perf_counter() - started, 3)
-    if not record["ok"]:
-        raise ValidationFailed(
-            f"validation: {len(record['failed'])} of {record['checks']} checks failed, first: {record['failed'][0]}",
-            record,
-        )
-    summary.validation = record
-    return summary

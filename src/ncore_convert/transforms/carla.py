@@ -4,7 +4,7 @@ CARLA's world and sensor frames are left-handed: x forward, y right, z up, with 
 ``[x, y, z, roll, yaw, pitch]`` in metres and degrees. Mirroring y, ``S = diag(1, -1, 1)``, turns
 them into right-handed frames (x forward, y left, z up), which is what NCore's ``rig``, ``world``
 and sensor frames are:
-- a pose (left-handed ``world_SE3_x``) becomes ``S · T · S``;
+- a pose (a left-handed ``T_x_world``, frame x -> world) becomes ``S · T · S``;
 - a point or direction becomes ``S · p`` (``(x, -y, z)``);
 - a camera's UE4 axes (x along the optical axis, y right, z up) relate to OpenCV axes (x right,
   y down, z along the optical axis) by ``p_ue4 = M_UE4_FROM_CV · p_cv``, so the right-handed
@@ -21,8 +21,8 @@ S = np.diag([1.0, -1.0, 1.0, 1.0])
 M_UE4_FROM_CV = np.array([[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
 
-def carla_world_SE3(pose: np.ndarray) -> np.ndarray:
-    """CARLA ``Transform.get_matrix()`` (OpenCOOD ``x_to_world``): left-handed world_SE3_x.
+def carla_pose_matrix(pose: np.ndarray) -> np.ndarray:
+    """CARLA ``Transform.get_matrix()`` (OpenCOOD ``x_to_world``): the left-handed ``T_x_world``.
 
     Args:
         pose: ``[x, y, z, roll, yaw, pitch]`` in metres and degrees, [6] or [N,6].
@@ -43,19 +43,20 @@ def carla_world_SE3(pose: np.ndarray) -> np.ndarray:
     return T[0] if single else T
 
 
-def right_handed_SE3(T_carla: np.ndarray) -> np.ndarray:
+def mirror_transform(T_carla: np.ndarray) -> np.ndarray:
     """A left-handed CARLA transform ([...,4,4]) as the right-handed one: ``S · T · S``."""
     return S @ T_carla @ S
 
 
-def world_SE3_right_handed(pose: np.ndarray) -> np.ndarray:
-    """Right-handed world_SE3_x of a CARLA pose ``[x, y, z, roll, yaw, pitch]`` ([6] or [N,6])."""
-    return right_handed_SE3(carla_world_SE3(pose))
+def right_handed_pose(pose: np.ndarray) -> np.ndarray:
+    """The right-handed ``T_x_world`` of a CARLA pose ``[x, y, z, roll, yaw, pitch]`` ([6] or [N,6])."""
+    return mirror_transform(carla_pose_matrix(pose))
 
 
-def world_SE3_camera_opencv(cords: np.ndarray) -> np.ndarray:
-    """Right-handed world pose of a CARLA camera in OpenCV axes, from its ``cords`` pose ([6] or [N,6])."""
-    return S @ carla_world_SE3(cords) @ M_UE4_FROM_CV
+def opencv_camera_pose(cords: np.ndarray) -> np.ndarray:
+    """The right-handed ``T_camera_world`` of a CARLA camera in OpenCV axes, from its ``cords`` pose
+    ([6] or [N,6])."""
+    return S @ carla_pose_matrix(cords) @ M_UE4_FROM_CV
 
 
 def points_right_handed(xyz_carla: np.ndarray) -> np.ndarray:
@@ -76,9 +77,9 @@ def boxes_world_right_handed(
             All in the CARLA (left-handed) world, metres.
 
     Returns:
-        world_SE3_box [M,4,4] (right-handed; box x forward, y left, z up) and (length, width,
+        T_box_world [M,4,4] (right-handed; box x forward, y left, z up) and (length, width,
         height) [M,3] = 2 * extent. The centre is ``location + R(angle) · center``.
     """
-    T = carla_world_SE3(np.concatenate([location, angle], axis=1))
+    T = carla_pose_matrix(np.concatenate([location, angle], axis=1))
     T[:, :3, 3] += np.einsum("mij,mj->mi", T[:, :3, :3], center)
-    return right_handed_SE3(T), 2.0 * np.asarray(extent, dtype=np.float64)
+    return mirror_transform(T), 2.0 * np.asarray(extent, dtype=np.float64)

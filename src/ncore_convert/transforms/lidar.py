@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncore_convert.geometry import Trajectory, invert_se3, rotation_matrices_from_quats, sorted_run_starts
+from ncore_convert.transforms.geometry import Trajectory, invert_se3, rotation_matrices_from_quats, sorted_run_starts
 
 #: Points closer than this to the sensor origin have no defined direction and cannot be stored.
 MIN_RANGE_M = 1e-3

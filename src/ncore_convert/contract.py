@@ -1,0 +1,156 @@
+"""The names the writer side writes and the read side reads back: one definition for both.
+
+Converters put these keys and files into a sequence; ``validate``, ``preview`` and the CLI find
+them again. Nothing here reads or writes files; see ``writer.py`` for where they are written.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Any, Literal
+
+#: Names from the data that become output paths (log ids, sensor names): one path component, no
+#: separators, not hidden, not "." or "..", at most 128 characters.
+SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+
+# --- conversion options that name what is written (the CLI's choices come from these) ---
+StoreType = Literal["itar", "directory"]
+Profile = Literal["default", "separate-sensors", "separate-all"]
+LidarModelSource = Literal["empirical", "none"]
+Layout = Literal["agents", "scenario"]  #: OpenCOOD: a sequence per agent, or one sequence per scenario
+
+# --- dataset ids: the sequence metadata's ``source_dataset`` ---
+ARGOVERSE2_SENSOR = "argoverse2-sensor"
+ARGOVERSE2_TBV = "argoverse2-tbv"
+OPV2V = "opv2v"
+V2XSET = "v2xset"
+ARGOVERSE2_DATASETS = (ARGOVERSE2_SENSOR, ARGOVERSE2_TBV)
+OPENCOOD_DATASETS = (OPV2V, V2XSET)
+
+# --- keys of the sequence's generic metadata ---
+SOURCE_DATASET = "source_dataset"
+CONVERTER = "converter"  #: {"name", "version", "options"}
+AV2_SPLIT = "argoverse2_split"  #: None for TbV (logs directly under the root)
+AV2_LOG_ID = "argoverse2_log_id"
+OPENCOOD_SPLIT = "opencood_split"
+SCENARIO = "scenario"
+AGENTS = "agents"  #: agent id -> {"kind", "opencood_ego"}
+
+# --- keys of sensor metadata ---
+#: sensor metadata: frame key -> why the source frame was not written (unreadable YAML, PCD or image)
+SKIPPED_FRAMES = "skipped_frames"
+#: lidar metadata (AV2: per cause; OpenCOOD: per frame) of points that have no unit direction
+POINTS_NOT_STORED = "points_not_stored"
+
+# --- component instances ---
+#: The instance name every component is written under, and the one ``SequenceLoaderV4`` opens by default.
+DEFAULT_INSTANCE = "default"
+
+# --- the HD map, stored as generic data of the poses component ---
+MAP_VECTOR_JSON = "hd_map_vector_json"
+MAP_GROUND_HEIGHT = "hd_map_ground_height_m"
+MAP_META = "hd_map"
+
+# --- cooperative scenarios ---
+MANIFEST = "scenario.json"
+
+
+def agent_prefix(agent_id: str | int) -> str:
+    """The prefix of an agent's frames and sensors in a sequence that holds several agents."""
+    return f"agent{agent_id}_"
+
+
+@dataclass(frozen=True)
+class ManifestAgent:
+    """One agent folder of a scenario; the optional fields are set for written agents only, and
+    ``sequence`` (agents layout) or ``frame_prefix`` (scenario layout) by the layout."""
+
+    agent_id: int
+    kind: str
+    opencood_ego: bool
+    written: bool
+    frames: int | None = None
+    sensors: list[str] | None = None
+    sequence: str | None = None  #: ``<agent_id>/<sequence_id>.json``, relative to the manifest
+    frame_prefix: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "agent_id": self.agent_id, "kind": self.kind, "opencood_ego": self.opencood_ego, "written": self.written,
+        }  # fmt: skip
+        for name in ("frames", "sensors", "sequence", "frame_prefix"):
+            if (value := getattr(self, name)) is not None:
+                out[name] = value
+        return out
+
+
+@dataclass(frozen=True)
+class ManifestNoise:
+    """A noise setting of the scenario and the poses instance that holds it."""
+
+    name: str
+    model: str
+    seed: int
+    poses_instance: str
+
+
+@dataclass(frozen=True)
+class ScenarioManifest:
+    """``scenario.json``: how a cooperative scenario's agents and sequences relate."""
+
+    scenario: str
+    dataset: str
+    split: str
+    layout: Layout
+    sequence: str | None  #: the one sequence meta of the scenario layout, relative to the manifest
+    world_global: str
+    fixed_delta_seconds: float
+    time_base: str
+    ego_agent_id: int
+    ego_rule: str
+    agents: list[ManifestAgent]
+    noise_settings: list[ManifestNoise]
+    labels: str
+
+    def sequence_of(self, agent: ManifestAgent) -> str:
+        """The sequence meta holding ``agent``, relative to the manifest."""
+        return self.sequence if self.layout == "scenario" else agent.sequence
+
+    def prefix_of(self, agent: ManifestAgent) -> str:
+        """The prefix of ``agent``'s frame and sensor names in its sequence."""
+        return agent.frame_prefix if self.layout == "scenario" else ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "scenario": self.scenario,
+            "dataset": self.dataset,
+            "split": self.split,
+            "layout": self.layout,
+            "sequence": self.sequence,
+            "world_global": self.world_global,
+            "fixed_delta_seconds": self.fixed_delta_seconds,
+            "time_base": self.time_base,
+            "ego": {"agent_id": self.ego_agent_id, "rule": self.ego_rule},
+            "agents": [a.to_dict() for a in self.agents],
+            "noise_settings": [vars(n).copy() for n in self.noise_settings],
+            "labels": self.labels,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ScenarioManifest:
+        return cls(
+            scenario=data["scenario"],
+            dataset=data["dataset"],
+            split=data["split"],
+            layout=data["layout"],
+            sequence=data.get("sequence"),
+            world_global=data.get("world_global", ""),
+            fixed_delta_seconds=data["fixed_delta_seconds"],
+            time_base=data.get("time_base", ""),
+            ego_agent_id=data["ego"]["agent_id"],
+            ego_rule=data["ego"].get("rule", ""),
+            agents=[ManifestAgent(**a) for a in data["agents"]],
+            noise_settings=[ManifestNoise(**n) for n in data.get("noise_settings", [])],
+            labels=data.get("labels", ""),
+        )

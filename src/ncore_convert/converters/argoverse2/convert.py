@@ -1,0 +1,293 @@
+"""Argoverse 2 Sensor and TbV, per log: write a planned log (``plan.py``) through the NCore writer.
+
+The log's writing jobs (base components, all lidars, each camera) are grouped into parts that share
+no component store, so the parts can run in separate worker processes; lidar sweeps and images are
+streamed one at a time, so memory stays flat.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from upath import UPath
+
+from ncore_convert import contract
+from ncore_convert.converters.argoverse2.lidar import lidar_meta, read_covered_sweep, sweep_ray_bundles
+from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
+from ncore_convert.converters.common import Tally
+from ncore_convert.run.pool import JobPool, Progress, run_inline
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.transforms.geometry import euler_xyz_from_rotation
+from ncore_convert.transforms.timebase import floor_us
+from ncore_convert.writer import (
+    BASE_JOB,
+    Cuboids,
+    SequenceWriter,
+    WriteJob,
+    independent_parts,
+    write_sequence_meta,
+)
+
+
+@dataclass
+class Counts(Tally):
+    """What a conversion, or one writer part of it, produced. Seconds are per-process path times."""
+
+    sweeps: int = 0
+    points: int = 0
+    points_not_stored: int = 0
+    images: int = 0
+    cuboids: int = 0
+    maps: int = 0
+    lidar_seconds: float = 0.0  #: read + decompensate + write of all sweeps
+    camera_seconds: float = 0.0  #: read + write of all images
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass
+class LogSummary(Counts):
+    """What one log conversion produced."""
+
+    log_id: str = ""
+    seconds: float = 0.0  #: wall time of the whole log
+    validation: dict | None = None  #: set by validate.tree.convert_and_validate (None: not validated)
+    lidar_model_seconds: float = 0.0  #: slowest per-unit lidar model derivation
+
+    def line(self) -> str:
+        return (
+            f"{self.log_id}: {self.sweeps} sweeps, {self.points} points"
+            f" ({self.points_not_stored} not representable), {self.images} images,"
+            f" {self.cuboids} cuboids, {'an HD map' if self.maps else 'no HD map'}, {self.seconds:.1f} s"
+            + (f", {len(self.warnings)} warning(s)" if self.warnings else "")
+        )
+
+
+@dataclass
+class JobResult(Counts):
+    """Counts of the jobs of one writer part, and its sequence-meta part (None without meta)."""
+
+    meta: object = None
+
+
+def annotation_cuboids(annotations: av2.Annotations) -> Cuboids:
+    """AV2 cuboids (ego frame at the sweep time) as rig-frame observations with full xyz-Euler rotation."""
+    return Cuboids(
+        track_ids=annotations.track_uuids,
+        class_ids=annotations.categories,
+        timestamps_us=floor_us(annotations.timestamps_ns),
+        centroids_m=annotations.T_object_ego[:, :3, 3],
+        dims_m=annotations.dims_m,
+        euler_xyz_rad=euler_xyz_from_rotation(annotations.T_object_ego[:, :3, :3]),
+    )
+
+
+def _camera_meta(intr: av2.CameraIntrinsics) -> dict:
+    return {
+        "av2_original_distortion": {"k1": intr.k1, "k2": intr.k2, "k3": intr.k3},
+        "av2_principal_point_px": {"cx": intr.cx_px, "cy": intr.cy_px},
+        "principal_point_note": "stored principal point = av2 (cx, cy) + 0.5 (NCore pixel-corner convention)",
+    }
+
+
+def _open_writer(plan: LogPlan, output_dir: UPath, base: bool) -> SequenceWriter:
+    return SequenceWriter(
+        output_dir=output_dir,
+        sequence_id=plan.log_id,
+        interval_us=(plan.T_rig_world.start_us, plan.T_rig_world.end_us),
+        generic_meta_data=plan.generic_meta,
+        camera_ids=plan.camera_ids,
+        lidar_ids=plan.lidar_ids,
+        store_type=plan.options.store_type,
+        profile=plan.options.profile,
+        base=base,
+        poses_meta={
+            "calibration_type": "argoverse2-calibration",
+            "egomotion_type": "argoverse2-city_SE3_egovehicle",
+        },
+    )
+
+
+def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
+    """Poses (trajectory, world_global, sensor extrinsics), camera and lidar models, masks and cuboids."""
+    inputs = plan.inputs
+    writer.store_trajectory(plan.T_rig_world.timestamps_us, plan.T_rig_world.poses, plan.T_world_world_global)
+    for sensor in plan.lidar_ids + plan.camera_ids:
+        writer.store_extrinsic(sensor, inputs.T_sensor_ego[sensor])  # av2's egovehicle is NCore's rig
+    for cam in plan.camera_ids:
+        intr = inputs.intrinsics[cam]
+        writer.store_pinhole_camera(
+            cam,
+            focal_length_px=(intr.fx_px, intr.fy_px),
+            principal_point_px=(intr.cx_px + 0.5, intr.cy_px + 0.5),
+            resolution_px=(intr.width_px, intr.height_px),
+        )
+    if plan.lidar_calibration is not None:
+        for unit, model in plan.lidar_calibration.models.items():
+            writer.store_lidar_model(unit, model)
+    cuboids = annotation_cuboids(inputs.annotations) if inputs.annotations is not None else None
+    writer.store_cuboids(cuboids)
+    if plan.options.maps:
+        _store_map(inputs.log_dir, writer, result)
+    result.cuboids = 0 if cuboids is None else len(cuboids)
+
+
+def _store_map(log_dir: UPath, writer: SequenceWriter, result: JobResult) -> None:
+    """The log's HD map, as stored, in the city frame (= world_global), or a warning without one."""
+    log_map = av2.read_log_map(log_dir)
+    if log_map is None:
+        result.warnings.append(f"{log_dir / 'map'}: no map folder; no HD map written")
+        return
+    vector_name, raster_name, sim2_name = log_map.file_names
+    writer.store_map(
+        log_map.vector_map_json,
+        log_map.ground_height_m,
+        {
+            "frame": "world_global (the AV2 city frame)",
+            "vector_map_file": vector_name,
+            "ground_height_file": raster_name,
+            "img_Sim2_city_file": sim2_name,
+            "city": vector_name.split("____")[1].split("_")[0] if "____" in vector_name else None,
+            "img_Sim2_city": log_map.img_Sim2_city,
+            "raster_lookup": "p_img = s * (R @ [x, y] + t) with (x, y) in world_global metres, R row-major 2x2;"
+            " value = ground_height_m[int(p_img[1]), int(p_img[0])] (truncation; NaN outside the region of interest)",
+            "resolution_m": 1.0 / float(log_map.img_Sim2_city["s"]),
+        },
+    )
+    result.maps = 1
+
+
+def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
+    """Stream sweeps one at a time: read, split by unit, decompensate, assign model elements, store.
+    Memory stays flat."""
+    started = time.perf_counter()
+    log_dir = plan.inputs.log_dir
+    calibration = plan.lidar_calibration
+    T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
+    lidars = {  # one metadata dict per lidar: the writer updates it in place
+        unit: writer.add_lidar(unit, lidar_meta(calibration, unit, plan.options.lidar_model_source))
+        for unit in plan.lidar_ids
+    }
+    not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
+    source_points = {unit: 0 for unit in lidars}
+    for sweep_ns in plan.sweep_timestamps_ns:
+        sweep = read_covered_sweep(log_dir, int(sweep_ns), plan.T_rig_world, not plan.options.tbv)
+        for unit, unit_rays in sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig).items():
+            rays = unit_rays.rays
+            frame_meta = {
+                "av2_sweep_timestamp_ns": int(sweep_ns),
+                "points_zero_range": rays.n_zero_range,
+                "points_non_finite": rays.n_non_finite,
+            }
+            if unit_rays.column_time_remap:
+                frame_meta["model_column_time_remap"] = unit_rays.column_time_remap
+            lidars[unit].store_frame(rays, frame_meta, model_element=unit_rays.model_elements)
+            not_stored[unit]["zero_range"] += rays.n_zero_range
+            not_stored[unit]["non_finite"] += rays.n_non_finite
+            source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
+            result.points += len(rays)
+            result.points_not_stored += rays.n_zero_range + rays.n_non_finite
+        result.sweeps += 1
+        progress(1)
+    for unit, stream in lidars.items():
+        stream.set_meta({"source_points": source_points[unit], contract.POINTS_NOT_STORED: not_stored[unit]})
+    if result.points_not_stored:
+        result.warnings.append(
+            f"{result.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
+        )
+    result.lidar_seconds = time.perf_counter() - started
+
+
+def _write_camera(
+    plan: LogPlan, writer: SequenceWriter, cam: str, result: JobResult, progress: Callable[[int], None]
+) -> None:
+    """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
+    started = time.perf_counter()
+    stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam]))
+    for image_ns in plan.inputs.image_timestamps_ns[cam]:
+        t_us = floor_us(int(image_ns))
+        stream.store_frame(av2.read_jpeg(plan.inputs.log_dir, cam, int(image_ns)), "jpeg", (t_us, t_us))
+        result.images += 1
+        progress(1)
+    result.camera_seconds += time.perf_counter() - started
+
+
+def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress: Callable[[int], None]) -> JobResult:
+    """Write the jobs of one independent part (see :func:`log_jobs`) with one writer; runs in a worker."""
+    result = JobResult()
+    writer = _open_writer(plan, output_dir, base=BASE_JOB in jobs)
+    for job in jobs:
+        if job.base:
+            _write_base(plan, writer, result, progress)
+        elif job.sensor_ids == tuple(plan.lidar_ids):
+            _write_lidars(plan, writer, result, progress)
+        else:
+            (cam,) = job.sensor_ids
+            _write_camera(plan, writer, cam, result, progress)
+    result.meta = writer.finalize(with_meta=plan.options.sequence_meta)
+    return result
+
+
+#: Rough single-core costs used to start the longest parts first (seconds per item).
+_COST_S = {"sweep": 0.05, "image": 0.0035, "cuboid": 0.00025}
+
+
+@dataclass(frozen=True)
+class LogPart:
+    """Jobs that one writer (and one worker process) writes, with their estimated cost."""
+
+    jobs: list[WriteJob]
+    cost_s: float
+
+
+def log_jobs(plan: LogPlan) -> list[LogPart]:
+    """The log's writing jobs grouped into independent parts, with an estimated cost per part.
+
+    Jobs: the base components, all lidars (they share each sweep read), and one per camera.
+    Parts are in store order: base first, then lidars, then cameras.
+    """
+    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids))] if plan.lidar_ids else [])
+    jobs += [WriteJob((cam,)) for cam in plan.camera_ids]
+    n_cuboids = 0 if plan.inputs.annotations is None else len(plan.inputs.annotations)
+    cost = [_COST_S["cuboid"] * n_cuboids]
+    cost += [_COST_S["sweep"] * len(plan.sweep_timestamps_ns)] if plan.lidar_ids else []
+    cost += [_COST_S["image"] * len(plan.inputs.image_timestamps_ns[cam]) for cam in plan.camera_ids]
+    parts = independent_parts(jobs, plan.camera_ids, plan.lidar_ids, plan.options.profile)
+    return [LogPart([jobs[i] for i in part], sum(cost[i] for i in part)) for part in parts]
+
+
+def convert_log(
+    root_dir: UPath,
+    output_dir: UPath,
+    log_id: str,
+    options: Argoverse2Options,
+    pool: JobPool | None = None,
+    progress: Progress | None = None,
+) -> LogSummary:
+    """Convert one AV2 log into ``output_dir`` (which becomes the sequence directory).
+
+    Args:
+        pool: worker processes for the log's independent store parts; None writes them in this process.
+        progress: told the number of frames (sweeps + images) to write, then each written frame.
+    """
+    started = time.perf_counter()
+    progress = progress or Progress()
+    plan = plan_log(root_dir, log_id, options)
+    progress.total(plan.n_frames)
+    parts = log_jobs(plan)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    longest_first = sorted(range(len(parts)), key=lambda i: -parts[i].cost_s)
+    calls = [(write_part, (plan, output_dir, parts[i].jobs)) for i in longest_first]
+    done = pool.run(calls, progress) if pool else run_inline(calls, progress)
+    results = [done[longest_first.index(i)] for i in range(len(parts))]
+
+    if options.sequence_meta:
+        write_sequence_meta(output_dir, log_id, [r.meta for r in results if r.meta is not None])
+    summary = LogSummary(log_id=log_id, warnings=list(plan.warnings))
+    if plan.lidar_calibration is not None:
+        summary.lidar_model_seconds = max(plan.lidar_calibration.model_seconds.values(), default=0.0)
+    for result in results:
+        summary.add(result)
+    summary.seconds = time.perf_counter() - started
+    return summary

@@ -1,0 +1,280 @@
+"""Argoverse 2 Sensor and TbV, per log: read the small inputs, check them, and decide once what every
+writing job needs (sensors, ego trajectory, lidar calibration). TbV is a mode of the same plan
+(``Argoverse2Options.split`` None).
+
+Frame mapping: AV2 ``egovehicle`` is NCore ``rig``; ``world`` is the city frame re-referenced to the
+first ego pose; ``world_global`` is the AV2 city frame (static float64 edge ``T_world_world_global``,
+the first ego pose in the city).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from upath import UPath
+
+from ncore_convert import __version__, contract
+from ncore_convert.contract import LidarModelSource, Profile, StoreType
+from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerTiming, calibrate_lidars
+from ncore_convert.converters.common import select_sensors
+from ncore_convert.errors import SourceError
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources.files import require_folder
+from ncore_convert.transforms import lidar_timing
+from ncore_convert.transforms.geometry import Trajectory, invert_se3
+from ncore_convert.transforms.timebase import NS_PER_US, ceil_us, floor_us
+
+#: Sensor data may reach this far (µs) beyond the pose table, or across a gap in it; further fails.
+MAX_POSE_EXTRAPOLATION_US = 200_000
+
+
+#: Below this margin the unit decision is reported as a warning.
+UNIT_DECISION_MIN_MARGIN = 2.0
+
+
+@dataclass(frozen=True)
+class Argoverse2Options:
+    """Options of the ``argoverse2-v4`` and ``tbv-v4`` commands (sensor selection: None = all available).
+
+    ``split`` is the AV2 Sensor split folder; None for TbV, whose logs sit directly under the root
+    and have no per-point times (they are reconstructed, see :mod:`ncore_convert.transforms.lidar_timing`).
+    """
+
+    split: str | None
+    store_type: StoreType = "itar"
+    profile: Profile = "separate-sensors"
+    sequence_meta: bool = True
+    lidar_model_source: LidarModelSource = "empirical"
+    maps: bool = True
+    camera_ids: tuple[str, ...] | None = None
+    lidar_ids: tuple[str, ...] | None = None
+
+    @property
+    def tbv(self) -> bool:
+        return self.split is None
+
+    def log_dir(self, root_dir: UPath, log_id: str) -> UPath:
+        return av2.log_dir(root_dir, self.split, log_id)
+
+
+@dataclass(frozen=True)
+class LogInputs:
+    """Everything read from a log up front (no sweep points, no image bytes)."""
+
+    log_dir: UPath
+    pose_timestamps_ns: np.ndarray
+    T_ego_city: np.ndarray  #: [N,4,4], av2 egovehicle -> city
+    T_sensor_ego: dict[str, np.ndarray]  #: [4,4] each, sensor -> av2 egovehicle (= NCore T_sensor_rig)
+    intrinsics: dict[str, av2.CameraIntrinsics]
+    sweep_timestamps_ns: np.ndarray
+    image_timestamps_ns: dict[str, np.ndarray]
+    annotations: av2.Annotations | None
+
+
+def read_log_inputs(
+    log_dir: UPath, camera_ids: list[str], intrinsics: dict[str, av2.CameraIntrinsics] | None = None
+) -> LogInputs:
+    """Read a log's small inputs; ``intrinsics``: already read (TbV reads them to pick the cameras)."""
+    pose_timestamps_ns, T_ego_city = av2.read_ego_poses(log_dir)
+    return LogInputs(
+        log_dir=log_dir,
+        pose_timestamps_ns=pose_timestamps_ns,
+        T_ego_city=T_ego_city,
+        T_sensor_ego=av2.read_sensor_extrinsics(log_dir),
+        intrinsics=intrinsics if intrinsics is not None else av2.read_intrinsics(log_dir),
+        sweep_timestamps_ns=av2.list_sweep_timestamps_ns(log_dir),
+        image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam) for cam in camera_ids},
+        annotations=av2.read_annotations(log_dir),
+    )
+
+
+def ego_trajectory(inputs: LogInputs, needed_us: tuple[int, int], warnings: list[str]) -> tuple[Trajectory, np.ndarray]:
+    """``T_rig_world`` relative to the first pose, and ``T_world_world_global`` (= the first ``T_ego_city``).
+
+    Timestamps go ns -> µs (floor) with duplicate µs dropped (first kept). Where sensor data reach
+    up to ``MAX_POSE_EXTRAPOLATION_US`` outside the pose table, the trajectory is extended at
+    constant velocity (reported as a warning); further, or across a gap in the poses longer than
+    that, the log fails naming the pose table. The returned trajectory holds the float32-rounded
+    poses that are stored, so every transform computed from it matches what NCore readers reconstruct.
+    """
+    path = av2.poses_path(inputs.log_dir)
+    pose_timestamps_us, first = np.unique(floor_us(inputs.pose_timestamps_ns), return_index=True)
+    T_ego_city = inputs.T_ego_city[first]
+    T_world_world_global = T_ego_city[0]
+    T_rig_world = invert_se3(T_world_world_global) @ T_ego_city
+    traj = Trajectory(pose_timestamps_us.astype(np.int64), T_rig_world)
+    start_us, end_us = needed_us
+    _check_pose_gaps(path, pose_timestamps_us, needed_us)
+    if start_us < traj.start_us or end_us > traj.end_us:
+        before = max(0, traj.start_us - start_us) / 1e3
+        after = max(0, end_us - traj.end_us) / 1e3
+        if max(before, after) > MAX_POSE_EXTRAPOLATION_US / 1e3:
+            raise SourceError(
+                path,
+                f"poses do not cover the sensor data: {before:.1f} ms missing before and {after:.1f} ms after"
+                f" (at most {MAX_POSE_EXTRAPOLATION_US / 1e3:g} ms is extrapolated)",
+            )
+        warnings.append(
+            f"{path}: poses do not cover the sensor data;"
+            f" extended at constant velocity by {before:.3f} ms before and {after:.3f} ms after"
+        )
+        traj = traj.extended(min(start_us, traj.start_us), max(end_us, traj.end_us))
+    stored = traj.poses.astype(np.float32).astype(np.float64)
+    return Trajectory(traj.timestamps_us, stored), T_world_world_global
+
+
+def _check_pose_gaps(path: UPath, pose_timestamps_us: np.ndarray, needed_us: tuple[int, int]) -> None:
+    """SourceError if consecutive poses inside the sensor time range are further apart than
+    ``MAX_POSE_EXTRAPOLATION_US`` (interpolating across the gap would invent the motion)."""
+    gaps_us = np.diff(pose_timestamps_us)
+    inside = (pose_timestamps_us[1:] > needed_us[0]) & (pose_timestamps_us[:-1] < needed_us[1])
+    bad = np.flatnonzero(inside & (gaps_us > MAX_POSE_EXTRAPOLATION_US))
+    if bad.size:
+        i = int(bad[0])
+        raise SourceError(
+            path,
+            f"no pose for {gaps_us[i] / 1e3:.1f} ms between timestamp_ns {pose_timestamps_us[i] * NS_PER_US} and"
+            f" {pose_timestamps_us[i + 1] * NS_PER_US}, where sensor data exist"
+            f" (at most {MAX_POSE_EXTRAPOLATION_US / 1e3:g} ms)",
+        )
+
+
+def _sensor_time_range_us(
+    inputs: LogInputs, camera_ids: list[str], with_lidar: bool, with_offsets: bool
+) -> tuple[int, int]:
+    """Inclusive µs range the trajectory must cover: lidar points at their exact ns times (so the
+    end rounds up), camera frames and cuboids at their stored (floored) µs times.
+
+    The lidar range comes from the first and the last sweep (each sweep's points span ~106 ms from
+    its timestamp, so they bound all others); every other sweep is checked when it is converted.
+    Without offset_ns, the range is the widest that reconstructed times can take (SWEEP_SPAN_MS).
+    """
+    lo, hi = [], []
+    if with_lidar and not with_offsets:
+        lo.append(floor_us(int(inputs.sweep_timestamps_ns[0]) + int(lidar_timing.SWEEP_SPAN_MS[0] * 1e6)))
+        hi.append(ceil_us(int(inputs.sweep_timestamps_ns[-1]) + int(lidar_timing.SWEEP_SPAN_MS[1] * 1e6)))
+    elif with_lidar:
+        for sweep_ns in {int(inputs.sweep_timestamps_ns[0]), int(inputs.sweep_timestamps_ns[-1])}:
+            first_ns, last_ns = av2.read_sweep_offset_range_ns(inputs.log_dir, sweep_ns)
+            lo.append(floor_us(sweep_ns + min(first_ns, 0)))
+            hi.append(ceil_us(sweep_ns + last_ns))
+    for cam in camera_ids:
+        if len(stamps_ns := inputs.image_timestamps_ns[cam]):
+            lo.append(floor_us(int(stamps_ns[0])))
+            hi.append(floor_us(int(stamps_ns[-1])))
+    if inputs.annotations is not None and len(inputs.annotations):
+        lo.append(floor_us(int(inputs.annotations.timestamps_ns.min())))
+        hi.append(floor_us(int(inputs.annotations.timestamps_ns.max())))
+    pose_timestamps_us = floor_us(inputs.pose_timestamps_ns)
+    return min(lo, default=int(pose_timestamps_us[0])), max(hi, default=int(pose_timestamps_us[-1]))
+
+
+def _trigger_timing(inputs: LogInputs) -> TriggerTiming:
+    """The camera-trigger grid from every image and pose timestamp, and the ring cameras' extrinsics."""
+    candidates = np.concatenate([inputs.pose_timestamps_ns, *inputs.image_timestamps_ns.values()])
+    try:
+        grid = lidar_timing.trigger_phases_ns(np.setdiff1d(candidates, inputs.sweep_timestamps_ns))
+    except lidar_timing.TimingError as err:
+        raise SourceError(av2.poses_path(inputs.log_dir), f"cannot time the lidar points: {err}") from None
+    rings = [cam for cam in av2.RING_CAMERAS if cam in inputs.T_sensor_ego]
+    if not rings:
+        raise SourceError(av2.extrinsics_path(inputs.log_dir), "no ring camera extrinsics")
+    return TriggerTiming(grid, [inputs.T_sensor_ego[cam] for cam in rings])
+
+
+@dataclass(frozen=True)
+class LogPlan:
+    """Everything the writing jobs of one log need, read and decided once (picklable).
+
+    Attributes:
+        T_rig_world: stored (float32-rounded) ego trajectory, µs.
+        T_world_world_global: the first ego pose in the city frame [4,4], float64.
+        lidar_calibration: unit split and models (None without lidars).
+    """
+
+    inputs: LogInputs
+    options: Argoverse2Options
+    log_id: str
+    camera_ids: list[str]
+    lidar_ids: list[str]
+    T_rig_world: Trajectory
+    T_world_world_global: np.ndarray
+    lidar_calibration: LidarCalibration | None
+    generic_meta: dict
+    warnings: list[str]
+
+    @property
+    def sweep_timestamps_ns(self) -> np.ndarray:
+        return self.inputs.sweep_timestamps_ns if self.lidar_ids else np.zeros(0, dtype=np.int64)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.sweep_timestamps_ns) + sum(len(self.inputs.image_timestamps_ns[c]) for c in self.camera_ids)
+
+
+def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPlan:
+    """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split)."""
+    warnings: list[str] = []
+    log_dir = options.log_dir(root_dir, log_id)
+    require_folder(log_dir, "log directory")
+    lidar_ids = select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
+    intrinsics = None
+    if options.tbv:  # the cameras are those of the log's calibration
+        intrinsics = av2.read_intrinsics(log_dir)
+        try:
+            camera_ids = select_sensors(options.camera_ids, tuple(intrinsics), "camera")
+        except ValueError as err:
+            raise SourceError(av2.intrinsics_path(log_dir), str(err)) from None
+    else:
+        camera_ids = select_sensors(options.camera_ids, av2.CAMERAS, "camera")
+    inputs = read_log_inputs(log_dir, camera_ids, intrinsics)
+
+    for sensor in av2.LIDARS + tuple(camera_ids):
+        if sensor not in inputs.T_sensor_ego:
+            raise SourceError(av2.extrinsics_path(log_dir), f"no extrinsic for {sensor!r}")
+    for cam in camera_ids:
+        if cam not in inputs.intrinsics:
+            raise SourceError(av2.intrinsics_path(log_dir), f"no intrinsics for {cam!r}")
+    missing = [cam for cam in camera_ids if len(inputs.image_timestamps_ns[cam]) == 0]
+    if missing:
+        warnings.append(f"{log_dir / 'sensors' / 'cameras'}: no images for {', '.join(missing)}; cameras not written")
+        camera_ids = [cam for cam in camera_ids if cam not in missing]
+    if lidar_ids and len(inputs.sweep_timestamps_ns) == 0:
+        warnings.append(f"{log_dir / 'sensors' / 'lidar'}: no sweeps; lidars not written")
+        lidar_ids = []
+
+    needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids), not options.tbv)
+    T_rig_world, T_world_world_global = ego_trajectory(inputs, needed_us, warnings)
+    lidar_calibration = None
+    if lidar_ids:
+        T_lidar_rig = {unit: inputs.T_sensor_ego[unit] for unit in av2.LIDARS}
+        model_units = lidar_ids if options.lidar_model_source == "empirical" else []
+        timing = _trigger_timing(inputs) if options.tbv else None
+        lidar_calibration = calibrate_lidars(
+            log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig, model_units, timing
+        )
+        split = lidar_calibration.unit_split
+        if split.margin < UNIT_DECISION_MIN_MARGIN:
+            warnings.append(
+                f"{log_dir}: up/down lidar decision has a low margin {split.margin:.2f}"
+                f" (laser_number < 32 -> {split.low_half_unit})"
+            )
+    generic_meta = {
+        contract.SOURCE_DATASET: contract.ARGOVERSE2_TBV if options.tbv else contract.ARGOVERSE2_SENSOR,
+        contract.AV2_SPLIT: options.split,
+        contract.AV2_LOG_ID: log_id,
+        contract.CONVERTER: {"name": "ncore-convert", "version": __version__, "options": asdict(options)},
+    }
+    return LogPlan(
+        inputs=inputs,
+        options=options,
+        log_id=log_id,
+        camera_ids=camera_ids,
+        lidar_ids=lidar_ids,
+        T_rig_world=T_rig_world,
+        T_world_world_global=T_world_world_global,
+        lidar_calibration=lidar_calibration,
+        generic_meta=generic_meta,
+        warnings=warnings,
+    )

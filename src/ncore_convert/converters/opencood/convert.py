@@ -1,0 +1,304 @@
+"""OPV2V / V2XSet, per scenario: write a planned scenario (``plan.py``) through the NCore writer:
+a sequence per agent (or one sequence with every agent, ``--layout scenario``) and ``scenario.json``,
+written last.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from upath import UPath
+
+from ncore_convert import __version__, contract
+from ncore_convert.contract import ManifestAgent, ManifestNoise, ScenarioManifest
+from ncore_convert.converters.common import Tally
+from ncore_convert.converters.opencood.noise import instance_meta
+from ncore_convert.converters.opencood.plan import AgentPlan, OpenCoodOptions, ScenarioPlan, plan_scenario
+from ncore_convert.errors import SourceError
+from ncore_convert.run.pool import JobPool, Progress, run_inline
+from ncore_convert.sources import opencood as src
+from ncore_convert.transforms import carla
+from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3
+from ncore_convert.transforms.lidar import ray_bundle
+from ncore_convert.transforms.timebase import NS_PER_US
+from ncore_convert.writer import Cuboids, SequenceWriter, write_scenario_manifest, write_sequence_meta
+
+VEHICLE_CLASS = "vehicle"
+
+
+@dataclass
+class Counts(Tally):
+    frames: int = 0  #: lidar frames
+    points: int = 0
+    points_not_stored: int = 0
+    images: int = 0
+    cuboids: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass
+class ScenarioSummary(Counts):
+    scenario: str = ""
+    agents: list[str] = field(default_factory=list)
+    tracks: int = 0
+    seconds: float = 0.0
+    validation: dict | None = None  #: set by validate.tree.convert_and_validate (None: not validated)
+
+    def line(self) -> str:
+        return (
+            f"{self.scenario}: {len(self.agents)} agents ({', '.join(self.agents)}), {self.frames} lidar frames,"
+            f" {self.points} points, {self.images} images, {self.cuboids} cuboids ({self.tracks} tracks),"
+            f" {self.seconds:.1f} s" + (f", {len(self.warnings)} warning(s)" if self.warnings else "")
+        )
+
+
+@dataclass(frozen=True)
+class Names:
+    """Frame and sensor names of one agent in a sequence (prefixed in the scenario layout)."""
+
+    prefix: str = ""
+
+    @property
+    def rig(self) -> str:
+        return f"{self.prefix}rig"
+
+    def sensor(self, sensor_id: str) -> str:
+        return f"{self.prefix}{sensor_id}"
+
+
+def _generic_meta(plan: ScenarioPlan, agent_ids: list[str]) -> dict:
+    return {
+        contract.SOURCE_DATASET: plan.options.dataset,
+        contract.OPENCOOD_SPLIT: plan.options.split,
+        contract.SCENARIO: plan.scenario,
+        contract.AGENTS: {a: {"kind": plan.agents[a].kind, "opencood_ego": a == plan.ego} for a in agent_ids},
+        "carla_fixed_delta_seconds": plan.fixed_delta_seconds,
+        "time_base": "t_us = CARLA frame key * fixed_delta_seconds * 1e6 (frame keys are CARLA frame counters)",
+        "world_global": "the CARLA map frame made right-handed: (x, y, z)_world_global = (x, -y, z)_carla",
+        "noise_settings": {s.name: s.as_dict() for s in plan.options.noise},
+        contract.CONVERTER: {"name": "ncore-convert", "version": __version__, "options": _options_meta(plan.options)},
+    }
+
+
+def _options_meta(options: OpenCoodOptions) -> dict:
+    """The conversion options as metadata (the noise settings are listed on their own)."""
+    out = asdict(options)
+    out["noise"] = [s.name for s in options.noise]
+    return out
+
+
+def _cuboids(plan: ScenarioPlan, agent: AgentPlan, names: Names) -> Cuboids:
+    """The merged labels at the agent's frames, in its rig frame at the frame time."""
+    rows = []
+    for key, t_us, T_rig_world_global in zip(agent.keys, agent.timestamps_us, agent.T_rig_world_global, strict=True):
+        if (boxes := plan.boxes.get(key)) is not None:
+            rows.append((boxes, int(t_us), invert_se3(T_rig_world_global) @ boxes.T_box_world_global))
+    if not rows:
+        return Cuboids([], [], np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), names.rig)
+    T_box_rig = np.concatenate([r[2] for r in rows])
+    ids = np.concatenate([r[0].actor_ids for r in rows])
+    return Cuboids(
+        track_ids=[str(i) for i in ids],
+        class_ids=[VEHICLE_CLASS] * len(ids),
+        timestamps_us=np.concatenate([np.full(len(r[0].actor_ids), r[1]) for r in rows]),
+        centroids_m=T_box_rig[:, :3, 3],
+        dims_m=np.concatenate([r[0].dims_m for r in rows]),
+        euler_xyz_rad=euler_xyz_from_rotation(T_box_rig[:, :3, :3]),
+        reference_frame_id=names.rig,
+    )
+
+
+def _write_base(
+    writer: SequenceWriter,
+    plan: ScenarioPlan,
+    agent: AgentPlan,
+    names: Names,
+    T_world_world_global: np.ndarray,
+    first: bool,
+) -> None:
+    """The agent's trajectory (and, for the first agent of a sequence, world -> world_global), its
+    perturbed trajectory and delays in each noise setting's poses instance, and its camera models
+    and sensor extrinsics."""
+    T_world_global_world = invert_se3(T_world_world_global)
+    T_rig_world = T_world_global_world @ agent.T_rig_world_global
+    writer.store_trajectory(
+        agent.timestamps_us, T_rig_world, T_world_world_global if first else None, rig_frame=names.rig
+    )
+    for name, per_agent in plan.noise.items():
+        noisy = per_agent[agent.agent_id]
+        T_rig_world = T_world_global_world @ noisy.T_rig_world_global
+        writer.store_trajectory(agent.timestamps_us, T_rig_world, None, rig_frame=names.rig, instance=name)
+        writer.store_pose_data(name, noisy.arrays(agent.timestamps_us, names.prefix))
+    for sensor in agent.lidar_ids + agent.camera_ids:
+        writer.store_extrinsic(names.sensor(sensor), agent.T_sensor_rig[sensor], rig_frame=names.rig)
+    for cam, (K, size) in agent.intrinsics.items():
+        # CARLA's K puts the principal point at the image centre (W/2, H/2): the pixel-corner convention
+        writer.store_pinhole_camera(names.sensor(cam), (K[0, 0], K[1, 1]), (K[0, 2], K[1, 2]), size)
+
+
+def _write_sensors(
+    writer: SequenceWriter, plan: ScenarioPlan, agent: AgentPlan, names: Names, counts: Counts, progress: Progress
+) -> None:
+    """Stream the agent's lidar frames and images, one frame at a time; skip (and report) missing files."""
+    if agent.lidar_ids:
+        meta = {"agent_id": agent.agent_id, "carla_lidar": plan.lidar_spec,
+                "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
+                "mounting": agent.mounts[src.LIDAR]}  # fmt: skip
+        lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
+        not_stored = 0
+        skipped = dict(agent.skipped_keys)
+        for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
+            try:
+                xyz_carla, intensity_u8 = src.read_points(agent.agent_dir, key)
+            except SourceError as err:
+                counts.warnings.append(f"{err}; lidar frame skipped")
+                skipped[key] = err.cause
+                progress(1)
+                continue
+            xyz = carla.points_right_handed(xyz_carla.astype(np.float64))
+            rays = ray_bundle(xyz, np.full(len(xyz), int(t_us) * NS_PER_US, dtype=np.int64), intensity_u8, int(t_us))
+            lidar.store_frame(
+                rays, {"carla_frame": int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite}
+            )
+            counts.frames += 1
+            counts.points += len(rays)
+            not_stored += rays.n_zero_range + rays.n_non_finite
+            progress(1)
+        lidar.set_meta({**meta, contract.SKIPPED_FRAMES: skipped})
+        counts.points_not_stored += not_stored
+        if not_stored:
+            counts.warnings.append(
+                f"{agent.agent_dir}: {not_stored} lidar points at zero range or with non-finite coordinates not stored"
+            )
+    for cam in agent.camera_ids:
+        index = agent.camera_index[cam]
+        meta = {"agent_id": agent.agent_id, "opencood_camera": f"camera{index}", "mounting": agent.mounts[cam]}
+        stream = writer.add_camera(names.sensor(cam), meta)
+        skipped = {}
+        for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
+            try:
+                data = src.read_png(agent.agent_dir, key, index)
+            except SourceError as err:
+                skipped[key] = err.cause
+                counts.warnings.append(f"{err}; image skipped")
+            else:
+                stream.store_frame(data, "png", (int(t_us), int(t_us)))
+                counts.images += 1
+            progress(1)
+        stream.set_meta({**meta, contract.SKIPPED_FRAMES: {**agent.skipped_keys, **skipped}})
+
+
+def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id: str, progress: Progress) -> Counts:
+    """One sequence holding ``agent_ids`` (one agent, or all of them prefixed), written by one writer."""
+    counts = Counts()
+    agents = [plan.agents[a] for a in agent_ids]
+    prefixed = len(agent_ids) > 1 or plan.options.layout == "scenario"
+    names = {a.agent_id: Names(contract.agent_prefix(a.agent_id) if prefixed else "") for a in agents}
+    reference = plan.agents[plan.ego] if plan.ego in agent_ids else agents[0]
+    writer = SequenceWriter(
+        output_dir=out_dir,
+        sequence_id=sequence_id,
+        interval_us=(min(int(a.timestamps_us[0]) for a in agents), max(int(a.timestamps_us[-1]) for a in agents)),
+        generic_meta_data=_generic_meta(plan, agent_ids),
+        camera_ids=[names[a.agent_id].sensor(c) for a in agents for c in a.camera_ids],
+        lidar_ids=[names[a.agent_id].sensor(s) for a in agents for s in a.lidar_ids],
+        store_type=plan.options.store_type,
+        profile=plan.options.profile,
+        poses_meta={"calibration_type": "carla-sensor-transforms", "egomotion_type": "carla-ground-truth-lidar_pose"},
+        extra_pose_instances={s.name: instance_meta(s, plan.agent_folders) for s in plan.options.noise},
+    )
+    T_world_world_global = reference.T_rig_world_global[0]  # world is the reference rig's first pose
+    for i, agent in enumerate(agents):
+        _write_base(writer, plan, agent, names[agent.agent_id], T_world_world_global, first=i == 0)
+    cuboids = _cuboids(plan, reference, names[reference.agent_id])
+    writer.store_cuboids(cuboids, source="GT_SYNTHETIC")
+    counts.cuboids = len(cuboids)
+    for agent in agents:
+        _write_sensors(writer, plan, agent, names[agent.agent_id], counts, progress)
+    meta = writer.finalize(with_meta=plan.options.sequence_meta)
+    if meta is not None:
+        write_sequence_meta(out_dir, sequence_id, [meta])
+    return counts
+
+
+def write_agent(plan: ScenarioPlan, agent_id: str, scenario_out: UPath, progress: Progress) -> Counts:
+    """Job: the agent's own sequence in ``<scenario_out>/<agent_id>/`` (runs in a worker)."""
+    return _write(plan, [agent_id], scenario_out / agent_id, plan.sequence_id(agent_id), progress)
+
+
+def write_scenario_sequence(plan: ScenarioPlan, scenario_out: UPath, progress: Progress) -> Counts:
+    """Job: one sequence with every agent (``--layout scenario``) in ``scenario_out``."""
+    return _write(plan, list(plan.agents), scenario_out, plan.scenario, progress)
+
+
+def _manifest_agent(plan: ScenarioPlan, agent_id: str) -> ManifestAgent:
+    agent = plan.agents.get(agent_id)
+    base = {"agent_id": int(agent_id), "kind": src.agent_kind(agent_id), "opencood_ego": agent_id == plan.ego}
+    if agent is None:
+        return ManifestAgent(**base, written=False)
+    scenario_layout = plan.options.layout == "scenario"
+    return ManifestAgent(
+        **base,
+        written=True,
+        frames=len(agent.keys),
+        sensors=agent.lidar_ids + agent.camera_ids,
+        sequence=None if scenario_layout else f"{agent_id}/{plan.sequence_id(agent_id)}.json",
+        frame_prefix=contract.agent_prefix(agent_id) if scenario_layout else None,
+    )
+
+
+def manifest(plan: ScenarioPlan) -> ScenarioManifest:
+    """``scenario.json``: how the scenario's agents and sequences relate."""
+    return ScenarioManifest(
+        scenario=plan.scenario,
+        dataset=plan.options.dataset,
+        split=plan.options.split,
+        layout=plan.options.layout,
+        sequence=f"{plan.scenario}.json" if plan.options.layout == "scenario" else None,
+        world_global="CARLA map frame, right-handed: (x, y, z)_world_global = (x, -y, z)_carla (all agents)",
+        fixed_delta_seconds=plan.fixed_delta_seconds,
+        time_base="t_us = CARLA frame key * fixed_delta_seconds * 1e6",
+        ego_agent_id=int(plan.ego),
+        ego_rule="OpenCOOD: first agent folder by string sort, infrastructure last",
+        agents=[_manifest_agent(plan, agent_id) for agent_id in plan.agent_folders],
+        noise_settings=[ManifestNoise(s.name, s.model, s.seed, poses_instance=s.name) for s in plan.options.noise],
+        labels="union of every agent's vehicle labels per tick (each agent labels vehicles it hit with >= 1"
+        " semantic-lidar ray within 120 m) plus the CAVs' own boxes; not complete scene ground truth",
+    )
+
+
+def convert_scenario(
+    root_dir: UPath,
+    output_dir: UPath,
+    scenario: str,
+    options: OpenCoodOptions,
+    pool: JobPool | None = None,
+    progress: Progress | None = None,
+) -> ScenarioSummary:
+    """Convert one scenario into ``output_dir``: a sequence per agent in ``<agent_id>/`` (or one
+    sequence, ``--layout scenario``) and ``scenario.json``, written last.
+
+    Args:
+        pool: worker processes for the agents' sequences; None writes them in this process.
+        progress: told the number of frames (lidar frames + images) to write, then each written frame.
+    """
+    started = time.perf_counter()
+    progress = progress or Progress()
+    plan = plan_scenario(root_dir, scenario, options)
+    progress.total(sum(a.n_frames for a in plan.agents.values()))
+    output_dir.mkdir(parents=True, exist_ok=True)
+    if options.layout == "scenario":
+        calls = [(write_scenario_sequence, (plan, output_dir))]
+    else:
+        longest_first = sorted(plan.agents, key=lambda a: -plan.agents[a].n_frames)
+        calls = [(write_agent, (plan, a, output_dir)) for a in longest_first]
+    results = pool.run(calls, progress) if pool else run_inline(calls, progress)
+    write_scenario_manifest(output_dir, manifest(plan))
+    summary = ScenarioSummary(scenario=scenario, agents=list(plan.agents), warnings=list(plan.warnings))
+    for result in results:
+        summary.add(result)
+    summary.tracks = len({int(i) for b in plan.boxes.values() for i in b.actor_ids})
+    summary.seconds = time.perf_counter() - started
+    return summary

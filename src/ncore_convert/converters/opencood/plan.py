@@ -1,0 +1,319 @@
+"""OPV2V / V2XSet, per scenario: read every agent's YAMLs once and decide each agent's trajectory,
+calibration and frames, the merged labels, and the noise settings' perturbations.
+
+Frames (docs/opv2v-v2xset.md):
+- ``world_global``: the CARLA map frame made right-handed (y mirrored); shared by every agent of
+  the scenario, so the agents' sequences co-register.
+- ``rig``: the agent's vehicle frame (``true_ego_pos``) made right-handed, placed so that the lidar
+  lands exactly on ``lidar_pose`` (the pose OpenCOOD registers point clouds with). For
+  infrastructure, ``true_ego_pos`` is the lidar position with zero rotation.
+- ``world``: a sequence's first rig pose (``--layout scenario``: the OpenCOOD ego's first pose).
+- Time: a frame key is the CARLA frame counter; ``t_us = key * fixed_delta_seconds * 1e6``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from upath import UPath
+
+from ncore_convert.contract import Layout, Profile, StoreType
+from ncore_convert.converters.common import select_sensors
+from ncore_convert.converters.opencood.noise import AgentNoise, opencood_loaded, plan_noise
+from ncore_convert.errors import SourceError
+from ncore_convert.sources import opencood as src
+from ncore_convert.sources.files import require_folder
+from ncore_convert.transforms import carla
+from ncore_convert.transforms.geometry import invert_se3, rigid_mean
+from ncore_convert.transforms.noise import NoiseSetting
+
+#: A sensor's mounting, re-measured every frame, may move this much before it is reported.
+MOUNT_TOLERANCE = (0.02, 0.2)  # metres, degrees
+
+
+#: Two agents' labels of one actor at one tick further apart than this are reported.
+LABEL_TOLERANCE_M = 0.05
+
+
+@dataclass(frozen=True)
+class OpenCoodOptions:
+    """Options of the ``opv2v-v4`` and ``v2xset-v4`` commands (sensor selection: None = all)."""
+
+    dataset: Literal["opv2v", "v2xset"]
+    split: str
+    layout: Layout = "agents"
+    store_type: StoreType = "itar"
+    profile: Profile = "separate-sensors"
+    sequence_meta: bool = True
+    camera_ids: tuple[str, ...] | None = None
+    lidar_ids: tuple[str, ...] | None = None
+    noise: tuple[NoiseSetting, ...] = ()  #: GPS-error / delay settings, each a further poses instance
+
+    def scenario_dir(self, root_dir: UPath, scenario: str) -> UPath:
+        return src.scenario_dir(root_dir, self.split, scenario)
+
+
+@dataclass(frozen=True)
+class AgentPlan:
+    """One agent's frames and calibration, read and decided once.
+
+    Attributes:
+        keys: frame keys with a readable YAML; timestamps_us: their times, int64 [N].
+        lidar_pose_carla: the YAMLs' ``lidar_pose`` [N,6] (CARLA: x, y, z m; roll, yaw, pitch deg).
+        T_rig_world_global: right-handed rig poses (rig -> world_global) [N,4,4], float64.
+        T_sensor_rig: sensor -> rig [4,4] (lidar frame right-handed; cameras in OpenCV axes).
+        intrinsics: camera id -> (K [3,3], (width, height)); camera_index: camera id -> file index.
+        mounts: how much each re-measured mounting moved (metadata).
+    """
+
+    agent_id: str
+    agent_dir: UPath
+    keys: list[str]
+    timestamps_us: np.ndarray
+    lidar_pose_carla: np.ndarray
+    T_rig_world_global: np.ndarray
+    T_sensor_rig: dict[str, np.ndarray]
+    intrinsics: dict[str, tuple[np.ndarray, tuple[int, int]]]
+    camera_index: dict[str, int]
+    lidar_ids: list[str]
+    mounts: dict[str, dict]
+    skipped_keys: dict[str, str] = field(default_factory=dict)  #: frame key -> why its YAML was unreadable
+
+    @property
+    def kind(self) -> str:
+        return src.agent_kind(self.agent_id)
+
+    @property
+    def camera_ids(self) -> list[str]:
+        return list(self.intrinsics)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.keys) * (len(self.lidar_ids) + len(self.camera_ids))
+
+
+@dataclass(frozen=True)
+class Boxes:
+    """Merged vehicle labels of one tick: actor ids [M], right-handed ``T_box_world_global`` [M,4,4]
+    and (length, width, height) [M,3]."""
+
+    actor_ids: np.ndarray
+    T_box_world_global: np.ndarray
+    dims_m: np.ndarray
+
+
+@dataclass(frozen=True)
+class ScenarioPlan:
+    scenario: str
+    options: OpenCoodOptions
+    fixed_delta_seconds: float
+    ego: str
+    ego_keys: list[str]  #: the OpenCOOD ego's YAML keys: OpenCOOD's frame index
+    agent_folders: list[str]
+    agents: dict[str, AgentPlan]
+    boxes: dict[str, Boxes]  #: frame key -> merged labels
+    lidar_spec: dict
+    warnings: list[str]
+    noise: dict[str, dict[str, AgentNoise]]  #: setting name -> agent id -> perturbations
+
+    def sequence_id(self, agent_id: str) -> str:
+        return f"{self.scenario}_agent{agent_id}"
+
+
+def _keys_text(keys: list[str]) -> str:
+    return ", ".join(keys[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
+
+
+def timestamps_us(keys: list[str], fixed_delta_seconds: float) -> np.ndarray:
+    """Frame keys (CARLA frame counters) -> µs since the simulation's frame 0, int64 [N]."""
+    return np.round(np.array([int(k) for k in keys], dtype=np.float64) * fixed_delta_seconds * 1e6).astype(np.int64)
+
+
+def _read_frames(
+    agent_dir: UPath, keys: list[str], warnings: list[str], skipped: dict[str, str]
+) -> list[src.AgentFrame]:
+    """The readable frames; an unreadable YAML is a warning and ``skipped[key]`` (its cause)."""
+    frames = []
+    for key in keys:
+        try:
+            frames.append(src.read_agent_frame(agent_dir, key))
+        except SourceError as err:
+            warnings.append(f"{err}; frame skipped")
+            skipped[key] = err.cause
+    return frames
+
+
+def _mount(name: str, samples: np.ndarray, mounts: dict, warnings: list[str], where: UPath) -> np.ndarray:
+    T, moved_m, moved_deg = rigid_mean(samples)
+    mounts[name] = {
+        "frames": len(samples),
+        "max_deviation_m": round(moved_m, 6),
+        "max_deviation_deg": round(moved_deg, 6),
+    }
+    if moved_m > MOUNT_TOLERANCE[0] or moved_deg > MOUNT_TOLERANCE[1]:
+        warnings.append(
+            f"{where}: the {name} mounting moves by up to {moved_m:.3f} m / {moved_deg:.2f} deg between frames;"
+            " its mean is stored"
+        )
+    return T
+
+
+def plan_agent(
+    agent_dir: UPath,
+    frames: list[src.AgentFrame],
+    options: OpenCoodOptions,
+    dt: float,
+    warnings: list[str],
+    skipped_keys: dict[str, str] | None = None,
+) -> AgentPlan:
+    """Trajectory and calibration of one agent from its frames (at least two); ``skipped_keys``:
+    the keys whose YAML could not be read, with the cause."""
+    keys = [f.path.stem for f in frames]
+    lidar_pose_carla = np.array([f.lidar_pose for f in frames], dtype=np.float64)
+    T_lidar_world_global = carla.right_handed_pose(lidar_pose_carla)
+    T_vehicle_world_global = carla.right_handed_pose(np.array([f.true_ego_pos for f in frames]))
+    mounts: dict[str, dict] = {}
+    T_lidar_rig = _mount(
+        src.LIDAR, invert_se3(T_vehicle_world_global) @ T_lidar_world_global, mounts, warnings, agent_dir
+    )
+    T_rig_world_global = T_lidar_world_global @ invert_se3(T_lidar_rig)
+    lidar_ids = select_sensors(options.lidar_ids, (src.LIDAR,), "lidar")
+    T_sensor_rig = {src.LIDAR: T_lidar_rig}
+    intrinsics, camera_index = {}, {}
+    for cam in select_sensors(options.camera_ids, src.CAMERAS, "camera"):
+        index = src.CAMERAS.index(cam)
+        with_cam = [i for i, f in enumerate(frames) if index in f.camera_cords]
+        size = next((s for i in with_cam if (s := src.read_png_size(src.camera_path(agent_dir, keys[i], index)))), None)
+        if not with_cam or size is None:
+            warnings.append(f"{agent_dir}: no {'calibration' if not with_cam else 'readable image'} for camera{index}"
+                            f" ({cam}); camera not written")  # fmt: skip
+            continue
+        T_camera_world_global = carla.opencv_camera_pose(np.array([frames[i].camera_cords[index] for i in with_cam]))
+        T_sensor_rig[cam] = _mount(
+            cam, invert_se3(T_rig_world_global[with_cam]) @ T_camera_world_global, mounts, warnings, agent_dir
+        )
+        K = frames[with_cam[0]].camera_intrinsic[index]
+        if any(not np.allclose(frames[i].camera_intrinsic[index], K, atol=1e-3) for i in with_cam):
+            warnings.append(f"{agent_dir}: camera{index} intrinsics change between frames; the first is stored")
+        intrinsics[cam], camera_index[cam] = (K, size), index
+    return AgentPlan(
+        agent_id=agent_dir.name,
+        agent_dir=agent_dir,
+        keys=keys,
+        timestamps_us=timestamps_us(keys, dt),
+        lidar_pose_carla=lidar_pose_carla,
+        T_rig_world_global=T_rig_world_global,
+        T_sensor_rig=T_sensor_rig,
+        intrinsics=intrinsics,
+        camera_index=camera_index,
+        lidar_ids=lidar_ids,
+        mounts=mounts,
+        skipped_keys=dict(skipped_keys or {}),
+    )
+
+
+def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) -> dict[str, Boxes]:
+    """Per frame key: the union of every agent's labelled vehicles by actor id (first agent in id
+    order wins; disagreements are reported), plus each CAV's own box, which its YAML lacks (from
+    ``true_ego_pos`` and the logreplay CAV model, unless another agent labelled it)."""
+    merged: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+    disagreements: dict[str, int] = {}
+    for agent_id in sorted(frames, key=int):
+        for frame in frames[agent_id]:
+            v = frame.vehicles
+            key = frame.path.stem
+            if len(v):
+                T_box_world_global, dims = carla.boxes_world_right_handed(v.location, v.angle, v.center, v.extent)
+                tick = merged.setdefault(key, {})
+                for actor, pose, dim in zip(v.actor_ids.tolist(), T_box_world_global, dims, strict=True):
+                    if actor not in tick:
+                        tick[actor] = (pose, dim)
+                    elif np.linalg.norm(tick[actor][0][:3, 3] - pose[:3, 3]) > LABEL_TOLERANCE_M:
+                        disagreements[key] = disagreements.get(key, 0) + 1
+    for agent_id in frames:
+        if src.is_infrastructure(agent_id):
+            continue
+        for frame in frames[agent_id]:
+            tick = merged.setdefault(frame.path.stem, {})
+            if int(agent_id) not in tick:
+                pose, dims = carla.boxes_world_right_handed(
+                    frame.true_ego_pos[None, :3], frame.true_ego_pos[None, 3:],
+                    np.array([src.CAV_BOX_CENTER_M]), np.array([src.CAV_BOX_EXTENT_M]),
+                )  # fmt: skip
+                tick[int(agent_id)] = (pose[0], dims[0])
+    if disagreements:
+        warnings.append(
+            f"agents label the same actor more than {LABEL_TOLERANCE_M} m apart at key(s)"
+            f" {_keys_text(sorted(disagreements, key=int))}; the lowest agent id's label is kept"
+        )
+    out = {}
+    for key, tick in merged.items():
+        ids = np.array(sorted(tick), dtype=np.int64)
+        out[key] = Boxes(ids, np.array([tick[i][0] for i in ids]), np.array([tick[i][1] for i in ids]))
+    return out
+
+
+def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> ScenarioPlan:
+    """Read a scenario's YAMLs once; decide every agent's trajectory, calibration and the labels."""
+    scenario_dir = options.scenario_dir(root_dir, scenario)
+    require_folder(scenario_dir, "scenario folder")
+    protocol = src.read_protocol(scenario_dir)
+    dt = protocol.fixed_delta_seconds
+    folders = src.list_agents(scenario_dir)
+    keys = {a: src.list_frame_keys(scenario_dir / a) for a in folders}
+    all_keys = sorted(set().union(*keys.values()), key=int)
+    if not all_keys:
+        raise SourceError(scenario_dir, "no frame YAMLs (<key>.yaml) in any agent folder")
+    warnings: list[str] = []
+    steps = np.diff([int(k) for k in all_keys])
+    if len(steps) and np.any(steps != np.median(steps)):
+        warnings.append(f"{scenario_dir}: frame keys do not step uniformly (steps {sorted(set(steps.tolist()))})")
+    frames, skipped_keys = {}, {}
+    for agent in folders:
+        missing = sorted(set(all_keys) - set(keys[agent]), key=int)
+        if missing:
+            warnings.append(
+                f"{scenario_dir / agent}: no frame for key(s) {_keys_text(missing)} that other agents have;"
+                " skipped for this agent"
+            )
+        skipped_keys[agent] = {}
+        agent_frames = _read_frames(scenario_dir / agent, keys[agent], warnings, skipped_keys[agent])
+        if len(agent_frames) < 2:
+            warnings.append(f"{scenario_dir / agent}: fewer than 2 readable frames; agent not written")
+            continue
+        frames[agent] = agent_frames
+    if not frames:
+        raise SourceError(scenario_dir, "no agent has 2 or more readable frames")
+    agents = {a: plan_agent(scenario_dir / a, f, options, dt, warnings, skipped_keys[a]) for a, f in frames.items()}
+    ego = src.opencood_ego(folders)
+    ego_times_us = timestamps_us(keys[ego], dt)
+    noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
+    for setting in options.noise:
+        loaded = opencood_loaded(setting, folders)
+        for agent_id, agent_noise in noise[setting.name].items():
+            unsent = int(np.sum(agent_noise.source_keys < 0))
+            if agent_id not in loaded:
+                warnings.append(
+                    f"{scenario_dir / agent_id}: noise setting {setting.name}: past max_cav ({setting.max_cav}),"
+                    " so OpenCOOD does not load this agent; no delay data"
+                )
+            elif unsent and agent_id != ego:
+                warnings.append(
+                    f"{scenario_dir / agent_id}: noise setting {setting.name}: no frame of this agent to send at"
+                    f" {unsent} ego frame(s) (delay_source_keys = -1)"
+                )
+    return ScenarioPlan(
+        scenario=scenario,
+        options=options,
+        fixed_delta_seconds=dt,
+        ego=ego,
+        ego_keys=keys[ego],
+        agent_folders=folders,
+        agents=agents,
+        boxes=merge_boxes(frames, warnings),
+        lidar_spec=protocol.cav_lidar,
+        warnings=warnings,
+        noise=noise,
+    )

@@ -1,0 +1,115 @@
+"""The one place that opens what the converter wrote: sequences through ``SequenceLoaderV4`` (with
+the default instance names unless asked otherwise), ``scenario.json``, and the geometry the checks
+and pictures need from them (points and boxes in ``world``).
+
+Transforms follow the house rule: ``T_a_b`` maps points from frame ``a`` to frame ``b``; NCore's
+``pose_graph.evaluate_poses(a, b, t)`` returns exactly that.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+from ncore.data.v4 import (
+    CameraSensorComponent,
+    LidarSensorComponent,
+    SequenceComponentGroupsReader,
+    SequenceLoaderV4,
+)
+from ncore.impl.common.transformations import is_within_3d_bboxes
+from scipy.spatial.transform import Rotation
+from upath import UPath
+
+from ncore_convert.contract import DEFAULT_INSTANCE, ScenarioManifest
+
+#: Frames sampled over a sensor for the checks that need motion-compensated points.
+SAMPLED_FRAMES = 5
+
+
+@dataclass(frozen=True)
+class OpenSequence:
+    """A sequence opened for reading: the loader, and the reader under it (for component metadata)."""
+
+    loader: SequenceLoaderV4
+    reader: SequenceComponentGroupsReader
+
+    def sensor_meta(self) -> dict[str, dict]:
+        """Each lidar and camera component's generic metadata, by sensor id."""
+        out = {}
+        for component in (LidarSensorComponent, CameraSensorComponent):
+            readers = self.reader.open_component_readers(component.Reader)
+            out.update({name: r.generic_meta_data for name, r in readers.items()})
+        return out
+
+
+def open_sequence(sequence_json: UPath, poses_instance: str = DEFAULT_INSTANCE) -> OpenSequence:
+    """Open ``<sequence_id>.json`` with the default component instances (``poses_instance``: the
+    poses component instance, e.g. a noise setting's)."""
+    reader = SequenceComponentGroupsReader([UPath(sequence_json)])
+    return OpenSequence(SequenceLoaderV4(reader, poses_component_group_name=poses_instance), reader)
+
+
+def read_manifest(manifest_path: UPath) -> ScenarioManifest:
+    return ScenarioManifest.from_dict(json.loads(UPath(manifest_path).read_text()))
+
+
+def sample_frames(n_frames: int) -> np.ndarray:
+    """SAMPLED_FRAMES frame indices spread evenly over a sensor's ``n_frames`` frames."""
+    return np.unique(np.linspace(0, n_frames - 1, SAMPLED_FRAMES).round().astype(int))
+
+
+def boxes_at(observations: list, t0_us: int, t1_us: int) -> list:
+    """The cuboid observations of one labelled instant in a frame [t0_us, t1_us]: the earliest
+    label time within it (consecutive lidar frames can overlap by a few ms, so a frame's interval
+    may also hold the next sweep's label time)."""
+    inside = [o for o in observations if t0_us <= o.timestamp_us <= t1_us]
+    first = min((o.timestamp_us for o in inside), default=None)
+    return [o for o in inside if o.timestamp_us == first]
+
+
+def world_points(
+    loader: SequenceLoaderV4, lidar_id: str, frame: int, target: str = "world"
+) -> tuple[np.ndarray, np.ndarray]:
+    """A lidar frame's points, motion-compensated with the per-point times, in ``target`` (``world``
+    or ``world_global``).
+
+    Returns:
+        xyz_m in target, float64 [N,3], and the sensor's position there at the frame end, float64 [3].
+    """
+    lidar = loader.get_lidar_sensor(lidar_id)
+    end_us = lidar.frames_timestamps_us[frame, 1:2].astype(np.uint64)
+    T_sensor_target = loader.pose_graph.evaluate_poses(lidar_id, target, end_us)[0].astype(np.float64)
+    xyz_sensor_m = lidar.get_frame_point_cloud(frame, motion_compensation=True, with_start_points=False).xyz_m_end
+    xyz_target_m = xyz_sensor_m.astype(np.float64) @ T_sensor_target[:3, :3].T + T_sensor_target[:3, 3]
+    return xyz_target_m, T_sensor_target[:3, 3]
+
+
+def _T_reference_world(loader: SequenceLoaderV4, box) -> np.ndarray:
+    """A cuboid observation's reference frame -> ``world`` at its reference time, float64 [4,4]."""
+    t_us = np.array([box.reference_frame_timestamp_us], dtype=np.uint64)
+    return loader.pose_graph.evaluate_poses(box.reference_frame_id, "world", t_us)[0].astype(np.float64)
+
+
+def box_point_counts(loader: SequenceLoaderV4, boxes: list, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How many of the points (world, float64 [N,3]) lie inside each box, int [B], and the box centres
+    in world, float64 [B,3]; each box is tested in its own reference frame at its reference time."""
+    counts, centres = np.zeros(len(boxes), dtype=np.int64), np.zeros((len(boxes), 3))
+    for k, box in enumerate(boxes):
+        T_ref_world = _T_reference_world(loader, box)
+        centres[k] = T_ref_world[:3, :3] @ np.asarray(box.bbox3.centroid) + T_ref_world[:3, 3]
+        xyz_ref = (xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3]
+        bbox = np.array([[*box.bbox3.centroid, *box.bbox3.dim, *box.bbox3.rot]], dtype=np.float32)
+        counts[k] = int(is_within_3d_bboxes(xyz_ref.astype(np.float32), bbox).sum())
+    return counts, centres
+
+
+def box_corners_world(loader: SequenceLoaderV4, box) -> np.ndarray:
+    """The 8 corners of a cuboid observation in ``world``, float64 [8,3]."""
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    xyz_box = signs * np.asarray(box.bbox3.dim) / 2
+    R_box_ref = Rotation.from_euler("xyz", box.bbox3.rot).as_matrix()
+    xyz_ref = xyz_box @ R_box_ref.T + np.asarray(box.bbox3.centroid)
+    T_ref_world = _T_reference_world(loader, box)
+    return xyz_ref @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]

@@ -1,0 +1,223 @@
+"""The layout's rules, checked by parsing every module's imports (function-level and TYPE_CHECKING
+imports included): data flows one way, sources -> transforms -> writer -> validate.
+
+Each rule is also run on a small package with a known violation, so a checker that finds nothing
+cannot pass silently.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "src" / "ncore_convert"
+
+
+def module_name(root: Path, path: Path) -> str:
+    parts = list(path.relative_to(root.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def parse_package(root: Path) -> dict[str, ast.Module]:
+    return {module_name(root, p): ast.parse(p.read_text(), str(p)) for p in sorted(root.rglob("*.py"))}
+
+
+def imports_of(name: str, tree: ast.Module, modules: set[str], is_package: bool) -> set[str]:
+    """The package's modules that ``name`` imports anywhere in its body (``from pkg import module``
+    counts as importing the module; ``from pkg import symbol`` as importing ``pkg``)."""
+    top = name.split(".")[0]
+    package = name if is_package else name.rpartition(".")[0]
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names if a.name.split(".")[0] == top)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.split(".")[0] != top:
+                continue
+            for alias in node.names:
+                out.add(f"{target}.{alias.name}" if f"{target}.{alias.name}" in modules else target)
+    return {m for m in out if m in modules and m != name}
+
+
+def import_graph(root: Path) -> tuple[dict[str, set[str]], dict[str, ast.Module]]:
+    trees = parse_package(root)
+    packages = {module_name(root, p) for p in root.rglob("__init__.py")}
+    modules = set(trees)
+    return {name: imports_of(name, tree, modules, name in packages) for name, tree in trees.items()}, trees
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def under(module: str, *prefixes: str) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in prefixes)
+
+
+#: (modules the rule applies to, modules they must not import), as prefixes below the package.
+LAYER_RULES = [
+    (("transforms",), ("sources", "converters", "writer", "validate", "run")),
+    (("sources",), ("converters", "writer", "validate")),
+    (("validate", "preview", "evaluate"), ("converters",)),
+]
+
+
+def layer_violations(graph: dict[str, set[str]], top: str) -> list[str]:
+    out = []
+    for owners, forbidden in LAYER_RULES:
+        owners_full = tuple(f"{top}.{o}" for o in owners)
+        forbidden_full = tuple(f"{top}.{f}" for f in forbidden)
+        for module, imported in graph.items():
+            if under(module, *owners_full):
+                out += [f"{module} imports {m}" for m in sorted(imported) if under(m, *forbidden_full)]
+    return out
+
+
+def ncore_writer_users(trees: dict[str, ast.Module]) -> set[str]:
+    """Modules that import an NCore writer class or use a component's ``.Writer``."""
+    users = set()
+    for name, tree in trees.items():
+        for node in ast.walk(tree):
+            imported = isinstance(node, ast.ImportFrom) and (node.module or "").startswith("ncore.")
+            if imported and any("Writer" in a.name for a in node.names):
+                users.add(name)
+            if isinstance(node, ast.Attribute) and node.attr == "Writer":
+                users.add(name)
+    return users
+
+
+def loader_constructors(trees: dict[str, ast.Module]) -> set[str]:
+    """Modules that call ``SequenceLoaderV4(...)``."""
+    out = set()
+    for name, tree in trees.items():
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call):
+                func = node.func
+                called = func.id if isinstance(func, ast.Name) else getattr(func, "attr", None)
+                if called == "SequenceLoaderV4":
+                    out.add(name)
+    return out
+
+
+#: av2's ``x_SE3_y`` names (maps y to x); past the AV2 reader every transform is ``T_a_b`` (a -> b).
+AV2_TRANSFORM_NAME = re.compile(r"^[A-Za-z]+_SE3_[A-Za-z]+")
+
+
+def av2_transform_names(trees: dict[str, ast.Module]) -> dict[str, set[str]]:
+    """Identifiers (variables, attributes, arguments, functions, classes) named like ``city_SE3_ego``."""
+    out: dict[str, set[str]] = {}
+    for name, tree in trees.items():
+        for node in ast.walk(tree):
+            ident = (
+                getattr(node, "id", None)
+                or (node.attr if isinstance(node, ast.Attribute) else None)
+                or (node.arg if isinstance(node, ast.arg) else None)
+                or (node.name if isinstance(node, ast.FunctionDef | ast.ClassDef) else None)
+            )
+            if isinstance(ident, str) and AV2_TRANSFORM_NAME.match(ident):
+                out.setdefault(name, set()).add(ident)
+    return out
+
+
+@pytest.fixture(scope="module")
+def project():
+    return import_graph(PACKAGE)
+
+
+def test_no_import_cycles(project):
+    graph, _ = project
+    assert cycles(graph) == []
+
+
+def test_layers_import_only_downstream(project):
+    graph, _ = project
+    assert layer_violations(graph, "ncore_convert") == []
+
+
+def test_only_the_writer_talks_to_the_ncore_writer(project):
+    _, trees = project
+    assert ncore_writer_users(trees) == {"ncore_convert.writer"}
+
+
+def test_only_readback_opens_sequences(project):
+    _, trees = project
+    assert loader_constructors(trees) == {"ncore_convert.validate.readback"}
+
+
+def test_av2_transform_names_stay_in_the_av2_reader(project):
+    _, trees = project
+    assert set(av2_transform_names(trees)) == {"ncore_convert.sources.argoverse2"}
+
+
+def test_the_checks_find_known_violations(tmp_path):
+    """Negative control: a package with a function-level cycle, a TYPE_CHECKING cycle, an upward
+    import, a stray writer use, a stray loader and an av2 name past the reader."""
+    pkg = tmp_path / "ncore_convert"
+    files = {
+        "__init__.py": "",
+        "transforms/__init__.py": "",
+        "transforms/geo.py": "def f():\n    from ncore_convert.sources import reader\n    city_SE3_ego = 1\n",
+        "sources/__init__.py": "",
+        "sources/reader.py": "from ncore_convert.transforms import geo\n",
+        "converters/__init__.py": "",
+        "converters/a.py": (
+            "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from ncore_convert.converters.b import B\n"
+        ),
+        "converters/b.py": "from ncore_convert.converters import a\nfrom ncore.data.v4 import SequenceComponentGroupsWriter\n",
+        "validate/__init__.py": "",
+        "validate/check.py": "from ncore_convert.converters.a import x\nloader = SequenceLoaderV4(reader)\n",
+    }
+    for rel, text in files.items():
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    graph, trees = import_graph(pkg)
+    assert sorted(cycles(graph)) == [
+        ["ncore_convert.converters.a", "ncore_convert.converters.b"],
+        ["ncore_convert.sources.reader", "ncore_convert.transforms.geo"],
+    ]
+    assert layer_violations(graph, "ncore_convert") == [
+        "ncore_convert.transforms.geo imports ncore_convert.sources.reader",
+        "ncore_convert.validate.check imports ncore_convert.converters.a",
+    ]
+    assert ncore_writer_users(trees) == {"ncore_convert.converters.b"}
+    assert loader_constructors(trees) == {"ncore_convert.validate.check"}
+    assert av2_transform_names(trees) == {"ncore_convert.transforms.geo": {"city_SE3_ego"}}
