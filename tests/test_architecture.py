@@ -202,7 +202,9 @@ def test_the_checks_find_known_violations(tmp_path):
         "converters/a.py": (
             "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from ncore_convert.converters.b import B\n"
         ),
-        "converters/b.py": "from ncore_convert.converters import a\nfrom ncore.data.v4 import SequenceComponentGroupsWriter\n",
+        "converters/b.py": (
+            "from ncore_convert.converters import a\nfrom ncore.data.v4 import SequenceComponentGroupsWriter\n"
+        ),
         "validate/__init__.py": "",
         "validate/check.py": "from ncore_convert.converters.a import x\nloader = SequenceLoaderV4(reader)\n",
     }

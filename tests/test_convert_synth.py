@@ -84,15 +84,15 @@ def test_cuboids_round_trip_to_simulated_boxes_in_world(synth_log):
         assert obs.timestamp_us == obs.reference_frame_timestamp_us
         k = np.flatnonzero(ts_us == obs.timestamp_us)
         assert len(k) == 1, "annotation times are pose times in AV2"
-        T_city_rig = T_world_global @ T_rig_world[k[0]].astype(np.float64)
+        T_rig_city = T_world_global @ T_rig_world[k[0]].astype(np.float64)
         box_rig = np.eye(4)
         box_rig[:3, :3] = Rotation.from_euler("xyz", obs.bbox3.rot).as_matrix()
         box_rig[:3, 3] = obs.bbox3.centroid
-        est = T_city_rig @ box_rig
+        est = T_rig_city @ box_rig
         box = by_uuid[obs.track_id]
         assert obs.class_id == box.category
         np.testing.assert_allclose(obs.bbox3.dim, box.dims_m, atol=1e-9)
-        ref = box.city_SE3_box((obs.timestamp_us * 1000 - truth.t0_ns) * 1e-9)
+        ref = box.T_box_city((obs.timestamp_us * 1000 - truth.t0_ns) * 1e-9)
         centre_err.append(np.linalg.norm(est[:3, 3] - ref[:3, 3]))
         rot_err.append(np.degrees(Rotation.from_matrix(est[:3, :3].T @ ref[:3, :3]).magnitude()))
     assert max(centre_err) <= 0.01
@@ -137,11 +137,11 @@ def test_cameras_are_ideal_pinhole_global_shutter_with_distortion_kept(synth_log
 
 
 def test_every_sensor_has_a_static_extrinsic_equal_to_the_calibration(synth_log):
-    ego_SE3_sensor, _ = calibration()
+    T_sensor_ego, _ = calibration()
     poses = synth_log.reader.open_component_readers(PosesComponent.Reader)["default"]
     static = dict(poses.get_static_poses())
-    assert set(static) == {(s, "rig") for s in ego_SE3_sensor} | {("world", "world_global")}
-    for sensor, T in ego_SE3_sensor.items():
+    assert set(static) == {(s, "rig") for s in T_sensor_ego} | {("world", "world_global")}
+    for sensor, T in T_sensor_ego.items():
         stored = static[(sensor, "rig")]
         assert stored.dtype == np.float32
         np.testing.assert_allclose(stored, T, atol=1e-6)

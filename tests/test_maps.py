@@ -55,9 +55,9 @@ def test_real_map_sits_under_the_converted_trajectory(real_log, av2_sample_root)
     T_world_global = poses.get_static_pose("world", "world_global")
     ego_global = (T_world_global @ T_rig_world.astype(np.float64))[:, :3, 3]
     height = ego_global[:, 2] - ground_height_at(raster, meta["img_Sim2_city"], ego_global[:, :2])
-    _, city_SE3_ego = av2.read_ego_poses(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
+    _, T_ego_city = av2.read_ego_poses(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
     source = av2.read_log_map(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
-    xyz = city_SE3_ego[:, :3, 3]
+    xyz = T_ego_city[:, :3, 3]
     source_height = xyz[:, 2] - ground_height_at(source.ground_height_m, source.img_Sim2_city, xyz[:, :2])
     assert np.isfinite(height).mean() > 0.95
     assert np.nanstd(height) <= 0.05, np.nanstd(height)

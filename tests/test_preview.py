@@ -40,12 +40,12 @@ def box_edges_city(box, t_s: float, margin_m: float = MARGIN_M) -> np.ndarray:
     pairs = [(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(corners[i] != corners[j]) == 1]
     s = np.linspace(0, 1, EDGE_SAMPLES)[:, None]
     local = np.concatenate([corners[i] + s * (corners[j] - corners[i]) for i, j in pairs]) * (box.dims_m / 2 + margin_m)
-    T = box.city_SE3_box(t_s)
+    T = box.T_box_city(t_s)
     return local @ T[:3, :3].T + T[:3, 3]
 
 
 def inside_box(xyz_city: np.ndarray, box, t_s: float, margin_m: float = MARGIN_M) -> np.ndarray:
-    T = box.city_SE3_box(t_s)
+    T = box.T_box_city(t_s)
     local = (xyz_city - T[:3, 3]) @ T[:3, :3]
     return np.all(np.abs(local) <= box.dims_m / 2 + margin_m, axis=1)
 
@@ -65,7 +65,7 @@ def test_projected_box_points_fall_inside_the_boxs_projected_outline(synth_log, 
     for projection in previewed.cameras:
         t_ns = projection.timestamp_us * 1000
         t_s = (t_ns - truth.t0_ns) * 1e-9
-        city_SE3_cam = truth.city_SE3_ego(np.array([t_ns]))[0] @ truth.ego_SE3_sensor[projection.camera_id]
+        city_SE3_cam = truth.T_ego_city(np.array([t_ns]))[0] @ truth.T_sensor_ego[projection.camera_id]
         xyz_city = projection.xyz_world_m @ T_global_world[:3, :3].T + T_global_world[:3, 3]  # AV2: world_global = city
         for box in truth.scene.boxes:
             if not box.annotated or np.any(box.velocity_mps):  # static boxes: the lidar and camera times agree
@@ -93,7 +93,7 @@ def test_a_wrong_camera_pose_would_be_caught(synth_log, previewed):
     for projection in previewed.cameras:
         t_ns = projection.timestamp_us * 1000
         t_s = (t_ns - truth.t0_ns) * 1e-9
-        city_SE3_cam = truth.city_SE3_ego(np.array([t_ns]))[0] @ truth.ego_SE3_sensor[projection.camera_id]
+        city_SE3_cam = truth.T_ego_city(np.array([t_ns]))[0] @ truth.T_sensor_ego[projection.camera_id]
         city_SE3_cam[:3, 3] += city_SE3_cam[:3, 0] * 0.5
         xyz_city = projection.xyz_world_m @ T_global_world[:3, :3].T + T_global_world[:3, 3]
         for box in truth.scene.boxes:

@@ -103,7 +103,7 @@ class SynthTruth:
     log_id: str
     t0_ns: int
     scene: Scene
-    ego_SE3_sensor: dict[str, np.ndarray]
+    T_sensor_ego: dict[str, np.ndarray]
     sweeps: list[SweepTruth] = field(default_factory=list)
     image_paths: list[UPath] = field(default_factory=list)
     n_cuboids: int = 0
@@ -112,8 +112,8 @@ class SynthTruth:
     def n_images(self) -> int:
         return len(self.image_paths)
 
-    def city_SE3_ego(self, timestamps_ns: np.ndarray) -> np.ndarray:
-        return self.scene.ego.city_SE3_ego((np.asarray(timestamps_ns) - self.t0_ns) * 1e-9)
+    def T_ego_city(self, timestamps_ns: np.ndarray) -> np.ndarray:
+        return self.scene.ego.T_ego_city((np.asarray(timestamps_ns) - self.t0_ns) * 1e-9)
 
 
 def _pandas_metadata(schema: pa.Schema) -> bytes:
@@ -156,31 +156,31 @@ def _camera_extrinsic(yaw_deg: float, position_m: tuple[float, float, float]) ->
 
 
 def calibration(tbv: bool = False) -> tuple[dict[str, np.ndarray], dict[str, tuple[float, int, int]]]:
-    """ego_SE3_sensor for all sensors and (focal, width, height) for the cameras (AV2: 9 cameras
+    """T_sensor_ego for all sensors and (focal, width, height) for the cameras (AV2: 9 cameras
     at full resolution; TbV: the 7 ring cameras, all but ring_front_center at half resolution)."""
-    ego_SE3_sensor = {}
+    T_sensor_ego = {}
     cams = {}
     for cam, (yaw, pos, focal) in CAMERA_MOUNTS.items():
         if tbv and cam not in av2.RING_CAMERAS:
             continue
-        ego_SE3_sensor[cam] = _camera_extrinsic(yaw, pos)
+        T_sensor_ego[cam] = _camera_extrinsic(yaw, pos)
         width, height = (1550, 2048) if cam == "ring_front_center" else (2048, 1550)
         if tbv and cam != "ring_front_center":
             focal, width, height = focal / 2, width // 2, height // 2
         cams[cam] = (focal, width, height)
     for lidar, (quat, t) in LIDAR_MOUNTS.items():
-        ego_SE3_sensor[lidar] = se3_from_quat_wxyz(quat, t)
-    return ego_SE3_sensor, cams
+        T_sensor_ego[lidar] = se3_from_quat_wxyz(quat, t)
+    return T_sensor_ego, cams
 
 
-def camera_trigger_phases_ns(ego_SE3_sensor: dict[str, np.ndarray], cameras: tuple[str, ...]) -> dict[str, np.ndarray]:
+def camera_trigger_phases_ns(T_sensor_ego: dict[str, np.ndarray], cameras: tuple[str, ...]) -> dict[str, np.ndarray]:
     """Per camera, its two trigger phases (ns after t0 within the 100 ms clock): when each unit's
     firing azimuth crosses the camera's optical axis, plus CAMERA_TRIGGER_DELAY_NS."""
     out = {}
     for cam in cameras:
         phases = []
         for unit, (spin, az0) in UNIT_SPIN.items():
-            axis = ego_SE3_sensor[unit][:3, :3].T @ ego_SE3_sensor[cam][:3, :3][:, 2]
+            axis = T_sensor_ego[unit][:3, :3].T @ T_sensor_ego[cam][:3, :3][:, 2]
             psi = np.arctan2(axis[1], axis[0])
             crossing_s = ((psi - az0) / (spin * 2 * np.pi * vlp32c.SPIN_RATE_HZ)) % (1 / vlp32c.SPIN_RATE_HZ)
             phases.append(int(round(crossing_s * 1e9)) + CAMERA_TRIGGER_DELAY_NS)
@@ -214,7 +214,7 @@ def simulate_unit(
     window_ns: tuple[int, int],
     t0_ns: int,
     scene: Scene,
-    city_SE3_sensor_fn,
+    T_sensor_city_fn,
 ) -> dict[str, np.ndarray]:
     """Fire one VLP-32C over [start, end) ns and return its hits.
 
@@ -243,8 +243,8 @@ def simulate_unit(
         [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
     )
     fire_unique_s = (fire_ns - t0_ns) * 1e-9
-    city_SE3_sensor = city_SE3_sensor_fn(fire_unique_s)  # [C*16,4,4]
-    pose = np.repeat(city_SE3_sensor, 2, axis=0)
+    T_sensor_city = T_sensor_city_fn(fire_unique_s)  # [C*16,4,4]
+    pose = np.repeat(T_sensor_city, 2, axis=0)
     origin = pose[:, :3, 3]
     direction_city = np.einsum("nij,nj->ni", pose[:, :3, :3], direction)
     distance, intensity, _ = cast_rays(origin, direction_city, t_rel_s, scene, MAX_RANGE_M)
@@ -272,8 +272,8 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     n_sweeps = max(1, int(round(config.seconds * 10)))
     t0_ns = 315_970_000_000_000_000 + int(rng.integers(0, 10**12)) // 1000 * 1000
     scene = make_scene(rng, config.seconds)
-    ego_SE3_sensor, cams = calibration(config.tbv)
-    truth = SynthTruth(log_dir, log_id, t0_ns, scene, ego_SE3_sensor)
+    T_sensor_ego, cams = calibration(config.tbv)
+    truth = SynthTruth(log_dir, log_id, t0_ns, scene, T_sensor_ego)
 
     jitter_us = rng.integers(-3000, 3000, n_sweeps)
     jitter_us[0] = 0
@@ -284,16 +284,16 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     periods = np.arange(-1, n_sweeps + 4, dtype=np.int64)
     cam_ns = {
         cam: np.sort((t0_ns + periods[:, None] * SWEEP_PERIOD_NS + phases[None, :]).reshape(-1))
-        for cam, phases in camera_trigger_phases_ns(ego_SE3_sensor, config.cameras).items()
+        for cam, phases in camera_trigger_phases_ns(T_sensor_ego, config.cameras).items()
     }
     pose_ns = np.unique(np.concatenate([sweep_ns] + list(cam_ns.values())))
     write_feather_table(
         log_dir / "city_SE3_egovehicle.feather",
         av2.POSES_SCHEMA,
-        {"timestamp_ns": pose_ns, **_pose_columns(truth.city_SE3_ego(pose_ns))},
+        {"timestamp_ns": pose_ns, **_pose_columns(truth.T_ego_city(pose_ns))},
     )
     names = list(config.cameras) + list(av2.LIDARS)
-    T = np.stack([ego_SE3_sensor[n] for n in names])
+    T = np.stack([T_sensor_ego[n] for n in names])
     write_feather_table(
         log_dir / "calibration" / "egovehicle_SE3_sensor.feather",
         av2.EXTRINSICS_SCHEMA,
@@ -334,18 +334,18 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
         parts = []
         for u, unit in enumerate(av2.LIDARS):
             start = ts + UNIT_WINDOW_START_NS[unit]
-            T_ego_sensor = truth.ego_SE3_sensor[unit]
+            T_sensor_ego = truth.T_sensor_ego[unit]
             hits = simulate_unit(
                 unit, (start, start + SWEEP_PERIOD_NS), t0_ns, scene,
-                lambda t_s, T=T_ego_sensor: scene.ego.city_SE3_ego(t_s) @ T,
+                lambda t_s, T=T_sensor_ego: scene.ego.T_ego_city(t_s) @ T,
             )  # fmt: skip
             high_half = (unit == "down_lidar") != config.swap_lidar_halves
             hits["laser_number"] = (hits["beam"] + (32 if high_half else 0)).astype(np.uint8)
             hits["unit"] = np.full(len(hits["beam"]), u, dtype=np.int8)
             parts.append(hits)
         hits = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-        ego_SE3_city_ref = invert_se3(truth.city_SE3_ego(np.array([ts]))[0])
-        xyz_ego = transform_points(ego_SE3_city_ref, hits["xyz_city_m"]).astype(np.float16)
+        T_city_ego_ref = invert_se3(truth.T_ego_city(np.array([ts]))[0])
+        xyz_ego = transform_points(T_city_ego_ref, hits["xyz_city_m"]).astype(np.float16)
         offset_ns = (hits["time_ns"] - ts).astype(np.int32)
         write_feather_table(
             av2.sweep_path(truth.log_dir, ts),
@@ -360,14 +360,14 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
             sweep.distance_m, sweep.time_ns = hits["distance_m"], hits["time_ns"]
         truth.sweeps.append(sweep)
         if not config.tbv:
-            _annotate(truth, ts, xyz_ego.astype(np.float64), ego_SE3_city_ref, annotation_rows)
+            _annotate(truth, ts, xyz_ego.astype(np.float64), T_city_ego_ref, annotation_rows)
     if config.tbv:  # TbV has no annotations
         return
     truth.n_cuboids = len(annotation_rows["timestamp_ns"])
     write_feather_table(truth.log_dir / "annotations.feather", av2.ANNOTATIONS_SCHEMA, annotation_rows)
 
 
-def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, ego_SE3_city: np.ndarray, rows: dict) -> None:
+def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, T_city_ego: np.ndarray, rows: dict) -> None:
     """Annotation rows for every scene object within 100 m, with num_interior_pts from the stored cloud."""
     t_s = (ts - truth.t0_ns) * 1e-9
     by_x = np.argsort(xyz_ego[:, 0])
@@ -375,15 +375,15 @@ def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, ego_SE3_city: np.
     for box in truth.scene.boxes:
         if not box.annotated:
             continue
-        ego_SE3_box = ego_SE3_city @ box.city_SE3_box(t_s)
-        if np.linalg.norm(ego_SE3_box[:2, 3]) > 100.0:
+        T_box_ego = T_city_ego @ box.T_box_city(t_s)
+        if np.linalg.norm(T_box_ego[:2, 3]) > 100.0:
             continue
         reach_m = np.linalg.norm(box.dims_m) / 2  # only points within this x distance can be inside
-        near = by_x[np.searchsorted(x_sorted, ego_SE3_box[0, 3] - reach_m) : np.searchsorted(
-            x_sorted, ego_SE3_box[0, 3] + reach_m, "right")]  # fmt: skip
-        local = (xyz_ego[near] - ego_SE3_box[:3, 3]) @ ego_SE3_box[:3, :3]
+        near = by_x[np.searchsorted(x_sorted, T_box_ego[0, 3] - reach_m) : np.searchsorted(
+            x_sorted, T_box_ego[0, 3] + reach_m, "right")]  # fmt: skip
+        local = (xyz_ego[near] - T_box_ego[:3, 3]) @ T_box_ego[:3, :3]
         inside = np.all(np.abs(local) <= box.dims_m / 2, axis=1)
-        pose = _pose_columns(ego_SE3_box[None])
+        pose = _pose_columns(T_box_ego[None])
         rows["timestamp_ns"].append(ts)
         rows["track_uuid"].append(box.track_uuid)
         rows["category"].append(box.category)

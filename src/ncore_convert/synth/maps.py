@@ -79,7 +79,7 @@ def ground_raster(path_xy: np.ndarray) -> tuple[np.ndarray, dict]:
 def write_map(log_dir: UPath, log_id: str, scene: Scene, seconds: float, rng: np.random.Generator) -> None:
     """Write ``<log_dir>/map/`` with the three AV2 map files for the ego path (and 2 s beyond)."""
     t_s = np.arange(-1.0, seconds + 2.0, 0.1)
-    T = scene.ego.city_SE3_ego(t_s)
+    T = scene.ego.T_ego_city(t_s)
     path_xy, heading = T[:, :2, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])
     city = str(rng.choice(CITIES))
     map_dir = log_dir / "map"

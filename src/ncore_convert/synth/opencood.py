@@ -52,7 +52,7 @@ def carla_rotation(angles_deg: np.ndarray) -> np.ndarray:
 
 
 def carla_pose_matrix(pose: np.ndarray) -> np.ndarray:
-    """[x, y, z, roll, yaw, pitch] -> 4x4 world_SE3_x in CARLA's (left-handed) world."""
+    """[x, y, z, roll, yaw, pitch] -> 4x4 T_x_world in CARLA's (left-handed) world."""
     T = np.eye(4)
     T[:3, :3] = carla_rotation(np.asarray(pose[3:6]))
     T[:3, 3] = pose[:3]
@@ -60,15 +60,15 @@ def carla_pose_matrix(pose: np.ndarray) -> np.ndarray:
 
 
 def carla_pose_list(T: np.ndarray) -> list[float]:
-    """4x4 CARLA world_SE3_x -> [x, y, z, roll, yaw, pitch] (degrees)."""
+    """4x4 CARLA T_x_world -> [x, y, z, roll, yaw, pitch] (degrees)."""
     yaw, neg_pitch, neg_roll = Rotation.from_matrix(T[:3, :3]).as_euler("ZYX", degrees=True)
     return [float(v) for v in (*T[:3, 3], -neg_roll, yaw, -neg_pitch)]
 
 
-def project_ue4(T_world_cam: np.ndarray, xyz_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project_ue4(T_cam_world: np.ndarray, xyz_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """CARLA camera projection of world points [M,3]: pixel (u, v) [M,2] (pixel-corner convention,
     principal point at the image centre) and whether each is in front of the camera [M]."""
-    p = (xyz_world - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]  # UE4 camera axes
+    p = (xyz_world - T_cam_world[:3, 3]) @ T_cam_world[:3, :3]  # UE4 camera axes
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.stack([WIDTH / 2 + FOCAL_PX * p[:, 1] / p[:, 0], HEIGHT / 2 - FOCAL_PX * p[:, 2] / p[:, 0]], axis=1)
     return uv, p[:, 0] > 0.5
@@ -164,9 +164,9 @@ def _actor_pose(road: _Road, actor: _Actor, t_s: float, wobble: bool) -> np.ndar
     return np.array([xyz[0], xyz[1], 0.03, roll, yaw, pitch])
 
 
-def _box(T_world_actor: np.ndarray, actor: _Actor, category: str) -> Box:
-    center = T_world_actor[:3, :3] @ np.array(actor.center_m) + T_world_actor[:3, 3]
-    return Box(center, np.zeros(3), T_world_actor[:3, :3], 2 * np.array(actor.extent_m), category,
+def _box(T_actor_world: np.ndarray, actor: _Actor, category: str) -> Box:
+    center = T_actor_world[:3, :3] @ np.array(actor.center_m) + T_actor_world[:3, 3]
+    return Box(center, np.zeros(3), T_actor_world[:3, :3], 2 * np.array(actor.extent_m), category,
                str(actor.actor_id), actor.intensity)  # fmt: skip
 
 
@@ -275,22 +275,22 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             infra = int(agent_id) < 0
             if infra:
                 position = rsu_positions[-int(agent_id) - 1]
-                T_world_lidar = np.eye(4)
-                T_world_lidar[:3, 3] = [position[0], position[1], RSU_LIDAR_HEIGHT_M]
-                T_world_base = T_world_lidar  # camera offsets are added to the RSU (lidar) position
+                T_lidar_world = np.eye(4)
+                T_lidar_world[:3, 3] = [position[0], position[1], RSU_LIDAR_HEIGHT_M]
+                T_base_world = T_lidar_world  # camera offsets are added to the RSU (lidar) position
                 pitch, own = RSU_CAMERA_PITCH_DEG, None
                 true_ego = _floats([*position[:2], RSU_LIDAR_HEIGHT_M, 0, 0, 0])
             else:
                 own = int(agent_id)
-                T_world_base = T_vehicle[own]
-                T_world_lidar = T_world_base @ carla_pose_matrix(np.array([*CAV_LIDAR_M, 0, 0, 0]))
+                T_base_world = T_vehicle[own]
+                T_lidar_world = T_base_world @ carla_pose_matrix(np.array([*CAV_LIDAR_M, 0, 0, 0]))
                 pitch = 0.0
                 true_ego = _floats(vehicle_pose[own])
             boxes = [b for b, act in zip(actor_boxes, actors, strict=True) if act.actor_id != own]
             box_actor = [act.actor_id for act in actors if act.actor_id != own]
             scene = Scene(None, boxes + pillar_boxes + buildings)
-            origins = np.broadcast_to(T_world_lidar[:3, 3], rays_lidar.shape)
-            directions = rays_lidar @ T_world_lidar[:3, :3].T
+            origins = np.broadcast_to(T_lidar_world[:3, 3], rays_lidar.shape)
+            directions = rays_lidar @ T_lidar_world[:3, :3].T
             no_time = np.zeros(len(rays_lidar))
             rng_m, intensity, index = cast_rays(origins, directions, no_time, scene, LIDAR_RANGE_M, ground_z_m=0.0)
             hit = np.isfinite(rng_m)
@@ -308,7 +308,7 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                     vehicles[act.actor_id] = {"location": _floats(p[:3]), "angle": _floats(p[3:]),
                                               "center": list(act.center_m), "extent": list(act.extent_m),
                                               "speed": float(act.speed_mps * 3.6)}  # fmt: skip
-            frame = {"lidar_pose": carla_pose_list(T_world_lidar), "true_ego_pos": true_ego,
+            frame = {"lidar_pose": carla_pose_list(T_lidar_world), "true_ego_pos": true_ego,
                      "predicted_ego_pos": _floats(np.array(true_ego) + rng.normal(0, 0.05, 6) * [1, 1, 0, 0, 1, 0]),
                      "ego_speed": 0.0 if infra else 8.0 * 3.6, "vehicles": vehicles}  # fmt: skip
             if config.dataset == "v2xset":
@@ -317,15 +317,15 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                 frame["plan_trajectory"] = [[*_floats(road.at(s, 0.0)[0][:2]), 28.8] for s in (10.0, 20.0)]
             markers: dict[int, dict[int, tuple[float, float]]] = {}
             for index_cam, (mx, my, mz, yaw) in enumerate(CAMERA_MOUNTS):
-                T_world_cam = T_world_base @ carla_pose_matrix(np.array([mx, my, mz, 0.0, yaw, pitch]))
-                uv, front = project_ue4(T_world_cam, truth.pillars_m)
+                T_cam_world = T_base_world @ carla_pose_matrix(np.array([mx, my, mz, 0.0, yaw, pitch]))
+                uv, front = project_ue4(T_cam_world, truth.pillars_m)
                 inside = front & (uv[:, 0] >= 1) & (uv[:, 0] < WIDTH - 1) & (uv[:, 1] >= 1) & (uv[:, 1] < HEIGHT - 1)
                 markers[index_cam] = {int(p): (float(uv[p, 0]), float(uv[p, 1])) for p in np.flatnonzero(inside)}
                 (scenario_dir / agent_id / f"{key}_camera{index_cam}.png").write_bytes(
                     _png(index_cam, list(markers[index_cam].values()))
                 )
-                extrinsic = np.linalg.inv(T_world_cam) @ T_world_lidar
-                frame[f"camera{index_cam}"] = {"cords": carla_pose_list(T_world_cam), "intrinsic": [list(r) for r in K],
+                extrinsic = np.linalg.inv(T_cam_world) @ T_lidar_world
+                frame[f"camera{index_cam}"] = {"cords": carla_pose_list(T_cam_world), "intrinsic": [list(r) for r in K],
                                                "extrinsic": [_floats(row) for row in extrinsic]}  # fmt: skip
             (scenario_dir / agent_id / f"{key}.yaml").write_bytes(_yaml(frame))
             agent_truth = truth.agents[agent_id]

@@ -31,13 +31,13 @@ def rotation_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.nda
 
 @dataclass(frozen=True)
 class EgoMotion:
-    """Constant-speed arc with small pitch/roll oscillations. ``city_SE3_ego(t)`` in closed form."""
+    """Constant-speed arc with small pitch/roll oscillations. ``T_ego_city(t)`` in closed form."""
 
     speed_mps: float
     yaw_rate_rps: float
     yaw0_rad: float
 
-    def city_SE3_ego(self, t_s: np.ndarray) -> np.ndarray:
+    def T_ego_city(self, t_s: np.ndarray) -> np.ndarray:
         """Ego poses at times t_s (seconds from log start, [N]) -> float64 [N,4,4]."""
         t_s = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
         w, v, psi0 = self.yaw_rate_rps, self.speed_mps, self.yaw0_rad
@@ -74,7 +74,7 @@ class Box:
     def annotated(self) -> bool:
         return self.category != "BUILDING"
 
-    def city_SE3_box(self, t_s: float) -> np.ndarray:
+    def T_box_city(self, t_s: float) -> np.ndarray:
         T = np.eye(4)
         T[:3, :3] = self.rotation
         T[:3, 3] = self.center0_m + self.velocity_mps * t_s
@@ -93,7 +93,7 @@ def make_scene(rng: np.random.Generator, seconds: float) -> Scene:
                     yaw0_rad=float(rng.uniform(-np.pi, np.pi)))  # fmt: skip
 
     def along(t_s: float, lateral_m: float, z_m: float) -> tuple[np.ndarray, float]:
-        T = ego.city_SE3_ego(np.array([t_s]))[0]
+        T = ego.T_ego_city(np.array([t_s]))[0]
         yaw = np.arctan2(T[1, 0], T[0, 0])
         left = np.array([-np.sin(yaw), np.cos(yaw)])
         xy = T[:2, 3] + lateral_m * left

@@ -223,7 +223,7 @@ def camera_azimuths_deg(T_sensor_rig: np.ndarray, T_cameras_rig: list[np.ndarray
     """Each camera's optical axis (+z) as an azimuth in the lidar's own frame.
 
     Args:
-        T_sensor_rig: lidar-to-rig extrinsic [4,4] (AV2 ego_SE3_sensor).
+        T_sensor_rig: lidar-to-rig extrinsic [4,4] (AV2 T_sensor_ego).
         T_cameras_rig: camera-to-rig extrinsics [4,4] each (AV2 ego_SE3_cam, OpenCV camera frame).
 
     Returns:
