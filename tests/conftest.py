@@ -8,16 +8,28 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, LogSummary, convert_log
 from ncore_convert.synth.argoverse2 import SynthConfig, SynthTruth, write_log
+from ncore_convert.transforms.geometry import Trajectory, invert_se3, transform_points
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent  #: the venv's scripts: ncore-convert, ray, moto_server
 AV2_SAMPLE_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+
+
+def naive_compensate(
+    xyz_sensor_m: np.ndarray, times_ns: np.ndarray, ref_ns: int, traj: Trajectory, T_sensor_rig: np.ndarray
+) -> np.ndarray:
+    """Sensor points at their own times -> rig at ``ref_ns``, one 4x4 chain per point:
+    ``T_rig_world(ref)^-1 · T_rig_world(t) · T_sensor_rig`` (the reference the vectorised code is held to)."""
+    T_t = traj.interpolate(traj.relative_seconds(times_ns))
+    T_ref = traj.interpolate(traj.relative_seconds(np.array([ref_ns])))[0]
+    return transform_points(invert_se3(T_ref)[None] @ T_t @ T_sensor_rig[None], xyz_sensor_m)
 
 
 def find_av2_sample() -> Path:

@@ -14,6 +14,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
+from ncore_convert.transforms.timebase import NS_PER_US
+
 
 def se3_from_quat_wxyz(quat_wxyz: npt.ArrayLike, translation_m: npt.ArrayLike) -> np.ndarray:
     """Build SE(3) matrices from scalar-first quaternions and translations.
@@ -104,7 +106,7 @@ class Trajectory:
             raise ValueError("a trajectory needs at least two poses")
         if np.any(np.diff(self.timestamps_us) <= 0):
             raise ValueError("trajectory timestamps must be strictly increasing")
-        t_rel_s = self.relative_seconds(self.timestamps_us * 1000)  # as query times are computed: exact at knots
+        t_rel_s = self.relative_seconds(self.timestamps_us * NS_PER_US)  # as query times are computed: exact at knots
         quats = quat_wxyz_from_se3(self.poses)
         # sign-align consecutive quaternions so every segment interpolates along the short arc
         flips = np.cumprod(np.where(np.einsum("ij,ij->i", quats[1:], quats[:-1]) < 0, -1.0, 1.0))
@@ -178,14 +180,9 @@ class Trajectory:
         out[:, 3, 3] = 1.0
         return out
 
-    def interpolate_us(self, t_us: npt.ArrayLike) -> np.ndarray:
-        """Poses at absolute integer microsecond times [M] -> [M,4,4]."""
-        t_us = np.asarray(t_us, dtype=np.int64)
-        return self.interpolate(self.relative_seconds(t_us * 1000))
-
     def relative_seconds(self, times_ns: np.ndarray) -> np.ndarray:
         """Absolute int64 ns times [M] -> float64 seconds relative to the first sample."""
-        return (np.asarray(times_ns, dtype=np.int64) - np.int64(self.start_us) * 1000).astype(np.float64) * 1e-9
+        return (np.asarray(times_ns, dtype=np.int64) - np.int64(self.start_us) * NS_PER_US).astype(np.float64) * 1e-9
 
     def extended(self, start_us: int, end_us: int) -> Trajectory:
         """Extend to cover [start_us, end_us] with constant-velocity end segments.

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ncore_convert.transforms.geometry import Trajectory, invert_se3, rotation_matrices_from_quats, sorted_run_starts
+from ncore_convert.transforms.timebase import floor_us
 
 #: Points closer than this to the sensor origin have no defined direction and cannot be stored.
 MIN_RANGE_M = 1e-3
@@ -109,27 +110,6 @@ def decompensate(
     return _apply_columns(M, b, inverse, xyz_rig_ref_m)
 
 
-def compensate(
-    xyz_sensor_m: np.ndarray,
-    point_times_ns: np.ndarray,
-    ref_time_ns: int,
-    T_rig_world: Trajectory,
-    T_sensor_rig: np.ndarray,
-) -> np.ndarray:
-    """Inverse of :func:`decompensate`: sensor frame at point times -> rig frame at the reference time.
-
-    Same argument frames and units as :func:`decompensate`, with input and output swapped.
-    """
-    if len(point_times_ns) == 0:
-        return np.zeros((0, 3), dtype=xyz_sensor_m.dtype)
-    R, d, inverse = _rig_motion_columns(T_rig_world, point_times_ns, ref_time_ns)
-    S, s = T_sensor_rig[:3, :3], T_sensor_rig[:3, 3]
-    # rig(ref) <- rig(t) <- sensor:  R^T (S p + s - d)
-    M = np.einsum("jiu,jl->ilu", R, S)
-    b = np.einsum("jiu,ju->iu", R, s[:, None] - d)
-    return _apply_columns(M, b, inverse, xyz_sensor_m)
-
-
 def beam_elevation_spread_rad(xyz_sensor_m: np.ndarray, beam: np.ndarray, n_beams: int = 32) -> float:
     """Flatness score of a spinning lidar: median over beams of the per-beam elevation std (radians).
 
@@ -208,7 +188,7 @@ def ray_bundle(
     direction = np.empty((len(index), 3), dtype=np.float32)
     for k, c in enumerate((x, y, z)):
         direction[:, k] = c[take] * inv
-    timestamp_us = (point_times_ns[take] // 1000).astype(np.uint64)
+    timestamp_us = floor_us(point_times_ns[take]).astype(np.uint64)
     start = frame_start_us if len(index) == 0 else min(frame_start_us, int(timestamp_us.min()))
     end = start if len(index) == 0 else int(timestamp_us.max())
     return RayBundle(
