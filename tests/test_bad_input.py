@@ -1,4 +1,4 @@
-"""The damaged-input corpus: every case has one specified outcome (README, "Damaged input").
+"""The damaged-input corpus: every case has one specified outcome (docs/damaged-input.md).
 
 Each case damages a copy of a small synthetic dataset (AV2, TbV or OPV2V), converts it with the
 runner's per-log wrapper and validation, exactly as the CLI does, and checks the outcome:
@@ -232,7 +232,7 @@ def _yaml_without_lidar_pose(scenario: Path) -> Path:
 EXTRINSICS = ("calibration", "egovehicle_SE3_sensor.feather")
 INTRINSICS = ("calibration", "intrinsics.feather")
 
-#: The corpus: case id -> what it damages, and the specified outcome. The README's table has a row
+#: The corpus: case id -> what it damages, and the specified outcome. docs/damaged-input.md's table has a row
 #: per case (checked by test_readme_table_lists_every_case).
 CASES: dict[str, Case] = {
     "truncated-feather": Case("av2", lambda log: _truncate(_sweeps(log)[1]), "fail", "not a readable feather table"),
@@ -413,8 +413,8 @@ def test_damaged_input_has_its_specified_outcome(case_id, bases, tmp_path, monke
 
 
 def test_readme_table_lists_every_case():
-    """The README's damaged-input table has exactly one row per corpus case, with its outcome."""
-    text = (REPO / "README.md").read_text()
+    """docs/damaged-input.md's table has exactly one row per corpus case, with its outcome."""
+    text = (REPO / "docs" / "damaged-input.md").read_text()
     rows = re.findall(r"^\| `([a-z0-9-]+)` \|[^|]*\| (fails|converts, warns) \|", text, flags=re.M)
     assert sorted(r[0] for r in rows) == sorted(CASES)
     for case_id, outcome in rows:

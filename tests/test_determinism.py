@@ -1,5 +1,5 @@
 """Determinism: converting the same input twice (into other folders, with other worker counts)
-writes byte-identical sequences; the run report differs only in the fields the README lists
+writes byte-identical sequences; the run report differs only in the fields docs/damaged-input.md lists
 (``RUN_DEPENDENT``: wall-clock times)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from conftest import BIN
 
-#: Run-report fields that may differ between runs of the same conversion (README, "Determinism").
+#: Run-report fields that may differ between runs of the same conversion (docs/damaged-input.md, "Determinism").
 RUN_DEPENDENT = {("seconds",), ("finished",), ("validation", "seconds")}
 
 SYNTH = {

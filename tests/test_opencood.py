@@ -108,7 +108,7 @@ def test_timestamps_follow_the_carla_frame_keys(agents):
 
 
 def test_a_carla_point_lands_at_x_minus_y_z_in_world_global(agents):
-    """README: world_global (x, y, z) = CARLA (x, -y, z); checked on the raw PCD text for every agent."""
+    """docs/opv2v-v2xset.md: world_global (x, y, z) = CARLA (x, -y, z); checked on the raw PCD text for every agent."""
     key = agents.truth.keys[1]
     for agent_id, truth in agents.truth.agents.items():
         raw = np.loadtxt(agents.truth.scenario_dir / agent_id / f"{key}.pcd", skiprows=11, dtype=np.float32)

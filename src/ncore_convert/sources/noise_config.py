@@ -1,7 +1,7 @@
 """GPS-error and communication-delay settings (``transforms.noise.NoiseSetting``): OpenCOOD's
 ``wild_setting`` block, read and checked.
 
-A setting is one named set of parameters (README, "GPS error and communication delay"). It comes
+A setting is one named set of parameters (docs/noise.md). It comes
 from a YAML file holding a ``wild_setting`` block (an OpenCOOD model YAML works as it is) or from
 the equivalent CLI flags. OpenCOOD's own keys keep their names, units and defaults; the keys only
 the ``realistic`` model reads are extensions that OpenCOOD ignores.
