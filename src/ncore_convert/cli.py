@@ -282,11 +282,6 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
     sys.exit(1 if failed else 0)
 
 
-def _convert_av2_family(obj: GroupOptions, command: str, split: str | None, log_ids: tuple[str, ...], **options):
-    """Run the Argoverse 2 Sensor (split given) or TbV (split None) conversion of the selected logs."""
-    _convert(obj, command, log_ids, split=split, **options)
-
-
 #: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, default, help).
 #: Unset flags take OpenCOOD's defaults (shown), set in ``make_setting``.
 NOISE_FLAGS = [
@@ -385,7 +380,7 @@ def opencood_options(dataset: str):
 @click.pass_obj
 def argoverse2_v4(obj: GroupOptions, split, log_ids, **options):
     """Argoverse 2 Sensor (<root>/<split>/<log_id>) to NCore V4."""
-    _convert_av2_family(obj, "argoverse2-v4", split, log_ids, **options)
+    _convert(obj, "argoverse2-v4", log_ids, split=split, **options)
 
 
 @cli.command("tbv-v4")
@@ -393,7 +388,7 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, **options):
 @click.pass_obj
 def tbv_v4(obj: GroupOptions, log_ids, **options):
     """Argoverse 2 TbV (<root>/<log_id>) to NCore V4; per-point times reconstructed (no offset_ns)."""
-    _convert_av2_family(obj, "tbv-v4", None, log_ids, **options)
+    _convert(obj, "tbv-v4", log_ids, split=None, **options)
 
 
 @cli.command("opv2v-v4")

@@ -10,6 +10,8 @@ import re
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from ncore_convert import __version__
+
 #: Names from the data that become output paths (log ids, sensor names): one path component, no
 #: separators, not hidden, not "." or "..", at most 128 characters.
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
@@ -30,7 +32,7 @@ OPENCOOD_DATASETS = (OPV2V, V2XSET)
 
 # --- keys of the sequence's generic metadata ---
 SOURCE_DATASET = "source_dataset"
-CONVERTER = "converter"  #: {"name", "version", "options"}
+CONVERTER = "converter"  #: converter_meta(): {"name", "version", "options"}
 AV2_SPLIT = "argoverse2_split"  #: None for TbV (logs directly under the root)
 AV2_LOG_ID = "argoverse2_log_id"
 OPENCOOD_SPLIT = "opencood_split"
@@ -54,6 +56,11 @@ MAP_META = "hd_map"
 
 # --- cooperative scenarios ---
 MANIFEST = "scenario.json"
+
+
+def converter_meta(options: dict[str, Any]) -> dict[str, Any]:
+    """The sequence metadata's ``converter`` record: this tool, its version and the conversion options."""
+    return {"name": "ncore-convert", "version": __version__, "options": options}
 
 
 def agent_prefix(agent_id: str | int) -> str:

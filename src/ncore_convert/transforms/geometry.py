@@ -116,11 +116,11 @@ class Trajectory:
         sin_theta = np.sin(theta)
         inv_sin = np.where(sin_theta > 1e-12, 1.0 / np.where(sin_theta > 1e-12, sin_theta, 1.0), 0.0)
         # one row per segment quantity, one column per segment: a single gather fetches them all
-        dt = np.diff(t_rel_s)
+        dt_s = np.diff(t_rel_s)
         segments = np.concatenate(
             [
                 t_rel_s[None, :-1],  # 0: segment start (s)
-                (1.0 / dt)[None],  # 1: 1 / segment length
+                (1.0 / dt_s)[None],  # 1: 1 / segment length
                 theta[None],  # 2: slerp arc angle
                 inv_sin[None],  # 3: 1 / sin(arc), 0 for a degenerate (lerp) segment
                 quats[:-1].T,  # 4..7: start quaternion

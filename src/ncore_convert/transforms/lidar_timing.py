@@ -280,8 +280,11 @@ def unit_rotation(
     """
     # azimuths with every return at the sweep time: the first pass of reconstruct_times
     static = [
-        (firing_azimuth_deg(decompensate(xyz, np.full(len(b), ts), ts, T_rig_world, T_sensor_rig), b), ts)
-        for xyz, b, ts in sweeps
+        (
+            firing_azimuth_deg(decompensate(xyz, np.full(len(b), sweep_ns), sweep_ns, T_rig_world, T_sensor_rig), b),
+            sweep_ns,
+        )
+        for xyz, b, sweep_ns in sweeps
         if len(b)
     ]
     if not any(len(az) > BLOCK_ROWS for az, _ in static):
@@ -291,7 +294,7 @@ def unit_rotation(
     fits = []
     for half_turn in (False, True):
         knots = fit_rotation_knots(camera_azimuth_deg, spin, epoch, phases, half_turn=half_turn)
-        first_ms = [(firing_times(az, knots, ts).times_ns[0] - ts) / 1e6 for az, ts in static]
+        first_ms = [(firing_times(az, knots, sweep_ns).times_ns[0] - sweep_ns) / 1e6 for az, sweep_ns in static]
         fits.append(dataclasses.replace(knots, first_firing_ms=float(np.median(first_ms))))
     center = sum(FIRST_FIRING_WINDOW_MS) / 2
     return min(fits, key=lambda k: abs(k.first_firing_ms - center))

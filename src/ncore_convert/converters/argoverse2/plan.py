@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from upath import UPath
 
-from ncore_convert import __version__, contract
+from ncore_convert import contract
 from ncore_convert.contract import LidarModelSource, Profile, StoreType
 from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerTiming, calibrate_lidars
 from ncore_convert.converters.common import select_sensors
@@ -264,7 +264,7 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         contract.SOURCE_DATASET: contract.ARGOVERSE2_TBV if options.tbv else contract.ARGOVERSE2_SENSOR,
         contract.AV2_SPLIT: options.split,
         contract.AV2_LOG_ID: log_id,
-        contract.CONVERTER: {"name": "ncore-convert", "version": __version__, "options": asdict(options)},
+        contract.CONVERTER: contract.converter_meta(asdict(options)),
     }
     return LogPlan(
         inputs=inputs,

@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from upath import UPath
 
-from ncore_convert import __version__, contract
+from ncore_convert import contract
 from ncore_convert.contract import ManifestAgent, ManifestNoise, ScenarioManifest
 from ncore_convert.converters.common import Tally
 from ncore_convert.converters.opencood.noise import instance_meta
@@ -78,7 +78,7 @@ def _generic_meta(plan: ScenarioPlan, agent_ids: list[str]) -> dict:
         "time_base": "t_us = CARLA frame key * fixed_delta_seconds * 1e6 (frame keys are CARLA frame counters)",
         "world_global": "the CARLA map frame made right-handed: (x, y, z)_world_global = (x, -y, z)_carla",
         "noise_settings": {s.name: s.as_dict() for s in plan.options.noise},
-        contract.CONVERTER: {"name": "ncore-convert", "version": __version__, "options": _options_meta(plan.options)},
+        contract.CONVERTER: contract.converter_meta(_options_meta(plan.options)),
     }
 
 

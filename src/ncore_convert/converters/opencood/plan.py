@@ -164,7 +164,7 @@ def plan_agent(
     agent_dir: UPath,
     frames: list[src.AgentFrame],
     options: OpenCoodOptions,
-    dt: float,
+    dt_s: float,
     warnings: list[str],
     skipped_keys: dict[str, str] | None = None,
 ) -> AgentPlan:
@@ -202,7 +202,7 @@ def plan_agent(
         agent_id=agent_dir.name,
         agent_dir=agent_dir,
         keys=keys,
-        timestamps_us=timestamps_us(keys, dt),
+        timestamps_us=timestamps_us(keys, dt_s),
         lidar_pose_carla=lidar_pose_carla,
         T_rig_world_global=T_rig_world_global,
         T_sensor_rig=T_sensor_rig,
@@ -260,7 +260,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     scenario_dir = options.scenario_dir(root_dir, scenario)
     require_folder(scenario_dir, "scenario folder")
     protocol = src.read_protocol(scenario_dir)
-    dt = protocol.fixed_delta_seconds
+    dt_s = protocol.fixed_delta_seconds
     folders = src.list_agents(scenario_dir)
     keys = {a: src.list_frame_keys(scenario_dir / a) for a in folders}
     all_keys = sorted(set().union(*keys.values()), key=int)
@@ -286,9 +286,9 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
         frames[agent] = agent_frames
     if not frames:
         raise SourceError(scenario_dir, "no agent has 2 or more readable frames")
-    agents = {a: plan_agent(scenario_dir / a, f, options, dt, warnings, skipped_keys[a]) for a, f in frames.items()}
+    agents = {a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a]) for a, f in frames.items()}
     ego = src.opencood_ego(folders)
-    ego_times_us = timestamps_us(keys[ego], dt)
+    ego_times_us = timestamps_us(keys[ego], dt_s)
     noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
     for setting in options.noise:
         loaded = opencood_loaded(setting, folders)
@@ -307,7 +307,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     return ScenarioPlan(
         scenario=scenario,
         options=options,
-        fixed_delta_seconds=dt,
+        fixed_delta_seconds=dt_s,
         ego=ego,
         ego_keys=keys[ego],
         agent_folders=folders,
