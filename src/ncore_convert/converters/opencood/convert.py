@@ -96,7 +96,8 @@ def _cuboids(plan: ScenarioPlan, agent: AgentPlan, names: Names) -> Cuboids:
         if (boxes := plan.boxes.get(key)) is not None:
             rows.append((boxes, int(t_us), invert_se3(T_rig_world_global) @ boxes.T_box_world_global))
     if not rows:
-        return Cuboids([], [], np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), names.rig)
+        empty = np.zeros((0, 3))
+        return Cuboids([], [], np.zeros(0, np.int64), empty, empty, empty, reference_frame_id=names.rig)
     T_box_rig = np.concatenate([r[2] for r in rows])
     ids = np.concatenate([r[0].actor_ids for r in rows])
     return Cuboids(
