@@ -68,6 +68,20 @@ def test_the_documentation_check_can_fail():
     assert not documented("--no-such-option", documentation())
 
 
+#: One docs/ file per topic (issue 18): each dataset, the lidar model, TbV timing, noise, validation
+#: and preview, scale-out, damaged input, benchmarks, limitations.
+TOPICS = ("argoverse2", "tbv", "opv2v-v2xset", "lidar-model", "tbv-timing", "noise", "validation", "scale-out",
+          "damaged-input", "benchmarks", "limitations")  # fmt: skip
+
+
+def test_readme_is_short_and_links_every_topic():
+    readme = (REPO / "README.md").read_text()
+    assert len(readme.splitlines()) <= 300
+    for topic in TOPICS:
+        assert (REPO / "docs" / f"{topic}.md").is_file(), topic
+        assert f"](docs/{topic}.md)" in readme, f"README does not link docs/{topic}.md"
+
+
 def _convert(tmp_path: Path, *flags: str) -> str:
     """Convert a tiny synthetic log through the installed command, stdout and stderr to one pipe."""
     root = tmp_path / "root"

@@ -2,8 +2,10 @@
 
 Layout: ``<root>/<split>/<log_id>/`` with feather tables (read with pyarrow), lidar sweeps under
 ``sensors/lidar/<timestamp_ns>.feather`` and JPEGs under ``sensors/cameras/<camera>/<timestamp_ns>.jpg``.
-Frames follow av2: ``T_ego_city`` maps ego points to the city frame, ``T_sensor_ego`` maps
-sensor points to the ego frame. Quaternions are scalar-first (qw, qx, qy, qz).
+Frames follow av2: ``city_SE3_ego`` maps ego points to the city frame, ``ego_SE3_sensor`` maps
+sensor points to the ego frame. Quaternions are scalar-first (qw, qx, qy, qz). The readers return
+them under the project's ``T_a_b`` names (``T_ego_city``, ``T_sensor_ego``, ``T_object_ego``), so av2's
+``x_SE3_y`` names stay in this module.
 
 Every reader raises :class:`SourceError` naming the file and the cause on bad input.
 """
@@ -198,7 +200,7 @@ def list_image_timestamps_ns(log_dir: UPath, camera: str) -> np.ndarray:
 
 
 def read_ego_poses(log_dir: UPath) -> tuple[np.ndarray, np.ndarray]:
-    """Ego poses from ``city_SE3_egovehicle.feather`` (av2's ``T_ego_city``).
+    """Ego poses from ``city_SE3_egovehicle.feather`` (av2's ``city_SE3_ego``).
 
     Returns:
         timestamps_ns: int64 [N], strictly increasing.
@@ -227,7 +229,7 @@ def _check_increasing(path: UPath, timestamps_ns: np.ndarray) -> None:
 
 
 def read_sensor_extrinsics(log_dir: UPath) -> dict[str, np.ndarray]:
-    """Static extrinsics by sensor name: ``T_sensor_ego`` (av2's ``T_sensor_ego``), float64 [4,4],
+    """Static extrinsics by sensor name: ``T_sensor_ego`` (av2's ``ego_SE3_sensor``), float64 [4,4],
     maps sensor-frame points to the ego frame."""
     path = extrinsics_path(log_dir)
     table = read_table(path, EXTRINSICS_SCHEMA)

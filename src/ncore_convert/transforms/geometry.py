@@ -1,8 +1,8 @@
 """Rigid-body geometry shared by all sources and transforms.
 
 Conventions: ``T_a_b`` is a 4x4 SE(3) matrix mapping points in frame ``a`` to frame ``b``
-(``p_b = R p_a + t``), the NCore naming. Dataset-side names like av2's ``T_ego_city`` are the
-same thing read right to left (``T_ego_city == T_ego_city``). Angles are radians, lengths metres,
+(``p_b = R p_a + t``), the NCore naming. Dataset-side names like av2's ``city_SE3_ego`` are the
+same thing read right to left (``city_SE3_ego == T_ego_city``). Angles are radians, lengths metres,
 and times microseconds unless a name says otherwise.
 """
 
