@@ -18,7 +18,17 @@ import click
 from upath import UPath
 
 from ncore_convert import __version__
-from ncore_convert.contract import MANIFEST, Layout, LidarModelSource, Profile, StoreType
+from ncore_convert.contract import (
+    MANIFEST,
+    CameraModel,
+    ClassNames,
+    CuboidLabelSource,
+    Layout,
+    LidarModelSource,
+    Profile,
+    StoreType,
+    WorldGlobalMode,
+)
 from ncore_convert.errors import SourceError
 from ncore_convert.run.executors import ExecutorKind
 from ncore_convert.run.pool import JobPool, default_workers
@@ -200,6 +210,34 @@ def store_options(f):
     return f
 
 
+def consumer_options(f):
+    """Options every dataset command shares that shape the output for its consumers (docs/consumers.md)."""
+    for option in reversed([
+        click.option("--camera-model", type=click.Choice(get_args(CameraModel)), default="ideal-pinhole",
+                     help="How cameras are stored: NCore's ideal pinhole; an OpenCV pinhole with zero distortion"
+                     " (the same rays; 3DGUT reads it); or an f-theta model fitted to the pinhole over the whole"
+                     " image (instant-nurec), its worst error in the camera's metadata."),
+        click.option("--class-names", type=click.Choice(get_args(ClassNames)), default="ncore",
+                     help="Cuboid class names: NCore's lowercase names (e.g. REGULAR_VEHICLE -> car), the source"
+                     " name of every track kept in the cuboids' metadata; or the dataset's own names."),
+        click.option("--cuboid-label-source", type=click.Choice(get_args(CuboidLabelSource)), default="auto",
+                     help="LabelSource of the cuboids: 'auto' is the dataset's honest one (AV2 EXTERNAL, OPV2V"
+                     " GT_SYNTHETIC); 'autolabel' is a compatibility setting for instant-nurec, not a provenance"
+                     " claim."),
+        click.option("--seek-sec", type=click.FloatRange(min=0.0), default=None, show_default="none: from the start",
+                     help="Skip this many seconds from the start of each log (its first sweep, image or frame)."),
+        click.option("--duration-sec", type=click.FloatRange(min=0.0, min_open=True), default=None,
+                     show_default="none: to the end",
+                     help="Keep this many seconds from the seek point; lidar frames are kept whole or dropped."),
+        click.option("--world-global-mode", type=click.Choice(get_args(WorldGlobalMode)), default="localized",
+                     help="What world -> world_global holds: the dataset's global frame ('localized'), the identity"
+                     " (scene at the origin for 3DGRUT), or no world_global node ('none'); the global pose is kept"
+                     " in the sequence metadata either way."),
+    ]):  # fmt: skip
+        f = option(f)
+    return f
+
+
 def av2_family_options(log_scope: str):
     """Options shared by the Argoverse 2 Sensor and TbV commands."""
 
@@ -208,6 +246,7 @@ def av2_family_options(log_scope: str):
             click.option("--log-id", "log_ids", multiple=True, show_default=f"every log {log_scope}",
                          help="Convert only this log (repeatable)."),
             store_options,
+            consumer_options,
             click.option("--maps/--no-maps", default=True,
                          help="Store the log's HD map (vector map, ground-height raster, Sim(2)) with the poses."),
             click.option("--lidar-model-source", type=click.Choice(get_args(LidarModelSource)), default="empirical",
@@ -279,7 +318,7 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
         f"{len(results) - failed - skipped} converted, {skipped} skipped, {failed} failed;"
         f" output and {report_name(obj.shard)} in {out}"
     )
-    sys.exit(1 if failed else 0)
+    sys.exit(2 if any(r.usage_error for r in results) else 1 if failed else 0)
 
 
 #: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, default, help).
@@ -366,6 +405,7 @@ def opencood_options(dataset: str):
                          help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
                          " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_)."),
             store_options,
+            consumer_options,
             noise_options,
         ]):  # fmt: skip
             f = option(f)

@@ -21,6 +21,10 @@ StoreType = Literal["itar", "directory"]
 Profile = Literal["default", "separate-sensors", "separate-all"]
 LidarModelSource = Literal["empirical", "none"]
 Layout = Literal["agents", "scenario"]  #: OpenCOOD: a sequence per agent, or one sequence per scenario
+CameraModel = Literal["ideal-pinhole", "opencv-pinhole", "ftheta"]  #: how a pinhole camera is stored
+ClassNames = Literal["ncore", "source"]  #: cuboid class names: NCore's lowercase names, or the dataset's own
+CuboidLabelSource = Literal["auto", "external", "gt-synthetic", "autolabel"]  #: the observations' LabelSource
+WorldGlobalMode = Literal["none", "identity", "localized"]  #: what ``world -> world_global`` holds
 
 # --- dataset ids: the sequence metadata's ``source_dataset`` ---
 ARGOVERSE2_SENSOR = "argoverse2-sensor"
@@ -38,6 +42,18 @@ AV2_LOG_ID = "argoverse2_log_id"
 OPENCOOD_SPLIT = "opencood_split"
 SCENARIO = "scenario"
 AGENTS = "agents"  #: agent id -> {"kind", "opencood_ego"}
+
+WORLD_GLOBAL = "world_global"  #: {"mode", "T_world_dataset_global" (4x4, float64 rows), "dataset_global"}
+CLIP = "clip"  #: {"seek_sec", "duration_sec", "start_us", "end_us"}: the window the sequence was cut to
+
+# --- keys of cuboid component metadata ---
+#: track id -> the dataset's own class name, when ``class_names`` is "ncore" (recoverable without the source)
+SOURCE_CLASS_BY_TRACK = "source_class_by_track"
+#: track id -> max robust speed (m/s) for tracks judged dynamic (the rule behind ``dynamic_flag``)
+DYNAMIC_TRACKS = "dynamic_tracks"
+
+# --- per-frame lidar generic data ---
+DYNAMIC_FLAG = "dynamic_flag"  #: int8 [N]: 1 = the point lies in a dynamic track's box grown by 0.5 m
 
 # --- keys of sensor metadata ---
 #: sensor metadata: frame key -> why the source frame was not written (unreadable YAML, PCD or image)

@@ -28,3 +28,11 @@ class ValidationFailed(Exception):
 
     def __str__(self) -> str:
         return self.args[0]
+
+
+class UsageError(Exception):
+    """An option that cannot apply to this log (e.g. a clip window outside it): the command line is
+    wrong, not the data. ``str(err)`` is one line naming the log and the cause."""
+
+    def __reduce__(self):
+        return UsageError, self.args

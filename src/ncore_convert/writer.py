@@ -28,8 +28,10 @@ from ncore.impl.common.transformations import HalfClosedInterval
 from ncore.impl.data.types import (
     BBox3,
     CuboidTrackObservation,
+    FThetaCameraModelParameters,
     IdealPinholeCameraModelParameters,
     LabelSource,
+    OpenCVPinholeCameraModelParameters,
     RowOffsetStructuredSpinningLidarModelParameters,
     ShutterType,
 )
@@ -39,6 +41,7 @@ from upath import UPath
 
 from ncore_convert.contract import (
     DEFAULT_INSTANCE,
+    CameraModel,
     MANIFEST,
     MAP_GROUND_HEIGHT,
     MAP_META,
@@ -48,6 +51,7 @@ from ncore_convert.contract import (
     StoreType,
 )
 from ncore_convert.storage import flush_to_disk
+from ncore_convert.transforms.camera_models import FThetaFit, Pinhole
 from ncore_convert.transforms.lidar import RayBundle
 from ncore_convert.transforms.lidar_model import SpinningLidarModel
 
@@ -103,8 +107,15 @@ class CameraStream(_SensorStream):
 class LidarStream(_SensorStream):
     """Frames of one lidar, stored as single-return ray bundles."""
 
-    def store_frame(self, rays: RayBundle, generic_meta_data: dict, model_element: np.ndarray | None = None) -> None:
-        """Store one frame; ``model_element`` is uint16 [N,2] (row, column) of the lidar's model, or None."""
+    def store_frame(
+        self,
+        rays: RayBundle,
+        generic_meta_data: dict,
+        model_element: np.ndarray | None = None,
+        generic_data: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        """Store one frame; ``model_element`` is uint16 [N,2] (row, column) of the lidar's model, or None;
+        ``generic_data``: per-point arrays [N] (e.g. ``contract.DYNAMIC_FLAG``, int8)."""
         self._writer.store_frame(
             direction=rays.direction,
             timestamp_us=rays.timestamp_us,
@@ -112,7 +123,7 @@ class LidarStream(_SensorStream):
             distance_m=rays.distance_m[None, :],
             intensity=rays.intensity[None, :],
             frame_timestamps_us=rays.frame_timestamps_us,
-            generic_data={},
+            generic_data=generic_data or {},
             generic_meta_data=generic_meta_data,
         )
 
@@ -296,29 +307,42 @@ class SequenceWriter:
         for poses in self._poses.values():
             poses.store_static_pose(sensor_id, rig_frame, T_sensor_rig.astype(np.float32))
 
-    def store_pinhole_camera(
-        self,
-        camera_id: str,
-        focal_length_px: tuple[float, float],
-        principal_point_px: tuple[float, float],
-        resolution_px: tuple[int, int],
+    def store_camera(
+        self, camera_id: str, pinhole: Pinhole, model: CameraModel, ftheta: FThetaFit | None = None
     ) -> None:
-        """Store a global-shutter ideal-pinhole model (OpenCV camera frame, NCore pixel-corner
-        convention) and the camera's (empty) masks.
+        """Store a global-shutter camera model (OpenCV camera frame) and the camera's (empty) masks.
 
         Args:
-            resolution_px: (width, height).
+            pinhole: the camera as an ideal pinhole (NCore pixel-corner convention).
+            model: ``ideal-pinhole`` (NCore ``IdealPinholeCameraModelParameters``), ``opencv-pinhole``
+                (``OpenCVPinholeCameraModelParameters``, every distortion coefficient 0: the same rays),
+                or ``ftheta`` (``FThetaCameraModelParameters`` from ``ftheta``, the fit to ``pinhole``).
         """
         self._require_base()
-        self._intrinsics.store_camera_intrinsics(
-            camera_id,
-            IdealPinholeCameraModelParameters(
-                resolution=np.array(resolution_px, dtype=np.uint64),
-                shutter_type=ShutterType.GLOBAL,
-                principal_point=np.array(principal_point_px, dtype=np.float32),
-                focal_length=np.array(focal_length_px, dtype=np.float32),
-            ),
-        )
+        resolution = np.array(pinhole.resolution_px, dtype=np.uint64)
+        principal_point = np.array(pinhole.principal_point_px, dtype=np.float32)
+        focal_length = np.array(pinhole.focal_length_px, dtype=np.float32)
+        if model == "ideal-pinhole":
+            params = IdealPinholeCameraModelParameters(
+                resolution=resolution, shutter_type=ShutterType.GLOBAL,
+                principal_point=principal_point, focal_length=focal_length,
+            )  # fmt: skip
+        elif model == "opencv-pinhole":
+            params = OpenCVPinholeCameraModelParameters(
+                resolution=resolution, shutter_type=ShutterType.GLOBAL,
+                principal_point=principal_point, focal_length=focal_length,
+                radial_coeffs=np.zeros(6, dtype=np.float32), tangential_coeffs=np.zeros(2, dtype=np.float32),
+                thin_prism_coeffs=np.zeros(4, dtype=np.float32),
+            )  # fmt: skip
+        else:
+            params = FThetaCameraModelParameters(
+                resolution=resolution, shutter_type=ShutterType.GLOBAL,
+                principal_point=ftheta.principal_point_px,
+                reference_poly=FThetaCameraModelParameters.PolynomialType.PIXELDIST_TO_ANGLE,
+                pixeldist_to_angle_poly=ftheta.pixeldist_to_angle, angle_to_pixeldist_poly=ftheta.angle_to_pixeldist,
+                max_angle=ftheta.max_angle_rad, linear_cde=ftheta.linear_cde,
+            )  # fmt: skip
+        self._intrinsics.store_camera_intrinsics(camera_id, params)
         self._masks.store_camera_masks(camera_id, {})
 
     def store_lidar_model(self, lidar_id: str, model: SpinningLidarModel) -> None:
@@ -354,8 +378,9 @@ class SequenceWriter:
         )
         return LidarStream(writer)
 
-    def store_cuboids(self, cuboids: Cuboids | None, source: str = "EXTERNAL") -> None:
-        """Store all cuboid observations (an empty component when there are none).
+    def store_cuboids(self, cuboids: Cuboids | None, source: str = "EXTERNAL", meta: dict | None = None) -> None:
+        """Store all cuboid observations (an empty component when there are none), tagged with the
+        NCore ``LabelSource`` named ``source``; ``meta``: the component's generic metadata.
 
         The library keeps every observation in one JSON attribute, so this costs memory in
         proportion to the number of observations; they are handed over one at a time (a
@@ -363,6 +388,8 @@ class SequenceWriter:
         """
         self._require_base()
         self._cuboids.store_observations(_observations(cuboids, LabelSource[source]) if cuboids is not None else [])
+        if meta:
+            self._cuboids.set_generic_data({}, meta)
 
     def finalize(self, with_meta: bool = True) -> SequenceMeta | None:
         """Close this writer's stores and flush them to disk. With ``with_meta``, return the library's

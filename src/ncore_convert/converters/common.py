@@ -9,6 +9,8 @@ from typing import Any
 
 from upath import UPath
 
+from ncore_convert.contract import CameraModel, ClassNames, CuboidLabelSource, WorldGlobalMode
+
 
 @dataclass(frozen=True)
 class Dataset:
@@ -32,6 +34,19 @@ class Dataset:
     input_dir: Callable[[UPath, Any, str], UPath]
     check_sensors: Callable[[Any], None]
     convert: Callable[..., Any]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConsumerOptions:
+    """Options every dataset command shares that shape the output for its consumers
+    (docs/consumers.md): camera model, class names, label source, clip window, world_global."""
+
+    camera_model: CameraModel = "ideal-pinhole"
+    class_names: ClassNames = "ncore"
+    cuboid_label_source: CuboidLabelSource = "auto"
+    seek_sec: float | None = None  #: time skipped from the start of the log, s
+    duration_sec: float | None = None  #: time kept from there, s (None: to the end)
+    world_global_mode: WorldGlobalMode = "localized"
 
 
 def select_sensors(requested: tuple[str, ...] | None, known: tuple[str, ...], kind: str) -> list[str]:

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from upath import UPath
 
 from ncore_convert.contract import SAFE_NAME
-from ncore_convert.errors import SourceError, ValidationFailed
+from ncore_convert.errors import SourceError, UsageError, ValidationFailed
 from ncore_convert.run.pool import Progress
 from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
 
@@ -79,6 +79,7 @@ class LogResult:
     seconds: float = 0.0
     validation: dict | None = None  #: of a log that failed validation (a converted log's is in its summary)
     traceback: str | None = None  #: of a failure, also from a worker process (printed with --verbose)
+    usage_error: bool = False  #: failed because an option cannot apply to this log (the command exits 2)
 
     @property
     def warnings(self) -> list[str]:
@@ -140,6 +141,8 @@ def _failure(log_id: str, err: Exception, output: UPath) -> LogResult:
     raised. In every case nothing was published."""
     if isinstance(err, SourceError):
         result = LogResult(log_id, False, error=str(err), error_file=err.path)
+    elif isinstance(err, UsageError):
+        result = LogResult(log_id, False, error=f"usage: {err}", usage_error=True)
     elif isinstance(err, ValidationFailed):
         result = LogResult(log_id, False, error=str(err), validation=err.validation)
     elif isinstance(err, OSError) and err.errno in OUTPUT_FULL:

@@ -362,6 +362,17 @@ class Annotations:
     def __len__(self) -> int:
         return len(self.timestamps_ns)
 
+    def subset(self, keep: np.ndarray) -> Annotations:
+        """The rows where ``keep`` (bool [M]) is true."""
+        rows = np.flatnonzero(keep)
+        return Annotations(
+            timestamps_ns=self.timestamps_ns[rows],
+            track_uuids=[self.track_uuids[i] for i in rows],
+            categories=[self.categories[i] for i in rows],
+            dims_m=self.dims_m[rows],
+            T_object_ego=self.T_object_ego[rows],
+        )
+
 
 def read_annotations(log_dir: UPath) -> Annotations | None:
     """Annotations from ``annotations.feather``, or None when the log has none (test split, TbV)."""

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 from upath import UPath
 
 from ncore_convert import contract
@@ -18,8 +19,10 @@ from ncore_convert.converters.argoverse2.lidar import lidar_meta, read_covered_s
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Tally
 from ncore_convert.run.pool import JobPool, Progress, run_inline
+from ncore_convert.converters.consumer import CameraSpec
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms.geometry import euler_xyz_from_rotation
+from ncore_convert.transforms.dynamic import dynamic_flags
+from ncore_convert.transforms.geometry import euler_xyz_from_rotation, transform_points
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import (
     BASE_JOB,
@@ -42,6 +45,7 @@ class Counts(Tally):
     cuboids: int = 0
     maps: int = 0
     lidar_seconds: float = 0.0  #: read + decompensate + write of all sweeps
+    dynamic_flag_seconds: float = 0.0  #: of which: dynamic_flag of every frame
     camera_seconds: float = 0.0  #: read + write of all images
     warnings: list[str] = field(default_factory=list)
 
@@ -71,11 +75,12 @@ class JobResult(Counts):
     meta: object = None
 
 
-def annotation_cuboids(annotations: av2.Annotations) -> Cuboids:
-    """AV2 cuboids (ego frame at the sweep time) as rig-frame observations with full xyz-Euler rotation."""
+def annotation_cuboids(annotations: av2.Annotations, class_ids: list[str]) -> Cuboids:
+    """AV2 cuboids (ego frame at the sweep time) as rig-frame observations with full xyz-Euler rotation,
+    named ``class_ids`` [M]."""
     return Cuboids(
         track_ids=annotations.track_uuids,
-        class_ids=annotations.categories,
+        class_ids=class_ids,
         timestamps_us=floor_us(annotations.timestamps_ns),
         centroids_m=annotations.T_object_ego[:, :3, 3],
         dims_m=annotations.dims_m,
@@ -83,8 +88,9 @@ def annotation_cuboids(annotations: av2.Annotations) -> Cuboids:
     )
 
 
-def _camera_meta(intr: av2.CameraIntrinsics) -> dict:
+def _camera_meta(intr: av2.CameraIntrinsics, spec: CameraSpec) -> dict:
     return {
+        "camera_model": spec.meta(),
         "av2_original_distortion": {"k1": intr.k1, "k2": intr.k2, "k3": intr.k3},
         "av2_principal_point_px": {"cx": intr.cx_px, "cy": intr.cy_px},
         "principal_point_note": "stored principal point = av2 (cx, cy) + 0.5 (NCore pixel-corner convention)",
@@ -116,18 +122,18 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
     for sensor in plan.lidar_ids + plan.camera_ids:
         writer.store_extrinsic(sensor, inputs.T_sensor_ego[sensor])  # av2's egovehicle is NCore's rig
     for cam in plan.camera_ids:
-        intr = inputs.intrinsics[cam]
-        writer.store_pinhole_camera(
-            cam,
-            focal_length_px=(intr.fx_px, intr.fy_px),
-            principal_point_px=(intr.cx_px + 0.5, intr.cy_px + 0.5),
-            resolution_px=(intr.width_px, intr.height_px),
-        )
+        spec = plan.cameras[cam]
+        writer.store_camera(cam, spec.pinhole, spec.model, spec.ftheta)
     if plan.lidar_calibration is not None:
         for unit, model in plan.lidar_calibration.models.items():
             writer.store_lidar_model(unit, model)
-    cuboids = annotation_cuboids(inputs.annotations) if inputs.annotations is not None else None
-    writer.store_cuboids(cuboids)
+    labels = plan.cuboid_labels
+    if labels is not None:
+        cuboids = annotation_cuboids(inputs.annotations, labels.class_ids)
+        writer.store_cuboids(cuboids, labels.label_source, labels.meta)
+    else:
+        cuboids = None
+        writer.store_cuboids(None)
     if plan.options.maps:
         _store_map(inputs.log_dir, writer, result)
     result.cuboids = 0 if cuboids is None else len(cuboids)
@@ -165,16 +171,29 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     log_dir = plan.inputs.log_dir
     calibration = plan.lidar_calibration
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
+    boxes = plan.dynamic_boxes
+    flag_meta = {contract.DYNAMIC_FLAG: _dynamic_flag_note(plan)}
     lidars = {  # one metadata dict per lidar: the writer updates it in place
-        unit: writer.add_lidar(unit, lidar_meta(calibration, unit, plan.options.lidar_model_source))
+        unit: writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta})
         for unit in plan.lidar_ids
     }
     not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
     source_points = {unit: 0 for unit in lidars}
     for sweep_ns in plan.sweep_timestamps_ns:
         sweep = read_covered_sweep(log_dir, int(sweep_ns), plan.T_rig_world, not plan.options.tbv)
+        xyz_world = None
+        if boxes is not None:  # AV2's points are motion-compensated to the sweep time: one pose takes them to world
+            T_rig_world = plan.T_rig_world.interpolate(plan.T_rig_world.relative_seconds(np.array([sweep_ns])))[0]
+            xyz_world = transform_points(T_rig_world, sweep.xyz_ego_m.astype(np.float64))
         for unit, unit_rays in sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig).items():
             rays = unit_rays.rays
+            generic = {}
+            if xyz_world is not None:
+                flag_started = time.perf_counter()
+                generic[contract.DYNAMIC_FLAG] = dynamic_flags(
+                    xyz_world[unit_rays.sweep_rows], rays.timestamp_us.astype(np.int64), boxes
+                )
+                result.dynamic_flag_seconds += time.perf_counter() - flag_started
             frame_meta = {
                 "av2_sweep_timestamp_ns": int(sweep_ns),
                 "points_zero_range": rays.n_zero_range,
@@ -182,7 +201,7 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             }
             if unit_rays.column_time_remap:
                 frame_meta["model_column_time_remap"] = unit_rays.column_time_remap
-            lidars[unit].store_frame(rays, frame_meta, model_element=unit_rays.model_elements)
+            lidars[unit].store_frame(rays, frame_meta, model_element=unit_rays.model_elements, generic_data=generic)
             not_stored[unit]["zero_range"] += rays.n_zero_range
             not_stored[unit]["non_finite"] += rays.n_non_finite
             source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
@@ -199,12 +218,22 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     result.lidar_seconds = time.perf_counter() - started
 
 
+def _dynamic_flag_note(plan: LogPlan) -> str:
+    """What the lidar metadata says of ``dynamic_flag`` (written, or why not)."""
+    if plan.dynamic_boxes is not None:
+        return (
+            f"written: int8 per point, 1 = inside one of {len(plan.dynamic_boxes)} dynamic tracks' boxes grown by"
+            " 0.5 m at the point's own time (cuboids metadata: dynamic_tracks, dynamic_rule)"
+        )
+    return "not written: " + ("TbV has no cuboids" if plan.options.tbv else "the log has no annotations")
+
+
 def _write_camera(
     plan: LogPlan, writer: SequenceWriter, cam: str, result: JobResult, progress: Callable[[int], None]
 ) -> None:
     """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
     started = time.perf_counter()
-    stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam]))
+    stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam], plan.cameras[cam]))
     for image_ns in plan.inputs.image_timestamps_ns[cam]:
         t_us = floor_us(int(image_ns))
         stream.store_frame(av2.read_jpeg(plan.inputs.log_dir, cam, int(image_ns)), "jpeg", (t_us, t_us))

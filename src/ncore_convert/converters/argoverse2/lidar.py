@@ -202,11 +202,13 @@ class UnitRays:
         model_elements: (row, column) of each ray in the unit's model, uint16 [N,2]; None without a model.
         column_time_remap: the frame's affine column-time alignment (see :func:`column_time_remap`;
             empty without a model).
+        sweep_rows: the sweep row of each ray, int64 [N].
     """
 
     rays: RayBundle
     model_elements: np.ndarray | None
     column_time_remap: dict
+    sweep_rows: np.ndarray
 
 
 def sweep_ray_bundles(
@@ -234,7 +236,7 @@ def sweep_ray_bundles(
             remap = column_time_remap(
                 elements[:, 1], time_s, len(model.column_azimuths_rad), model.spinning_frequency_hz
             )
-        out[unit] = UnitRays(rays, elements, remap)
+        out[unit] = UnitRays(rays, elements, remap, idx[rays.source_index])
     return out
 
 

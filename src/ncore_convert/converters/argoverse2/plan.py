@@ -3,27 +3,30 @@ writing job needs (sensors, ego trajectory, lidar calibration). TbV is a mode of
 (``Argoverse2Options.split`` None).
 
 Frame mapping: AV2 ``egovehicle`` is NCore ``rig``; ``world`` is the city frame re-referenced to the
-first ego pose; ``world_global`` is the AV2 city frame (static float64 edge ``T_world_world_global``,
-the first ego pose in the city).
+first ego pose (of the clip window, with one); ``world_global`` is by default the AV2 city frame (static
+float64 edge ``T_world_world_global``, the first ego pose in the city; ``--world-global-mode``).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.contract import LidarModelSource, Profile, StoreType
+from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerTiming, calibrate_lidars
-from ncore_convert.converters.common import select_sensors
-from ncore_convert.errors import SourceError
+from ncore_convert.converters.common import ConsumerOptions, select_sensors
+from ncore_convert.errors import SourceError, UsageError
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.files import require_folder
-from ncore_convert.transforms import lidar_timing
+from ncore_convert.transforms import labels, lidar_timing
+from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.dynamic import DynamicBoxes, TrackObservations
 from ncore_convert.transforms.geometry import Trajectory, invert_se3
-from ncore_convert.transforms.timebase import NS_PER_US, ceil_us, floor_us
+from ncore_convert.transforms.timebase import NS_PER_US, WindowError, ceil_us, floor_us, in_window
 
 #: Sensor data may reach this far (µs) beyond the pose table, or across a gap in it; further fails.
 MAX_POSE_EXTRAPOLATION_US = 200_000
@@ -34,7 +37,7 @@ UNIT_DECISION_MIN_MARGIN = 2.0
 
 
 @dataclass(frozen=True)
-class Argoverse2Options:
+class Argoverse2Options(ConsumerOptions):
     """Options of the ``argoverse2-v4`` and ``tbv-v4`` commands (sensor selection: None = all available).
 
     ``split`` is the AV2 Sensor split folder; None for TbV, whose logs sit directly under the root
@@ -89,8 +92,13 @@ def read_log_inputs(
     )
 
 
-def ego_trajectory(inputs: LogInputs, needed_us: tuple[int, int], warnings: list[str]) -> tuple[Trajectory, np.ndarray]:
-    """``T_rig_world`` relative to the first pose, and ``T_world_world_global`` (= the first ``T_ego_city``).
+def ego_trajectory(
+    inputs: LogInputs, needed_us: tuple[int, int], warnings: list[str], cut: bool = False
+) -> tuple[Trajectory, np.ndarray]:
+    """``T_rig_world`` relative to the first pose, and ``T_world_city`` (= the first ``T_ego_city``).
+
+    With ``cut`` (a clip window), only the poses that cover ``needed_us`` are kept (with one pose
+    either side), so the first kept pose is ``world``.
 
     Timestamps go ns -> µs (floor) with duplicate µs dropped (first kept). Where sensor data reach
     up to ``MAX_POSE_EXTRAPOLATION_US`` outside the pose table, the trajectory is extended at
@@ -101,8 +109,13 @@ def ego_trajectory(inputs: LogInputs, needed_us: tuple[int, int], warnings: list
     path = av2.poses_path(inputs.log_dir)
     pose_timestamps_us, first = np.unique(floor_us(inputs.pose_timestamps_ns), return_index=True)
     T_ego_city = inputs.T_ego_city[first]
-    T_world_world_global = T_ego_city[0]
-    T_rig_world = invert_se3(T_world_world_global) @ T_ego_city
+    if cut:
+        lo = max(0, int(np.searchsorted(pose_timestamps_us, needed_us[0], side="right")) - 1)
+        hi = min(len(pose_timestamps_us), int(np.searchsorted(pose_timestamps_us, needed_us[1], side="left")) + 1)
+        lo = min(lo, max(0, hi - 2))  # at least two poses
+        pose_timestamps_us, T_ego_city = pose_timestamps_us[lo:hi], T_ego_city[lo:hi]
+    T_world_city = T_ego_city[0]
+    T_rig_world = invert_se3(T_world_city) @ T_ego_city
     traj = Trajectory(pose_timestamps_us.astype(np.int64), T_rig_world)
     start_us, end_us = needed_us
     _check_pose_gaps(path, pose_timestamps_us, needed_us)
@@ -121,7 +134,7 @@ def ego_trajectory(inputs: LogInputs, needed_us: tuple[int, int], warnings: list
         )
         traj = traj.extended(min(start_us, traj.start_us), max(end_us, traj.end_us))
     stored = traj.poses.astype(np.float32).astype(np.float64)
-    return Trajectory(traj.timestamps_us, stored), T_world_world_global
+    return Trajectory(traj.timestamps_us, stored), T_world_city
 
 
 def _check_pose_gaps(path: UPath, pose_timestamps_us: np.ndarray, needed_us: tuple[int, int]) -> None:
@@ -189,8 +202,13 @@ class LogPlan:
 
     Attributes:
         T_rig_world: stored (float32-rounded) ego trajectory, µs.
-        T_world_world_global: the first ego pose in the city frame [4,4], float64.
         lidar_calibration: unit split and models (None without lidars).
+        T_world_world_global: what the static ``world -> world_global`` edge holds (None: no edge,
+            ``--world-global-mode none``); the city frame is in ``generic_meta`` in every mode.
+        window_us: the clip window (inclusive µs), None for the whole log.
+        cameras: how each camera is stored (model type, f-theta fit).
+        cuboid_labels: class names, label source and dynamic tracks (None without annotations).
+        dynamic_boxes: the dynamic tracks' boxes in ``world`` (None: no ``dynamic_flag``).
     """
 
     inputs: LogInputs
@@ -199,10 +217,14 @@ class LogPlan:
     camera_ids: list[str]
     lidar_ids: list[str]
     T_rig_world: Trajectory
-    T_world_world_global: np.ndarray
+    T_world_world_global: np.ndarray | None
     lidar_calibration: LidarCalibration | None
     generic_meta: dict
     warnings: list[str]
+    window_us: tuple[int, int] | None = None
+    cameras: dict[str, consumer.CameraSpec] | None = None
+    cuboid_labels: consumer.CuboidLabels | None = None
+    dynamic_boxes: DynamicBoxes | None = None
 
     @property
     def sweep_timestamps_ns(self) -> np.ndarray:
@@ -244,8 +266,22 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         warnings.append(f"{log_dir / 'sensors' / 'lidar'}: no sweeps; lidars not written")
         lidar_ids = []
 
+    window_us = _window(options, inputs, camera_ids, lidar_ids)
+    if window_us is not None:
+        inputs = _clipped(inputs, window_us)
+        empty = [cam for cam in camera_ids if len(inputs.image_timestamps_ns[cam]) == 0]
+        if empty:
+            warnings.append(f"{log_dir}: no images of {', '.join(empty)} in the clip window; cameras not written")
+            camera_ids = [cam for cam in camera_ids if cam not in empty]
+        if lidar_ids and len(inputs.sweep_timestamps_ns) == 0:
+            warnings.append(f"{log_dir}: no sweeps in the clip window; lidars not written")
+            lidar_ids = []
+
     needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids), not options.tbv)
-    T_rig_world, T_world_world_global = ego_trajectory(inputs, needed_us, warnings)
+    T_rig_world, T_world_city = ego_trajectory(inputs, needed_us, warnings, cut=window_us is not None)
+    T_world_world_global, world_global_meta = consumer.world_global(
+        T_world_city, options.world_global_mode, "the Argoverse 2 city frame"
+    )
     lidar_calibration = None
     if lidar_ids:
         T_lidar_rig = {unit: inputs.T_sensor_ego[unit] for unit in av2.LIDARS}
@@ -265,7 +301,14 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         contract.AV2_SPLIT: options.split,
         contract.AV2_LOG_ID: log_id,
         contract.CONVERTER: contract.converter_meta(asdict(options)),
+        contract.WORLD_GLOBAL: world_global_meta,
     }
+    if window_us is not None:
+        generic_meta[contract.CLIP] = consumer.clip_meta(options, window_us)
+    cuboid_labels, dynamic_boxes = _cuboid_labels(inputs, options, T_rig_world, bool(lidar_ids))
+    if cuboid_labels is not None:
+        warnings.extend(cuboid_labels.warnings)
+    cameras = {cam: consumer.camera_spec(_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids}
     return LogPlan(
         inputs=inputs,
         options=options,
@@ -277,4 +320,64 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         lidar_calibration=lidar_calibration,
         generic_meta=generic_meta,
         warnings=warnings,
+        window_us=window_us,
+        cameras=cameras,
+        cuboid_labels=cuboid_labels,
+        dynamic_boxes=dynamic_boxes,
     )
+
+
+def _pinhole(intr: av2.CameraIntrinsics) -> Pinhole:
+    """An AV2 camera as an NCore pinhole: the principal point moves to the pixel-corner convention."""
+    return Pinhole((intr.fx_px, intr.fy_px), (intr.cx_px + 0.5, intr.cy_px + 0.5), (intr.width_px, intr.height_px))
+
+
+def _window(
+    options: Argoverse2Options, inputs: LogInputs, camera_ids: list[str], lidar_ids: list[str]
+) -> tuple[int, int] | None:
+    """The clip window over the log's sweep and image times; UsageError naming the log's duration."""
+    reference = [floor_us(inputs.sweep_timestamps_ns)] if lidar_ids else []
+    reference += [floor_us(inputs.image_timestamps_ns[cam]) for cam in camera_ids]
+    try:
+        return consumer.clip_window(options, reference)
+    except WindowError as err:
+        raise UsageError(f"{inputs.log_dir}: {err}") from None
+
+
+def _clipped(inputs: LogInputs, window_us: tuple[int, int]) -> LogInputs:
+    """The sweeps, images and annotations whose (floored µs) timestamps lie in the window."""
+    annotations = inputs.annotations
+    if annotations is not None:
+        annotations = annotations.subset(in_window(floor_us(annotations.timestamps_ns), window_us))
+    return replace(
+        inputs,
+        sweep_timestamps_ns=inputs.sweep_timestamps_ns[in_window(floor_us(inputs.sweep_timestamps_ns), window_us)],
+        image_timestamps_ns={
+            cam: stamps[in_window(floor_us(stamps), window_us)] for cam, stamps in inputs.image_timestamps_ns.items()
+        },
+        annotations=annotations,
+    )
+
+
+def _cuboid_labels(
+    inputs: LogInputs, options: Argoverse2Options, T_rig_world: Trajectory, with_lidar: bool
+) -> tuple[consumer.CuboidLabels | None, DynamicBoxes | None]:
+    """Class names, label source and dynamic tracks of the annotations (None, None without), and the
+    dynamic tracks' boxes in ``world`` for ``dynamic_flag`` (None without lidars)."""
+    annotations = inputs.annotations
+    if annotations is None:
+        return None, None
+    T_rig_world_at = T_rig_world.interpolate(T_rig_world.relative_seconds(annotations.timestamps_ns))
+    T_box_world = T_rig_world_at @ annotations.T_object_ego
+    timestamps_us = floor_us(annotations.timestamps_ns)
+    cuboid_labels = consumer.cuboid_labels(
+        annotations.track_uuids, annotations.categories, labels.AV2_TO_NCORE, options.class_names,
+        options.cuboid_label_source, "EXTERNAL", timestamps_us, T_box_world[:, :3, 3],
+        str(inputs.log_dir / "annotations.feather"),
+    )  # fmt: skip
+    if not with_lidar:
+        return cuboid_labels, None
+    observations = TrackObservations(
+        annotations.track_uuids, timestamps_us, T_box_world[:, :3, 3], T_box_world[:, :3, :3], annotations.dims_m
+    )
+    return cuboid_labels, DynamicBoxes.select(observations, cuboid_labels.dynamic)

@@ -1,0 +1,151 @@
+"""Per-log decisions every converter makes the same way for the output's consumers
+(docs/consumers.md): the clip window, what ``world -> world_global`` holds, the camera models, and
+the cuboids' class names, label source and dynamic tracks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ncore_convert import contract
+from ncore_convert.contract import CameraModel, ClassNames, CuboidLabelSource, WorldGlobalMode
+from ncore_convert.converters.common import ConsumerOptions
+from ncore_convert.transforms import dynamic, labels
+from ncore_convert.transforms.camera_models import FThetaFit, Pinhole, fit_ftheta
+from ncore_convert.transforms.timebase import clip_window_us
+
+
+def clip_window(options: ConsumerOptions, reference_us: list[np.ndarray]) -> tuple[int, int] | None:
+    """The inclusive µs window of ``--seek-sec/--duration-sec`` over a log whose frames have the
+    reference times ``reference_us`` (int arrays, µs); None without a window. WindowError (naming
+    the log's duration) when the window is outside the log."""
+    if options.seek_sec is None and options.duration_sec is None:
+        return None
+    times = [t for t in reference_us if len(t)]
+    first = min(int(np.min(t)) for t in times)
+    last = max(int(np.max(t)) for t in times)
+    return clip_window_us(first, last, options.seek_sec, options.duration_sec)
+
+
+def clip_meta(options: ConsumerOptions, window_us: tuple[int, int] | None) -> dict | None:
+    """The sequence metadata's ``clip`` record (None without a window)."""
+    if window_us is None:
+        return None
+    return {
+        "seek_sec": options.seek_sec,
+        "duration_sec": options.duration_sec,
+        "start_us": int(window_us[0]),
+        "end_us": int(window_us[1]),
+        "rule": "frames whose reference time (sweep timestamp, image timestamp, frame tick) lies in"
+        " [start_us, end_us] are kept whole; cuboids by their timestamp; poses cover the kept frames",
+    }
+
+
+def world_global(
+    T_world_dataset_global: np.ndarray, mode: WorldGlobalMode, dataset_global: str
+) -> tuple[np.ndarray | None, dict]:
+    """What ``world -> world_global`` holds under ``mode``, and the sequence metadata's
+    ``world_global`` record, which keeps the dataset's global frame recoverable in every mode.
+
+    Args:
+        T_world_dataset_global: world -> the dataset's global frame, float64 [4,4].
+        dataset_global: what that frame is (for the metadata).
+
+    Returns:
+        the static edge to store (None: no ``world_global`` node), and the metadata record.
+    """
+    edge = {"localized": T_world_dataset_global, "identity": np.eye(4), "none": None}[mode]
+    meta = {
+        "mode": mode,
+        "dataset_global": dataset_global,
+        "T_world_dataset_global": np.asarray(T_world_dataset_global, dtype=np.float64).tolist(),
+        "note": {
+            "localized": "world_global is the dataset's global frame",
+            "identity": "world_global = world; the dataset's global frame is T_world_dataset_global",
+            "none": "no world_global node; the dataset's global frame is T_world_dataset_global",
+        }[mode],
+    }
+    return edge, meta
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """A camera as stored: its pinhole, the model type, and the f-theta fit (``ftheta`` only)."""
+
+    pinhole: Pinhole
+    model: CameraModel
+    ftheta: FThetaFit | None = None
+
+    def meta(self) -> dict:
+        """The camera component metadata's ``camera_model`` record."""
+        out: dict = {"type": self.model}
+        if self.model == "opencv-pinhole":
+            out["note"] = "every distortion coefficient 0: the same rays as the ideal pinhole"
+        if self.ftheta is not None:
+            out["ftheta_fit"] = self.ftheta.meta()
+        return out
+
+
+def camera_spec(pinhole: Pinhole, model: CameraModel) -> CameraSpec:
+    """How ``--camera-model`` stores a pinhole camera (the f-theta fit is made here, once per camera)."""
+    return CameraSpec(pinhole, model, fit_ftheta(pinhole) if model == "ftheta" else None)
+
+
+@dataclass(frozen=True)
+class CuboidLabels:
+    """The cuboids' names and provenance as written.
+
+    Attributes:
+        class_ids: the written class name of each observation [M].
+        label_source: the NCore ``LabelSource`` member name.
+        meta: the cuboids component's metadata.
+        dynamic: dynamic track id -> robust speed (m/s).
+        warnings: one per log for source classes outside the table.
+    """
+
+    class_ids: list[str]
+    label_source: str
+    meta: dict
+    dynamic: dict[str, float]
+    warnings: list[str]
+
+
+def cuboid_labels(
+    track_ids: list[str],
+    source_classes: list[str],
+    table: dict[str, str],
+    class_names: ClassNames,
+    label_source_option: CuboidLabelSource,
+    dataset_label_source: str,
+    timestamps_us: np.ndarray,
+    centers_m: np.ndarray,
+    where: str,
+) -> CuboidLabels:
+    """Class names, label source and dynamic tracks of a log's cuboid observations.
+
+    Args:
+        track_ids, source_classes: per observation [M]; table: source class -> NCore class.
+        timestamps_us: int64 [M]; centers_m: box centres in a fixed frame, float64 [M,3] (speeds).
+        where: the source file or folder, for the warning.
+    """
+    written, ncore, unmapped = labels.output_classes(source_classes, table, class_names)
+    source = labels.label_source(label_source_option, dataset_label_source)
+    moving = dynamic.dynamic_tracks(track_ids, ncore, timestamps_us, centers_m) if len(track_ids) else {}
+    warnings = []
+    if unmapped:
+        warnings.append(
+            f"{where}: categories without an NCore class name kept as they are: {', '.join(unmapped)}"
+        )
+    meta = {
+        "class_names": class_names,
+        "label_source": source,
+        "label_source_note": "AUTOLABEL is a compatibility setting for instant-nurec, not a provenance claim"
+        if source == "AUTOLABEL" and dataset_label_source != "AUTOLABEL"
+        else f"the dataset's labels are {dataset_label_source}",
+        contract.SOURCE_CLASS_BY_TRACK: dict(zip(track_ids, source_classes, strict=True)),
+        contract.DYNAMIC_TRACKS: moving,
+        "dynamic_rule": f"class always dynamic ({', '.join(sorted(labels.ALWAYS_DYNAMIC))}) or robust speed"
+        f" > {dynamic.DYNAMIC_SPEED_MPS:.4f} m/s; never: {', '.join(sorted(labels.ALWAYS_STATIC))}",
+    }
+    return CuboidLabels(written, source, meta, moving, warnings)
