@@ -24,7 +24,14 @@ from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE
 from ncore_convert.validate.coregister import scenario_lidars
-from ncore_convert.validate.readback import box_corners_world, boxes_at, open_sequence, read_manifest, world_points
+from ncore_convert.validate.readback import (
+    box_corners_world,
+    boxes_at,
+    open_sequence,
+    read_manifest,
+    sensor_poses,
+    world_points,
+)
 
 BEV_HALF_SIZE_M = 60.0  #: the bird's-eye view spans this far around the ego in x and y
 SCENARIO_MARGIN_M = 50.0  #: the cooperative view spans the agents plus this much around them
@@ -222,7 +229,7 @@ def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = N
             loader = loaders[str(agent.sequence_json)]
             xyz, origin = world_points(loader, agent.lidar_id, agent.frame_ending_at(t_us), "world_global")
             ends_us = agent.frame_ends_us().astype(np.uint64)
-            track = loader.pose_graph.evaluate_poses(agent.lidar_id, "world_global", ends_us)
+            track = sensor_poses(loader, agent.lidar_id, "world_global", ends_us)
             colour = colours[k % len(colours)]
             positions.append(origin[:2])
             ax.scatter(xyz[::2, 0], xyz[::2, 1], s=0.2, color=colour, linewidths=0, alpha=0.6)

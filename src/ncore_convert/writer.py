@@ -41,11 +41,11 @@ from upath import UPath
 
 from ncore_convert.contract import (
     DEFAULT_INSTANCE,
-    CameraModel,
     MANIFEST,
     MAP_GROUND_HEIGHT,
     MAP_META,
     MAP_VECTOR_JSON,
+    CameraModel,
     Profile,
     ScenarioManifest,
     StoreType,

@@ -134,9 +134,7 @@ def cuboid_labels(
     moving = dynamic.dynamic_tracks(track_ids, ncore, timestamps_us, centers_m) if len(track_ids) else {}
     warnings = []
     if unmapped:
-        warnings.append(
-            f"{where}: categories without an NCore class name kept as they are: {', '.join(unmapped)}"
-        )
+        warnings.append(f"{where}: categories without an NCore class name kept as they are: {', '.join(unmapped)}")
     meta = {
         "class_names": class_names,
         "label_source": source,

@@ -413,6 +413,11 @@ class InteriorPoints:
     track_uuids: list[str]
     counts: np.ndarray
 
+    def subset(self, keep: np.ndarray) -> InteriorPoints:
+        """The rows where ``keep`` (bool [M]) is true."""
+        rows = np.flatnonzero(keep)
+        return InteriorPoints(self.timestamps_ns[rows], [self.track_uuids[i] for i in rows], self.counts[rows])
+
 
 def read_interior_points(log_dir: UPath) -> InteriorPoints | None:
     """The annotations' point counts, or None when the log has no ``annotations.feather``."""

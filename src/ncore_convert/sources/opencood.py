@@ -286,3 +286,8 @@ def read_png_size(path: UPath) -> tuple[int, int] | None:
         return PIL.Image.open(io.BytesIO(head)).size
     except (OSError, PIL.UnidentifiedImageError):
         return None
+
+
+def key_timestamps_us(keys: list[str], fixed_delta_seconds: float) -> np.ndarray:
+    """Frame keys (CARLA frame counters) -> µs since the simulation's frame 0, int64 [N]."""
+    return np.round(np.array([int(k) for k in keys], dtype=np.float64) * fixed_delta_seconds * 1e6).astype(np.int64)

@@ -137,7 +137,9 @@ class DynamicBoxes:
         centers = observations.centers_m[keep]
         half = observations.dims_m[keep] / 2 + BOX_MARGIN_M
         times = observations.timestamps_us[keep].astype(np.int64)
-        reach = np.array([np.linalg.norm(half[a:b], axis=1).max() for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
+        reach = np.array(
+            [np.linalg.norm(half[a:b], axis=1).max() for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+        )
         step_speed = np.zeros(len(bounds) - 1)
         for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
             if b - a > 1:

@@ -30,9 +30,7 @@ class WindowError(ValueError):
     """A clip window that selects nothing of the log; the message names the log's duration."""
 
 
-def clip_window_us(
-    first_us: int, last_us: int, seek_sec: float | None, duration_sec: float | None
-) -> tuple[int, int]:
+def clip_window_us(first_us: int, last_us: int, seek_sec: float | None, duration_sec: float | None) -> tuple[int, int]:
     """The inclusive µs window ``[first + seek, first + seek + duration]`` of a log whose reference
     times (sweeps, images, frame ticks) span ``[first_us, last_us]``; the whole log without a window.
 

@@ -22,7 +22,7 @@ from ncore.impl.common.transformations import is_within_3d_bboxes
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
-from ncore_convert.contract import DEFAULT_INSTANCE, ScenarioManifest
+from ncore_convert.contract import DEFAULT_INSTANCE, WORLD_GLOBAL, ScenarioManifest
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
 SAMPLED_FRAMES = 5
@@ -69,18 +69,35 @@ def boxes_at(observations: list, t0_us: int, t1_us: int) -> list:
     return [o for o in inside if o.timestamp_us == first]
 
 
+def T_world_dataset_global(loader: SequenceLoaderV4) -> np.ndarray:
+    """world -> the dataset's global frame, float64 [4,4]: the sequence metadata's record (every
+    ``--world-global-mode``), else (sequences written before it) the ``world -> world_global`` edge."""
+    record = loader.generic_meta_data.get(WORLD_GLOBAL)
+    if isinstance(record, dict) and "T_world_dataset_global" in record:
+        return np.asarray(record["T_world_dataset_global"], dtype=np.float64)
+    return loader.pose_graph.evaluate_poses("world", "world_global", np.zeros(1, dtype=np.uint64))[0].astype(np.float64)
+
+
+def sensor_poses(loader: SequenceLoaderV4, sensor_id: str, target: str, timestamps_us: np.ndarray) -> np.ndarray:
+    """``T_sensor_target`` at ``timestamps_us`` (uint64 [T]), float64 [T,4,4]; ``target`` ``world``, or
+    ``world_global`` meaning the dataset's global frame (:func:`T_world_dataset_global`)."""
+    t_us = np.asarray(timestamps_us, dtype=np.uint64)
+    T_sensor_world = loader.pose_graph.evaluate_poses(sensor_id, "world", t_us).astype(np.float64)
+    return T_world_dataset_global(loader)[None] @ T_sensor_world if target == "world_global" else T_sensor_world
+
+
 def world_points(
     loader: SequenceLoaderV4, lidar_id: str, frame: int, target: str = "world"
 ) -> tuple[np.ndarray, np.ndarray]:
     """A lidar frame's points, motion-compensated with the per-point times, in ``target`` (``world``
-    or ``world_global``).
+    or ``world_global``, the dataset's global frame whatever ``--world-global-mode`` stored).
 
     Returns:
         xyz_m in target, float64 [N,3], and the sensor's position there at the frame end, float64 [3].
     """
     lidar = loader.get_lidar_sensor(lidar_id)
-    end_us = lidar.frames_timestamps_us[frame, 1:2].astype(np.uint64)
-    T_sensor_target = loader.pose_graph.evaluate_poses(lidar_id, target, end_us)[0].astype(np.float64)
+    end_us = lidar.frames_timestamps_us[frame, 1:2]
+    T_sensor_target = sensor_poses(loader, lidar_id, target, end_us)[0]
     xyz_sensor_m = lidar.get_frame_point_cloud(frame, motion_compensation=True, with_start_points=False).xyz_m_end
     xyz_target_m = xyz_sensor_m.astype(np.float64) @ T_sensor_target[:3, :3].T + T_sensor_target[:3, 3]
     return xyz_target_m, T_sensor_target[:3, 3]

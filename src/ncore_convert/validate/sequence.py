@@ -12,7 +12,15 @@ import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from upath import UPath
 
-from ncore_convert.validate.readback import box_point_counts, boxes_at, open_sequence, sample_frames, world_points
+from ncore_convert import contract
+from ncore_convert.validate.readback import (
+    T_world_dataset_global,
+    box_point_counts,
+    boxes_at,
+    open_sequence,
+    sample_frames,
+    world_points,
+)
 from ncore_convert.validate.report import Report
 from ncore_convert.validate.source import compare_with_source
 
@@ -139,6 +147,64 @@ def _check_camera(report: Report, loader: SequenceLoaderV4, camera_id: str, lida
                    f" max {nearest.max() / 1e3:.1f} ms")  # fmt: skip
 
 
+def _check_world_global(report: Report, loader: SequenceLoaderV4) -> None:
+    """``world -> world_global`` is what the sequence's ``--world-global-mode`` says: the dataset's
+    global frame (localized), the identity, or absent (none)."""
+    record = loader.generic_meta_data.get(contract.WORLD_GLOBAL) or {"mode": "localized"}
+    mode = record.get("mode", "localized")
+    present = "world_global" in loader.pose_graph.nodes
+    if mode == "none":
+        report.add(
+            "world_global as --world-global-mode none",
+            not present,
+            f"world_global node {'present' if present else 'absent'}",
+        )
+        return
+    if not present:
+        report.add(f"world_global as --world-global-mode {mode}", False, "no static world -> world_global edge")
+        return
+    edge = loader.pose_graph.evaluate_poses("world", "world_global", np.zeros(1, dtype=np.uint64))[0].astype(np.float64)
+    expected = np.eye(4) if mode == "identity" else T_world_dataset_global(loader)
+    error_m = float(np.abs(edge - expected).max())
+    report.add(f"world_global as --world-global-mode {mode}", error_m <= 1e-9,
+               f"static world -> world_global edge; max |edge - expected| = {error_m:.1e}")  # fmt: skip
+
+
+def _check_window(report: Report, loader: SequenceLoaderV4, observations: list) -> None:
+    """With a clip window: camera frames and cuboids lie in it, and every lidar frame overlaps it."""
+    clip = loader.generic_meta_data.get(contract.CLIP)
+    if not clip:
+        return
+    start, end = int(clip["start_us"]), int(clip["end_us"])
+    outside = []
+    for camera_id in loader.camera_ids:
+        frames_us = loader.get_camera_sensor(camera_id).frames_timestamps_us.astype(np.int64)
+        outside += [f"{camera_id}[{i}]" for i in np.flatnonzero((frames_us[:, 1] < start) | (frames_us[:, 1] > end))]
+    for lidar_id in loader.lidar_ids:
+        frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us.astype(np.int64)
+        outside += [f"{lidar_id}[{i}]" for i in np.flatnonzero((frames_us[:, 1] < start) | (frames_us[:, 0] > end))]
+    outside += [f"cuboid {o.track_id}@{o.timestamp_us}" for o in observations if not start <= o.timestamp_us <= end]
+    report.add("frames and cuboids within the clip window", not outside,
+               f"[{start}, {end}] us ({(end - start) / 1e6:.3f} s); {len(outside)} outside"
+               + (f": {outside[:3]}" if outside else ""))  # fmt: skip
+
+
+def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4) -> None:
+    """Where a lidar has ``dynamic_flag``, every frame has one int8 value in {0, 1} per ray."""
+    for lidar_id in loader.lidar_ids:
+        source = loader.get_point_clouds_source(lidar_id)
+        if not source.pcs_count or not source.has_pc_generic_data(0, contract.DYNAMIC_FLAG):
+            continue
+        bad = []
+        for i in range(source.pcs_count):
+            flag = source.get_pc_generic_data(i, contract.DYNAMIC_FLAG)
+            n = loader.get_lidar_sensor(lidar_id).get_frame_ray_bundle_count(i)
+            if flag.dtype != np.int8 or flag.shape != (n,) or not np.isin(flag, (0, 1)).all():
+                bad.append(i)
+        report.add(f"lidar {lidar_id}: dynamic_flag per ray", not bad,
+                   f"int8 in {{0, 1}}, one per ray, on {source.pcs_count - len(bad)} of {source.pcs_count} frames")  # fmt: skip
+
+
 def validate_sequence(sequence_json: UPath, source_root: UPath | None = None) -> Report:
     """Open a sequence (its ``<sequence_id>.json``) with the default instance names and check it;
     with ``source_root`` (the converter's --root-dir), also compare its counts with the source."""
@@ -156,10 +222,10 @@ def validate_sequence(sequence_json: UPath, source_root: UPath | None = None) ->
     report.add(
         "opens with SequenceLoaderV4", True, f"{len(loader.lidar_ids)} lidar(s), {len(loader.camera_ids)} camera(s)"
     )
-    report.add(
-        "world_global in the pose graph", "world_global" in loader.pose_graph.nodes, "static world -> world_global edge"
-    )
+    _check_world_global(report, loader)
     observations = list(loader.get_cuboid_track_observations())
+    _check_window(report, loader, observations)
+    _check_dynamic_flag(report, loader)
     lidar_frames = None
     for lidar_id in loader.lidar_ids:
         _check_lidar(report, loader, lidar_id, observations)

@@ -20,7 +20,7 @@ from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.pcd import read_pcd_header
-from ncore_convert.transforms.timebase import floor_us
+from ncore_convert.transforms.timebase import floor_us, in_window
 from ncore_convert.validate.readback import OpenSequence, box_point_counts, boxes_at, sample_frames, world_points
 from ncore_convert.validate.report import Report
 
@@ -66,6 +66,17 @@ def _camera_selected(options: dict, camera: str) -> bool:
     return options.get("camera_ids") is None or camera in options["camera_ids"]
 
 
+def _window(meta: dict) -> tuple[int, int] | None:
+    """The clip window the sequence was cut to (inclusive µs), None for the whole log."""
+    clip = meta.get(contract.CLIP)
+    return (int(clip["start_us"]), int(clip["end_us"])) if clip else None
+
+
+def _in_window_ns(timestamps_ns: np.ndarray, window_us: tuple[int, int] | None) -> np.ndarray:
+    """The ns timestamps whose floored µs lie in the window (all without one)."""
+    return timestamps_ns if window_us is None else timestamps_ns[in_window(floor_us(timestamps_ns), window_us)]
+
+
 def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict) -> None:
     loader = sequence.loader
     log_dir = av2.log_dir(root, meta.get(contract.AV2_SPLIT), meta[contract.AV2_LOG_ID])
@@ -73,7 +84,8 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
         report.add("source: log found", False, f"{log_dir}: not a directory")
         return
     options = meta.get(contract.CONVERTER, {}).get("options", {})
-    sweeps = av2.list_sweep_timestamps_ns(log_dir)
+    window_us = _window(meta)
+    sweeps = _in_window_ns(av2.list_sweep_timestamps_ns(log_dir), window_us)
     for lidar_id in loader.lidar_ids:
         _count(report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count,
                len(sweeps))  # fmt: skip
@@ -87,13 +99,15 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
     cameras_dir = log_dir / "sensors" / "cameras"
     in_source = sorted(p.name for p in cameras_dir.iterdir() if p.is_dir()) if cameras_dir.is_dir() else []
     for camera in in_source:
-        images = len(av2.list_image_timestamps_ns(log_dir, camera))
+        images = len(_in_window_ns(av2.list_image_timestamps_ns(log_dir, camera), window_us))
         if camera in loader.camera_ids:
             _count(report, f"{camera} images", loader.get_camera_sensor(camera).frames_count, images)
         elif images and _camera_selected(options, camera):
             report.add(f"source: {camera} images", False, f"0 converted, {images} in the source")
     observations = list(loader.get_cuboid_track_observations())
     interior = av2.read_interior_points(log_dir)
+    if interior is not None and window_us is not None:
+        interior = interior.subset(in_window(floor_us(interior.timestamps_ns), window_us))
     _count(report, "cuboids", len(observations), 0 if interior is None else len(interior.counts))
     if interior is not None and set(loader.lidar_ids) == set(av2.LIDARS):
         _interior_points(report, loader, observations, interior)
@@ -147,6 +161,10 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
     agents = list(meta[contract.AGENTS])
     prefixed = len(agents) > 1 or options.get("layout") == "scenario"
     keys = {a: ocd.list_frame_keys(scenario_dir / a) for a in ocd.list_agents(scenario_dir)}
+    if (window_us := _window(meta)) is not None:
+        dt_s = meta["carla_fixed_delta_seconds"]
+        keys = {a: [k for k, keep in zip(ks, in_window(ocd.key_timestamps_us(ks, dt_s), window_us), strict=True)
+                    if keep] for a, ks in keys.items()}  # fmt: skip
     sensor_meta = sequence.sensor_meta()
     for agent in agents:
         prefix = contract.agent_prefix(agent) if prefixed else ""

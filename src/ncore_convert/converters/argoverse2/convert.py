@@ -18,8 +18,8 @@ from ncore_convert import contract
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, read_covered_sweep, sweep_ray_bundles
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Tally
-from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.converters.consumer import CameraSpec
+from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.dynamic import dynamic_flags
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, transform_points

@@ -13,19 +13,28 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.contract import ManifestAgent, ManifestNoise, ScenarioManifest
+from ncore_convert.converters import consumer
 from ncore_convert.converters.common import Tally
 from ncore_convert.converters.opencood.noise import instance_meta
-from ncore_convert.converters.opencood.plan import AgentPlan, OpenCoodOptions, ScenarioPlan, plan_scenario
+from ncore_convert.converters.opencood.plan import (
+    VEHICLE_CLASS,
+    AgentPlan,
+    OpenCoodOptions,
+    ScenarioPlan,
+    plan_scenario,
+)
 from ncore_convert.errors import SourceError
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
-from ncore_convert.transforms import carla
-from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3
+from ncore_convert.transforms import carla, labels
+from ncore_convert.transforms.dynamic import dynamic_flags
+from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3, transform_points
 from ncore_convert.transforms.lidar import ray_bundle
 from ncore_convert.transforms.timebase import NS_PER_US
 from ncore_convert.writer import Cuboids, SequenceWriter, write_scenario_manifest, write_sequence_meta
 
-VEHICLE_CLASS = "vehicle"
+#: What world_global is in the dataset (``--world-global-mode localized``).
+DATASET_GLOBAL = "the CARLA map frame made right-handed: (x, y, z)_world_global = (x, -y, z)_carla"
 
 
 @dataclass
@@ -68,18 +77,21 @@ class Names:
         return f"{self.prefix}{sensor_id}"
 
 
-def _generic_meta(plan: ScenarioPlan, agent_ids: list[str]) -> dict:
-    return {
+def _generic_meta(plan: ScenarioPlan, agent_ids: list[str], world_global_meta: dict) -> dict:
+    meta = {
         contract.SOURCE_DATASET: plan.options.dataset,
         contract.OPENCOOD_SPLIT: plan.options.split,
         contract.SCENARIO: plan.scenario,
         contract.AGENTS: {a: {"kind": plan.agents[a].kind, "opencood_ego": a == plan.ego} for a in agent_ids},
         "carla_fixed_delta_seconds": plan.fixed_delta_seconds,
         "time_base": "t_us = CARLA frame key * fixed_delta_seconds * 1e6 (frame keys are CARLA frame counters)",
-        "world_global": "the CARLA map frame made right-handed: (x, y, z)_world_global = (x, -y, z)_carla",
+        contract.WORLD_GLOBAL: world_global_meta,
         "noise_settings": {s.name: s.as_dict() for s in plan.options.noise},
         contract.CONVERTER: contract.converter_meta(_options_meta(plan.options)),
     }
+    if plan.window_us is not None:
+        meta[contract.CLIP] = consumer.clip_meta(plan.options, plan.window_us)
+    return meta
 
 
 def _options_meta(options: OpenCoodOptions) -> dict:
@@ -100,9 +112,12 @@ def _cuboids(plan: ScenarioPlan, agent: AgentPlan, names: Names) -> Cuboids:
         return Cuboids([], [], np.zeros(0, np.int64), empty, empty, empty, reference_frame_id=names.rig)
     T_box_rig = np.concatenate([r[2] for r in rows])
     ids = np.concatenate([r[0].actor_ids for r in rows])
+    class_ids, _, _ = labels.output_classes(
+        [VEHICLE_CLASS] * len(ids), labels.OPENCOOD_TO_NCORE, plan.options.class_names
+    )
     return Cuboids(
         track_ids=[str(i) for i in ids],
-        class_ids=[VEHICLE_CLASS] * len(ids),
+        class_ids=class_ids,
         timestamps_us=np.concatenate([np.full(len(r[0].actor_ids), r[1]) for r in rows]),
         centroids_m=T_box_rig[:, :3, 3],
         dims_m=np.concatenate([r[0].dims_m for r in rows]),
@@ -116,17 +131,15 @@ def _write_base(
     plan: ScenarioPlan,
     agent: AgentPlan,
     names: Names,
-    T_world_world_global: np.ndarray,
-    first: bool,
+    T_world_dataset_global: np.ndarray,
+    world_global_edge: np.ndarray | None,
 ) -> None:
-    """The agent's trajectory (and, for the first agent of a sequence, world -> world_global), its
+    """The agent's trajectory (and ``world_global_edge``, world -> world_global, unless None), its
     perturbed trajectory and delays in each noise setting's poses instance, and its camera models
-    and sensor extrinsics."""
-    T_world_global_world = invert_se3(T_world_world_global)
+    and sensor extrinsics. ``T_world_dataset_global``: world -> the right-handed CARLA map frame."""
+    T_world_global_world = invert_se3(T_world_dataset_global)
     T_rig_world = T_world_global_world @ agent.T_rig_world_global
-    writer.store_trajectory(
-        agent.timestamps_us, T_rig_world, T_world_world_global if first else None, rig_frame=names.rig
-    )
+    writer.store_trajectory(agent.timestamps_us, T_rig_world, world_global_edge, rig_frame=names.rig)
     for name, per_agent in plan.noise.items():
         noisy = per_agent[agent.agent_id]
         T_rig_world = T_world_global_world @ noisy.T_rig_world_global
@@ -134,9 +147,8 @@ def _write_base(
         writer.store_pose_data(name, noisy.arrays(agent.timestamps_us, names.prefix))
     for sensor in agent.lidar_ids + agent.camera_ids:
         writer.store_extrinsic(names.sensor(sensor), agent.T_sensor_rig[sensor], rig_frame=names.rig)
-    for cam, (K, size) in agent.intrinsics.items():
-        # CARLA's K puts the principal point at the image centre (W/2, H/2): the pixel-corner convention
-        writer.store_pinhole_camera(names.sensor(cam), (K[0, 0], K[1, 1]), (K[0, 2], K[1, 2]), size)
+    for cam, spec in agent.cameras.items():
+        writer.store_camera(names.sensor(cam), spec.pinhole, spec.model, spec.ftheta)
 
 
 def _write_sensors(
@@ -146,11 +158,14 @@ def _write_sensors(
     if agent.lidar_ids:
         meta = {"agent_id": agent.agent_id, "carla_lidar": plan.lidar_spec,
                 "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
-                "mounting": agent.mounts[src.LIDAR]}  # fmt: skip
+                "mounting": agent.mounts[src.LIDAR],
+                contract.DYNAMIC_FLAG: f"written: int8 per point, 1 = inside one of {len(plan.dynamic_boxes)}"
+                " dynamic tracks' boxes grown by 0.5 m (cuboids metadata: dynamic_tracks, dynamic_rule)"}  # fmt: skip
+        T_lidar_rig = agent.T_sensor_rig[src.LIDAR]
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
         not_stored = 0
         skipped = dict(agent.skipped_keys)
-        for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
+        for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
                 xyz_carla, intensity_u8 = src.read_points(agent.agent_dir, key)
             except SourceError as err:
@@ -160,8 +175,14 @@ def _write_sensors(
                 continue
             xyz = carla.points_right_handed(xyz_carla.astype(np.float64))
             rays = ray_bundle(xyz, np.full(len(xyz), int(t_us) * NS_PER_US, dtype=np.int64), intensity_u8, int(t_us))
+            T_lidar_world_global = agent.T_rig_world_global[frame] @ T_lidar_rig
+            flags = dynamic_flags(
+                transform_points(T_lidar_world_global, xyz[rays.source_index]), rays.timestamp_us, plan.dynamic_boxes
+            )
             lidar.store_frame(
-                rays, {"carla_frame": int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite}
+                rays,
+                {"carla_frame": int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite},
+                generic_data={contract.DYNAMIC_FLAG: flags},
             )
             counts.frames += 1
             counts.points += len(rays)
@@ -198,11 +219,15 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
     prefixed = len(agent_ids) > 1 or plan.options.layout == "scenario"
     names = {a.agent_id: Names(contract.agent_prefix(a.agent_id) if prefixed else "") for a in agents}
     reference = plan.agents[plan.ego] if plan.ego in agent_ids else agents[0]
+    T_world_dataset_global = reference.T_rig_world_global[0]  # world is the reference rig's first pose
+    world_global_edge, world_global_meta = consumer.world_global(
+        T_world_dataset_global, plan.options.world_global_mode, DATASET_GLOBAL
+    )
     writer = SequenceWriter(
         output_dir=out_dir,
         sequence_id=sequence_id,
         interval_us=(min(int(a.timestamps_us[0]) for a in agents), max(int(a.timestamps_us[-1]) for a in agents)),
-        generic_meta_data=_generic_meta(plan, agent_ids),
+        generic_meta_data=_generic_meta(plan, agent_ids, world_global_meta),
         camera_ids=[names[a.agent_id].sensor(c) for a in agents for c in a.camera_ids],
         lidar_ids=[names[a.agent_id].sensor(s) for a in agents for s in a.lidar_ids],
         store_type=plan.options.store_type,
@@ -210,11 +235,11 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
         poses_meta={"calibration_type": "carla-sensor-transforms", "egomotion_type": "carla-ground-truth-lidar_pose"},
         extra_pose_instances={s.name: instance_meta(s, plan.agent_folders) for s in plan.options.noise},
     )
-    T_world_world_global = reference.T_rig_world_global[0]  # world is the reference rig's first pose
     for i, agent in enumerate(agents):
-        _write_base(writer, plan, agent, names[agent.agent_id], T_world_world_global, first=i == 0)
+        edge = world_global_edge if i == 0 else None  # one static edge per sequence
+        _write_base(writer, plan, agent, names[agent.agent_id], T_world_dataset_global, edge)
     cuboids = _cuboids(plan, reference, names[reference.agent_id])
-    writer.store_cuboids(cuboids, source="GT_SYNTHETIC")
+    writer.store_cuboids(cuboids, plan.cuboid_labels.label_source, plan.cuboid_labels.meta)
     counts.cuboids = len(cuboids)
     for agent in agents:
         _write_sensors(writer, plan, agent, names[agent.agent_id], counts, progress)
@@ -258,7 +283,10 @@ def manifest(plan: ScenarioPlan) -> ScenarioManifest:
         split=plan.options.split,
         layout=plan.options.layout,
         sequence=f"{plan.scenario}.json" if plan.options.layout == "scenario" else None,
-        world_global="CARLA map frame, right-handed: (x, y, z)_world_global = (x, -y, z)_carla (all agents)",
+        world_global="CARLA map frame, right-handed: (x, y, z)_world_global = (x, -y, z)_carla (all agents)"
+        if plan.options.world_global_mode == "localized"
+        else f"world_global_mode {plan.options.world_global_mode}: each sequence's metadata world_global"
+        ".T_world_dataset_global places its world in the right-handed CARLA map frame",
         fixed_delta_seconds=plan.fixed_delta_seconds,
         time_base="t_us = CARLA frame key * fixed_delta_seconds * 1e6",
         ego_agent_id=int(plan.ego),

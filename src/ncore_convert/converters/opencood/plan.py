@@ -13,21 +13,25 @@ Frames (docs/opv2v-v2xset.md):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 from upath import UPath
 
 from ncore_convert.contract import Layout, Profile, StoreType
-from ncore_convert.converters.common import select_sensors
+from ncore_convert.converters import consumer
+from ncore_convert.converters.common import ConsumerOptions, select_sensors
 from ncore_convert.converters.opencood.noise import AgentNoise, opencood_loaded, plan_noise
-from ncore_convert.errors import SourceError
+from ncore_convert.errors import SourceError, UsageError
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.files import require_folder
-from ncore_convert.transforms import carla
+from ncore_convert.transforms import carla, labels
+from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.dynamic import DynamicBoxes, TrackObservations
 from ncore_convert.transforms.geometry import invert_se3, rigid_mean
 from ncore_convert.transforms.noise import NoiseSetting
+from ncore_convert.transforms.timebase import WindowError, in_window
 
 #: A sensor's mounting, re-measured every frame, may move this much before it is reported.
 MOUNT_TOLERANCE = (0.02, 0.2)  # metres, degrees
@@ -37,8 +41,12 @@ MOUNT_TOLERANCE = (0.02, 0.2)  # metres, degrees
 LABEL_TOLERANCE_M = 0.05
 
 
+#: The source class of every OPV2V / V2XSet label (the YAMLs list vehicles only).
+VEHICLE_CLASS = "vehicle"
+
+
 @dataclass(frozen=True)
-class OpenCoodOptions:
+class OpenCoodOptions(ConsumerOptions):
     """Options of the ``opv2v-v4`` and ``v2xset-v4`` commands (sensor selection: None = all)."""
 
     dataset: Literal["opv2v", "v2xset"]
@@ -66,6 +74,7 @@ class AgentPlan:
         T_sensor_rig: sensor -> rig [4,4] (lidar frame right-handed; cameras in OpenCV axes).
         intrinsics: camera id -> (K [3,3], (width, height)); camera_index: camera id -> file index.
         mounts: how much each re-measured mounting moved (metadata).
+        cameras: how each camera is stored (``--camera-model``).
     """
 
     agent_id: str
@@ -80,6 +89,7 @@ class AgentPlan:
     lidar_ids: list[str]
     mounts: dict[str, dict]
     skipped_keys: dict[str, str] = field(default_factory=dict)  #: frame key -> why its YAML was unreadable
+    cameras: dict[str, consumer.CameraSpec] = field(default_factory=dict)
 
     @property
     def kind(self) -> str:
@@ -117,6 +127,9 @@ class ScenarioPlan:
     lidar_spec: dict
     warnings: list[str]
     noise: dict[str, dict[str, AgentNoise]]  #: setting name -> agent id -> perturbations
+    window_us: tuple[int, int] | None = None  #: the clip window (inclusive µs), None for the whole scenario
+    cuboid_labels: consumer.CuboidLabels | None = None  #: class names, label source, dynamic tracks
+    dynamic_boxes: DynamicBoxes | None = None  #: the dynamic tracks' boxes in world_global
 
     def sequence_id(self, agent_id: str) -> str:
         return f"{self.scenario}_agent{agent_id}"
@@ -124,11 +137,6 @@ class ScenarioPlan:
 
 def _keys_text(keys: list[str]) -> str:
     return ", ".join(keys[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
-
-
-def timestamps_us(keys: list[str], fixed_delta_seconds: float) -> np.ndarray:
-    """Frame keys (CARLA frame counters) -> µs since the simulation's frame 0, int64 [N]."""
-    return np.round(np.array([int(k) for k in keys], dtype=np.float64) * fixed_delta_seconds * 1e6).astype(np.int64)
 
 
 def _read_frames(
@@ -198,11 +206,16 @@ def plan_agent(
         if any(not np.allclose(frames[i].camera_intrinsic[index], K, atol=1e-3) for i in with_cam):
             warnings.append(f"{agent_dir}: camera{index} intrinsics change between frames; the first is stored")
         intrinsics[cam], camera_index[cam] = (K, size), index
+    # CARLA's K puts the principal point at the image centre (W/2, H/2): the pixel-corner convention
+    cameras = {
+        cam: consumer.camera_spec(Pinhole((K[0, 0], K[1, 1]), (K[0, 2], K[1, 2]), size), options.camera_model)
+        for cam, (K, size) in intrinsics.items()
+    }
     return AgentPlan(
         agent_id=agent_dir.name,
         agent_dir=agent_dir,
         keys=keys,
-        timestamps_us=timestamps_us(keys, dt_s),
+        timestamps_us=src.key_timestamps_us(keys, dt_s),
         lidar_pose_carla=lidar_pose_carla,
         T_rig_world_global=T_rig_world_global,
         T_sensor_rig=T_sensor_rig,
@@ -211,6 +224,7 @@ def plan_agent(
         lidar_ids=lidar_ids,
         mounts=mounts,
         skipped_keys=dict(skipped_keys or {}),
+        cameras=cameras,
     )
 
 
@@ -288,7 +302,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
         raise SourceError(scenario_dir, "no agent has 2 or more readable frames")
     agents = {a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a]) for a, f in frames.items()}
     ego = src.opencood_ego(folders)
-    ego_times_us = timestamps_us(keys[ego], dt_s)
+    ego_times_us = src.key_timestamps_us(keys[ego], dt_s)
     noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
     for setting in options.noise:
         loaded = opencood_loaded(setting, folders)
@@ -304,7 +318,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
                     f"{scenario_dir / agent_id}: noise setting {setting.name}: no frame of this agent to send at"
                     f" {unsent} ego frame(s) (delay_source_keys = -1)"
                 )
-    return ScenarioPlan(
+    plan = ScenarioPlan(
         scenario=scenario,
         options=options,
         fixed_delta_seconds=dt_s,
@@ -317,3 +331,89 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
         warnings=warnings,
         noise=noise,
     )
+    try:
+        window_us = consumer.clip_window(options, [a.timestamps_us for a in agents.values()])
+    except WindowError as err:
+        raise UsageError(f"{scenario_dir}: {err}") from None
+    if window_us is not None:
+        plan = _clipped(plan, window_us, scenario_dir)
+    return _with_labels(plan, scenario_dir)
+
+
+def _clipped(plan: ScenarioPlan, window_us: tuple[int, int], scenario_dir: UPath) -> ScenarioPlan:
+    """The plan cut to the frames whose tick lies in ``window_us``: every agent's frames, the labels
+    and each noise setting's per-frame data (planned on the whole scenario, so the draws are those of
+    the uncut scenario). Agents left with fewer than 2 frames are not written (a warning)."""
+    agents, warnings = {}, list(plan.warnings)
+
+    def inside(key: str) -> bool:
+        return bool(in_window(src.key_timestamps_us([key], plan.fixed_delta_seconds), window_us)[0])
+
+    for agent_id, agent in plan.agents.items():
+        keep = in_window(agent.timestamps_us, window_us)
+        if keep.sum() < 2:
+            warnings.append(f"{scenario_dir / agent_id}: fewer than 2 frames in the clip window; agent not written")
+            continue
+        rows = np.flatnonzero(keep)
+        kept_keys = [agent.keys[i] for i in rows]
+        agents[agent_id] = replace(
+            agent, keys=kept_keys, timestamps_us=agent.timestamps_us[rows],
+            lidar_pose_carla=agent.lidar_pose_carla[rows], T_rig_world_global=agent.T_rig_world_global[rows],
+            skipped_keys={k: v for k, v in agent.skipped_keys.items() if inside(k)},
+        )  # fmt: skip
+    if not agents:
+        duration_s = (max(int(a.timestamps_us[-1]) for a in plan.agents.values())
+                      - min(int(a.timestamps_us[0]) for a in plan.agents.values())) / 1e6  # fmt: skip
+        raise UsageError(
+            f"{scenario_dir}: the clip window holds fewer than 2 frames of every agent (the scenario lasts"
+            f" {duration_s:.3f} s)"
+        )
+    ego_keep = in_window(src.key_timestamps_us(plan.ego_keys, plan.fixed_delta_seconds), window_us)
+    noise = {
+        name: {a: _clipped_noise(n, in_window(plan.agents[a].timestamps_us, window_us), ego_keep)
+               for a, n in per_agent.items() if a in agents}
+        for name, per_agent in plan.noise.items()
+    }  # fmt: skip
+    boxes = {key: b for key, b in plan.boxes.items() if inside(key)}
+    return replace(plan, agents=agents, warnings=warnings, noise=noise, boxes=boxes, window_us=window_us,
+                   ego_keys=[k for k, keep in zip(plan.ego_keys, ego_keep, strict=True) if keep])  # fmt: skip
+
+
+def _clipped_noise(agent_noise: AgentNoise, agent_keep: np.ndarray, ego_keep: np.ndarray) -> AgentNoise:
+    """An agent's noise at the kept frames: rows per agent frame by ``agent_keep``, per ego frame by ``ego_keep``."""
+    delays = agent_noise.delays
+    return replace(
+        agent_noise,
+        T_rig_world_global=agent_noise.T_rig_world_global[agent_keep],
+        pose_noise=agent_noise.pose_noise[agent_keep],
+        ego_timestamps_us=agent_noise.ego_timestamps_us[ego_keep],
+        delays=replace(
+            delays,
+            delay_ms=delays.delay_ms[ego_keep],
+            source_index=delays.source_index[ego_keep],
+            delay_frames=None if delays.delay_frames is None else delays.delay_frames[ego_keep],
+        ),  # fmt: skip
+        source_keys=agent_noise.source_keys[ego_keep],
+        source_timestamps_us=agent_noise.source_timestamps_us[ego_keep],
+    )
+
+
+def _with_labels(plan: ScenarioPlan, scenario_dir: UPath) -> ScenarioPlan:
+    """The merged labels' class names, label source and dynamic tracks, decided once per scenario from
+    every tick's boxes in world_global, and the dynamic tracks' boxes for ``dynamic_flag``."""
+    keys = sorted(plan.boxes, key=int)
+    ticks_us = src.key_timestamps_us(keys, plan.fixed_delta_seconds)
+    boxes = [plan.boxes[k] for k in keys]
+    counts = [len(b.actor_ids) for b in boxes]
+    track_ids = [str(i) for b in boxes for i in b.actor_ids]
+    T_box = np.concatenate([b.T_box_world_global for b in boxes]) if boxes else np.zeros((0, 4, 4))
+    stamps = np.repeat(ticks_us, counts)
+    cuboid_labels = consumer.cuboid_labels(
+        track_ids, [VEHICLE_CLASS] * len(track_ids), labels.OPENCOOD_TO_NCORE, plan.options.class_names,
+        plan.options.cuboid_label_source, "GT_SYNTHETIC", stamps, T_box[:, :3, 3], str(scenario_dir),
+    )  # fmt: skip
+    dims = np.concatenate([b.dims_m for b in boxes]) if boxes else np.zeros((0, 3))
+    observations = TrackObservations(track_ids, stamps, T_box[:, :3, 3], T_box[:, :3, :3], dims)
+    dynamic_boxes = DynamicBoxes.select(observations, cuboid_labels.dynamic)
+    return replace(plan, cuboid_labels=cuboid_labels, dynamic_boxes=dynamic_boxes,
+                   warnings=plan.warnings + cuboid_labels.warnings)  # fmt: skip
