@@ -26,10 +26,11 @@ import yaml
 from bench_argoverse2 import bench_parser, cached, work_dir
 from upath import UPath
 
-from ncore_convert.converters.opencood import AgentPlan, timestamps_us
+from ncore_convert.converters.opencood import AgentPlan
 from ncore_convert.converters.opencood.noise import plan_noise
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.noise_config import make_setting
+from ncore_convert.sources.opencood import key_timestamps_us
 
 COMMON = {"seed": 25, "async": True, "loc_err": True, "xyz_std": 0.2, "ryp_std": 0.2}
 SETTINGS = {
@@ -53,7 +54,7 @@ def stand_in_agents(n_agents: int, n_frames: int) -> tuple[dict[str, AgentPlan],
         T_rig = np.tile(np.eye(4), (n_frames, 1, 1))
         T_rig[:, :3, 3] = pose[:, :3]
         agents[agent_id] = AgentPlan(
-            agent_id=agent_id, agent_dir=UPath("/nonexistent"), keys=keys, timestamps_us=timestamps_us(keys, 0.05),
+            agent_id=agent_id, agent_dir=UPath("/nonexistent"), keys=keys, timestamps_us=key_timestamps_us(keys, 0.05),
             lidar_pose_carla=pose, T_rig_world_global=T_rig, T_sensor_rig={src.LIDAR: np.eye(4)}, intrinsics={},
             camera_index={}, lidar_ids=[src.LIDAR], mounts={},
         )  # fmt: skip
@@ -63,7 +64,7 @@ def stand_in_agents(n_agents: int, n_frames: int) -> tuple[dict[str, AgentPlan],
 def model_times(repeat: int) -> dict[str, float]:
     agents, keys = stand_in_agents(7, 700)
     folders = list(agents)
-    ego_t = timestamps_us(keys, 0.05)
+    ego_t = key_timestamps_us(keys, 0.05)
     out = {}
     for name, values in SETTINGS.items():
         setting = make_setting({"name": name, **values})

@@ -46,6 +46,30 @@ def find_av2_sample() -> Path:
     )
 
 
+def find_reference() -> Path:
+    """The shared reference briefs (``consumers.md`` ...), found beside the repository as the AV2 sample is."""
+    for c in [str(p / "shared" / "reference") for p in (REPO.parent, REPO.parent.parent)] + ["/work/shared/reference"]:
+        if (Path(c) / "consumers.md").is_file():
+            return Path(c)
+    raise RuntimeError("../shared/reference/consumers.md not found beside the repository")
+
+
+def consumers_class_table() -> dict[str, str]:
+    """AV2 category -> NCore class, parsed from consumers.md's table (the spec, not our code)."""
+    table, inside = {}, False
+    for line in (find_reference() / "consumers.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if cells[:2] == ["AV2", "NCore"]:
+            inside = True
+            continue
+        if inside and not line.startswith("  |"):
+            break
+        if inside and not set(cells[0]) <= set("-"):
+            for sources, ncore in ((cells[0], cells[1]), (cells[2], cells[3])):
+                table.update({name.strip(): ncore for name in sources.split(",")})
+    return table
+
+
 def free_port() -> int:
     """A TCP port free on 127.0.0.1 right now."""
     with socket.socket() as s:

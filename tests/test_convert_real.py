@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow.feather as feather
-from conftest import AV2_SAMPLE_LOG
-from ncore.data.v4 import LidarSensorComponent, PosesComponent
+from conftest import AV2_SAMPLE_LOG, consumers_class_table
+from ncore.data.v4 import CuboidsComponent, LidarSensorComponent, PosesComponent
 from ncore.impl.common.transformations import PoseInterpolator
 from scipy.spatial.transform import Rotation
+
+from ncore_convert.contract import SOURCE_CLASS_BY_TRACK
 
 
 def test_opens_with_default_instance_names(real_log):
@@ -44,13 +46,27 @@ def test_point_count_preserved_per_unit(real_log, av2_sample_root):
         assert readers[unit].generic_meta_data["source_points"] == source_total
 
 
+def test_class_names_follow_the_consumers_table_and_the_source_name_is_recoverable(real_log, av2_sample_root):
+    """--class-names ncore (default): every category maps as consumers.md's table says, and the
+    cuboids' metadata gives back each track's AV2 category without the source."""
+    table = feather.read_table(av2_sample_root / "val" / AV2_SAMPLE_LOG / "annotations.feather").to_pydict()
+    spec = consumers_class_table()
+    assert len(spec) == 30 and spec["REGULAR_VEHICLE"] == "car" and spec["DOG"] == "animal"
+    category = dict(zip(table["track_uuid"], table["category"], strict=True))
+    observations = list(real_log.loader.get_cuboid_track_observations())
+    assert {o.class_id for o in observations} == {spec[c] for c in table["category"]}
+    assert all(o.class_id == spec[category[o.track_id]] for o in observations)
+    cuboids = real_log.reader.open_component_readers(CuboidsComponent.Reader)["default"]
+    assert cuboids.generic_meta_data[SOURCE_CLASS_BY_TRACK] == category
+
+
 def test_all_cuboid_observations_present(real_log, av2_sample_root):
     table = feather.read_table(av2_sample_root / "val" / AV2_SAMPLE_LOG / "annotations.feather")
     observations = list(real_log.loader.get_cuboid_track_observations())
     assert len(observations) == table.num_rows == 11364
     first = observations[0]
     row = {k: v[0] for k, v in table.slice(0, 1).to_pydict().items()}
-    assert first.track_id == row["track_uuid"] and first.class_id == row["category"]
+    assert first.track_id == row["track_uuid"] and first.class_id == consumers_class_table()[row["category"]]
     assert first.timestamp_us == row["timestamp_ns"] // 1000
     np.testing.assert_allclose(first.bbox3.centroid, (row["tx_m"], row["ty_m"], row["tz_m"]))
     np.testing.assert_allclose(first.bbox3.dim, (row["length_m"], row["width_m"], row["height_m"]))

@@ -182,7 +182,7 @@ def test_cuboids_contain_their_points_and_match_the_carla_labels(agents):
         T_lidar_rig = lidar.T_sensor_rig
         observations = list(loader.get_cuboid_track_observations())
         assert {o.source.name for o in observations} == {"GT_SYNTHETIC"}
-        assert {o.class_id for o in observations} == {"vehicle"}
+        assert {o.class_id for o in observations} == {"car"}  # --class-names ncore: CARLA's vehicles are cars
         for i, key in enumerate(agents.truth.keys):
             t_us = int(lidar.get_frames_timestamps_us()[i])
             boxes = {o.track_id: o for o in observations if o.timestamp_us == t_us}

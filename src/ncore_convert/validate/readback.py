@@ -70,10 +70,11 @@ def boxes_at(observations: list, t0_us: int, t1_us: int) -> list:
 
 
 def T_world_dataset_global(loader: SequenceLoaderV4) -> np.ndarray:
-    """world -> the dataset's global frame, float64 [4,4]: the sequence metadata's record (every
-    ``--world-global-mode``), else (sequences written before it) the ``world -> world_global`` edge."""
+    """world -> the dataset's global frame, float64 [4,4]: the ``world -> world_global`` edge, which
+    consumers read, unless ``--world-global-mode`` stored something else there (identity, or no edge);
+    then the sequence metadata's record of it."""
     record = loader.generic_meta_data.get(WORLD_GLOBAL)
-    if isinstance(record, dict) and "T_world_dataset_global" in record:
+    if isinstance(record, dict) and record.get("mode", "localized") != "localized":
         return np.asarray(record["T_world_dataset_global"], dtype=np.float64)
     return loader.pose_graph.evaluate_poses("world", "world_global", np.zeros(1, dtype=np.uint64))[0].astype(np.float64)
 
