@@ -14,18 +14,21 @@ from conftest import BIN
 #: Run-report fields that may differ between runs of the same conversion (docs/damaged-input.md, "Determinism").
 RUN_DEPENDENT = {("seconds",), ("finished",), ("validation", "seconds")}
 
+AV2_SYNTH = ["argoverse2", "--seconds", "0.4", "--seed", "8", "--camera-fps", "5"]
+V2XSET_SYNTH = ["v2xset", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "8"]
+V2XSET_NOISE = ["--loc-err", "--xyz-std", "1", "--ryp-std", "2", "--async", "--async-overhead", "100"]
+#: case -> (synth arguments, split folder, dataset command, its arguments); the "consumer" cases set
+#: every consumer option away from its default.
 SYNTH = {
-    "argoverse2-v4": (
-        ["argoverse2", "--seconds", "0.4", "--seed", "8", "--camera-fps", "5"],
-        "val",
-        ["--split", "val"],
-    ),
-    "v2xset-v4": (
-        ["v2xset", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "8"],
-        "",
-        ["--split", "test", "--loc-err", "--xyz-std", "1", "--ryp-std", "2", "--async", "--async-overhead", "100"],
-    ),
-}
+    "argoverse2-v4": (AV2_SYNTH, "val", "argoverse2-v4", ["--split", "val"]),
+    "v2xset-v4": (V2XSET_SYNTH, "", "v2xset-v4", ["--split", "test", *V2XSET_NOISE]),
+    "argoverse2-v4 consumer": (AV2_SYNTH, "val", "argoverse2-v4", [
+        "--split", "val", "--camera-model", "ftheta", "--class-names", "source", "--cuboid-label-source",
+        "autolabel", "--seek-sec", "0.1", "--duration-sec", "0.2", "--world-global-mode", "identity"]),
+    "v2xset-v4 consumer": (V2XSET_SYNTH, "", "v2xset-v4", [
+        "--split", "test", *V2XSET_NOISE, "--camera-model", "opencv-pinhole", "--seek-sec", "0.1",
+        "--duration-sec", "0.1", "--world-global-mode", "none"]),
+}  # fmt: skip
 
 
 def _files(root: Path) -> dict[str, bytes]:
@@ -42,9 +45,9 @@ def _without(entry: dict, fields: set[tuple[str, ...]]) -> dict:
     return out
 
 
-@pytest.mark.parametrize("command", list(SYNTH))
-def test_two_runs_write_identical_sequences(command, tmp_path):
-    synth_args, split_folder, command_args = SYNTH[command]
+@pytest.mark.parametrize("case", list(SYNTH))
+def test_two_runs_write_identical_sequences(case, tmp_path):
+    synth_args, split_folder, command, command_args = SYNTH[case]
     cli = str(BIN / "ncore-convert")
     subprocess.run([cli, "synth", *synth_args, "--out", str(tmp_path / "src" / split_folder)], check=True)
     outputs = []

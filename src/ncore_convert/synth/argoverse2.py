@@ -86,6 +86,7 @@ class SweepTruth:
         direction_sensor: unit ray directions in the unit's own frame at firing time, float64 [N,3].
         distance_m: true range, float64 [N].
         time_ns: absolute firing time, int64 [N].
+        box_index: the scene box each return hit (index into ``scene.boxes``), -1 for the ground, int64 [N].
     """
 
     timestamp_ns: int
@@ -95,6 +96,7 @@ class SweepTruth:
     direction_sensor: np.ndarray | None = None
     distance_m: np.ndarray | None = None
     time_ns: np.ndarray | None = None
+    box_index: np.ndarray | None = None
 
 
 @dataclass
@@ -222,7 +224,7 @@ def simulate_unit(
     at 10 Hz in its own frame, and each beam is offset in azimuth by the VLP-32C table.
 
     Returns a dict with time_ns [N], beam [N], direction_sensor [N,3], distance_m [N], intensity [N],
-    xyz_city_m [N,3].
+    xyz_city_m [N,3], box_index [N] (the hit box in ``scene.boxes``, -1 for the ground).
     """
     start, end = window_ns
     c0 = -(-(start - t0_ns) // vlp32c.FIRING_CYCLE_NS)
@@ -247,7 +249,7 @@ def simulate_unit(
     pose = np.repeat(T_sensor_city, 2, axis=0)
     origin = pose[:, :3, 3]
     direction_city = np.einsum("nij,nj->ni", pose[:, :3, :3], direction)
-    distance, intensity, _ = cast_rays(origin, direction_city, t_rel_s, scene, MAX_RANGE_M)
+    distance, intensity, box_index = cast_rays(origin, direction_city, t_rel_s, scene, MAX_RANGE_M)
     hit = np.isfinite(distance)
     return {
         "time_ns": time_ns[hit],
@@ -256,6 +258,7 @@ def simulate_unit(
         "distance_m": distance[hit],
         "intensity": intensity[hit],
         "xyz_city_m": origin[hit] + direction_city[hit] * distance[hit, None],
+        "box_index": box_index[hit],
     }
 
 
@@ -358,6 +361,7 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
             sweep.unit, sweep.laser_number = hits["unit"], hits["laser_number"]
             sweep.direction_sensor = hits["direction_sensor"]
             sweep.distance_m, sweep.time_ns = hits["distance_m"], hits["time_ns"]
+            sweep.box_index = hits["box_index"]
         truth.sweeps.append(sweep)
         if not config.tbv:
             _annotate(truth, ts, xyz_ego.astype(np.float64), T_city_ego_ref, annotation_rows)

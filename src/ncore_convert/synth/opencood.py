@@ -124,6 +124,7 @@ class ScenarioTruth:
     fixed_delta_seconds: float
     pillars_m: np.ndarray  #: pillar centres, CARLA world [P,3]; sizes PILLAR_DIMS_M, yaw 0
     agents: dict[str, AgentTruth]
+    actor_speed_mps: dict[int, float] = field(default_factory=dict)  #: every actor (CAVs included)
 
 
 @dataclass(frozen=True)
@@ -255,7 +256,8 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
     keys = [f"{config.first_key + config.key_step * i:06d}" for i in range(config.frames)]
     agent_ids = [str(c.actor_id) for c in cavs] + [str(-(k + 1)) for k in range(config.n_infrastructure)]
     truth = ScenarioTruth(scenario_dir, scenario, keys, config.fixed_delta_seconds, np.array(pillars),
-                          {a: AgentTruth(a) for a in agent_ids})  # fmt: skip
+                          {a: AgentTruth(a) for a in agent_ids},
+                          {act.actor_id: act.speed_mps for act in cavs + others})  # fmt: skip
     for a in agent_ids:
         (scenario_dir / a).mkdir(parents=True, exist_ok=True)
     rays_lidar = _lidar_rays(config.lidar_columns)

@@ -196,7 +196,8 @@ def _write_sensors(
             )
     for cam in agent.camera_ids:
         index = agent.camera_index[cam]
-        meta = {"agent_id": agent.agent_id, "opencood_camera": f"camera{index}", "mounting": agent.mounts[cam]}
+        meta = {"agent_id": agent.agent_id, "opencood_camera": f"camera{index}", "mounting": agent.mounts[cam],
+                "camera_model": agent.cameras[cam].meta()}  # fmt: skip
         stream = writer.add_camera(names.sensor(cam), meta)
         skipped = {}
         for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
