@@ -38,6 +38,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_noise.py
 	$(PY) bench/bench_validate.py
 	$(PY) bench/bench_input_checks.py
+	$(PY) bench/bench_consumers.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info

@@ -355,16 +355,30 @@ def source_folder(dataset: str, root: Path, name: str) -> Path:
     ]
 
 
-def task_for(dataset: str, root: Path):
+#: Option sets the corpus runs with: the defaults, and every consumer option away from its default
+#: (a window from the start to the end, so that it keeps every damaged frame).
+OPTION_SETS = {
+    "default": {},
+    "consumer": {"camera_model": "ftheta", "class_names": "source", "cuboid_label_source": "autolabel",
+                 "world_global_mode": "identity", "seek_sec": 0.0},
+}  # fmt: skip
+
+
+def task_for(dataset: str, root: Path, option_set: str = "default"):
     """The per-log task, as the CLI builds it (sensor selection kept small for speed)."""
+    extra = OPTION_SETS[option_set]
     if dataset == "opv2v":
-        return partial(convert_scenario, UPath(root), options=OpenCoodOptions(dataset="opv2v", split="test"))
-    options = Argoverse2Options(None) if dataset == "tbv" else Argoverse2Options(split="val", camera_ids=CAMERAS)
+        options = OpenCoodOptions(dataset="opv2v", split="test", **extra)
+        return partial(convert_scenario, UPath(root), options=options)
+    if dataset == "tbv":
+        options = Argoverse2Options(None, **extra)
+    else:
+        options = Argoverse2Options(split="val", camera_ids=CAMERAS, **extra)
     return partial(convert_log, UPath(root), options=options)
 
 
-def convert(dataset: str, root: Path, name: str, out: Path):
-    task = partial(convert_and_validate, task_for(dataset, root), source_root=UPath(root))
+def convert(dataset: str, root: Path, name: str, out: Path, option_set: str = "default"):
+    task = partial(convert_and_validate, task_for(dataset, root, option_set), source_root=UPath(root))
     return convert_one(UPath(out), name, lambda work, log_id, progress: task(work, log_id, progress=progress), False)
 
 
@@ -382,8 +396,9 @@ def file_size_limit():
         signal.signal(signal.SIGXFSZ, handler)
 
 
+@pytest.mark.parametrize("option_set", list(OPTION_SETS))
 @pytest.mark.parametrize("case_id", list(CASES))
-def test_damaged_input_has_its_specified_outcome(case_id, bases, tmp_path, monkeypatch):
+def test_damaged_input_has_its_specified_outcome(case_id, option_set, bases, tmp_path, monkeypatch):
     case = CASES[case_id]
     base_root, name = bases[case.dataset]
     root = tmp_path / "root"
@@ -396,10 +411,10 @@ def test_damaged_input_has_its_specified_outcome(case_id, bases, tmp_path, monke
     out.mkdir()
     if case_id == "full-output-disk":
         with file_size_limit():
-            result = convert(case.dataset, root, name, out)
+            result = convert(case.dataset, root, name, out, option_set)
         at_fault = out / name  # the output that could not be written
     else:
-        result = convert(case.dataset, root, name, out)
+        result = convert(case.dataset, root, name, out, option_set)
     if case.outcome == "fail":
         assert not result.ok, f"{case_id}: converted, expected a failure"
         assert "\n" not in result.error and case.cause in result.error and str(at_fault) in result.error, result.error

@@ -49,9 +49,6 @@ class TrackObservations:
     R_box_frame: np.ndarray
     dims_m: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.track_ids)
-
 
 def _median_filtered(centers_m: np.ndarray) -> np.ndarray:
     """Component-wise running median over MEDIAN_WINDOW observations (shrinking at the ends), [K,3]."""

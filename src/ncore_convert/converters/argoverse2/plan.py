@@ -258,24 +258,11 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
     for cam in camera_ids:
         if cam not in inputs.intrinsics:
             raise SourceError(av2.intrinsics_path(log_dir), f"no intrinsics for {cam!r}")
-    missing = [cam for cam in camera_ids if len(inputs.image_timestamps_ns[cam]) == 0]
-    if missing:
-        warnings.append(f"{log_dir / 'sensors' / 'cameras'}: no images for {', '.join(missing)}; cameras not written")
-        camera_ids = [cam for cam in camera_ids if cam not in missing]
-    if lidar_ids and len(inputs.sweep_timestamps_ns) == 0:
-        warnings.append(f"{log_dir / 'sensors' / 'lidar'}: no sweeps; lidars not written")
-        lidar_ids = []
-
+    camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings)
     window_us = _window(options, inputs, camera_ids, lidar_ids)
     if window_us is not None:
         inputs = _clipped(inputs, window_us)
-        empty = [cam for cam in camera_ids if len(inputs.image_timestamps_ns[cam]) == 0]
-        if empty:
-            warnings.append(f"{log_dir}: no images of {', '.join(empty)} in the clip window; cameras not written")
-            camera_ids = [cam for cam in camera_ids if cam not in empty]
-        if lidar_ids and len(inputs.sweep_timestamps_ns) == 0:
-            warnings.append(f"{log_dir}: no sweeps in the clip window; lidars not written")
-            lidar_ids = []
+        camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings, " in the clip window")
 
     needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids), not options.tbv)
     T_rig_world, T_world_city = ego_trajectory(inputs, needed_us, warnings, cut=window_us is not None)
@@ -325,6 +312,21 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         cuboid_labels=cuboid_labels,
         dynamic_boxes=dynamic_boxes,
     )
+
+
+def _with_frames(
+    inputs: LogInputs, camera_ids: list[str], lidar_ids: list[str], warnings: list[str], where: str = ""
+) -> tuple[list[str], list[str]]:
+    """The cameras and lidars that have frames (``where``: e.g. in the clip window); the others are
+    reported and not written."""
+    sensors_dir = inputs.log_dir / "sensors"
+    empty = [cam for cam in camera_ids if len(inputs.image_timestamps_ns[cam]) == 0]
+    if empty:
+        warnings.append(f"{sensors_dir / 'cameras'}: no images for {', '.join(empty)}{where}; cameras not written")
+    if lidar_ids and len(inputs.sweep_timestamps_ns) == 0:
+        warnings.append(f"{sensors_dir / 'lidar'}: no sweeps{where}; lidars not written")
+        lidar_ids = []
+    return [cam for cam in camera_ids if cam not in empty], lidar_ids
 
 
 def _pinhole(intr: av2.CameraIntrinsics) -> Pinhole:
