@@ -5,9 +5,10 @@ Not a test. Prints, medians over --repeat runs, measured side by side in one run
 - the f-theta fit of each camera type (AV2 portrait front 1550x2048, AV2 ring 2048x1550, TbV half
   resolution 1024x775, OPV2V 800x600 at 100° HFOV): seconds, and its worst / median error over
   every pixel centre;
-- per sweep of a synthetic 2 s AV2 log (about 96k points, every annotated track): reading the
-  sweep and making both units' ray bundles (decompensation, model elements), beside dynamic_flag
-  of both units (the sweep to world, the grown-box tests), and their ratio;
+- per sweep of a synthetic 2 s AV2 log (about 96k points, every annotated track) and of the real
+  AV2 sample: reading the sweep and making both units' ray bundles (decompensation, model
+  elements), beside dynamic_flag of both units (the sweep to world, the grown-box tests), and their
+  ratio;
 - a whole-log conversion (in this process, no validation) with the default pinhole and with
   ``--camera-model ftheta``, and their ratio.
 
@@ -59,10 +60,9 @@ def synth_av2(work: Path) -> tuple[Path, str]:
 
 
 def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
+    from ncore_convert.converters.argoverse2.convert import sweep_dynamic_flags
     from ncore_convert.converters.argoverse2.lidar import read_covered_sweep, sweep_ray_bundles
     from ncore_convert.converters.argoverse2.plan import Argoverse2Options, plan_log
-    from ncore_convert.transforms.dynamic import dynamic_flags
-    from ncore_convert.transforms.geometry import transform_points
 
     plan = plan_log(UPath(root), log_id, Argoverse2Options(split="val", camera_ids=()))
     traj, boxes = plan.T_rig_world, plan.dynamic_boxes
@@ -74,10 +74,8 @@ def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
             sweep = read_covered_sweep(plan.inputs.log_dir, int(sweep_ns), traj, True)
             units = sweep_ray_bundles(sweep, plan.lidar_calibration, traj, T_sensor_rig)
             middle = time.perf_counter()
-            T_rig_world = traj.interpolate(traj.relative_seconds(np.array([sweep_ns])))[0]
-            xyz_world = transform_points(T_rig_world, sweep.xyz_ego_m.astype(np.float64))
-            for unit_rays in units.values():
-                dynamic_flags(xyz_world[unit_rays.sweep_rows], unit_rays.rays.timestamp_us.astype(np.int64), boxes)
+            flags = sweep_dynamic_flags(sweep, traj, boxes)
+            _per_unit = [flags[unit_rays.sweep_rows] for unit_rays in units.values()]
             done = time.perf_counter()
             rays_s.append(middle - started)
             flag_s.append(done - middle)
@@ -111,7 +109,13 @@ def main() -> None:
     work = work_dir(args)
     bench_fit(args.repeat)
     root, log_id = synth_av2(work)
+    print("synthetic log:", end=" ")
     bench_dynamic_flag(root, log_id, max(1, args.repeat // 2))
+    from bench_input_checks import sample_log
+
+    sample = sample_log()
+    print("real AV2 sample (2 sweeps; speeds from its annotations over the whole log):", end=" ")
+    bench_dynamic_flag(Path(str(sample.parent.parent)), sample.name, args.repeat * 4)
     bench_conversion(root, log_id, work, max(1, args.repeat // 2))
 
 

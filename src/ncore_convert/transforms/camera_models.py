@@ -33,6 +33,8 @@ FIT_BINS = 4000
 REWEIGHT_ROUNDS = 10
 #: ``max_angle`` is the largest pixel-corner angle times this (a ray just outside the image projects).
 MAX_ANGLE_MARGIN = 1.02
+#: Radii on which the fit's error is computed exactly (see :func:`projection_errors_px`).
+RADIAL_SAMPLES = 65536
 #: Newton iterations of the projection, as NCore's ``FThetaCameraModel`` runs them.
 NEWTON_ITERATIONS = 3
 
@@ -126,15 +128,22 @@ def _inverse(bw: np.ndarray, fw: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 def projection_errors_px(pinhole: Pinhole, bw: np.ndarray, fw: np.ndarray) -> np.ndarray:
     """For every pixel centre: the distance (px) between it and the f-theta projection (polynomials
-    ``bw`` reference, ``fw`` start) of the pinhole ray through it. float64 [H*W]."""
+    ``bw`` reference, ``fw`` start) of the pinhole ray through it. float64 [H*W].
+
+    The radial error depends on the radius alone: it is computed exactly on ``RADIAL_SAMPLES`` radii
+    up to the farthest pixel centre and interpolated to each pixel centre's radius (the spacing is
+    below 0.03 px, where the error changes by far less than 1e-6 px), then mapped back through the
+    linear term along the pixel's direction."""
     fx, fy = pinhole.focal_length_px
     x, y = _pixel_offsets(pinhole)
     r = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
-    r_model = _inverse(bw, fw, np.arctan(r / fy))
-    # the radial error, mapped back through A = diag(fx / fy, 1) along the pixel's direction
-    with np.errstate(invalid="ignore", divide="ignore"):
-        stretch = np.where(r > 0, np.hypot(x[None, :] * fx / fy, y[:, None]) / r, 1.0)
-    return (np.abs(r_model - r) * stretch).ravel()
+    radii = np.linspace(0.0, float(r.max()), RADIAL_SAMPLES)
+    radial_error = np.abs(_inverse(bw, fw, np.arctan(radii / fy)) - radii)
+    errors = np.interp(r, radii, radial_error)
+    if fx != fy:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            errors *= np.where(r > 0, np.hypot(x[None, :] * fx / fy, y[:, None]) / r, 1.0)
+    return errors.ravel()
 
 
 def fit_ftheta(pinhole: Pinhole) -> FThetaFit:

@@ -165,15 +165,18 @@ def dynamic_flags(xyz_m: np.ndarray, timestamps_us: np.ndarray, boxes: DynamicBo
     t_us = np.asarray(timestamps_us, dtype=np.int64)
     t_lo, t_hi = int(t_us.min()), int(t_us.max())
     hold_us = round(HOLD_S * 1e6)
+    by_x = np.argsort(xyz_m[:, 0])  # the cull below takes each track's x range by bisection
+    x_sorted, y_m = xyz_m[by_x, 0], np.ascontiguousarray(xyz_m[:, 1])
     for k in range(len(boxes)):
         a, b = int(boxes.bounds[k]), int(boxes.bounds[k + 1])
         times = boxes.timestamps_us[a:b]
         if times[-1] + hold_us < t_lo or times[0] - hold_us > t_hi:
             continue
-        # cull: only points near the track's centre during the frame can be inside
+        # cull: only points near the track's centre during the frame can be inside (a square in x, y)
         mid = _centres_at(times, boxes.centers_m[a:b], np.array([(t_lo + t_hi) // 2]))[0][0]
         reach = boxes.reach_m[k] + boxes.speed_mps[k] * (t_hi - t_lo) * 1e-6 + 1e-3
-        near = np.flatnonzero(np.einsum("ij,ij->i", xyz_m - mid, xyz_m - mid) <= reach * reach)
+        near = by_x[np.searchsorted(x_sorted, mid[0] - reach) : np.searchsorted(x_sorted, mid[0] + reach, "right")]
+        near = near[np.abs(y_m[near] - mid[1]) <= reach]
         if not len(near):
             continue
         t_near = t_us[near]

@@ -21,8 +21,8 @@ from ncore_convert.converters.common import Tally
 from ncore_convert.converters.consumer import CameraSpec
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms.dynamic import dynamic_flags
-from ncore_convert.transforms.geometry import euler_xyz_from_rotation, transform_points
+from ncore_convert.transforms.dynamic import DynamicBoxes, dynamic_flags
+from ncore_convert.transforms.geometry import Trajectory, euler_xyz_from_rotation, transform_points
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import (
     BASE_JOB,
@@ -181,19 +181,12 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     source_points = {unit: 0 for unit in lidars}
     for sweep_ns in plan.sweep_timestamps_ns:
         sweep = read_covered_sweep(log_dir, int(sweep_ns), plan.T_rig_world, not plan.options.tbv)
-        xyz_world = None
-        if boxes is not None:  # AV2's points are motion-compensated to the sweep time: one pose takes them to world
-            T_rig_world = plan.T_rig_world.interpolate(plan.T_rig_world.relative_seconds(np.array([sweep_ns])))[0]
-            xyz_world = transform_points(T_rig_world, sweep.xyz_ego_m.astype(np.float64))
+        flag_started = time.perf_counter()
+        sweep_flags = sweep_dynamic_flags(sweep, plan.T_rig_world, boxes) if boxes is not None else None
+        result.dynamic_flag_seconds += time.perf_counter() - flag_started
         for unit, unit_rays in sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig).items():
             rays = unit_rays.rays
-            generic = {}
-            if xyz_world is not None:
-                flag_started = time.perf_counter()
-                generic[contract.DYNAMIC_FLAG] = dynamic_flags(
-                    xyz_world[unit_rays.sweep_rows], rays.timestamp_us.astype(np.int64), boxes
-                )
-                result.dynamic_flag_seconds += time.perf_counter() - flag_started
+            generic = {} if sweep_flags is None else {contract.DYNAMIC_FLAG: sweep_flags[unit_rays.sweep_rows]}
             frame_meta = {
                 "av2_sweep_timestamp_ns": int(sweep_ns),
                 "points_zero_range": rays.n_zero_range,
@@ -216,6 +209,15 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             f"{result.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
         )
     result.lidar_seconds = time.perf_counter() - started
+
+
+def sweep_dynamic_flags(sweep: av2.Sweep, T_rig_world: Trajectory, boxes: DynamicBoxes) -> np.ndarray:
+    """``dynamic_flag`` of every row of an AV2 sweep (with ``offset_ns``), int8 [N]. AV2's points are
+    motion-compensated to the sweep time, so the sweep's pose places each in ``world`` as it was at
+    its own time (``timestamp_ns + offset_ns``)."""
+    T_sweep_world = T_rig_world.interpolate(T_rig_world.relative_seconds(np.array([sweep.timestamp_ns])))[0]
+    xyz_world = transform_points(T_sweep_world, sweep.xyz_ego_m.astype(np.float64))
+    return dynamic_flags(xyz_world, floor_us(sweep.timestamp_ns + sweep.offset_ns.astype(np.int64)), boxes)
 
 
 def _dynamic_flag_note(plan: LogPlan) -> str:
