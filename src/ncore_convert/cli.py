@@ -162,7 +162,18 @@ def cli(
     validate,
     verbose,
 ):
-    """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences."""
+    """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences.
+
+    Every dataset command also takes the options that shape the output for its consumers
+    (3DGUT, 3DGRT, instant-nurec, NuRec; docs/consumers.md):
+
+    \b
+      --camera-model ideal-pinhole|opencv-pinhole|ftheta
+      --class-names ncore|source
+      --cuboid-label-source auto|external|gt-synthetic|autolabel
+      --seek-sec S --duration-sec D
+      --world-global-mode none|identity|localized
+    """
     ctx.obj = GroupOptions(
         root_dir=root_dir,
         output_dir=output_dir,
