@@ -6,10 +6,11 @@ import numpy as np
 import pyarrow.feather as feather
 from conftest import AV2_SAMPLE_LOG, consumers_class_table
 from ncore.data.v4 import CuboidsComponent, LidarSensorComponent, PosesComponent
-from ncore.impl.common.transformations import PoseInterpolator
+from ncore.impl.common.transformations import PoseInterpolator, is_within_3d_bboxes
 from scipy.spatial.transform import Rotation
 
 from ncore_convert.contract import SOURCE_CLASS_BY_TRACK
+from ncore_convert.validate.readback import world_points
 
 
 def test_opens_with_default_instance_names(real_log):
@@ -111,3 +112,46 @@ def test_reapplying_ego_motion_gives_back_source_points(real_log, av2_sample_roo
             xyz = pc.xyz_m_end.astype(np.float64) @ M[:3, :3].T + M[:3, 3]
             err = np.linalg.norm(xyz - xyz_src[(laser < 32) == low], axis=1)
             assert np.median(err) <= 0.001, (unit, np.median(err))
+
+
+def test_dynamic_tracks_and_flags_on_the_real_sample(real_log, av2_sample_root):
+    """Pedestrians and strollers are dynamic, bollards and cones never, every car that drives more
+    than 10 m over the log is dynamic; the points inside a dynamic track's box at a sweep (motion-
+    compensated, NCore's own box test) are flagged."""
+    table = feather.read_table(av2_sample_root / "val" / AV2_SAMPLE_LOG / "annotations.feather").to_pydict()
+    category = dict(zip(table["track_uuid"], table["category"], strict=True))
+    dynamic = real_log.reader.open_component_readers(CuboidsComponent.Reader)["default"].generic_meta_data[
+        "dynamic_tracks"
+    ]
+    assert {t for t, c in category.items() if c in ("PEDESTRIAN", "STROLLER")} <= set(dynamic)
+    assert not {t for t, c in category.items() if c in ("BOLLARD", "CONSTRUCTION_CONE")} & set(dynamic)
+    observations = list(real_log.loader.get_cuboid_track_observations())
+    centres: dict[str, list] = {}
+    for box in observations:
+        T_rig_world = real_log.loader.pose_graph.evaluate_poses(
+            "rig", "world", np.array([box.timestamp_us], dtype=np.uint64)
+        )[0]
+        centre = T_rig_world[:3, :3] @ np.asarray(box.bbox3.centroid) + T_rig_world[:3, 3]
+        centres.setdefault(box.track_id, []).append(centre)
+    driving = {t for t, c in centres.items() if np.linalg.norm(c[-1] - c[0]) > 10.0}
+    assert len(driving) >= 20 and driving <= set(dynamic)
+    flagged = inside = 0
+    for unit in ("up_lidar", "down_lidar"):
+        source = real_log.loader.get_point_clouds_source(unit)
+        lidar = real_log.loader.get_lidar_sensor(unit)
+        for i in range(source.pcs_count):
+            flag = source.get_pc_generic_data(i, "dynamic_flag")
+            assert flag.dtype == np.int8 and flag.shape == (lidar.get_frame_ray_bundle_count(i),)
+            start_us = int(lidar.frames_timestamps_us[i, 0])
+            boxes = [b for b in observations if b.timestamp_us == start_us and b.track_id in dynamic]
+            xyz_world, _ = world_points(real_log.loader, unit, i)  # NCore's motion compensation, per-point times
+            T_rig_world = real_log.loader.pose_graph.evaluate_poses(
+                "rig", "world", np.array([start_us], dtype=np.uint64)
+            )[0].astype(np.float64)
+            xyz_rig = (xyz_world - T_rig_world[:3, 3]) @ T_rig_world[:3, :3]  # the boxes' frame: rig at the sweep
+            bboxes = np.array([[*b.bbox3.centroid, *b.bbox3.dim, *b.bbox3.rot] for b in boxes], dtype=np.float32)
+            hit = np.zeros(len(xyz_rig), dtype=bool)
+            for box in bboxes:
+                hit |= is_within_3d_bboxes(xyz_rig.astype(np.float32), box[None]).ravel()
+            inside, flagged = inside + hit.sum(), flagged + (flag[hit] == 1).sum()
+    assert inside > 1000 and flagged >= 0.99 * inside, (flagged, inside)

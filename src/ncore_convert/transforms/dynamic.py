@@ -29,7 +29,7 @@ from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, ALWAYS_STATIC
 DYNAMIC_SPEED_MPS = 1.0 / 3.6  #: 1 km/h
 BOX_MARGIN_M = 0.5
 MEDIAN_WINDOW = 5
-SPEED_BASELINE_S = 1.0
+SPEED_BASELINE_S = 2.0
 MIN_SPAN_S = 0.3
 HOLD_S = 0.15
 
