@@ -12,18 +12,18 @@ A TbV log (``SynthConfig.tbv``) has TbV's differences: a TbV-style log id, no of
 
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass, field
 
 import numpy as np
-import PIL.Image
 import pyarrow as pa
 import pyarrow.feather as feather
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.synth.ego import EGO_CAMERAS, true_mask
+from ncore_convert.synth.ego import pictures as ego_pictures
 from ncore_convert.synth.maps import write_map
 from ncore_convert.synth.scene import Scene, cast_rays, make_scene
 from ncore_convert.transforms import vlp32c
@@ -71,6 +71,9 @@ class SynthConfig:
     camera_fps: float = 20.0
     keep_truth: bool = False
     tbv: bool = False  #: write a TbV log (see the module docstring)
+    #: the first part of the log (a fraction, 0..1) in which the cameras' world stands still (the
+    #: car parked): every image there is the same picture but for the body's lighting
+    parked_fraction: float = 0.0
 
     @property
     def cameras(self) -> tuple[str, ...]:
@@ -109,6 +112,7 @@ class SynthTruth:
     sweeps: list[SweepTruth] = field(default_factory=list)
     image_paths: list[UPath] = field(default_factory=list)
     n_cuboids: int = 0
+    ego_masks: dict[str, np.ndarray] = field(default_factory=dict)  #: camera -> true ego pixels, bool [H,W]
 
     @property
     def n_images(self) -> int:
@@ -187,21 +191,6 @@ def camera_trigger_phases_ns(T_sensor_ego: dict[str, np.ndarray], cameras: tuple
             crossing_s = ((psi - az0) / (spin * 2 * np.pi * vlp32c.SPIN_RATE_HZ)) % (1 / vlp32c.SPIN_RATE_HZ)
             phases.append(int(round(crossing_s * 1e9)) + CAMERA_TRIGGER_DELAY_NS)
         out[cam] = np.sort(np.array(phases, dtype=np.int64))
-    return out
-
-
-def _jpeg_templates(rng: np.random.Generator, width: int, height: int, n: int = 3) -> list[bytes]:
-    """A few JPEGs of a road-like picture with texture, ~250-400 KB at AV2 resolutions."""
-    out = []
-    v = np.linspace(0, 1, height)[:, None]
-    u = np.linspace(0, 1, width)[None, :]
-    for _ in range(n):
-        base = np.where(v < 0.45, 150 + 80 * v, 90 - 40 * (v - 0.45)) + 20 * np.sin(12 * u + rng.uniform(0, 6))
-        noise = rng.normal(0, 7, (height, width, 3))
-        rgb = np.clip(base[..., None] + noise + np.array([0, 5, 12]) * v[..., None], 0, 255).astype(np.uint8)
-        buf = io.BytesIO()
-        PIL.Image.fromarray(rgb).save(buf, format="JPEG", quality=80)
-        out.append(buf.getvalue())
     return out
 
 
@@ -307,6 +296,11 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
         k["k1"].append(rng.uniform(-0.29, -0.24))
         k["k2"].append(rng.uniform(-0.2, -0.02))
         k["k3"].append(rng.uniform(0.09, 0.33))
+    cx_px = [cams[c][1] / 2 + rng.uniform(-4, 4) for c in config.cameras]
+    cy_px = [cams[c][2] / 2 + rng.uniform(-4, 4) for c in config.cameras]
+    for c, cx, cy in zip(config.cameras, cx_px, cy_px, strict=True):
+        if c in EGO_CAMERAS:
+            truth.ego_masks[c] = true_mask(c, T_sensor_ego[c], cams[c][0], cx, cy, cams[c][1], cams[c][2])
     write_feather_table(
         log_dir / "calibration" / "intrinsics.feather",
         av2.INTRINSICS_SCHEMA,
@@ -314,8 +308,8 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
             "sensor_name": list(config.cameras),
             "fx_px": [cams[c][0] for c in config.cameras],
             "fy_px": [cams[c][0] for c in config.cameras],
-            "cx_px": [cams[c][1] / 2 + rng.uniform(-4, 4) for c in config.cameras],
-            "cy_px": [cams[c][2] / 2 + rng.uniform(-4, 4) for c in config.cameras],
+            "cx_px": cx_px,
+            "cy_px": cy_px,
             **k,
             "height_px": [cams[c][2] for c in config.cameras],
             "width_px": [cams[c][1] for c in config.cameras],
@@ -325,7 +319,7 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     write_map(log_dir, log_id, scene, config.seconds, rng)
     _write_sweeps(truth, sweep_ns, config)
     if config.camera_fps > 0:
-        _write_images(truth, cam_ns, cams, rng, config.camera_fps)
+        _write_images(truth, cam_ns, cams, rng, config)
     return truth
 
 
@@ -399,18 +393,28 @@ def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, T_city_ego: np.nd
 
 
 def _write_images(
-    truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, rng: np.random.Generator, fps: float
+    truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, rng: np.random.Generator, config: SynthConfig
 ) -> None:
-    templates = {}
+    """Every camera's images: a few pictures per camera (``synth.ego.pictures``: the world changing,
+    the ego body where the camera sees it) cycled at random, each made unique by a JPEG comment; in
+    the parked part of the log (``config.parked_fraction``) always the first picture."""
+    parked_all = config.parked_fraction >= 1.0
+    shared: dict[tuple[int, int], list[bytes]] = {}  # cameras without the body share pictures per size
+    parked_until_ns = truth.t0_ns + int(config.parked_fraction * config.seconds * 1e9)
     for cam, stamps in cam_ns.items():
         _, width, height = cams[cam]
-        if (width, height) not in templates:
-            templates[(width, height)] = _jpeg_templates(rng, width, height)
-        step = max(1, int(round(20.0 / fps)))
+        if cam in truth.ego_masks:
+            variants = ego_pictures(rng, width, height, truth.ego_masks[cam], parked_all)
+        else:
+            if (width, height) not in shared:
+                shared[(width, height)] = ego_pictures(rng, width, height, None, parked_all)
+            variants = shared[(width, height)]
+        step = max(1, int(round(20.0 / config.camera_fps)))
+        choice = rng.integers(0, len(variants), len(stamps))
         for i, ts in enumerate(stamps[::step]):
             path = av2.image_path(truth.log_dir, cam, int(ts))
             if i == 0:
                 path.parent.mkdir(parents=True, exist_ok=True)
-            variants = templates[(width, height)]
-            path.write_bytes(_unique_jpeg(variants[i % len(variants)], f"{cam} {ts}"))
+            picture = 0 if ts < parked_until_ns else int(choice[i])
+            path.write_bytes(_unique_jpeg(variants[picture], f"{cam} {ts}"))
             truth.image_paths.append(path)
