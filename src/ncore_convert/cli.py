@@ -249,6 +249,12 @@ def consumer_options(f):
     return f
 
 
+def _ego_masks_option(ctx, param, value: str) -> str:
+    if value in ("estimate", "none") or UPath(value).is_dir():
+        return value
+    raise click.BadParameter(f"{value!r} is neither 'estimate', 'none' nor a folder of <camera_id>.png masks")
+
+
 def av2_family_options(log_scope: str):
     """Options shared by the Argoverse 2 Sensor and TbV commands."""
 
@@ -260,6 +266,10 @@ def av2_family_options(log_scope: str):
             consumer_options,
             click.option("--maps/--no-maps", default=True,
                          help="Store the log's HD map (vector map, ground-height raster, Sim(2)) with the poses."),
+            click.option("--ego-masks", type=str, default="estimate", callback=_ego_masks_option,
+                         metavar="estimate|none|DIR",
+                         help="Camera masks named 'ego' (the ego vehicle's pixels): estimated from a sample of each"
+                         " camera's own images; none; or DIR/<camera_id>.png (binary, the camera's size)."),
             click.option("--lidar-model-source", type=click.Choice(get_args(LidarModelSource)), default="empirical",
                          help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's"
                          " model element; 'none': raw per-point-time ray bundles only."),

@@ -52,6 +52,11 @@ SOURCE_CLASS_BY_TRACK = "source_class_by_track"
 #: track id -> max robust speed (m/s) for tracks judged dynamic (the rule behind ``dynamic_flag``)
 DYNAMIC_TRACKS = "dynamic_tracks"
 
+# --- camera masks ---
+EGO_MASK = "ego"  #: the camera mask of the ego vehicle's pixels (non-zero = ego), as 3DGRUT and NuRec read it
+#: ``validate``: a present ego mask covering more of its image than this is implausible
+EGO_MASK_MAX_FRACTION = 0.5
+
 # --- per-frame lidar generic data ---
 DYNAMIC_FLAG = "dynamic_flag"  #: int8 [N]: 1 = the point lies in a dynamic track's box grown by 0.5 m
 

@@ -22,7 +22,7 @@ from ncore.data.v4 import SequenceLoaderV4
 from ncore.sensors import camera_model_from_parameters
 from upath import UPath
 
-from ncore_convert.contract import DEFAULT_INSTANCE
+from ncore_convert.contract import DEFAULT_INSTANCE, EGO_MASK
 from ncore_convert.validate.coregister import scenario_lidars
 from ncore_convert.validate.readback import (
     box_corners_world,
@@ -111,6 +111,10 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
     fig = Figure(figsize=(12, 12 * height / width + 0.6), dpi=DPI)
     ax = fig.add_axes((0.07, 0.05, 0.82, 0.89))
     ax.imshow(image)
+    if (mask := camera.get_mask_images().get(EGO_MASK)) is not None:  # the ego's pixels, shaded
+        ego = np.asarray(mask) > 0
+        ax.imshow(np.ma.masked_where(~ego, ego), cmap="autumn", alpha=0.35, vmin=0, vmax=1)
+        ax.plot([], [], "s", color="orange", alpha=0.5, label=f"ego mask ({ego.mean():.1%})")
     order = np.argsort(-range_m)  # near points drawn last, on top
     dots = ax.scatter(pixels[order, 0], pixels[order, 1], c=range_m[order], s=1.5, cmap="turbo",
                       vmin=0, vmax=MAX_RANGE_M, linewidths=0, label=f"lidar points ({len(index)})")  # fmt: skip
@@ -119,7 +123,9 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     legend = ax.legend(loc="upper right", fontsize=8)
-    legend.legend_handles[0].set_sizes([20])
+    for handle in legend.legend_handles:
+        if hasattr(handle, "set_sizes"):  # the lidar dots
+            handle.set_sizes([20])
     fig.colorbar(dots, cax=fig.add_axes((0.91, 0.05, 0.02, 0.89)), label="range from the camera (m)")
     ax.set_title(_title(loader, f"{camera_id} frame {frame}", int(frame_us[1])), fontsize=10)
     fig.savefig(str(png))
@@ -159,7 +165,9 @@ def draw_bev(loader: SequenceLoaderV4, t_us: int, xyz: np.ndarray, png: UPath) -
     ax.set_ylabel("y world (m)")
     ax.grid(alpha=0.3)
     legend = ax.legend(loc="upper right", fontsize=8)
-    legend.legend_handles[0].set_sizes([20])  # the points' legend dot, readable
+    for handle in legend.legend_handles:
+        if hasattr(handle, "set_sizes"):  # the lidar dots
+            handle.set_sizes([20])  # the points' legend dot, readable
     fig.colorbar(dots, cax=fig.add_axes((0.88, 0.06, 0.02, 0.86)), label="height above the ego origin (m)")
     ax.set_title(_title(loader, "bird's-eye view", frame_end), fontsize=10)
     fig.savefig(str(png))

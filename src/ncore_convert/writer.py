@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
+import PIL.Image
 from ncore.data.v4 import (
     CameraSensorComponent,
     CuboidsComponent,
@@ -308,9 +309,15 @@ class SequenceWriter:
             poses.store_static_pose(sensor_id, rig_frame, T_sensor_rig.astype(np.float32))
 
     def store_camera(
-        self, camera_id: str, pinhole: Pinhole, model: CameraModel, ftheta: FThetaFit | None = None
+        self,
+        camera_id: str,
+        pinhole: Pinhole,
+        model: CameraModel,
+        ftheta: FThetaFit | None = None,
+        masks: dict[str, PIL.Image.Image] | None = None,
     ) -> None:
-        """Store a global-shutter camera model (OpenCV camera frame) and the camera's (empty) masks.
+        """Store a global-shutter camera model (OpenCV camera frame) and the camera's masks (by name,
+        e.g. ``contract.EGO_MASK``; none by default), PNG-encoded by the library.
 
         Args:
             pinhole: the camera as an ideal pinhole (NCore pixel-corner convention).
@@ -343,7 +350,7 @@ class SequenceWriter:
                 max_angle=ftheta.max_angle_rad, linear_cde=ftheta.linear_cde,
             )  # fmt: skip
         self._intrinsics.store_camera_intrinsics(camera_id, params)
-        self._masks.store_camera_masks(camera_id, {})
+        self._masks.store_camera_masks(camera_id, masks or {})
 
     def store_lidar_model(self, lidar_id: str, model: SpinningLidarModel) -> None:
         """Store a lidar's structured model as NCore ``RowOffsetStructuredSpinningLidarModelParameters``."""

@@ -17,6 +17,7 @@ import json
 from dataclasses import dataclass
 
 import numpy as np
+import PIL.Image
 import pyarrow as pa
 import pyarrow.feather as feather
 from upath import UPath
@@ -169,6 +170,19 @@ def read_jpeg(log_dir: UPath, camera: str, timestamp_ns: int) -> bytes:
     if (defect := jpeg_defect(data)) is not None:
         raise SourceError(path, defect)
     return data
+
+
+def read_jpeg_grey(log_dir: UPath, camera: str, timestamp_ns: int, reduction: int) -> np.ndarray:
+    """One image decoded greyscale at 1/``reduction`` of its size (JPEG DCT scaling: only what that
+    size needs is decoded), float32 [h,w] grey levels; SourceError naming the file if it does not decode."""
+    path = image_path(log_dir, camera, timestamp_ns)
+    data = read_jpeg(log_dir, camera, timestamp_ns)
+    try:
+        with PIL.Image.open(io.BytesIO(data)) as image:
+            image.draft("L", (image.width // reduction, image.height // reduction))
+            return np.asarray(image.convert("L"), dtype=np.float32)
+    except (OSError, ValueError, PIL.UnidentifiedImageError) as err:
+        raise SourceError(path, f"JPEG does not decode ({err})") from None
 
 
 def _timestamps_from_stems(directory: UPath, suffix: str) -> np.ndarray:

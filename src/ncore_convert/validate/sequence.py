@@ -134,6 +134,7 @@ def _check_camera(report: Report, loader: SequenceLoaderV4, camera_id: str, lida
     name = f"camera {camera_id}"
     _within_sequence(report, name, frames_us, loader.sequence_timestamp_interval_us)
     _regularity(report, name, frames_us[:, 1])
+    _check_ego_mask(report, camera, name)
     every = _covered(loader, camera_id, frames_us.ravel())  # one call; frame by frame only to name the failures
     uncovered = [] if every else [i for i in range(len(frames_us)) if not _covered(loader, camera_id, frames_us[i])]
     report.add(f"{name}: poses cover every frame", not uncovered, f"{len(uncovered)} of {len(frames_us)} uncovered")
@@ -144,6 +145,18 @@ def _check_camera(report: Report, loader: SequenceLoaderV4, camera_id: str, lida
         report.add(f"{name}: time sync to the lidar", True,
                    f"|camera - nearest lidar frame| mid-times: median {np.median(nearest) / 1e3:.1f} ms,"
                    f" max {nearest.max() / 1e3:.1f} ms")  # fmt: skip
+
+
+def _check_ego_mask(report: Report, camera, name: str) -> None:
+    """A present ``ego`` mask has the camera's resolution and covers a plausible share of it."""
+    mask = camera.get_mask_images().get(contract.EGO_MASK)
+    if mask is None:
+        return
+    width, height = (int(v) for v in camera.model_parameters.resolution)
+    covered = float((np.asarray(mask) > 0).mean())
+    ok = mask.size == (width, height) and 0.0 < covered <= contract.EGO_MASK_MAX_FRACTION
+    report.add(f"{name}: ego mask", ok, f"{mask.size[0]}x{mask.size[1]} px for a {width}x{height} camera,"
+               f" covers {covered:.2%} (plausible: above 0, at most {contract.EGO_MASK_MAX_FRACTION:.0%})")  # fmt: skip
 
 
 def _check_world_global(report: Report, loader: SequenceLoaderV4) -> None:

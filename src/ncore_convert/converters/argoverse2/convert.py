@@ -16,6 +16,7 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, read_covered_sweep, sweep_ray_bundles
+from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Tally
 from ncore_convert.converters.consumer import CameraSpec
@@ -88,9 +89,10 @@ def annotation_cuboids(annotations: av2.Annotations, class_ids: list[str]) -> Cu
     )
 
 
-def _camera_meta(intr: av2.CameraIntrinsics, spec: CameraSpec) -> dict:
+def _camera_meta(intr: av2.CameraIntrinsics, spec: CameraSpec, ego_mask: EgoMask) -> dict:
     return {
         "camera_model": spec.meta(),
+        "ego_mask": ego_mask.meta,
         "av2_original_distortion": {"k1": intr.k1, "k2": intr.k2, "k3": intr.k3},
         "av2_principal_point_px": {"cx": intr.cx_px, "cy": intr.cy_px},
         "principal_point_note": "stored principal point = av2 (cx, cy) + 0.5 (NCore pixel-corner convention)",
@@ -123,7 +125,9 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
         writer.store_extrinsic(sensor, inputs.T_sensor_ego[sensor])  # av2's egovehicle is NCore's rig
     for cam in plan.camera_ids:
         spec = plan.cameras[cam]
-        writer.store_camera(cam, spec.pinhole, spec.model, spec.ftheta)
+        mask = plan.ego_masks[cam].image(*spec.pinhole.resolution_px)
+        masks = {contract.EGO_MASK: mask} if mask is not None else {}
+        writer.store_camera(cam, spec.pinhole, spec.model, spec.ftheta, masks)
     if plan.lidar_calibration is not None:
         for unit, model in plan.lidar_calibration.models.items():
             writer.store_lidar_model(unit, model)
@@ -235,7 +239,7 @@ def _write_camera(
 ) -> None:
     """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
     started = time.perf_counter()
-    stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam], plan.cameras[cam]))
+    stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam], plan.cameras[cam], plan.ego_masks[cam]))
     for image_ns in plan.inputs.image_timestamps_ns[cam]:
         t_us = floor_us(int(image_ns))
         stream.store_frame(av2.read_jpeg(plan.inputs.log_dir, cam, int(image_ns)), "jpeg", (t_us, t_us))

@@ -18,6 +18,7 @@ from ncore_convert import contract
 from ncore_convert.contract import LidarModelSource, Profile, StoreType
 from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerTiming, calibrate_lidars
+from ncore_convert.converters.argoverse2.masks import EgoMask, plan_ego_masks
 from ncore_convert.converters.common import ConsumerOptions, select_sensors
 from ncore_convert.errors import SourceError, UsageError
 from ncore_convert.sources import argoverse2 as av2
@@ -50,6 +51,7 @@ class Argoverse2Options(ConsumerOptions):
     sequence_meta: bool = True
     lidar_model_source: LidarModelSource = "empirical"
     maps: bool = True
+    ego_masks: str = "estimate"  #: "estimate", "none", or a folder of <camera_id>.png
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
 
@@ -209,6 +211,7 @@ class LogPlan:
         cameras: how each camera is stored (model type, f-theta fit).
         cuboid_labels: class names, label source and dynamic tracks (None without annotations).
         dynamic_boxes: the dynamic tracks' boxes in ``world`` (None: no ``dynamic_flag``).
+        ego_masks: each camera's ego mask (``--ego-masks``).
     """
 
     inputs: LogInputs
@@ -225,6 +228,7 @@ class LogPlan:
     cameras: dict[str, consumer.CameraSpec] | None = None
     cuboid_labels: consumer.CuboidLabels | None = None
     dynamic_boxes: DynamicBoxes | None = None
+    ego_masks: dict[str, EgoMask] | None = None
 
     @property
     def sweep_timestamps_ns(self) -> np.ndarray:
@@ -296,6 +300,9 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
     if cuboid_labels is not None:
         warnings.extend(cuboid_labels.warnings)
     cameras = {cam: consumer.camera_spec(_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids}
+    camera_inputs = {cam: (inputs.image_timestamps_ns[cam], inputs.intrinsics[cam], inputs.T_sensor_ego[cam])
+                     for cam in camera_ids}  # fmt: skip
+    ego_masks = plan_ego_masks(log_dir, options.ego_masks, camera_inputs, warnings)
     return LogPlan(
         inputs=inputs,
         options=options,
@@ -311,6 +318,7 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         cameras=cameras,
         cuboid_labels=cuboid_labels,
         dynamic_boxes=dynamic_boxes,
+        ego_masks=ego_masks,
     )
 
 

@@ -1,0 +1,108 @@
+"""Argoverse 2 / TbV ego masks, per log (``--ego-masks estimate|none|DIR``): estimated from a sample
+of each camera's own images (:mod:`ncore_convert.transforms.ego_mask`), or the user's PNGs.
+
+The plan carries each estimate at reduced resolution (small to ship to the writing workers); the
+base job upsamples it and stores it as the camera's mask named ``ego`` (``contract.EGO_MASK``).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import PIL.Image
+from upath import UPath
+
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources.masks import read_mask_folder
+from ncore_convert.transforms import ego_mask
+
+#: Images decoded per camera, spread evenly over the log (or clip window).
+SAMPLES = 16
+#: Images are decoded at a power-of-two reduction that brings their longer side to about this.
+REDUCED_SIDE_PX = 512
+
+
+@dataclass(frozen=True)
+class EgoMask:
+    """One camera's ego mask as planned: an estimate at reduced resolution (bool [h,w]) or the
+    user's PNG bytes, or neither (no mask); ``meta`` goes into the camera's metadata (``ego_mask``)."""
+
+    meta: dict
+    reduced: np.ndarray | None = None
+    user_png: bytes | None = None
+
+    def image(self, width: int, height: int) -> PIL.Image.Image | None:
+        """The mask to store (None: none): the user's image as given, or the estimate upsampled
+        (mode L, 255 = ego)."""
+        if self.user_png is not None:
+            return PIL.Image.open(io.BytesIO(self.user_png), formats=["PNG"])
+        if self.reduced is None:
+            return None
+        return PIL.Image.fromarray(ego_mask.upsample(self.reduced, width, height).astype(np.uint8) * 255, mode="L")
+
+
+def reduction(intr: av2.CameraIntrinsics) -> int:
+    """The power-of-two decode reduction of a camera (2048 px -> 4, TbV's 1024 px -> 2)."""
+    return 2 ** max(0, int(math.log2(max(intr.width_px, intr.height_px) / REDUCED_SIDE_PX)))
+
+
+def _estimate(
+    log_dir: UPath, camera: str, stamps_ns: np.ndarray, intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray
+) -> EgoMask:
+    picks = np.unique(np.linspace(0, len(stamps_ns) - 1, min(SAMPLES, len(stamps_ns))).round().astype(int))
+    frames = np.stack([av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), reduction(intr)) for i in picks])
+    h, w = frames.shape[1:]
+    sx, sy = w / intr.width_px, h / intr.height_px
+    allowed = ego_mask.below_horizon(
+        (h, w), (intr.fx_px * sx, intr.fy_px * sy), ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy),
+        T_camera_ego[:3, :3],
+    )  # fmt: skip
+    result = ego_mask.estimate(frames, allowed)
+    meta = {
+        "method": "estimate",
+        "decision": result.decision,
+        "samples": len(picks),
+        "reduced_size_px": [w, h],
+        "covered_fraction": round(result.covered_fraction, 5),
+        "still_threshold": round(result.still_threshold, 3),
+        "world_std": round(result.world_std, 3),
+        "rule": "pixels still over the sampled images, below the horizon, connected to the bottom border;"
+        f" no mask when the world moved less than {ego_mask.MIN_WORLD_STD} grey levels or the mask would"
+        f" cover more than {ego_mask.MAX_FRACTION:.0%} of the image",
+    }
+    return EgoMask(meta, reduced=result.mask)
+
+
+def plan_ego_masks(
+    log_dir: UPath, option: str, cameras: dict[str, tuple[np.ndarray, av2.CameraIntrinsics, np.ndarray]],
+    warnings: list[str],
+) -> dict[str, EgoMask]:  # fmt: skip
+    """Every camera's ego mask under ``--ego-masks`` ``option`` (``estimate``, ``none`` or a folder).
+
+    Args:
+        cameras: camera id -> (its image timestamps in ns [N], intrinsics, T_camera_ego [4,4]).
+        warnings: fallbacks are reported here, one line per kind of fallback.
+    """
+    if option == "none":
+        return {cam: EgoMask({"method": "none"}) for cam in cameras}
+    if option != "estimate":
+        sizes = {cam: (intr.width_px, intr.height_px) for cam, (_, intr, _) in cameras.items()}
+        user = read_mask_folder(UPath(option), sizes)
+        return {
+            cam: EgoMask({"method": "user", "file": f"{cam}.png"}, user_png=user[cam])
+            if cam in user
+            else EgoMask({"method": "user", "decision": "no file: no mask"})
+            for cam in cameras
+        }
+    masks = {cam: _estimate(log_dir, cam, *inputs) for cam, inputs in cameras.items()}
+    fallbacks: dict[str, list[str]] = {}
+    for cam, mask in masks.items():
+        if mask.meta["decision"] not in ("mask", "not seen"):
+            fallbacks.setdefault(mask.meta["decision"], []).append(cam)
+    for decision, cams in fallbacks.items():
+        warnings.append(f"{log_dir / 'sensors' / 'cameras'}: ego masks not estimated ({decision}) for"
+                        f" {', '.join(cams)}; no ego mask written")  # fmt: skip
+    return masks
