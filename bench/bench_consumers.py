@@ -1,4 +1,5 @@
-"""Benchmark what the consumer options cost: the f-theta fit per camera, and dynamic_flag per sweep.
+"""Benchmark what the consumer options cost: the f-theta fit per camera, dynamic_flag per sweep, and
+the ego-mask estimation per log.
 
 Not a test. Prints, medians over --repeat runs, measured side by side in one run:
 
@@ -10,7 +11,9 @@ Not a test. Prints, medians over --repeat runs, measured side by side in one run
   elements), beside dynamic_flag of both units (the sweep to world, the grown-box tests), and their
   ratio;
 - a whole-log conversion (in this process, no validation) with the default pinhole and with
-  ``--camera-model ftheta``, and their ratio.
+  ``--camera-model ftheta``, and their ratio;
+- ego-mask estimation on a 15 s log: alone, and the whole command with ``--ego-masks none`` and
+  ``estimate``, and the share of the conversion it costs.
 
     python bench/bench_consumers.py [--work /tmp/ncore-bench] [--repeat 5]
 """
@@ -104,6 +107,63 @@ def bench_conversion(root: Path, log_id: str, work: Path, repeat: int) -> None:
           f" ftheta {ftheta:.2f} s, ratio {ftheta / pinhole:.3f}", flush=True)  # fmt: skip
 
 
+def bench_ego_masks(work: Path, repeat: int) -> None:
+    """Ego-mask estimation on a 15 s synthetic AV2 log (9 cameras at 20 fps): the estimation alone,
+    and the whole command with ``--ego-masks none`` and ``estimate`` (2 workers, no validation),
+    interleaved."""
+    import subprocess
+    import sys
+
+    from ncore_convert.converters.argoverse2.masks import plan_ego_masks
+    from ncore_convert.sources import argoverse2 as av2
+    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+    root = work / "consumers-av2-15s"
+    log_id = cached(
+        root, "15 s AV2 log", lambda r: write_log(UPath(r / "val"), SynthConfig(seconds=15.0, seed=22)).log_id
+    )
+    log_dir = UPath(root / "val" / log_id)
+    intrinsics, extrinsics = av2.read_intrinsics(log_dir), av2.read_sensor_extrinsics(log_dir)
+    cameras = {
+        cam: (av2.list_image_timestamps_ns(log_dir, cam), intrinsics[cam], extrinsics[cam]) for cam in av2.CAMERAS
+    }
+    alone = []
+    for _ in range(repeat):
+        started = time.perf_counter()
+        plan_ego_masks(log_dir, "estimate", cameras, [])
+        alone.append(time.perf_counter() - started)
+    command = [
+        str(Path(sys.executable).parent / "ncore-convert"),
+        "--no-progress",
+        "--no-validate",
+        "--workers",
+        "2",
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(work / "consumers-out"),
+        "argoverse2-v4",
+        "--split",
+        "val",
+    ]
+    seconds: dict[str, list[float]] = {"none": [], "estimate": []}
+    for _ in range(repeat):
+        for mode in seconds:
+            shutil.rmtree(work / "consumers-out", ignore_errors=True)
+            started = time.perf_counter()
+            subprocess.run([*command, "--ego-masks", mode], check=True, capture_output=True)
+            seconds[mode].append(time.perf_counter() - started)
+    shutil.rmtree(work / "consumers-out", ignore_errors=True)
+    none, estimate = (statistics.median(seconds[m]) for m in ("none", "estimate"))
+    print(f"ego masks, 15 s AV2 log, 9 cameras x 16 sampled images (medians of {repeat}):"
+          f" estimation alone {statistics.median(alone):.2f} s;", flush=True)  # fmt: skip
+    print(
+        f"  whole command, 2 workers: --ego-masks none {none:.2f} s, estimate {estimate:.2f} s,"
+        f" ratio {estimate / none:.3f}; estimation / conversion {statistics.median(alone) / none:.3f}",
+        flush=True,
+    )
+
+
 def main() -> None:
     args = bench_parser(__doc__, repeat=5).parse_args()
     work = work_dir(args)
@@ -117,6 +177,7 @@ def main() -> None:
     print("real AV2 sample (2 sweeps; speeds from its annotations over the whole log):", end=" ")
     bench_dynamic_flag(Path(str(sample.parent.parent)), sample.name, args.repeat * 4)
     bench_conversion(root, log_id, work, max(1, args.repeat // 2))
+    bench_ego_masks(work, max(1, args.repeat // 2 + 1))
 
 
 if __name__ == "__main__":

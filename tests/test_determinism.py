@@ -10,11 +10,13 @@ from pathlib import Path
 
 import pytest
 from conftest import BIN
+from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from upath import UPath
 
 #: Run-report fields that may differ between runs of the same conversion (docs/damaged-input.md, "Determinism").
 RUN_DEPENDENT = {("seconds",), ("finished",), ("validation", "seconds")}
 
-AV2_SYNTH = ["argoverse2", "--seconds", "0.4", "--seed", "8", "--camera-fps", "5"]
+AV2_SYNTH = ["argoverse2", "--seconds", "0.4", "--seed", "8", "--camera-fps", "20"]  # enough images for ego masks
 V2XSET_SYNTH = ["v2xset", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "8"]
 V2XSET_NOISE = ["--loc-err", "--xyz-std", "1", "--ryp-std", "2", "--async", "--async-overhead", "100"]
 #: case -> (synth arguments, split folder, dataset command, its arguments); the "consumer" cases set
@@ -61,6 +63,10 @@ def test_two_runs_write_identical_sequences(case, tmp_path):
     assert first.keys() == second.keys() and len(first) > 3
     differing = sorted(name for name in first if first[name] != second[name])
     assert differing == [report], differing  # every sequence file is byte-identical
+    if case == "argoverse2-v4":  # with ego masks estimated (the default)
+        (sequence,) = [p for p in outputs[0].rglob("*.json") if p.name != report]
+        loader = SequenceLoaderV4(SequenceComponentGroupsReader([UPath(sequence)]))
+        assert "ego" in loader.get_camera_sensor("ring_front_center").get_mask_images()
     logs = [json.loads(first[report])["logs"], json.loads(second[report])["logs"]]
     assert logs[0].keys() == logs[1].keys()
     for log_id in logs[0]:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import io
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,7 +99,9 @@ def plan_ego_masks(
             else EgoMask({"method": "user", "decision": "no file: no mask"})
             for cam in cameras
         }
-    masks = {cam: _estimate(log_dir, cam, *inputs) for cam, inputs in cameras.items()}
+    with ThreadPoolExecutor(max_workers=min(len(cameras), os.cpu_count() or 1) or 1) as pool:  # decoding frees the GIL
+        futures = {cam: pool.submit(_estimate, log_dir, cam, *inputs) for cam, inputs in cameras.items()}
+        masks = {cam: future.result() for cam, future in futures.items()}
     fallbacks: dict[str, list[str]] = {}
     for cam, mask in masks.items():
         if mask.meta["decision"] not in ("mask", "not seen"):

@@ -1,0 +1,130 @@
+"""Ego-vehicle camera masks (issue 20) against the synthetic generator's exact masks, read as the
+consumers read them: ``get_camera_sensor(id).get_mask_images()["ego"]`` through ``SequenceLoaderV4``."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import PIL.Image
+import pytest
+from conftest import BIN, Converted, open_sequence, synth_and_convert
+from ncore.data.v4 import CameraSensorComponent
+from upath import UPath
+
+from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+from ncore_convert.synth.ego import EGO_CAMERAS
+from ncore_convert.validate.sequence import validate_sequence
+
+
+def _masks(loader) -> dict[str, np.ndarray]:
+    out = {}
+    for camera_id in loader.camera_ids:
+        mask = loader.get_camera_sensor(camera_id).get_mask_images().get("ego")
+        if mask is not None:
+            out[camera_id] = np.asarray(mask)
+    return out
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / (a | b).sum())
+
+
+def _camera_meta(loader, camera_id: str) -> dict:
+    return loader._reader.open_component_readers(CameraSensorComponent.Reader)[camera_id].generic_meta_data
+
+
+@pytest.fixture(scope="module")
+def av2(tmp_path_factory) -> Converted:
+    return synth_and_convert(tmp_path_factory.mktemp("ego-av2"), SynthConfig(seconds=1.5, seed=31, camera_fps=10))
+
+
+@pytest.fixture(scope="module")
+def tbv(tmp_path_factory) -> Converted:
+    tmp = tmp_path_factory.mktemp("ego-tbv")
+    truth = write_log(UPath(tmp / "src"), SynthConfig(seconds=1.5, seed=32, camera_fps=10, tbv=True))
+    summary = convert_log(UPath(tmp / "src"), UPath(tmp / "out"), truth.log_id, Argoverse2Options(split=None))
+    return Converted(truth, summary, tmp / "out", open_sequence(tmp / "out", truth.log_id))
+
+
+@pytest.mark.parametrize("dataset", ["av2", "tbv"])
+def test_estimated_masks_match_the_true_body(dataset, av2, tbv):
+    """IoU >= 0.95 with the true mask on each camera that sees the ego; no mask (0 false-positive
+    pixels, at most 0.1 % allowed) on every other camera."""
+    run = av2 if dataset == "av2" else tbv
+    masks = _masks(run.loader)
+    assert set(masks) == set(EGO_CAMERAS) == set(run.truth.ego_masks)
+    for camera_id, mask in masks.items():
+        truth = run.truth.ego_masks[camera_id]
+        assert mask.shape == truth.shape and set(np.unique(mask)) <= {0, 255}
+        assert _iou(mask > 0, truth) >= 0.95, (camera_id, _iou(mask > 0, truth))
+        meta = _camera_meta(run.loader, camera_id)["ego_mask"]
+        assert meta["method"] == "estimate" and meta["decision"] == "mask" and meta["samples"] == 16
+        assert meta["covered_fraction"] == pytest.approx(truth.mean(), abs=0.01)
+    for camera_id in set(run.loader.camera_ids) - set(masks):
+        assert _camera_meta(run.loader, camera_id)["ego_mask"]["decision"] == "not seen"
+    assert validate_sequence(UPath(run.seq_dir / f"{run.truth.log_id}.json")).ok
+
+
+def test_a_parked_log_falls_back_to_no_masks_with_a_warning(tmp_path):
+    run = synth_and_convert(tmp_path, SynthConfig(seconds=1.0, seed=33, camera_fps=10, parked_fraction=1.0))
+    assert _masks(run.loader) == {}
+    warning = [w for w in run.summary.warnings if "ego masks not estimated (too little motion)" in w]
+    assert len(warning) == 1 and all(cam in warning[0] for cam in run.loader.camera_ids)
+    meta = _camera_meta(run.loader, "ring_front_center")["ego_mask"]
+    assert meta["decision"] == "too little motion" and meta["world_std"] < 4.0
+
+
+def test_a_half_parked_log_still_finds_the_body(tmp_path):
+    run = synth_and_convert(tmp_path, SynthConfig(seconds=1.5, seed=34, camera_fps=10, parked_fraction=0.5))
+    masks = _masks(run.loader)
+    assert set(masks) == set(EGO_CAMERAS)
+    assert min(_iou(m > 0, run.truth.ego_masks[c]) for c, m in masks.items()) >= 0.95
+
+
+def test_no_masks_with_none(tmp_path, av2):
+    options = Argoverse2Options(split="val", ego_masks="none", lidar_ids=())
+    root = av2.seq_dir.parent.parent / "src"
+    convert_log(UPath(root), UPath(tmp_path / "out"), av2.truth.log_id, options)
+    assert _masks(open_sequence(tmp_path / "out", av2.truth.log_id)) == {}
+
+
+def _cli(root: Path, out: Path, *args: str) -> subprocess.CompletedProcess:
+    command = [str(BIN / "ncore-convert"), "--no-progress", "--no-lidars", "--root-dir", str(root), "--output-dir",
+               str(out), "argoverse2-v4", "--split", "val", *args]  # fmt: skip
+    return subprocess.run(command, capture_output=True, text=True)
+
+
+def test_user_masks_round_trip_bit_exactly_and_bad_ones_are_rejected(tmp_path, av2):
+    root = av2.seq_dir.parent.parent / "src"
+    folder = tmp_path / "masks"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    one_bit = rng.random((2048, 1550)) < 0.2  # ring_front_center is portrait
+    PIL.Image.fromarray(one_bit).save(folder / "ring_front_center.png")
+    grey = np.where(rng.random((1550, 2048)) < 0.1, 7, 0).astype(np.uint8)  # 8-bit, one non-zero value
+    PIL.Image.fromarray(grey).save(folder / "ring_side_left.png")
+    done = _cli(root, tmp_path / "out", "--ego-masks", str(folder))
+    assert done.returncode == 0, done.stdout + done.stderr
+    masks = _masks(open_sequence(tmp_path / "out" / av2.truth.log_id, av2.truth.log_id))
+    assert set(masks) == {"ring_front_center", "ring_side_left"}  # cameras without a file get none
+    assert masks["ring_front_center"].dtype == bool and np.array_equal(masks["ring_front_center"], one_bit)
+    assert masks["ring_side_left"].dtype == np.uint8 and np.array_equal(masks["ring_side_left"], grey)
+
+    bad = {
+        "ring_front_centre.png": (one_bit, "no camera 'ring_front_centre'"),
+        "ring_rear_left.png": (np.zeros((100, 100), dtype=bool), "100x100 px, but ring_rear_left is 2048x1550"),
+        "ring_rear_right.png": (rng.integers(0, 255, (1550, 2048), dtype=np.uint8), "not a binary mask"),
+    }
+    for name, (pixels, cause) in bad.items():
+        folder_bad = tmp_path / f"bad-{name}"
+        folder_bad.mkdir()
+        PIL.Image.fromarray(pixels).save(folder_bad / name)
+        failed = _cli(root, tmp_path / f"out-{name}", "--ego-masks", str(folder_bad))
+        lines = [line for line in failed.stdout.splitlines() if line.startswith("FAIL")]
+        assert failed.returncode == 2 and len(lines) == 1, failed.stdout + failed.stderr
+        assert str(folder_bad / name) in lines[0] and cause in lines[0], lines[0]
+    neither = _cli(root, tmp_path / "out-x", "--ego-masks", str(tmp_path / "missing"))
+    assert neither.returncode == 2 and "neither 'estimate', 'none' nor a folder" in neither.stderr
