@@ -71,7 +71,7 @@ def test_the_documentation_check_can_fail():
 #: One docs/ file per topic (issue 18): each dataset, the lidar model, TbV timing, noise, validation
 #: and preview, scale-out, damaged input, benchmarks, limitations.
 TOPICS = ("argoverse2", "tbv", "opv2v-v2xset", "lidar-model", "tbv-timing", "noise", "validation", "scale-out",
-          "damaged-input", "benchmarks", "limitations", "consumers")  # fmt: skip
+          "damaged-input", "benchmarks", "limitations", "consumers", "ego-masks")  # fmt: skip
 
 
 def test_readme_is_short_and_links_every_topic():
