@@ -16,7 +16,8 @@ from upath import UPath
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.synth.ego import EGO_CAMERAS
-from ncore_convert.validate.sequence import validate_sequence
+from ncore_convert.validate.report import Report
+from ncore_convert.validate.sequence import _check_ego_mask, validate_sequence
 
 
 def _masks(loader) -> dict[str, np.ndarray]:
@@ -82,6 +83,28 @@ def test_a_half_parked_log_still_finds_the_body(tmp_path):
     masks = _masks(run.loader)
     assert set(masks) == set(EGO_CAMERAS)
     assert min(_iou(m > 0, run.truth.ego_masks[c]) for c, m in masks.items()) >= 0.95
+
+
+class _Camera:
+    """What the validation check reads of a camera: its masks and its model's resolution."""
+
+    def __init__(self, mask: PIL.Image.Image, width: int, height: int) -> None:
+        self._mask, self.model_parameters = mask, type("Model", (), {"resolution": np.array([width, height])})
+
+    def get_mask_images(self) -> dict:
+        return {"ego": self._mask}
+
+
+@pytest.mark.parametrize(
+    "pixels, ok",
+    [(np.pad(np.ones((10, 40), np.uint8), ((30, 0), (0, 0))), True), (np.ones((40, 40), np.uint8), False),
+     (np.zeros((40, 40), np.uint8), False), (np.ones((20, 40), np.uint8), False)],
+)  # fmt: skip
+def test_validate_checks_the_ego_masks_size_and_coverage(pixels, ok):
+    report = Report("x")
+    _check_ego_mask(report, _Camera(PIL.Image.fromarray(pixels * 255), 40, 40), "camera c")
+    (check,) = report.checks
+    assert check.name == "camera c: ego mask" and check.ok == ok, check.detail
 
 
 def test_no_masks_with_none(tmp_path, av2):

@@ -581,14 +581,19 @@ def synth():
 @click.option(
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )
-def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps):
-    """A synthetic Argoverse 2 Sensor log: real schemas, two simulated VLP-32C units, cameras, cuboids."""
+@click.option(
+    "--parked-fraction", type=click.FloatRange(0.0, 1.0), default=0.0,
+    help="The first part of the log (a fraction) in which the cameras' world stands still, as if parked"
+    " (1: the whole log; tests the ego-mask fallback).",
+)  # fmt: skip
+def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, parked_fraction):
+    """A synthetic Argoverse 2 Sensor log: real schemas, two simulated VLP-32C units, cameras (with the
+    ego body in three of them), cuboids."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    truth = write_log(
-        UPath(out_dir),
-        SynthConfig(seconds=seconds, seed=seed, swap_lidar_halves=swap_lidar_halves, camera_fps=camera_fps),
-    )
+    config = SynthConfig(seconds=seconds, seed=seed, swap_lidar_halves=swap_lidar_halves, camera_fps=camera_fps,
+                         parked_fraction=parked_fraction)  # fmt: skip
+    truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
         f" {sum(len(s.offset_ns) for s in truth.sweeps)} points, {truth.n_images} images, {truth.n_cuboids} cuboids"
@@ -606,11 +611,18 @@ def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps):
 @click.option(
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )
-def synth_tbv(out_dir, seconds, seed, camera_fps):
-    """A synthetic TbV log: flat layout, no offset_ns, 7 ring cameras (6 at half resolution), no annotations."""
+@click.option(
+    "--parked-fraction", type=click.FloatRange(0.0, 1.0), default=0.0,
+    help="The first part of the log (a fraction) in which the cameras' world stands still, as if parked"
+    " (1: the whole log; tests the ego-mask fallback).",
+)  # fmt: skip
+def synth_tbv(out_dir, seconds, seed, camera_fps, parked_fraction):
+    """A synthetic TbV log: flat layout, no offset_ns, 7 ring cameras (6 at half resolution; the ego body
+    in three), no annotations."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    truth = write_log(UPath(out_dir), SynthConfig(seconds=seconds, seed=seed, camera_fps=camera_fps, tbv=True))
+    config = SynthConfig(seconds=seconds, seed=seed, camera_fps=camera_fps, tbv=True, parked_fraction=parked_fraction)
+    truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
         f" {sum(len(s.offset_ns) for s in truth.sweeps)} points, {truth.n_images} images"

@@ -63,7 +63,7 @@ def true_mask(camera: str, T_camera_ego: np.ndarray, focal_px: float, cx_px: flo
 def _smooth_field(rng: np.random.Generator, width: int, height: int, cell_px: int) -> np.ndarray:
     """A random field in [-1, 1] that varies over about ``cell_px`` pixels, float32 [H,W]."""
     coarse = rng.uniform(-1, 1, (height // cell_px + 2, width // cell_px + 2)).astype(np.float32)
-    image = PIL.Image.fromarray(coarse, mode="F").resize((width, height), PIL.Image.BICUBIC)
+    image = PIL.Image.fromarray(coarse, mode="F").resize((width, height), PIL.Image.BILINEAR)
     return np.clip(np.asarray(image), -1, 1)
 
 
@@ -80,10 +80,11 @@ def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray
     for _ in range(N_PICTURES):
         world_rng = np.random.default_rng(world_seed) if parked else rng  # parked: the same world each time
         blobs = 45 * _smooth_field(world_rng, width, height, 48) + 20 * _smooth_field(world_rng, width, height, 9)
-        grey = road + blobs + rng.normal(0, 5, (height, width)).astype(np.float32)
+        noise = rng.standard_normal((height, width), dtype=np.float32)
+        grey = road + blobs + 5 * noise
         if mask is not None:
             light = rng.uniform(*LIGHTING)
-            grey = np.where(mask, paint * light + rng.normal(0, 2, (height, width)).astype(np.float32), grey)
+            grey = np.where(mask, paint * light + 2 * noise, grey)
         rgb = np.clip(grey[..., None] + np.array([0, 5, 12], dtype=np.float32) * v[..., None], 0, 255)
         buf = io.BytesIO()
         PIL.Image.fromarray(rgb.astype(np.uint8)).save(buf, format="JPEG", quality=80)
