@@ -68,7 +68,7 @@ def _smooth_field(rng: np.random.Generator, width: int, height: int, cell_px: in
 
 
 def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray | None, parked: bool) -> list[bytes]:
-    """``N_PICTURES`` JPEGs of one camera (~250-400 KB at AV2 resolutions): a different world in each
+    """``N_PICTURES`` JPEGs of one camera (~0.45 MB at AV2 resolutions): a different world in each
     (the same one when ``parked``), the body (``mask``, or none) painted with a fixed texture under
     slightly different light."""
     v = np.linspace(0, 1, height, dtype=np.float32)[:, None]
