@@ -425,6 +425,9 @@ def opencood_options(dataset: str):
             click.option("--layout", type=click.Choice(get_args(Layout)), default="agents",
                          help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
                          " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_)."),
+            click.option("--lidar-model-source", type=click.Choice(get_args(LidarModelSource)), default="empirical",
+                         help="'empirical': the CARLA lidar's structured model from data_protocol.yaml, checked against"
+                         " the data, and each ray's model element; 'none': raw rays only."),
             store_options,
             consumer_options,
             noise_options,

@@ -125,10 +125,20 @@ class Protocol:
     Attributes:
         fixed_delta_seconds: the CARLA tick, ``world.fixed_delta_seconds``, seconds.
         cav_lidar: the first CAV's ``sensing.perception.lidar`` block (empty if absent).
+        rsu_lidars: each infrastructure unit's (``scenario.rsu_list``) lidar block, in list order;
+            agent ``-k`` is the k-th (empty blocks where absent).
     """
 
     fixed_delta_seconds: float
     cav_lidar: dict
+    rsu_lidars: tuple[dict, ...] = ()
+
+    def lidar_of(self, agent_id: str) -> dict:
+        """The lidar block of an agent: its infrastructure unit's (negative ids), else the CAVs'."""
+        if is_infrastructure(agent_id):
+            k = -int(agent_id) - 1
+            return self.rsu_lidars[k] if k < len(self.rsu_lidars) else {}
+        return self.cav_lidar
 
 
 def read_protocol(scenario_dir: UPath) -> Protocol:
@@ -141,11 +151,19 @@ def read_protocol(scenario_dir: UPath) -> Protocol:
         raise SourceError(path, "no numeric world.fixed_delta_seconds") from None
     if not 0.0 < dt <= 1.0:
         raise SourceError(path, f"world.fixed_delta_seconds {dt} is not a plausible CARLA tick")
-    try:
-        lidar = dict(protocol["scenario"]["single_cav_list"][0]["sensing"]["perception"]["lidar"])
-    except (KeyError, IndexError, TypeError, ValueError):
-        lidar = {}
-    return Protocol(dt, lidar)
+
+    def lidar_block(unit) -> dict:
+        try:
+            return dict(unit["sensing"]["perception"]["lidar"])
+        except (KeyError, IndexError, TypeError, ValueError):
+            return {}
+
+    scenario = protocol.get("scenario") if isinstance(protocol, dict) else None
+    scenario = scenario if isinstance(scenario, dict) else {}
+    cavs, rsus = scenario.get("single_cav_list"), scenario.get("rsu_list")
+    cav = cavs[0] if isinstance(cavs, list) and cavs else {}
+    rsus = rsus if isinstance(rsus, list) else []
+    return Protocol(dt, lidar_block(cav), tuple(lidar_block(unit) for unit in rsus))
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,8 @@ from ncore_convert.synth.scene import Box, Scene, cast_rays
 WIDTH, HEIGHT, FOV_DEG = 800, 600, 100.0
 FOCAL_PX = float(WIDTH / (2.0 * np.tan(np.radians(FOV_DEG / 2))))
 LIDAR_CHANNELS, UPPER_FOV_DEG, LOWER_FOV_DEG, LIDAR_RANGE_M = 64, 2.0, -25.0, 120.0
+#: The infrastructure units' lidar (V2XSet): channels, upper_fov, lower_fov; its own protocol block.
+RSU_LIDAR = (32, 0.0, -40.0)
 #: Lidar mount on a CAV (vehicle frame, m), and the height of an infrastructure lidar above ground.
 CAV_LIDAR_M = (-0.5, 0.0, 1.9)
 RSU_LIDAR_HEIGHT_M = 4.5
@@ -94,7 +96,9 @@ class SynthConfig:
     first_key: int = 69
     key_step: int = 2
     fixed_delta_seconds: float = 0.05
-    lidar_columns: int = 720  #: azimuth samples per revolution (x 64 channels)
+    lidar_columns: int = 720  #: azimuth samples per channel and tick (one tick is one revolution)
+    lidar_noise_stddev: float = 0.0  #: CARLA's noise_stddev: range noise along each ray, m
+    lidar_dropoff_rate: float = 0.0  #: CARLA's dropoff_general_rate: share of points dropped at random
     keep_truth: bool = False
 
     @property
@@ -171,10 +175,26 @@ def _box(T_actor_world: np.ndarray, actor: _Actor, category: str) -> Box:
                str(actor.actor_id), actor.intensity)  # fmt: skip
 
 
-def _lidar_rays(columns: int) -> np.ndarray:
-    """Unit directions of a CARLA lidar revolution in its (left-handed) frame [64*columns, 3]."""
-    elevation = np.radians(np.linspace(UPPER_FOV_DEG, LOWER_FOV_DEG, LIDAR_CHANNELS))
-    azimuth = np.radians(np.arange(columns) * 360.0 / columns)
+def lidar_block(config: SynthConfig, channels: int, upper_fov: float, lower_fov: float) -> dict:
+    """A ``sensing.perception.lidar`` block that matches the simulated lidar: one revolution per tick,
+    and ``points_per_second`` with a fractional share per channel and tick that CARLA rounds to
+    ``lidar_columns`` (as OPV2V's 1,300,000 / 20 / 64 = 1015.6 rounds to 1016)."""
+    dt = config.fixed_delta_seconds
+    return {"channels": channels, "range": LIDAR_RANGE_M, "upper_fov": upper_fov, "lower_fov": lower_fov,
+            "rotation_frequency": round(1.0 / dt, 9), "points_per_second": round((config.lidar_columns - 0.375)
+                                                                               * channels / dt, 3),
+            "noise_stddev": config.lidar_noise_stddev, "dropoff_general_rate": config.lidar_dropoff_rate,
+            "dropoff_intensity_limit": 1.0, "dropoff_zero_intensity": 0.0}  # fmt: skip
+
+
+def _lidar_rays(block: dict, dt: float) -> np.ndarray:
+    """Unit directions of one tick of CARLA's ray-cast lidar in its (left-handed) frame
+    [channels * n, 3], laser by laser: n = round(pps * dt / channels) azimuths from -180 deg, evenly
+    over the tick's sweep (one revolution)."""
+    channels = int(block["channels"])
+    n = int(np.floor(block["points_per_second"] * dt / channels + 0.5))
+    elevation = np.radians(np.linspace(block["upper_fov"], block["lower_fov"], channels))
+    azimuth = np.radians(-180.0 + np.arange(n) * (360.0 * block["rotation_frequency"] * dt) / n)
     el, az = np.meshgrid(elevation, azimuth, indexing="ij")
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
 
@@ -209,18 +229,19 @@ def _scenario_name(rng: np.random.Generator) -> str:
 
 
 def _protocol(config: SynthConfig, cav_spawns: list[list[float]], rsu_spawns: list[list[float]]) -> dict:
-    lidar = {"channels": LIDAR_CHANNELS, "range": LIDAR_RANGE_M, "points_per_second": 1300000,
-             "rotation_frequency": 20, "upper_fov": UPPER_FOV_DEG, "lower_fov": LOWER_FOV_DEG,
-             "noise_stddev": 0.0, "dropoff_general_rate": 0.0}  # fmt: skip
-    sensing = {"perception": {"camera_num": 4, "lidar": lidar}, "localization": {"gnss": {"noise_alt_stddev": 0.005}}}
+    def sensing(lidar: dict) -> dict:
+        return {"perception": {"camera_num": 4, "lidar": lidar}, "localization": {"gnss": {"noise_alt_stddev": 0.005}}}
+
+    cav = sensing(lidar_block(config, LIDAR_CHANNELS, UPPER_FOV_DEG, LOWER_FOV_DEG))
     protocol = {
         "world": {"client_port": 2000, "fixed_delta_seconds": config.fixed_delta_seconds, "seed": config.seed,
                   "sync_mode": True, "weather": {"sun_altitude_angle": 15, "cloudiness": 0, "fog_density": 0}},
-        "vehicle_base": {"sensing": sensing},
-        "scenario": {"single_cav_list": [{"spawn_position": s, "sensing": sensing} for s in cav_spawns]},
+        "vehicle_base": {"sensing": cav},
+        "scenario": {"single_cav_list": [{"spawn_position": s, "sensing": cav} for s in cav_spawns]},
     }  # fmt: skip
     if rsu_spawns:
-        protocol["scenario"]["rsu_list"] = [{"spawn_position": s, "sensing": sensing} for s in rsu_spawns]
+        rsu = sensing(lidar_block(config, *RSU_LIDAR))
+        protocol["scenario"]["rsu_list"] = [{"spawn_position": s, "sensing": rsu} for s in rsu_spawns]
     return protocol
 
 
@@ -260,7 +281,12 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                           {act.actor_id: act.speed_mps for act in cavs + others})  # fmt: skip
     for a in agent_ids:
         (scenario_dir / a).mkdir(parents=True, exist_ok=True)
-    rays_lidar = _lidar_rays(config.lidar_columns)
+    protocol = _protocol(config, [], [[0.0] * 6] if config.n_infrastructure else [])
+    rays = {
+        False: _lidar_rays(protocol["vehicle_base"]["sensing"]["perception"]["lidar"], config.fixed_delta_seconds),
+        True: _lidar_rays(protocol["scenario"]["rsu_list"][0]["sensing"]["perception"]["lidar"],
+                          config.fixed_delta_seconds) if config.n_infrastructure else None,
+    }  # fmt: skip
     K = [[FOCAL_PX, 0.0, WIDTH / 2], [0.0, FOCAL_PX, HEIGHT / 2], [0.0, 0.0, 1.0]]
     tick0 = config.first_key * config.fixed_delta_seconds
     cav_spawns = [_floats(_actor_pose(road, c, 0.0, False)) for c in cavs]
@@ -291,11 +317,16 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             boxes = [b for b, act in zip(actor_boxes, actors, strict=True) if act.actor_id != own]
             box_actor = [act.actor_id for act in actors if act.actor_id != own]
             scene = Scene(None, boxes + pillar_boxes + buildings)
+            rays_lidar = rays[infra]
             origins = np.broadcast_to(T_lidar_world[:3, 3], rays_lidar.shape)
             directions = rays_lidar @ T_lidar_world[:3, :3].T
             no_time = np.zeros(len(rays_lidar))
             rng_m, intensity, index = cast_rays(origins, directions, no_time, scene, LIDAR_RANGE_M, ground_z_m=0.0)
             hit = np.isfinite(rng_m)
+            if config.lidar_dropoff_rate:  # drop-off leaves holes in the grid
+                hit &= rng.random(len(hit)) >= config.lidar_dropoff_rate
+            if config.lidar_noise_stddev:  # range noise moves points along their rays
+                rng_m = rng_m + rng.normal(0.0, config.lidar_noise_stddev, len(rng_m))
             xyz = (rays_lidar[hit] * rng_m[hit, None]).astype(np.float32)
             intensity = intensity[hit]
             lookup = np.array(box_actor + [-2] * len(pillar_boxes) + [-3] * len(buildings) + [-1], dtype=np.int64)

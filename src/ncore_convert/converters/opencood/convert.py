@@ -27,6 +27,7 @@ from ncore_convert.errors import SourceError
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
 from ncore_convert.transforms import carla, labels
+from ncore_convert.transforms.carla_lidar import assign_elements
 from ncore_convert.transforms.dynamic import dynamic_flags
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3, transform_points
 from ncore_convert.transforms.lidar import ray_bundle
@@ -149,6 +150,8 @@ def _write_base(
         writer.store_extrinsic(names.sensor(sensor), agent.T_sensor_rig[sensor], rig_frame=names.rig)
     for cam, spec in agent.cameras.items():
         writer.store_camera(names.sensor(cam), spec.pinhole, spec.model, spec.ftheta)
+    if agent.lidar_model is not None:
+        writer.store_lidar_model(names.sensor(src.LIDAR), agent.lidar_model)
 
 
 def _write_sensors(
@@ -156,7 +159,7 @@ def _write_sensors(
 ) -> None:
     """Stream the agent's lidar frames and images, one frame at a time; skip (and report) missing files."""
     if agent.lidar_ids:
-        meta = {"agent_id": agent.agent_id, "carla_lidar": plan.lidar_spec,
+        meta = {"agent_id": agent.agent_id, "carla_lidar": plan.lidar_specs[agent.agent_id], **agent.lidar_model_meta,
                 "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
                 "mounting": agent.mounts[src.LIDAR],
                 contract.DYNAMIC_FLAG: f"written: int8 per point, 1 = inside one of {len(plan.dynamic_boxes)}"
@@ -179,9 +182,11 @@ def _write_sensors(
             flags = dynamic_flags(
                 transform_points(T_lidar_world_global, xyz[rays.source_index]), rays.timestamp_us, plan.dynamic_boxes
             )
+            elements = None if agent.lidar_model is None else assign_elements(agent.lidar_model, rays.direction)
             lidar.store_frame(
                 rays,
                 {"carla_frame": int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite},
+                model_element=elements,
                 generic_data={contract.DYNAMIC_FLAG: flags},
             )
             counts.frames += 1

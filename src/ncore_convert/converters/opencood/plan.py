@@ -19,17 +19,19 @@ from typing import Literal
 import numpy as np
 from upath import UPath
 
-from ncore_convert.contract import Layout, Profile, StoreType
+from ncore_convert.contract import Layout, LidarModelSource, Profile, StoreType
 from ncore_convert.converters import consumer
 from ncore_convert.converters.common import ConsumerOptions, select_sensors
 from ncore_convert.converters.opencood.noise import AgentNoise, opencood_loaded, plan_noise
 from ncore_convert.errors import SourceError, UsageError
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.files import require_folder
-from ncore_convert.transforms import carla, labels
+from ncore_convert.transforms import carla, carla_lidar, labels
 from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.dynamic import DynamicBoxes, TrackObservations
 from ncore_convert.transforms.geometry import invert_se3, rigid_mean
+from ncore_convert.transforms.lidar import MIN_RANGE_M
+from ncore_convert.transforms.lidar_model import SpinningLidarModel
 from ncore_convert.transforms.noise import NoiseSetting
 from ncore_convert.transforms.timebase import WindowError, in_window
 
@@ -39,6 +41,14 @@ MOUNT_TOLERANCE = (0.02, 0.2)  # metres, degrees
 
 #: Two agents' labels of one actor at one tick further apart than this are reported.
 LABEL_TOLERANCE_M = 0.05
+
+#: Frames per agent checked against its protocol lidar block.
+MODEL_FRAMES = 3
+#: The data disagree with the protocol when the 99th percentile of the distance to the nearest
+#: laser exceeds this (real OPV2V: 0.0007 deg, the float32 floor about 0.003 deg) ...
+RING_TOLERANCE_DEG = 0.02
+#: ... or the distance to the nearest azimuth column (or the frames' grid phases) this, in columns.
+COLUMN_TOLERANCE = 0.25
 
 
 #: The source class of every OPV2V / V2XSet label (the YAMLs list vehicles only).
@@ -52,6 +62,7 @@ class OpenCoodOptions(ConsumerOptions):
     dataset: Literal["opv2v", "v2xset"]
     split: str
     layout: Layout = "agents"
+    lidar_model_source: LidarModelSource = "empirical"
     store_type: StoreType = "itar"
     profile: Profile = "separate-sensors"
     sequence_meta: bool = True
@@ -90,6 +101,8 @@ class AgentPlan:
     mounts: dict[str, dict]
     skipped_keys: dict[str, str] = field(default_factory=dict)  #: frame key -> why its YAML was unreadable
     cameras: dict[str, consumer.CameraSpec] = field(default_factory=dict)
+    lidar_model: SpinningLidarModel | None = None  #: the CARLA lidar's structured model (None: raw rays only)
+    lidar_model_meta: dict = field(default_factory=dict)  #: how it was derived, or why there is none
 
     @property
     def kind(self) -> str:
@@ -124,7 +137,7 @@ class ScenarioPlan:
     agent_folders: list[str]
     agents: dict[str, AgentPlan]
     boxes: dict[str, Boxes]  #: frame key -> merged labels
-    lidar_spec: dict
+    lidar_specs: dict[str, dict]  #: agent id -> its data_protocol.yaml lidar block
     warnings: list[str]
     noise: dict[str, dict[str, AgentNoise]]  #: setting name -> agent id -> perturbations
     window_us: tuple[int, int] | None = None  #: the clip window (inclusive µs), None for the whole scenario
@@ -301,6 +314,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     if not frames:
         raise SourceError(scenario_dir, "no agent has 2 or more readable frames")
     agents = {a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a]) for a, f in frames.items()}
+    agents = {a: _with_lidar_model(agent, protocol, options, scenario, warnings) for a, agent in agents.items()}
     ego = src.opencood_ego(folders)
     ego_times_us = src.key_timestamps_us(keys[ego], dt_s)
     noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
@@ -327,7 +341,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
         agent_folders=folders,
         agents=agents,
         boxes=merge_boxes(frames, warnings),
-        lidar_spec=protocol.cav_lidar,
+        lidar_specs={a: protocol.lidar_of(a) for a in agents},
         warnings=warnings,
         noise=noise,
     )
@@ -338,6 +352,75 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     if window_us is not None:
         plan = _clipped(plan, window_us, scenario_dir)
     return _with_labels(plan, scenario_dir)
+
+
+def _with_lidar_model(
+    agent: AgentPlan, protocol: src.Protocol, options: OpenCoodOptions, scenario: str, warnings: list[str]
+) -> AgentPlan:
+    """The agent's lidar model from its protocol block (the CAVs', or its infrastructure unit's),
+    checked against a few of its frames; without one (``--lidar-model-source none``, no usable block,
+    or data that disagree, reported) the lidar keeps raw rays."""
+    if not agent.lidar_ids:
+        return agent
+    if options.lidar_model_source == "none":
+        return replace(agent, lidar_model_meta={"lidar_model_source": "none"})
+    block = protocol.lidar_of(agent.agent_id)
+    try:
+        spec = carla_lidar.CarlaLidarSpec.from_protocol(block, protocol.fixed_delta_seconds)
+        carla_lidar.model(spec, 0.0)  # one revolution per tick, else ValueError
+    except ValueError as err:
+        return _no_model(agent, scenario, f"data_protocol.yaml: {err}", warnings)
+    directions = []
+    keys = [agent.keys[i] for i in np.unique(np.linspace(0, len(agent.keys) - 1, MODEL_FRAMES).round().astype(int))]
+    for key in keys:
+        try:
+            xyz_carla, _ = src.read_points(agent.agent_dir, key)
+        except SourceError:
+            continue  # reported when the frame is written
+        xyz = carla.points_right_handed(xyz_carla.astype(np.float64))
+        distance = np.linalg.norm(xyz, axis=1)
+        ok = np.isfinite(distance) & (distance >= MIN_RANGE_M)
+        directions.append(xyz[ok] / distance[ok, None])
+    if not directions or not sum(len(d) for d in directions):
+        return _no_model(agent, scenario, "no readable lidar frame to check the protocol against", warnings)
+    fit = carla_lidar.fit_to_data(directions, spec)
+    if (
+        fit.ring_residual_deg > RING_TOLERANCE_DEG
+        or fit.column_residual > COLUMN_TOLERANCE
+        or (fit.phase_spread_columns > COLUMN_TOLERANCE)
+    ):
+        figure = (
+            f"ring residual {fit.ring_residual_deg:.4f} deg (limit {RING_TOLERANCE_DEG}), column residual"
+            f" {fit.column_residual:.3f} and phase spread {fit.phase_spread_columns:.3f} columns (limit"
+            f" {COLUMN_TOLERANCE}) against {spec.channels} channels x {spec.points_per_channel} columns"
+        )
+        return _no_model(agent, scenario, f"the lidar data disagree with data_protocol.yaml: {figure}", warnings)
+    meta = {
+        "lidar_model_source": "empirical",
+        "lidar_model": {
+            "derivation": "CARLA ray-cast lidar from data_protocol.yaml (channels, upper_fov, lower_fov,"
+            " rotation_frequency, points_per_second, world.fixed_delta_seconds); azimuth phase from the data",
+            "protocol_block": "rsu_list" if src.is_infrastructure(agent.agent_id) else "single_cav_list",
+            "rows": spec.channels,
+            "columns": spec.points_per_channel,
+            "column_step_deg": 360.0 / spec.points_per_channel,
+            "column0_azimuth_deg": round(float(np.degrees(fit.phase_rad)), 6),
+            "spinning_direction": "cw (CARLA's azimuth increases in its left-handed frame)",
+            "checked_frames": len(directions),
+            "ring_residual_p99_deg": round(fit.ring_residual_deg, 6),
+            "column_residual_p99": round(fit.column_residual, 6),
+            "frame_time": "every ray of a frame has the tick's timestamp and the frame spans [t, t]: NCore's"
+            " column time (column / (n_columns - 1) of the frame) is the tick for every column, as CARLA casts"
+            " all of a tick's rays against one world state",
+            "element_assignment": "row: nearest laser elevation; column: nearest azimuth of the grid",
+        },
+    }
+    return replace(agent, lidar_model=carla_lidar.model(spec, fit.phase_rad), lidar_model_meta=meta)
+
+
+def _no_model(agent: AgentPlan, scenario: str, why: str, warnings: list[str]) -> AgentPlan:
+    warnings.append(f"{agent.agent_dir}: scenario {scenario}: no lidar model ({why}); raw rays only")
+    return replace(agent, lidar_model_meta={"lidar_model_source": "none", "lidar_model_fallback": why})
 
 
 def _clipped(plan: ScenarioPlan, window_us: tuple[int, int], scenario_dir: UPath) -> ScenarioPlan:
