@@ -1,0 +1,130 @@
+"""The CARLA ray-cast lidar model of OPV2V / V2XSet (issue 21): on the real OPV2V frames with the
+example protocol of their README, and on synthetic scenarios that simulate CARLA's lidar (per-tick
+sweep, fractional points per channel, range noise, drop-off) with the protocol written to match."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import REPO, open_sequence
+from ncore.data.v4 import LidarSensorComponent
+from ncore.impl.data.types import RowOffsetStructuredSpinningLidarModelParameters
+from upath import UPath
+
+from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+from ncore_convert.evaluate import evaluate_lidar_model
+from ncore_convert.sources.pcd import read_pcd
+from ncore_convert.synth import opencood as synth
+from ncore_convert.transforms import carla, carla_lidar
+from ncore_convert.transforms.lidar_model import angle_between_rad
+from ncore_convert.validate.sequence import validate_sequence
+
+
+def find_opv2v_sample() -> Path:
+    """The real OPV2V frames beside the repository (as the AV2 sample is found)."""
+    for c in [p / "shared" / "data" / "opv2v-lidar-sample" for p in (REPO.parent, REPO.parent.parent)]:
+        if (c / "000070.pcd").is_file():
+            return c
+    if Path("/work/shared/data/opv2v-lidar-sample/000070.pcd").is_file():
+        return Path("/work/shared/data/opv2v-lidar-sample")
+    raise RuntimeError("../shared/data/opv2v-lidar-sample not found beside the repository")
+
+
+#: The example protocol of the sample's README (a real OPV2V data_protocol.yaml's CAV lidar).
+README_PROTOCOL = {"channels": 64, "upper_fov": 2, "lower_fov": -25, "range": 120, "rotation_frequency": 20,
+                   "points_per_second": 1300000, "noise_stddev": 0.02, "dropoff_general_rate": 0.1}  # fmt: skip
+
+
+def test_real_opv2v_frames_fit_the_protocol_model():
+    spec = carla_lidar.CarlaLidarSpec.from_protocol(README_PROTOCOL, 0.05)
+    assert spec.points_per_channel == 1016  # 1,300,000 / 20 / 64 = 1015.6, rounded as CARLA does
+    frames, distances = [], []
+    for path in sorted(find_opv2v_sample().glob("*.pcd")):
+        data = read_pcd(UPath(path))
+        xyz = carla.points_right_handed(np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float64))
+        distance = np.linalg.norm(xyz, axis=1)
+        frames.append(xyz / distance[:, None])
+        distances.append(distance)
+    assert len(frames) == 5
+    fit = carla_lidar.fit_to_data(frames, spec)
+    assert fit.ring_residual_deg < 0.005 and fit.column_residual < 0.05 and fit.phase_spread_columns < 0.01
+    model = carla_lidar.model(spec, fit.phase_rad)
+    errors, rows, far = [], [], []
+    for direction, distance in zip(frames, distances, strict=True):
+        elements = carla_lidar.assign_elements(model, direction.astype(np.float32))
+        assert elements[:, 0].max() < 64 and elements[:, 1].max() < 1016
+        errors.append(np.degrees(angle_between_rad(model.element_directions(elements), direction)))
+        rows.append(elements[:, 0])
+        far.append(distance > 20.0)
+    error, row, far = np.concatenate(errors), np.concatenate(rows), np.concatenate(far)
+    assert far.sum() > 10_000 and error[far].mean() <= 0.01
+    worst_row = max(error[far & (row == r)].mean() for r in np.unique(row[far]))
+    assert worst_row <= 0.02, worst_row
+
+
+@pytest.fixture(scope="module")
+def v2xset(tmp_path_factory):
+    """A V2XSet scenario with CARLA-like range noise and drop-off, converted with the default model."""
+    tmp = tmp_path_factory.mktemp("carla-lidar")
+    config = synth.SynthConfig(dataset="v2xset", frames=4, seed=41, lidar_columns=256, lidar_noise_stddev=0.02,
+                               lidar_dropoff_rate=0.1, keep_truth=True)  # fmt: skip
+    (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
+    out = tmp / "out" / truth.scenario
+    summary = convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario, OpenCoodOptions("v2xset", "test"))
+    return truth, out, summary, tmp / "src"
+
+
+def test_synthetic_model_error_and_elements(v2xset):
+    truth, out, summary, _ = v2xset
+    assert not [w for w in summary.warnings if "no lidar model" in w]
+    for agent_id in truth.agents:
+        loader = open_sequence(out / agent_id, f"{truth.scenario}_agent{agent_id}")
+        params = loader.get_lidar_sensor("lidar_top").model_parameters
+        assert isinstance(params, RowOffsetStructuredSpinningLidarModelParameters)
+        infra = int(agent_id) < 0
+        assert (params.n_rows, params.n_columns) == ((32 if infra else 64), 256)  # the RSU's own block
+        report = evaluate_lidar_model(loader, "lidar_top")
+        assert report.far_points > 1000 and report.far_mean_deg <= 0.005, report.far_mean_deg
+        sensor = loader.get_lidar_sensor("lidar_top")
+        for i in range(sensor.frames_count):
+            elements = sensor.get_frame_ray_bundle_model_element(i)
+            assert elements is not None and len(elements) == sensor.get_frame_ray_bundle_count(i)
+            assert elements[:, 0].max() < params.n_rows and elements[:, 1].max() < params.n_columns
+        meta = loader._reader.open_component_readers(LidarSensorComponent.Reader)["lidar_top"].generic_meta_data
+        assert meta["lidar_model"]["protocol_block"] == ("rsu_list" if infra else "single_cav_list")
+        checks = {
+            c.name: c
+            for c in validate_sequence(UPath(out / agent_id / f"{truth.scenario}_agent{agent_id}.json")).checks
+        }
+        assert checks["lidar lidar_top: model elements within the model"].ok
+
+
+def test_data_that_disagree_with_the_protocol_fall_back_with_a_warning(v2xset, tmp_path):
+    truth, _, _, src_root = v2xset
+    protocol_path = Path(src_root) / "test" / truth.scenario / "data_protocol.yaml"
+    protocol = yaml.safe_load(protocol_path.read_text())
+    for cav in protocol["scenario"]["single_cav_list"]:
+        cav["sensing"]["perception"]["lidar"]["channels"] = 32  # the data have 64
+    root = tmp_path / "src"
+    (root / "test").mkdir(parents=True)
+    shutil.copytree(protocol_path.parent, root / "test" / truth.scenario)
+    (root / "test" / truth.scenario / "data_protocol.yaml").write_text(yaml.safe_dump(protocol))
+    out = tmp_path / "out"
+    summary = convert_scenario(UPath(root), UPath(out), truth.scenario, OpenCoodOptions("v2xset", "test"))
+    cavs = [a for a in truth.agents if int(a) > 0]
+    warned = [w for w in summary.warnings if "no lidar model (the lidar data disagree with data_protocol.yaml" in w]
+    assert len(warned) == len(cavs) and all(truth.scenario in w and "ring residual" in w for w in warned)
+    for agent_id in truth.agents:
+        loader = open_sequence(out / agent_id, f"{truth.scenario}_agent{agent_id}")
+        has_model = isinstance(loader.get_lidar_sensor("lidar_top").model_parameters,
+                               RowOffsetStructuredSpinningLidarModelParameters)  # fmt: skip
+        assert has_model == (int(agent_id) < 0)  # the RSU's block still matches its data
+    none = convert_scenario(UPath(root), UPath(tmp_path / "none"), truth.scenario,
+                            OpenCoodOptions("v2xset", "test", lidar_model_source="none"))  # fmt: skip
+    assert not [w for w in none.warnings if "no lidar model" in w]
+    loader = open_sequence(tmp_path / "none" / cavs[0], f"{truth.scenario}_agent{cavs[0]}")
+    assert loader.get_lidar_sensor("lidar_top").get_frame_ray_bundle_model_element(0) is None
