@@ -5,6 +5,8 @@
    (the agents' sequences are the jobs). Prints wall time, agent-frames/s and lidar points/s.
 2. PCD parse rate, in points per second, of ``ncore_convert.sources.pcd.read_pcd`` against
    ``numpy.loadtxt`` on the same ASCII files, interleaved in the same run.
+3. Per real OPV2V frame (``../shared/data/opv2v-lidar-sample``, ~56k points): the PCD parse beside
+   the lidar model's element assignment (nearest laser, nearest azimuth column), and their ratio.
 
 Figures are medians over --repeat runs.
 
@@ -73,9 +75,39 @@ def pcd_rates(root: Path, repeat: int) -> dict:
     return {name: statistics.median(r) for name, r in rates.items()} | {"files": len(files), "points": points}
 
 
+def model_cost(repeat: int) -> None:
+    """PCD parse vs model-element assignment on the real OPV2V frames, medians over frames and runs."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from test_carla_lidar import README_PROTOCOL, find_opv2v_sample
+
+    from ncore_convert.sources.pcd import read_pcd
+    from ncore_convert.transforms import carla, carla_lidar
+
+    spec = carla_lidar.CarlaLidarSpec.from_protocol(README_PROTOCOL, 0.05)
+    model = carla_lidar.model(spec, np.pi)
+    parse_s, assign_s, points = [], [], []
+    for _ in range(repeat):
+        for path in sorted(find_opv2v_sample().glob("*.pcd")):
+            started = time.perf_counter()
+            data = read_pcd(UPath(path))
+            parsed = time.perf_counter()
+            xyz = carla.points_right_handed(np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float64))
+            direction = (xyz / np.linalg.norm(xyz, axis=1, keepdims=True)).astype(np.float32)
+            ready = time.perf_counter()
+            carla_lidar.assign_elements(model, direction)
+            done = time.perf_counter()
+            parse_s.append(parsed - started)
+            assign_s.append(done - ready)
+            points.append(len(xyz))
+    parse_ms, assign_ms = statistics.median(parse_s) * 1e3, statistics.median(assign_s) * 1e3
+    print(f"  real OPV2V frame ({int(np.median(points))} points): PCD parse {parse_ms:.1f} ms, model elements"
+          f" {assign_ms:.1f} ms, ratio {assign_ms / parse_ms:.3f}", flush=True)  # fmt: skip
+
+
 def main() -> None:
     args = bench_parser(__doc__, repeat=3).parse_args()
     work = work_dir(args)
+    model_cost(args.repeat)
     root = synth(work)
     size_mb = sum(p.stat().st_size for p in root.rglob("*") if p.is_file()) / 1e6
     print(f"OPV2V scenario: {FRAMES} frames x {CAVS} CAVs, {size_mb:.0f} MB; medians of {args.repeat}", flush=True)

@@ -642,13 +642,21 @@ def _synth_opencood(dataset: str):
     @click.option("--cavs", type=click.IntRange(min=2), default=2, help="Connected vehicles per scenario.")
     @click.option("--infrastructure", type=click.IntRange(min=0), default=1 if dataset == "v2xset" else 0,
                   help="Infrastructure units per scenario.")  # fmt: skip
-    @click.option("--lidar-columns", type=click.IntRange(min=16), default=720, help="Lidar azimuth samples (x 64).")
+    @click.option("--lidar-columns", type=click.IntRange(min=16), default=720,
+                  help="Lidar azimuths per channel and tick (one tick is one revolution, as in OPV2V's 1016);"
+                  " data_protocol.yaml's points_per_second is written to match.")  # fmt: skip
+    @click.option("--lidar-noise-stddev", type=click.FloatRange(min=0.0), default=0.0,
+                  help="CARLA's noise_stddev: range noise along each ray, m (OPV2V: 0.02).")  # fmt: skip
+    @click.option("--lidar-dropoff-rate", type=click.FloatRange(0.0, 1.0), default=0.0,
+                  help="CARLA's dropoff_general_rate: share of points dropped at random (OPV2V: 0.1).")  # fmt: skip
     @click.option("--seed", type=int, default=0, help="Random seed (scene, actor ids, scenario names).")
-    def command(out_dir, split, scenarios, frames, cavs, infrastructure, lidar_columns, seed):
+    def command(out_dir, split, scenarios, frames, cavs, infrastructure, lidar_columns, lidar_noise_stddev,
+                lidar_dropoff_rate, seed):  # fmt: skip
         from ncore_convert.synth.opencood import SynthConfig, write_dataset
 
         config = SynthConfig(dataset=dataset, frames=frames, seed=seed, cavs=cavs, infrastructure=infrastructure,
-                             split=split, lidar_columns=lidar_columns)  # fmt: skip
+                             split=split, lidar_columns=lidar_columns, lidar_noise_stddev=lidar_noise_stddev,
+                             lidar_dropoff_rate=lidar_dropoff_rate)  # fmt: skip
         for truth in write_dataset(UPath(out_dir), config, scenarios):
             click.echo(f"wrote {truth.scenario_dir}: agents {', '.join(truth.agents)}, {len(truth.keys)} frames")
 
