@@ -57,10 +57,6 @@ class EgoMaskEstimate:
     still_threshold: float
     world_std: float
 
-    @property
-    def fallback(self) -> bool:
-        return self.decision not in ("mask", "not seen")
-
 
 def below_horizon(
     shape: tuple[int, int], focal_px: tuple[float, float], centre_px: tuple[float, float], R_camera_ego: np.ndarray
