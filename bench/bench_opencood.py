@@ -78,7 +78,8 @@ def pcd_rates(root: Path, repeat: int) -> dict:
 def model_cost(repeat: int) -> None:
     """PCD parse vs model-element assignment on the real OPV2V frames, medians over frames and runs."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    from test_carla_lidar import README_PROTOCOL, find_opv2v_sample
+    from conftest import find_opv2v_sample
+    from test_carla_lidar import README_PROTOCOL
 
     from ncore_convert.sources.pcd import read_pcd
     from ncore_convert.transforms import carla, carla_lidar

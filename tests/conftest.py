@@ -46,6 +46,15 @@ def find_av2_sample() -> Path:
     )
 
 
+def find_opv2v_sample() -> Path:
+    """The real OPV2V lidar frames (``../shared/data/opv2v-lidar-sample``), found as the AV2 sample is."""
+    candidates = [p / "shared" / "data" / "opv2v-lidar-sample" for p in (REPO.parent, REPO.parent.parent)]
+    for c in candidates + [Path("/work/shared/data/opv2v-lidar-sample")]:
+        if (c / "000070.pcd").is_file():
+            return c
+    raise RuntimeError("../shared/data/opv2v-lidar-sample not found beside the repository")
+
+
 def find_reference() -> Path:
     """The shared reference briefs (``consumers.md`` ...), found beside the repository as the AV2 sample is."""
     for c in [str(p / "shared" / "reference") for p in (REPO.parent, REPO.parent.parent)] + ["/work/shared/reference"]:
@@ -97,6 +106,11 @@ class Converted:
 
 def open_sequence(seq_dir: Path, sequence_id: str) -> SequenceLoaderV4:
     return SequenceLoaderV4(SequenceComponentGroupsReader([UPath(seq_dir / f"{sequence_id}.json")]))
+
+
+def component_meta(loader: SequenceLoaderV4, component, instance: str) -> dict:
+    """A component instance's generic metadata (``component``: e.g. ``CameraSensorComponent``)."""
+    return loader._reader.open_component_readers(component.Reader)[instance].generic_meta_data
 
 
 def synth_and_convert(tmp: Path, config: SynthConfig, options: Argoverse2Options | None = None) -> Converted:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import REPO, open_sequence
+from conftest import component_meta, find_opv2v_sample, open_sequence
 from ncore.data.v4 import LidarSensorComponent
 from ncore.impl.data.types import RowOffsetStructuredSpinningLidarModelParameters
 from upath import UPath
@@ -22,17 +22,6 @@ from ncore_convert.synth import opencood as synth
 from ncore_convert.transforms import carla, carla_lidar
 from ncore_convert.transforms.lidar_model import angle_between_rad
 from ncore_convert.validate.sequence import validate_sequence
-
-
-def find_opv2v_sample() -> Path:
-    """The real OPV2V frames beside the repository (as the AV2 sample is found)."""
-    for c in [p / "shared" / "data" / "opv2v-lidar-sample" for p in (REPO.parent, REPO.parent.parent)]:
-        if (c / "000070.pcd").is_file():
-            return c
-    if Path("/work/shared/data/opv2v-lidar-sample/000070.pcd").is_file():
-        return Path("/work/shared/data/opv2v-lidar-sample")
-    raise RuntimeError("../shared/data/opv2v-lidar-sample not found beside the repository")
-
 
 #: The example protocol of the sample's README (a real OPV2V data_protocol.yaml's CAV lidar).
 README_PROTOCOL = {"channels": 64, "upper_fov": 2, "lower_fov": -25, "range": 120, "rotation_frequency": 20,
@@ -94,7 +83,7 @@ def test_synthetic_model_error_and_elements(v2xset):
             elements = sensor.get_frame_ray_bundle_model_element(i)
             assert elements is not None and len(elements) == sensor.get_frame_ray_bundle_count(i)
             assert elements[:, 0].max() < params.n_rows and elements[:, 1].max() < params.n_columns
-        meta = loader._reader.open_component_readers(LidarSensorComponent.Reader)["lidar_top"].generic_meta_data
+        meta = component_meta(loader, LidarSensorComponent, "lidar_top")
         assert meta["lidar_model"]["protocol_block"] == ("rsu_list" if infra else "single_cav_list")
         checks = {
             c.name: c

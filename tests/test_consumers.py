@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import BIN, Converted, open_sequence, synth_and_convert
+from conftest import BIN, Converted, component_meta, open_sequence, synth_and_convert
 from ncore.data.v4 import (
     CameraSensorComponent,
     CuboidsComponent,
@@ -173,7 +173,7 @@ def test_ftheta_within_half_a_pixel_of_the_pinhole_over_every_pixel_centre(datas
 
 
 def _camera_meta(loader, camera_id: str) -> dict:
-    return loader._reader.open_component_readers(CameraSensorComponent.Reader)[camera_id].generic_meta_data
+    return component_meta(loader, CameraSensorComponent, camera_id)
 
 
 def _tbv_pinhole(tbv: Converted, camera_id: str) -> IdealPinholeCameraModelParameters:
@@ -197,7 +197,7 @@ def test_av2_original_distortion_is_kept_in_every_camera_model(av2):
 
 
 def _cuboids_meta(loader) -> dict:
-    return loader._reader.open_component_readers(CuboidsComponent.Reader)["default"].generic_meta_data
+    return component_meta(loader, CuboidsComponent, "default")
 
 
 def test_av2_class_names_and_label_source(av2):

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import PIL.Image
 import pytest
-from conftest import BIN, Converted, open_sequence, synth_and_convert
+from conftest import BIN, Converted, component_meta, open_sequence, synth_and_convert
 from ncore.data.v4 import CameraSensorComponent
 from upath import UPath
 
@@ -34,7 +34,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _camera_meta(loader, camera_id: str) -> dict:
-    return loader._reader.open_component_readers(CameraSensorComponent.Reader)[camera_id].generic_meta_data
+    return component_meta(loader, CameraSensorComponent, camera_id)
 
 
 @pytest.fixture(scope="module")

@@ -326,25 +326,21 @@ class SequenceWriter:
                 or ``ftheta`` (``FThetaCameraModelParameters`` from ``ftheta``, the fit to ``pinhole``).
         """
         self._require_base()
-        resolution = np.array(pinhole.resolution_px, dtype=np.uint64)
-        principal_point = np.array(pinhole.principal_point_px, dtype=np.float32)
-        focal_length = np.array(pinhole.focal_length_px, dtype=np.float32)
+        common = {"resolution": np.array(pinhole.resolution_px, dtype=np.uint64), "shutter_type": ShutterType.GLOBAL}
+        pinhole_terms = {
+            "principal_point": np.array(pinhole.principal_point_px, dtype=np.float32),
+            "focal_length": np.array(pinhole.focal_length_px, dtype=np.float32),
+        }
         if model == "ideal-pinhole":
-            params = IdealPinholeCameraModelParameters(
-                resolution=resolution, shutter_type=ShutterType.GLOBAL,
-                principal_point=principal_point, focal_length=focal_length,
-            )  # fmt: skip
+            params = IdealPinholeCameraModelParameters(**common, **pinhole_terms)
         elif model == "opencv-pinhole":
             params = OpenCVPinholeCameraModelParameters(
-                resolution=resolution, shutter_type=ShutterType.GLOBAL,
-                principal_point=principal_point, focal_length=focal_length,
-                radial_coeffs=np.zeros(6, dtype=np.float32), tangential_coeffs=np.zeros(2, dtype=np.float32),
-                thin_prism_coeffs=np.zeros(4, dtype=np.float32),
+                **common, **pinhole_terms, radial_coeffs=np.zeros(6, dtype=np.float32),
+                tangential_coeffs=np.zeros(2, dtype=np.float32), thin_prism_coeffs=np.zeros(4, dtype=np.float32),
             )  # fmt: skip
         else:
             params = FThetaCameraModelParameters(
-                resolution=resolution, shutter_type=ShutterType.GLOBAL,
-                principal_point=ftheta.principal_point_px,
+                **common, principal_point=ftheta.principal_point_px,
                 reference_poly=FThetaCameraModelParameters.PolynomialType.PIXELDIST_TO_ANGLE,
                 pixeldist_to_angle_poly=ftheta.pixeldist_to_angle, angle_to_pixeldist_poly=ftheta.angle_to_pixeldist,
                 max_angle=ftheta.max_angle_rad, linear_cde=ftheta.linear_cde,

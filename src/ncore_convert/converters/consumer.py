@@ -28,10 +28,8 @@ def clip_window(options: ConsumerOptions, reference_us: list[np.ndarray]) -> tup
     return clip_window_us(first, last, options.seek_sec, options.duration_sec)
 
 
-def clip_meta(options: ConsumerOptions, window_us: tuple[int, int] | None) -> dict | None:
-    """The sequence metadata's ``clip`` record (None without a window)."""
-    if window_us is None:
-        return None
+def clip_meta(options: ConsumerOptions, window_us: tuple[int, int]) -> dict:
+    """The sequence metadata's ``clip`` record."""
     return {
         "seek_sec": options.seek_sec,
         "duration_sec": options.duration_sec,
@@ -98,6 +96,7 @@ class CuboidLabels:
 
     Attributes:
         class_ids: the written class name of each observation [M].
+        class_map: source class -> written class name, for every source class seen.
         label_source: the NCore ``LabelSource`` member name.
         meta: the cuboids component's metadata.
         dynamic: dynamic track id -> robust speed (m/s).
@@ -105,6 +104,7 @@ class CuboidLabels:
     """
 
     class_ids: list[str]
+    class_map: dict[str, str]
     label_source: str
     meta: dict
     dynamic: dict[str, float]
@@ -146,4 +146,4 @@ def cuboid_labels(
         "dynamic_rule": f"class always dynamic ({', '.join(sorted(labels.ALWAYS_DYNAMIC))}) or robust speed"
         f" > {dynamic.DYNAMIC_SPEED_MPS:.4f} m/s; never: {', '.join(sorted(labels.ALWAYS_STATIC))}",
     }
-    return CuboidLabels(written, source, meta, moving, warnings)
+    return CuboidLabels(written, dict(zip(source_classes, written, strict=True)), source, meta, moving, warnings)

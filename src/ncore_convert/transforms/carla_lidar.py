@@ -91,13 +91,13 @@ def nearest_rows(direction: np.ndarray, row_elevations_rad: np.ndarray) -> tuple
         direction: unit rays [N,3]; row_elevations_rad: [R], descending.
     """
     elevation = np.arcsin(np.clip(direction[:, 2].astype(np.float64), -1.0, 1.0))
-    ascending = row_elevations_rad[::-1]
-    i = np.clip(np.searchsorted(ascending, elevation), 1, len(ascending) - 1) if len(ascending) > 1 else None
-    if i is None:
+    if len(row_elevations_rad) == 1:
         return np.zeros(len(elevation), dtype=np.int64), elevation - row_elevations_rad[0]
+    ascending = row_elevations_rad[::-1]
+    i = np.clip(np.searchsorted(ascending, elevation), 1, len(ascending) - 1)
     nearer_low = np.abs(elevation - ascending[i - 1]) < np.abs(elevation - ascending[i])
-    row = len(ascending) - 1 - np.where(nearer_low, i - 1, i)
-    return row.astype(np.int64), elevation - row_elevations_rad[row]
+    row = (len(ascending) - 1 - np.where(nearer_low, i - 1, i)).astype(np.int64)
+    return row, elevation - row_elevations_rad[row]
 
 
 def grid_phase(direction: np.ndarray, spec: CarlaLidarSpec) -> tuple[float, np.ndarray]:

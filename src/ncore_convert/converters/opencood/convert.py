@@ -26,7 +26,7 @@ from ncore_convert.converters.opencood.plan import (
 from ncore_convert.errors import SourceError
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
-from ncore_convert.transforms import carla, labels
+from ncore_convert.transforms import carla
 from ncore_convert.transforms.carla_lidar import assign_elements
 from ncore_convert.transforms.dynamic import dynamic_flags
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3, transform_points
@@ -113,12 +113,9 @@ def _cuboids(plan: ScenarioPlan, agent: AgentPlan, names: Names) -> Cuboids:
         return Cuboids([], [], np.zeros(0, np.int64), empty, empty, empty, reference_frame_id=names.rig)
     T_box_rig = np.concatenate([r[2] for r in rows])
     ids = np.concatenate([r[0].actor_ids for r in rows])
-    class_ids, _, _ = labels.output_classes(
-        [VEHICLE_CLASS] * len(ids), labels.OPENCOOD_TO_NCORE, plan.options.class_names
-    )
     return Cuboids(
         track_ids=[str(i) for i in ids],
-        class_ids=class_ids,
+        class_ids=[plan.cuboid_labels.class_map[VEHICLE_CLASS]] * len(ids),
         timestamps_us=np.concatenate([np.full(len(r[0].actor_ids), r[1]) for r in rows]),
         centroids_m=T_box_rig[:, :3, 3],
         dims_m=np.concatenate([r[0].dims_m for r in rows]),
