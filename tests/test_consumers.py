@@ -428,3 +428,20 @@ def test_world_global_modes(mode, av2, tmp_path):
         world_points(run.loader, "up_lidar", 0, "world_global")[0],
         atol=1e-6,
     )
+
+
+def test_tbv_clip_window(tbv, tmp_path):
+    """TbV's window cuts to the sweeps and images whose times lie in it, validates against the source."""
+    truth = tbv.truth
+    root = tbv.seq_dir.parent / "src"
+    options = Argoverse2Options(split=None, seek_sec=0.2, duration_sec=0.25, ego_masks="none")
+    convert_log(UPath(root), UPath(tmp_path / "out"), truth.log_id, options)
+    loader = open_sequence(tmp_path / "out", truth.log_id)
+    clip = loader.generic_meta_data[contract.CLIP]
+    sweeps_us = np.array([s.timestamp_ns for s in truth.sweeps]) // 1000
+    images_us = np.array(_image_times_us(truth))
+    start = min(sweeps_us.min(), images_us.min()) + 200_000
+    assert (clip["start_us"], clip["end_us"]) == (start, start + 250_000)
+    kept = sweeps_us[(sweeps_us >= start) & (sweeps_us <= start + 250_000)]
+    assert all(loader.get_lidar_sensor(u).frames_count == len(kept) >= 2 for u in UNITS)
+    assert validate_sequence(UPath(tmp_path / "out" / f"{truth.log_id}.json"), UPath(root)).ok

@@ -16,6 +16,7 @@ from upath import UPath
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.synth.ego import EGO_CAMERAS
+from ncore_convert.transforms import ego_mask
 from ncore_convert.validate.report import Report
 from ncore_convert.validate.sequence import _check_ego_mask, validate_sequence
 
@@ -151,3 +152,23 @@ def test_user_masks_round_trip_bit_exactly_and_bad_ones_are_rejected(tmp_path, a
         assert str(folder_bad / name) in lines[0] and cause in lines[0], lines[0]
     neither = _cli(root, tmp_path / "out-x", "--ego-masks", str(tmp_path / "missing"))
     assert neither.returncode == 2 and "neither 'estimate', 'none' nor a folder" in neither.stderr
+
+
+def test_the_estimators_fallbacks_on_synthetic_frames():
+    """Too few images, and a still region over 30 % of the image, give no mask; the moving world
+    with a still band at the bottom gives that band."""
+    rng = np.random.default_rng(5)
+    allowed = np.zeros((40, 60), dtype=bool)
+    allowed[20:] = True  # below the horizon
+    frames = rng.uniform(0, 255, (12, 40, 60)).astype(np.float32)  # the world moves everywhere
+    band = frames.copy()
+    band[:, 34:] = 90.0  # a still band along the bottom border: 15 % of the image
+    found = ego_mask.estimate(band, allowed)
+    assert found.decision == "mask" and np.array_equal(
+        found.mask, np.broadcast_to(np.arange(40)[:, None] >= 34, allowed.shape)
+    )
+    assert ego_mask.estimate(band[:5], allowed).decision == "too few images"
+    half = frames.copy()
+    half[:, 20:] = 90.0  # everything below the horizon stands still: 50 %
+    assert ego_mask.estimate(half, allowed).decision == "implausible coverage"
+    assert ego_mask.estimate(frames, allowed).decision == "not seen"
