@@ -99,12 +99,20 @@ def test_report_records_status_times_bytes_and_the_converter(two_logs, tmp_path)
 
 
 def _children(pid: int) -> list[int]:
+    """Child pids of `pid` from /proc; threads and processes that end while being read are skipped."""
     import os
 
     out = []
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as f:
-            out += [int(c) for c in f.read().split()]
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except FileNotFoundError:
+        return out
+    for task in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(c) for c in f.read().split()]
+        except (FileNotFoundError, ProcessLookupError):
+            continue
     return out
 
 
