@@ -95,9 +95,9 @@ def _pixel_offsets(pinhole: Pinhole) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _radii(pinhole: Pinhole) -> np.ndarray:
-    """Radius of every pixel centre (linear term undone), float64 [H*W]."""
+    """Radius of every pixel centre (linear term undone), float64 [H,W]."""
     x, y = _pixel_offsets(pinhole)
-    return np.sqrt(x[None, :] ** 2 + y[:, None] ** 2).ravel()
+    return np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
 
 
 def _lstsq_odd_free(variable: np.ndarray, target: np.ndarray, weight: np.ndarray, scale: float) -> np.ndarray:
@@ -136,7 +136,7 @@ def projection_errors_px(pinhole: Pinhole, bw: np.ndarray, fw: np.ndarray) -> np
     linear term along the pixel's direction."""
     fx, fy = pinhole.focal_length_px
     x, y = _pixel_offsets(pinhole)
-    r = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
+    r = _radii(pinhole)
     radii = np.linspace(0.0, float(r.max()), RADIAL_SAMPLES)
     radial_error = np.abs(_inverse(bw, fw, np.arctan(radii / fy)) - radii)
     errors = np.interp(r, radii, radial_error)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncore_convert.transforms.lidar_model import SpinningLidarModel
+from ncore_convert.transforms.lidar_model import SpinningLidarModel, circular_mean, wrap_angle
 
 #: Keys of a ``sensing.perception.lidar`` block the model needs.
 PROTOCOL_KEYS = ("channels", "upper_fov", "lower_fov", "rotation_frequency", "points_per_second")
@@ -79,7 +79,7 @@ def model(spec: CarlaLidarSpec, phase_rad: float) -> SpinningLidarModel:
         spinning_direction="cw",
         row_elevations_rad=spec.row_elevations_rad,
         row_azimuth_offsets_rad=np.zeros(spec.channels),
-        column_azimuths_rad=np.angle(np.exp(1j * columns)),
+        column_azimuths_rad=wrap_angle(columns),
         beam_to_row=np.arange(spec.channels),
     )
 
@@ -106,10 +106,10 @@ def grid_phase(direction: np.ndarray, spec: CarlaLidarSpec) -> tuple[float, np.n
     step = 2.0 * np.pi / spec.points_per_channel
     azimuth_lh = -np.arctan2(direction[:, 1], direction[:, 0]).astype(np.float64)
     progress = (azimuth_lh + np.pi) / step
-    offset = float(np.angle(np.exp(2j * np.pi * progress).mean())) / (2.0 * np.pi)  # columns, in (-1/2, 1/2]
+    offset = circular_mean(2.0 * np.pi * progress) / (2.0 * np.pi)  # columns, in (-1/2, 1/2]
     residual = progress - offset - np.round(progress - offset)
     phase_lh = -np.pi + offset * step
-    return float(np.angle(np.exp(-1j * phase_lh))), residual
+    return float(wrap_angle(-phase_lh)), residual
 
 
 @dataclass(frozen=True)
@@ -139,8 +139,8 @@ def fit_to_data(frames: list[np.ndarray], spec: CarlaLidarSpec) -> DataFit:
         columns.append(np.abs(column_residual))
         phases.append(phase)
     step = 2.0 * np.pi / spec.points_per_channel
-    mean_phase = float(np.angle(np.exp(1j * np.array(phases)).mean()))
-    spread = float(np.abs(np.angle(np.exp(1j * (np.array(phases) - mean_phase)))).max() / step)
+    mean_phase = circular_mean(np.array(phases))
+    spread = float(np.abs(wrap_angle(np.array(phases) - mean_phase)).max() / step)
     return DataFit(
         ring_residual_deg=float(np.degrees(np.percentile(np.concatenate(rings), 99))),
         column_residual=float(np.percentile(np.concatenate(columns), 99)),

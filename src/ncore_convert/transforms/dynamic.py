@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ncore_convert.transforms.geometry import sorted_run_starts
 from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, ALWAYS_STATIC
 
 DYNAMIC_SPEED_MPS = 1.0 / 3.6  #: 1 km/h
@@ -79,6 +80,18 @@ def robust_speed_mps(timestamps_us: np.ndarray, centers_m: np.ndarray) -> float:
     return float(speeds.max(initial=0.0))
 
 
+def _by_track(ids: np.ndarray, timestamps_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Observations grouped by track, each track by time: the row order [M], and the group bounds
+    (track k is ``order[bounds[k]:bounds[k+1]]``), int64 [T+1].
+
+    Args:
+        ids: track id per observation, str [M]; timestamps_us: int [M].
+    """
+    order = np.lexsort((timestamps_us, ids))
+    starts = sorted_run_starts(ids[order])
+    return order, np.append(np.zeros(0, np.int64) if starts is None else starts, len(order)).astype(np.int64)
+
+
 def dynamic_tracks(
     track_ids: list[str], classes: list[str], timestamps_us: np.ndarray, centers_m: np.ndarray
 ) -> dict[str, float]:
@@ -89,10 +102,9 @@ def dynamic_tracks(
         timestamps_us: int64 [M]; centers_m: box centres in a fixed frame, float64 [M,3].
     """
     ids = np.asarray(track_ids, dtype=object).astype(str)
-    order = np.lexsort((np.asarray(timestamps_us), ids))
-    starts = np.flatnonzero(np.r_[True, ids[order][1:] != ids[order][:-1]])
+    order, bounds = _by_track(ids, np.asarray(timestamps_us))
     out = {}
-    for start, end in zip(starts, np.r_[starts[1:], len(ids)], strict=True):
+    for start, end in zip(bounds[:-1], bounds[1:], strict=True):
         rows = order[start:end]
         cls = classes[rows[0]]
         if cls in ALWAYS_STATIC:
@@ -128,9 +140,8 @@ class DynamicBoxes:
         """The observations of the ``dynamic`` tracks (ids as keys)."""
         ids = np.asarray(observations.track_ids, dtype=object).astype(str)
         keep = np.flatnonzero(np.isin(ids, list(dynamic)))
-        keep = keep[np.lexsort((observations.timestamps_us[keep], ids[keep]))]
-        bounds = np.r_[np.flatnonzero(np.r_[True, ids[keep][1:] != ids[keep][:-1]]), len(keep)] if len(keep) else [0]
-        bounds = np.asarray(bounds, dtype=np.int64)
+        order, bounds = _by_track(ids[keep], observations.timestamps_us[keep])
+        keep = keep[order]
         centers = observations.centers_m[keep]
         half = observations.dims_m[keep] / 2 + BOX_MARGIN_M
         times = observations.timestamps_us[keep].astype(np.int64)

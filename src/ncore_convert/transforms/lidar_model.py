@@ -22,11 +22,13 @@ MIN_FAR_POINTS = 200
 REMAP_SAMPLES = 4096
 
 
-def _wrap(angle_rad: np.ndarray) -> np.ndarray:
+def wrap_angle(angle_rad: np.ndarray) -> np.ndarray:
+    """Angles (rad, any shape) wrapped to [-pi, pi)."""
     return (angle_rad + np.pi) % (2.0 * np.pi) - np.pi
 
 
-def _circular_mean(angle_rad: np.ndarray) -> float:
+def circular_mean(angle_rad: np.ndarray) -> float:
+    """The circular mean of angles (rad, [N]), in (-pi, pi]."""
     return float(np.arctan2(np.sin(angle_rad).mean(), np.cos(angle_rad).mean()))
 
 
@@ -101,7 +103,7 @@ def column_time_remap(columns: np.ndarray, time_s: np.ndarray, n_columns: int, s
     t = time_s[::step] - time_s.min()
     nominal = t * n_columns * spinning_frequency_hz
     angle = 2.0 * np.pi * (columns[::step] - nominal) / n_columns
-    reference = n_columns * (_circular_mean(angle) % (2.0 * np.pi)) / (2.0 * np.pi)
+    reference = n_columns * (circular_mean(angle) % (2.0 * np.pi)) / (2.0 * np.pi)
     c = columns[::step] + n_columns * np.rint((reference + nominal - columns[::step]) / n_columns)
     dt, dc = t - t.mean(), c - c.mean()
     rate = float(np.dot(dt, dc) / np.dot(dt, dt)) if np.dot(dt, dt) > 0 else 0.0
@@ -148,7 +150,7 @@ def derive_model(
     for _ in range(3):
         phase = _group_circular_means((spun - offset[beam])[fit], frame_index[fit], len(frame_ids))
         offset = _group_circular_means((spun - phase[frame_index])[fit], beam[fit], n_beams)
-        offset = _wrap(offset - _circular_mean(offset))
+        offset = wrap_angle(offset - circular_mean(offset))
     phase = _group_circular_means((spun - offset[beam])[fit], frame_index[fit], len(frame_ids))
 
     order = np.argsort(-beam_elevation)
@@ -160,9 +162,9 @@ def derive_model(
     first_time_s = np.full(len(frame_ids), np.inf)
     np.minimum.at(first_time_s, frame_index, time_s)
     frame_start = phase + rate * first_time_s  # azimuth where each frame's first firing points
-    mean_start = _circular_mean(frame_start)
-    start = mean_start + sign * np.min(_wrap(sign * (frame_start - mean_start)))  # no frame starts before column 0
-    columns = _wrap(start + sign * 2.0 * np.pi * np.arange(n_columns) / n_columns)
+    mean_start = circular_mean(frame_start)
+    start = mean_start + sign * np.min(wrap_angle(sign * (frame_start - mean_start)))  # no frame starts before column 0
+    columns = wrap_angle(start + sign * 2.0 * np.pi * np.arange(n_columns) / n_columns)
     return SpinningLidarModel(
         spinning_frequency_hz=float(frequency),
         spinning_direction="ccw" if rate > 0 else "cw",

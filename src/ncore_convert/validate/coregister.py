@@ -22,6 +22,7 @@ from upath import UPath
 
 from ncore_convert.contract import ScenarioManifest
 from ncore_convert.sources import opencood as ocd
+from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.readback import open_sequence, read_manifest, world_points
 from ncore_convert.validate.report import Report
 
@@ -183,7 +184,7 @@ def check_coregistration(manifest_path: UPath) -> Report:
         if not len(common):
             report.add(name, False, "no common frame time")
             continue
-        picks = common[np.unique(np.linspace(0, len(common) - 1, FRAMES).round().astype(int))]
+        picks = common[spread_indices(len(common), FRAMES)]
         peaks = []
         for t in picks:
             a_xyz, a_origin = world_points(other.loader, other.lidar_id, other.frame_ending_at(t), "world_global")

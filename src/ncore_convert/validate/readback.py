@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE, WORLD_GLOBAL, ScenarioManifest
+from ncore_convert.transforms.sampling import spread_indices
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
 SAMPLED_FRAMES = 5
@@ -57,7 +58,7 @@ def read_manifest(manifest_path: UPath) -> ScenarioManifest:
 
 def sample_frames(n_frames: int) -> np.ndarray:
     """SAMPLED_FRAMES frame indices spread evenly over a sensor's ``n_frames`` frames."""
-    return np.unique(np.linspace(0, n_frames - 1, SAMPLED_FRAMES).round().astype(int))
+    return spread_indices(n_frames, SAMPLED_FRAMES)
 
 
 def boxes_at(observations: list, t0_us: int, t1_us: int) -> list:
@@ -69,6 +70,11 @@ def boxes_at(observations: list, t0_us: int, t1_us: int) -> list:
     return [o for o in inside if o.timestamp_us == first]
 
 
+def world_global_edge(loader: SequenceLoaderV4) -> np.ndarray:
+    """The stored static ``world -> world_global`` edge, float64 [4,4]."""
+    return loader.pose_graph.evaluate_poses("world", "world_global", np.zeros(1, dtype=np.uint64))[0].astype(np.float64)
+
+
 def T_world_dataset_global(loader: SequenceLoaderV4) -> np.ndarray:
     """world -> the dataset's global frame, float64 [4,4]: the ``world -> world_global`` edge, which
     consumers read, unless ``--world-global-mode`` stored something else there (identity, or no edge);
@@ -76,7 +82,7 @@ def T_world_dataset_global(loader: SequenceLoaderV4) -> np.ndarray:
     record = loader.generic_meta_data.get(WORLD_GLOBAL)
     if isinstance(record, dict) and record.get("mode", "localized") != "localized":
         return np.asarray(record["T_world_dataset_global"], dtype=np.float64)
-    return loader.pose_graph.evaluate_poses("world", "world_global", np.zeros(1, dtype=np.uint64))[0].astype(np.float64)
+    return world_global_edge(loader)
 
 
 def sensor_poses(loader: SequenceLoaderV4, sensor_id: str, target: str, timestamps_us: np.ndarray) -> np.ndarray:

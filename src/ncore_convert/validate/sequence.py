@@ -18,6 +18,7 @@ from ncore_convert.validate.readback import (
     boxes_at,
     open_sequence,
     sample_frames,
+    world_global_edge,
     world_points,
 )
 from ncore_convert.validate.report import Report
@@ -175,7 +176,7 @@ def _check_world_global(report: Report, loader: SequenceLoaderV4) -> None:
     if not present:
         report.add(name, False, f"no static world -> world_global edge (--world-global-mode {mode})")
         return
-    edge = loader.pose_graph.evaluate_poses("world", "world_global", np.zeros(1, dtype=np.uint64))[0].astype(np.float64)
+    edge = world_global_edge(loader)
     expected = np.eye(4) if mode == "identity" else np.asarray(record.get("T_world_dataset_global", edge))
     error_m = float(np.abs(edge - expected).max())
     report.add(name, error_m <= 1e-9,

@@ -15,11 +15,11 @@ import numpy as np
 from upath import UPath
 
 from ncore_convert import contract
+from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, read_covered_sweep, sweep_ray_bundles
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Tally
-from ncore_convert.converters.consumer import CameraSpec
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.dynamic import DynamicBoxes, dynamic_flags
@@ -89,7 +89,7 @@ def annotation_cuboids(annotations: av2.Annotations, class_ids: list[str]) -> Cu
     )
 
 
-def _camera_meta(intr: av2.CameraIntrinsics, spec: CameraSpec, ego_mask: EgoMask) -> dict:
+def _camera_meta(intr: av2.CameraIntrinsics, spec: consumer.CameraSpec, ego_mask: EgoMask) -> dict:
     return {
         "camera_model": spec.meta(),
         "ego_mask": ego_mask.meta,
@@ -227,10 +227,7 @@ def sweep_dynamic_flags(sweep: av2.Sweep, T_rig_world: Trajectory, boxes: Dynami
 def _dynamic_flag_note(plan: LogPlan) -> str:
     """What the lidar metadata says of ``dynamic_flag`` (written, or why not)."""
     if plan.dynamic_boxes is not None:
-        return (
-            f"written: int8 per point, 1 = inside one of {len(plan.dynamic_boxes)} dynamic tracks' boxes grown by"
-            " 0.5 m at the point's own time (cuboids metadata: dynamic_tracks, dynamic_rule)"
-        )
+        return consumer.dynamic_flag_note(len(plan.dynamic_boxes))
     return "not written: " + ("TbV has no cuboids" if plan.options.tbv else "the log has no annotations")
 
 

@@ -27,6 +27,7 @@ from ncore_convert.transforms.lidar import (
     ray_bundle,
 )
 from ncore_convert.transforms.lidar_model import SpinningLidarModel, column_time_remap, derive_model
+from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.transforms.timebase import NS_PER_US, floor_us
 
 #: Sweeps sampled across the log for the up/down unit decision and the lidar model.
@@ -133,7 +134,7 @@ def calibrate_lidars(
     decompensated (per-point-time) returns in the winning frames. Without offset_ns (``timing``
     given), each hypothesis gets its own reconstructed firing times.
     """
-    picks = np.unique(np.linspace(0, len(sweep_timestamps_ns) - 1, CALIBRATION_SWEEPS).round().astype(int))
+    picks = spread_indices(len(sweep_timestamps_ns), CALIBRATION_SWEEPS)
     sweeps = [read_covered_sweep(log_dir, int(sweep_timestamps_ns[i]), T_rig_world, timing is None) for i in picks]
     knots = _unit_knots(sweeps, T_rig_world, T_sensor_rig, timing) if timing is not None else {}
     spread: dict[tuple[str, str], float] = {}

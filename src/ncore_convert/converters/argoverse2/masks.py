@@ -20,6 +20,7 @@ from upath import UPath
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.masks import read_mask_folder
 from ncore_convert.transforms import ego_mask
+from ncore_convert.transforms.sampling import spread_indices
 
 #: Images decoded per camera, spread evenly over the log (or clip window).
 SAMPLES = 16
@@ -54,7 +55,7 @@ def reduction(intr: av2.CameraIntrinsics) -> int:
 def _estimate(
     log_dir: UPath, camera: str, stamps_ns: np.ndarray, intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray
 ) -> EgoMask:
-    picks = np.unique(np.linspace(0, len(stamps_ns) - 1, min(SAMPLES, len(stamps_ns))).round().astype(int))
+    picks = spread_indices(len(stamps_ns), SAMPLES)
     frames = np.stack([av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), reduction(intr)) for i in picks])
     h, w = frames.shape[1:]
     sx, sy = w / intr.width_px, h / intr.height_px

@@ -159,8 +159,7 @@ def _write_sensors(
         meta = {"agent_id": agent.agent_id, "carla_lidar": plan.lidar_specs[agent.agent_id], **agent.lidar_model_meta,
                 "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
                 "mounting": agent.mounts[src.LIDAR],
-                contract.DYNAMIC_FLAG: f"written: int8 per point, 1 = inside one of {len(plan.dynamic_boxes)}"
-                " dynamic tracks' boxes grown by 0.5 m (cuboids metadata: dynamic_tracks, dynamic_rule)"}  # fmt: skip
+                contract.DYNAMIC_FLAG: consumer.dynamic_flag_note(len(plan.dynamic_boxes))}  # fmt: skip
         T_lidar_rig = agent.T_sensor_rig[src.LIDAR]
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
         not_stored = 0

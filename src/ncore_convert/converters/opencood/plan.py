@@ -33,6 +33,7 @@ from ncore_convert.transforms.geometry import invert_se3, rigid_mean
 from ncore_convert.transforms.lidar import MIN_RANGE_M
 from ncore_convert.transforms.lidar_model import SpinningLidarModel
 from ncore_convert.transforms.noise import NoiseSetting
+from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.transforms.timebase import WindowError, in_window
 
 #: A sensor's mounting, re-measured every frame, may move this much before it is reported.
@@ -371,7 +372,7 @@ def _with_lidar_model(
     except ValueError as err:
         return _no_model(agent, scenario, f"data_protocol.yaml: {err}", warnings)
     directions = []
-    keys = [agent.keys[i] for i in np.unique(np.linspace(0, len(agent.keys) - 1, MODEL_FRAMES).round().astype(int))]
+    keys = [agent.keys[i] for i in spread_indices(len(agent.keys), MODEL_FRAMES)]
     for key in keys:
         try:
             xyz_carla, _ = src.read_points(agent.agent_dir, key)
