@@ -1,5 +1,9 @@
-"""Ego-vehicle camera masks (issue 20) against the synthetic generator's exact masks, read as the
-consumers read them: ``get_camera_sensor(id).get_mask_images()["ego"]`` through ``SequenceLoaderV4``."""
+"""Ego-vehicle camera masks (issues 20, 25) against the synthetic generator's exact masks, read as the
+consumers read them: ``get_camera_sensor(id).get_mask_images()["ego"]`` through ``SequenceLoaderV4``.
+
+Two generator bodies: ``easy`` (still paint) and ``realistic`` (reflections, lighting, markings,
+glare, camouflaged silhouette). Issue 25's target on the realistic body (IoU >= 0.95) is **not**
+reached yet; ``test_realistic_bodies`` holds the level measured today so that it cannot regress."""
 
 from __future__ import annotations
 
@@ -40,33 +44,37 @@ def _camera_meta(loader, camera_id: str) -> dict:
 
 @pytest.fixture(scope="module")
 def av2(tmp_path_factory) -> Converted:
-    return synth_and_convert(tmp_path_factory.mktemp("ego-av2"), SynthConfig(seconds=1.5, seed=31, camera_fps=10))
+    config = SynthConfig(seconds=1.5, seed=31, camera_fps=10, ego_body="easy")
+    return synth_and_convert(tmp_path_factory.mktemp("ego-av2"), config)
 
 
 @pytest.fixture(scope="module")
 def tbv(tmp_path_factory) -> Converted:
     tmp = tmp_path_factory.mktemp("ego-tbv")
-    truth = write_log(UPath(tmp / "src"), SynthConfig(seconds=1.5, seed=32, camera_fps=10, tbv=True))
+    truth = write_log(UPath(tmp / "src"), SynthConfig(seconds=1.5, seed=32, camera_fps=10, tbv=True, ego_body="easy"))
     summary = convert_log(UPath(tmp / "src"), UPath(tmp / "out"), truth.log_id, Argoverse2Options(split=None))
     return Converted(truth, summary, tmp / "out", open_sequence(tmp / "out", truth.log_id))
 
 
 @pytest.mark.parametrize("dataset", ["av2", "tbv"])
 def test_estimated_masks_match_the_true_body(dataset, av2, tbv):
-    """IoU >= 0.95 with the true mask on each camera that sees the ego; no mask (0 false-positive
-    pixels, at most 0.1 % allowed) on every other camera."""
+    """The easy body: IoU >= 0.95 with the true mask on each camera that sees the ego; no mask
+    (0 false-positive pixels, at most 0.1 % allowed) on every other camera."""
     run = av2 if dataset == "av2" else tbv
     masks = _masks(run.loader)
-    assert set(masks) == set(EGO_CAMERAS) == set(run.truth.ego_masks)
+    assert set(masks) == set(run.truth.ego_masks) == set(EGO_CAMERAS) & set(run.loader.camera_ids)
     for camera_id, mask in masks.items():
         truth = run.truth.ego_masks[camera_id]
         assert mask.shape == truth.shape and set(np.unique(mask)) <= {0, 255}
         assert _iou(mask > 0, truth) >= 0.95, (camera_id, _iou(mask > 0, truth))
         meta = _camera_meta(run.loader, camera_id)["ego_mask"]
         assert meta["method"] == "estimate" and meta["decision"] == "mask" and meta["samples"] == 16
+        assert meta["must_see"] is True and meta["silhouette_edge"] >= ego_mask.MIN_EDGE
         assert meta["covered_fraction"] == pytest.approx(truth.mean(), abs=0.01)
     for camera_id in set(run.loader.camera_ids) - set(masks):
-        assert _camera_meta(run.loader, camera_id)["ego_mask"]["decision"] == "not seen"
+        meta = _camera_meta(run.loader, camera_id)["ego_mask"]
+        assert meta["decision"] == "not seen" and meta["must_see"] is False
+    assert not [w for w in run.summary.warnings if "ego masks" in w]
     assert validate_sequence(UPath(run.seq_dir / f"{run.truth.log_id}.json")).ok
 
 
@@ -80,7 +88,8 @@ def test_a_parked_log_falls_back_to_no_masks_with_a_warning(tmp_path):
 
 
 def test_a_half_parked_log_still_finds_the_body(tmp_path):
-    run = synth_and_convert(tmp_path, SynthConfig(seconds=1.5, seed=34, camera_fps=10, parked_fraction=0.5))
+    config = SynthConfig(seconds=1.5, seed=34, camera_fps=10, parked_fraction=0.5, ego_body="easy")
+    run = synth_and_convert(tmp_path, config)
     masks = _masks(run.loader)
     assert set(masks) == set(EGO_CAMERAS)
     assert min(_iou(m > 0, run.truth.ego_masks[c]) for c, m in masks.items()) >= 0.95
@@ -154,21 +163,84 @@ def test_user_masks_round_trip_bit_exactly_and_bad_ones_are_rejected(tmp_path, a
     assert neither.returncode == 2 and "neither 'estimate', 'none' nor a folder" in neither.stderr
 
 
+def _prior(reach_rows: slice, shape=(40, 60), lower_border: float = 1.0) -> ego_mask.BodyPrior:
+    reach = np.zeros(shape, dtype=bool)
+    reach[reach_rows] = True
+    return ego_mask.BodyPrior(reach, lower_border)
+
+
 def test_the_estimators_fallbacks_on_synthetic_frames():
-    """Too few images, and a still region over 30 % of the image, give no mask; the moving world
-    with a still band at the bottom gives that band."""
+    """Too few images, a static world and a still region over 30 % of the image give no mask, nor
+    does a world that moves everywhere (finding the body is tested on the generator's logs)."""
     rng = np.random.default_rng(5)
-    allowed = np.zeros((40, 60), dtype=bool)
-    allowed[20:] = True  # below the horizon
+    prior = _prior(slice(16, None))
     frames = rng.uniform(0, 255, (12, 40, 60)).astype(np.float32)  # the world moves everywhere
     band = frames.copy()
-    band[:, 34:] = 90.0  # a still band along the bottom border: 15 % of the image
-    found = ego_mask.estimate(band, allowed)
-    assert found.decision == "mask" and np.array_equal(
-        found.mask, np.broadcast_to(np.arange(40)[:, None] >= 34, allowed.shape)
-    )
-    assert ego_mask.estimate(band[:5], allowed).decision == "too few images"
+    band[:, 30:] = 90.0
+    assert ego_mask.estimate(band[:5], prior).decision == "too few images"
+    still = np.repeat(frames[:1], 12, axis=0)
+    assert ego_mask.estimate(still, prior).decision == "too little motion"
     half = frames.copy()
-    half[:, 20:] = 90.0  # everything below the horizon stands still: 50 %
-    assert ego_mask.estimate(half, allowed).decision == "implausible coverage"
-    assert ego_mask.estimate(frames, allowed).decision == "not seen"
+    half[:, 8:] = 90.0  # everything from row 8 down stands still: 80 % of the image
+    assert ego_mask.estimate(half, _prior(slice(8, None))).decision == "implausible coverage"
+    assert ego_mask.estimate(frames, prior).mask is None
+
+
+def test_the_prior_on_the_real_calibration():
+    """On the real AV2 log's calibration, the nominal box says the hood cameras and the rear corner
+    cameras must see the body and the front-left/right and side cameras need not; the reach bounds
+    the body to the lower part of the image."""
+    from conftest import find_av2_sample
+
+    from ncore_convert.sources import argoverse2 as av2_source
+
+    log = UPath(find_av2_sample()) / "val" / "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+    extrinsics, intrinsics = av2_source.read_sensor_extrinsics(log), av2_source.read_intrinsics(log)
+    must = set()
+    for cam, intr in intrinsics.items():
+        shape = (intr.height_px // 8, intr.width_px // 8)
+        prior = ego_mask.body_prior(shape, (intr.fx_px / 8, intr.fy_px / 8), ((intr.cx_px + 0.5) / 8,
+                                    (intr.cy_px + 0.5) / 8), extrinsics[cam], ego_mask.EgoBox())  # fmt: skip
+        assert not prior.reach[: shape[0] // 2].any(), cam  # the body is below the camera
+        if prior.must_see:
+            must.add(cam)
+    assert must == {"ring_front_center", "ring_rear_left", "ring_rear_right", "stereo_front_left",
+                    "stereo_front_right"}  # fmt: skip
+
+
+def test_a_body_seeing_camera_without_a_mask_is_a_warning(tmp_path):
+    """ring_rear_left's pictures replaced by a body-less camera's: the prior says it must see the
+    body, so its missing mask is a warning naming it, and its metadata records why."""
+    root = tmp_path / "src"
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=1.0, seed=35, camera_fps=10, ego_body="easy"))
+    rear = sorted((Path(truth.log_dir.path) / "sensors" / "cameras" / "ring_rear_left").glob("*.jpg"))
+    side = sorted((Path(truth.log_dir.path) / "sensors" / "cameras" / "ring_side_left").glob("*.jpg"))
+    for target, source in zip(rear, side * 2, strict=False):
+        target.write_bytes(source.read_bytes())
+    summary = convert_log(UPath(root), UPath(tmp_path / "out"), truth.log_id,
+                          Argoverse2Options(split="val", lidar_ids=()))  # fmt: skip
+    (warning,) = [w for w in summary.warnings if "ego masks not estimated" in w]
+    assert "ring_rear_left" in warning and "must see the ego body" in warning, warning
+    loader = open_sequence(tmp_path / "out", truth.log_id)
+    meta = _camera_meta(loader, "ring_rear_left")["ego_mask"]
+    assert meta["must_see"] is True and meta["decision"] in ("not seen", "no persistent silhouette")
+    assert "ring_rear_left" not in _masks(loader) and "ring_rear_right" in _masks(loader)
+
+
+@pytest.mark.parametrize("tbv", [False, True])
+def test_realistic_bodies(tmp_path, tbv):
+    """The realistic body (the default), 3 seeds: every body-seeing camera gets a mask, no other
+    camera does. Measured today (see docs/ego-masks.md): IoU 0.35..0.98, median ~0.9; the issue's
+    target is 0.95. This holds the level measured today, not the target."""
+    ious = []
+    for seed in (41, 42, 43):
+        truth = write_log(UPath(tmp_path / f"src{seed}" / "val"), SynthConfig(seconds=1.5, seed=seed, camera_fps=10,
+                                                                             tbv=tbv))  # fmt: skip
+        root = tmp_path / f"src{seed}" if not tbv else tmp_path / f"src{seed}" / "val"
+        options = Argoverse2Options(split=None if tbv else "val", lidar_ids=())
+        summary = convert_log(UPath(root), UPath(tmp_path / f"out{seed}"), truth.log_id, options)
+        assert not [w for w in summary.warnings if "ego masks" in w]
+        masks = _masks(open_sequence(tmp_path / f"out{seed}", truth.log_id))
+        assert set(masks) == set(truth.ego_masks)
+        ious += [_iou(masks[c] > 0, truth.ego_masks[c]) for c in masks]
+    assert min(ious) >= 0.3 and np.median(ious) >= 0.85, ious

@@ -270,6 +270,10 @@ def av2_family_options(log_scope: str):
                          metavar="estimate|none|DIR",
                          help="Camera masks named 'ego' (the ego vehicle's pixels): estimated from a sample of each"
                          " camera's own images; none; or DIR/<camera_id>.png (binary, the camera's size)."),
+            click.option("--ego-box-m", type=float, nargs=3, default=(4.9, 1.9, 1.5), show_default=True,
+                         metavar="LENGTH WIDTH HEIGHT",
+                         help="The nominal ego vehicle for the ego-mask prior (metres, around the rear-axle origin):"
+                         " where the body can be in each camera, and which cameras must see it."),
             click.option("--lidar-model-source", type=click.Choice(get_args(LidarModelSource)), default="empirical",
                          help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's"
                          " model element; 'none': raw per-point-time ray bundles only."),
@@ -571,6 +575,18 @@ def synth():
     """Write synthetic source logs with known ground truth (test data and demo source)."""
 
 
+def synth_camera_options(f):
+    """The camera-picture options of ``synth argoverse2`` and ``synth tbv``."""
+    f = click.option("--ego-body", type=click.Choice(["realistic", "easy"]), default="realistic", show_default=True,
+                     help="The ego body in the cameras that see it: glossy paint with reflections, lighting changes,"
+                     " markings, glare and camouflaged silhouette stretches; or still paint under ±5 % light.")(f)
+    return click.option(
+        "--parked-fraction", type=click.FloatRange(0.0, 1.0), default=0.0,
+        help="The first part of the log (a fraction) in which the cameras' world stands still, as if parked"
+        " (1: the whole log; tests the ego-mask fallback).",
+    )(f)  # fmt: skip
+
+
 @synth.command("argoverse2")
 @click.option(
     "--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Split folder to write the log into."
@@ -584,18 +600,14 @@ def synth():
 @click.option(
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )
-@click.option(
-    "--parked-fraction", type=click.FloatRange(0.0, 1.0), default=0.0,
-    help="The first part of the log (a fraction) in which the cameras' world stands still, as if parked"
-    " (1: the whole log; tests the ego-mask fallback).",
-)  # fmt: skip
-def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, parked_fraction):
+@synth_camera_options
+def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, parked_fraction, ego_body):
     """A synthetic Argoverse 2 Sensor log: real schemas, two simulated VLP-32C units, cameras (with the
-    ego body in three of them), cuboids."""
+    ego body in five of them), cuboids."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     config = SynthConfig(seconds=seconds, seed=seed, swap_lidar_halves=swap_lidar_halves, camera_fps=camera_fps,
-                         parked_fraction=parked_fraction)  # fmt: skip
+                         parked_fraction=parked_fraction, ego_body=ego_body)  # fmt: skip
     truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
@@ -614,17 +626,14 @@ def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, park
 @click.option(
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )
-@click.option(
-    "--parked-fraction", type=click.FloatRange(0.0, 1.0), default=0.0,
-    help="The first part of the log (a fraction) in which the cameras' world stands still, as if parked"
-    " (1: the whole log; tests the ego-mask fallback).",
-)  # fmt: skip
-def synth_tbv(out_dir, seconds, seed, camera_fps, parked_fraction):
+@synth_camera_options
+def synth_tbv(out_dir, seconds, seed, camera_fps, parked_fraction, ego_body):
     """A synthetic TbV log: flat layout, no offset_ns, 7 ring cameras (6 at half resolution; the ego body
     in three), no annotations."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    config = SynthConfig(seconds=seconds, seed=seed, camera_fps=camera_fps, tbv=True, parked_fraction=parked_fraction)
+    config = SynthConfig(seconds=seconds, seed=seed, camera_fps=camera_fps, tbv=True, parked_fraction=parked_fraction,
+                         ego_body=ego_body)  # fmt: skip
     truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"

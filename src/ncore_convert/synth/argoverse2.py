@@ -74,6 +74,9 @@ class SynthConfig:
     #: the first part of the log (a fraction, 0..1) in which the cameras' world stands still (the
     #: car parked): every image there is the same picture but for the body's lighting
     parked_fraction: float = 0.0
+    #: how the ego body is rendered: ``realistic`` (reflections, lighting, markings, glare,
+    #: camouflaged silhouette) or ``easy`` (still paint under ±5 % light); see ``synth.ego``
+    ego_body: str = "realistic"
 
     @property
     def cameras(self) -> tuple[str, ...]:
@@ -404,17 +407,16 @@ def _write_images(
     for cam, stamps in cam_ns.items():
         _, width, height = cams[cam]
         if cam in truth.ego_masks:
-            variants = ego_pictures(rng, width, height, truth.ego_masks[cam], parked_all)
+            variants = ego_pictures(rng, width, height, truth.ego_masks[cam], parked_all, config.ego_body)
         else:
             if (width, height) not in shared:
                 shared[(width, height)] = ego_pictures(rng, width, height, None, parked_all)
             variants = shared[(width, height)]
         step = max(1, int(round(20.0 / config.camera_fps)))
-        choice = rng.integers(0, len(variants), len(stamps))
         for i, ts in enumerate(stamps[::step]):
             path = av2.image_path(truth.log_dir, cam, int(ts))
             if i == 0:
                 path.parent.mkdir(parents=True, exist_ok=True)
-            picture = 0 if ts < parked_until_ns else int(choice[i])
+            picture = 0 if ts < parked_until_ns else i % len(variants)
             path.write_bytes(_unique_jpeg(variants[picture], f"{cam} {ts}"))
             truth.image_paths.append(path)

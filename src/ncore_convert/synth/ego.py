@@ -1,14 +1,22 @@
 """The synthetic ego body in the AV2 / TbV cameras that see it, and camera pictures around it.
 
-Three ring cameras see the ego vehicle, as on the real car: ``ring_front_center`` the hood along
-the bottom of its portrait image, ``ring_rear_left`` / ``ring_rear_right`` the rear corner of the
-body (trunk lid and flank). The body is an outline in the ego frame (metres, x forward, y left,
-z up from the rear-axle origin), projected with each camera's own calibration; the true mask is
-every pixel below the projected outline, so it follows the mounting exactly.
+The cameras that see the ego vehicle, as the calibration predicts for a car of AV2's size:
+``ring_front_center`` and the two stereo cameras the hood along the bottom of the image,
+``ring_rear_left`` / ``ring_rear_right`` the rear corner of the body (trunk lid and flank). The
+body is an outline in the ego frame (metres, x forward, y left, z up from the rear-axle origin),
+projected with each camera's own calibration; the true mask is every pixel below the projected
+outline, so it follows the mounting exactly.
 
 Pictures: the world is a road-like gradient with large random blobs that change from picture to
-picture (the world moving past); the body keeps its paint texture and only its lighting changes a
-little between pictures, as real paint does under changing light.
+picture (the world moving past) under a camera exposure that changes a little. Two bodies:
+
+- ``easy``: the paint keeps its texture and only its lighting changes (±5 %).
+- ``realistic`` (what real glossy paint does): the paint carries panel shading, a painted logo and
+  text; each picture lights it differently (±40 % and a colour cast, with a shade ramp across it);
+  it mirrors the moving scene (flipped about the silhouette and compressed, as on a convex panel,
+  with 40-80 % of the scene's contrast, strongest at grazing angles near the silhouette); some
+  pictures have saturated glare patches; and along stretches of the silhouette the paint takes the
+  colour of the world just behind it, so the outline nearly vanishes there.
 """
 
 from __future__ import annotations
@@ -18,22 +26,32 @@ import io
 import numpy as np
 import PIL.Image
 import PIL.ImageDraw
+import PIL.ImageFilter
+import PIL.ImageFont
 
 #: The cameras that see the ego body.
-EGO_CAMERAS = ("ring_front_center", "ring_rear_left", "ring_rear_right")
+EGO_CAMERAS = ("ring_front_center", "ring_rear_left", "ring_rear_right", "stereo_front_left", "stereo_front_right")
+#: Body renderings: today's easy body, and one with what real paint does.
+BODIES = ("realistic", "easy")
 #: Pictures per camera that the frames cycle through at random (each a different "world").
-N_PICTURES = 6
-#: Paint brightness of the body varies by this factor between pictures (lighting).
-LIGHTING = (0.95, 1.05)
+N_PICTURES = 16
+#: Paint brightness varies by this factor between pictures: the easy body, and the realistic one.
+LIGHTING = {"easy": (0.95, 1.05), "realistic": (0.6, 1.4)}
+#: Share of the scene's contrast that the realistic paint mirrors (attenuated by 20-60 %).
+REFLECTION = (0.4, 0.8)
+#: Camera exposure changes between pictures (the whole image).
+EXPOSURE = (0.9, 1.1)
 
 
 def body_outline_m(camera: str) -> np.ndarray:
     """The visible top outline of the ego body for ``camera``, ego frame, metres [K,3], ordered so
     that the region below it in the image is the body."""
     s = np.linspace(-1.0, 1.0, 41)
-    if camera == "ring_front_center":  # hood: sides from near the windscreen, front edge bulging up
-        front = np.stack([2.25 - 0.25 * s**2, -0.95 * s, 1.12 - 0.08 * s**2], axis=1)
-        left = np.stack([np.linspace(1.85, 2.0, 8), np.full(8, 0.95), np.linspace(1.0, 1.04, 8)], axis=1)
+    if camera in ("ring_front_center", "stereo_front_left", "stereo_front_right"):
+        # hood: its rounded front edge ~1 m above the road (the origin is ~0.32 m above it), the
+        # sides rising towards the windscreen
+        front = np.stack([3.70 - 0.25 * s**2, -0.85 * s, 0.47 - 0.05 * s**2], axis=1)
+        left = np.stack([np.linspace(2.4, 3.45, 8), np.full(8, 0.85), np.linspace(0.62, 0.42, 8)], axis=1)
         return np.concatenate([left, front, left[::-1] * [1, -1, 1]])
     side = 1.0 if camera == "ring_rear_left" else -1.0
     flank = np.stack([np.linspace(1.0, -0.9, 30), np.full(30, 0.98 * side), np.full(30, 0.75)], axis=1)
@@ -67,25 +85,104 @@ def _smooth_field(rng: np.random.Generator, width: int, height: int, cell_px: in
     return np.clip(np.asarray(image), -1, 1)
 
 
-def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray | None, parked: bool) -> list[bytes]:
-    """``N_PICTURES`` JPEGs of one camera (~0.45 MB at AV2 resolutions): a different world in each
-    (the same one when ``parked``), the body (``mask``, or none) painted with a fixed texture under
-    slightly different light."""
+class _RealisticBody:
+    """What stays fixed on a realistic body (its paint, markings, the silhouette's geometry) and
+    what each picture changes (light, colour cast, reflections, glare, camouflaged stretches)."""
+
+    def __init__(self, rng: np.random.Generator, mask: np.ndarray) -> None:
+        height, width = mask.shape
+        self.rng = rng
+        self.top = np.where(mask.any(axis=0), mask.argmax(axis=0), height).astype(np.float32)  # silhouette row
+        self.r0 = int(self.top.min()) if mask.any() else height  # the body's rows: r0 and below
+        rows = np.arange(height, dtype=np.float32)[:, None]
+        depth = np.clip(rows - self.top, 0, None)  # px below the silhouette
+        extent = max(float((height - self.top[self.top < height]).max(initial=1.0)), 1.0)
+        self.depth = depth / extent  # 0 at the silhouette, ~1 at the deepest body row
+        base = rng.uniform(50, 190)  # dark to white paint
+        shading = 25 * _smooth_field(rng, width, height, 96) - 35 * self.depth  # curvature: darker below
+        markings = PIL.Image.new("L", (width, height), 0)
+        draw = PIL.ImageDraw.Draw(markings)
+        cols = np.flatnonzero(self.top < height)
+        if len(cols):
+            cx = float(rng.uniform(np.percentile(cols, 30), np.percentile(cols, 70)))
+            cy = float(np.median(self.top[cols]) + 0.45 * extent)
+            r = 0.18 * extent
+            draw.ellipse([cx - r, cy - r, cx + r, cy + r], outline=255, width=max(2, int(r / 6)))  # a logo
+            font = PIL.ImageFont.load_default(size=max(10, int(0.12 * extent)))
+            draw.text((cx + 1.3 * r, cy - 0.5 * r), "SELF-DRIVING TEST", fill=255, font=font)  # text
+            gap = [(float(x), float(self.top[x] + 0.7 * extent)) for x in cols[::8]]  # a panel gap
+            draw.line(gap, fill=160, width=3)
+        ink = np.asarray(markings, dtype=np.float32) / 255.0
+        self.paint = np.clip(base + shading - 0.7 * base * ink + 60 * ink * (base < 100), 5, 250)
+        self.reflect = (REFLECTION[0] + (REFLECTION[1] - REFLECTION[0]) * np.exp(-3 * self.depth)).astype(np.float32)
+        self.compress = rng.uniform(1.5, 3.0)  # a convex panel minifies its mirror image
+        # Stretches of the silhouette whose paint takes the colour of the world behind it.
+        self.camouflage = np.zeros(width, dtype=np.float32)
+        if len(cols):
+            for _ in range(2):
+                span = int(0.15 * len(cols))
+                start = int(rng.integers(cols[0], max(cols[0] + 1, cols[-1] - span)))
+                self.camouflage[start : start + span] = 1.0
+        self.band = (np.clip(1.0 - self.depth / 0.25, 0, 1) * self.camouflage[None, :])[self.r0 :]
+        self.paint, self.reflect = self.paint[self.r0 :], self.reflect[self.r0 :]
+
+    def render(self, world: np.ndarray) -> np.ndarray:
+        """The body's rows (``r0`` and below) of one picture over ``world`` (grey, float32 [H,W])."""
+        height, width = world.shape
+        rng = self.rng
+        rows = np.arange(self.r0, height, dtype=np.float32)[:, None]
+        source = np.clip(self.top - self.compress * (rows - self.top), 0, height - 1).astype(np.int64)
+        mirrored = np.take_along_axis(world, source, axis=0)  # flipped about the silhouette, compressed
+        ramp_dir = rng.uniform(0, 2 * np.pi)
+        u = np.linspace(-1, 1, width, dtype=np.float32)[None, :]
+        v = np.linspace(-1, 1, height, dtype=np.float32)[self.r0 :, None]
+        light = rng.uniform(*LIGHTING["realistic"]) * (1 + 0.15 * (np.cos(ramp_dir) * u + np.sin(ramp_dir) * v))
+        behind = np.take_along_axis(world, np.clip(self.top - 3, 0, height - 1).astype(np.int64)[None, :], axis=0)
+        lit = self.paint * light * (1 - self.band) + behind * self.band  # the silhouette matches the world here
+        grey = (1 - self.reflect) * lit + self.reflect * mirrored
+        if rng.random() < 0.5:  # glare: saturated patches where the sun catches the paint
+            glare = PIL.Image.new("L", (width, height - self.r0), 0)
+            cols = np.flatnonzero(self.top < height)
+            for _ in range(int(rng.integers(1, 3))):
+                x = float(rng.choice(cols))
+                y = float(rng.uniform(self.top[int(x)], height)) - self.r0
+                r = float(rng.uniform(0.02, 0.06)) * max(width, height)
+                PIL.ImageDraw.Draw(glare).ellipse([x - r, y - 0.5 * r, x + r, y + 0.5 * r], fill=255)
+            glare = np.asarray(glare.filter(PIL.ImageFilter.GaussianBlur(6)), dtype=np.float32) / 255.0
+            grey = grey * (1 - glare) + 255.0 * glare
+        return grey
+
+
+def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray | None, parked: bool,
+             body: str = "realistic") -> list[bytes]:  # fmt: skip
+    """``N_PICTURES`` JPEGs of one camera (~0.45 MB each at AV2 resolutions): a different world in
+    each (the same one when ``parked``), the body (``mask``, or none) rendered as ``body`` (one of
+    ``BODIES``)."""
     v = np.linspace(0, 1, height, dtype=np.float32)[:, None]
     road = np.where(v < 0.45, 150 + 80 * v, 90 - 40 * (v - 0.45))
     world_seed = int(rng.integers(2**62))
-    if mask is not None:
+    realistic = _RealisticBody(rng, mask) if mask is not None and body == "realistic" else None
+    if mask is not None and realistic is None:
         paint = 70 + 25 * _smooth_field(rng, width, height, 64) + 40 * np.clip(1.2 - v, 0, 1)
     out = []
     for _ in range(N_PICTURES):
         world_rng = np.random.default_rng(world_seed) if parked else rng  # parked: the same world each time
         blobs = 45 * _smooth_field(world_rng, width, height, 48) + 20 * _smooth_field(world_rng, width, height, 9)
         noise = rng.standard_normal((height, width), dtype=np.float32)
-        grey = road + blobs + 5 * noise
-        if mask is not None:
-            light = rng.uniform(*LIGHTING)
-            grey = np.where(mask, paint * light + 2 * noise, grey)
-        rgb = np.clip(grey[..., None] + np.array([0, 5, 12], dtype=np.float32) * v[..., None], 0, 255)
+        grey = (road + blobs) * rng.uniform(*EXPOSURE) + 5 * noise
+        cast = np.array([0, 5, 12], dtype=np.float32)
+        if realistic is not None:
+            r0 = realistic.r0
+            body = mask[r0:, :, None]
+            gains = rng.uniform(0.9, 1.1, 3).astype(np.float32)  # the body's colour cast
+            rgb = np.repeat(grey[..., None], 3, axis=2)
+            rendered = (realistic.render(grey) + 2 * noise[r0:])[..., None] * gains
+            rgb[r0:] = np.where(body, rendered, rgb[r0:])
+        else:
+            if mask is not None:
+                grey = np.where(mask, paint * rng.uniform(*LIGHTING["easy"]) + 2 * noise, grey)
+            rgb = grey[..., None]
+        rgb = np.clip(rgb + cast * v[..., None], 0, 255)
         buf = io.BytesIO()
         PIL.Image.fromarray(rgb.astype(np.uint8)).save(buf, format="JPEG", quality=80)
         out.append(buf.getvalue())

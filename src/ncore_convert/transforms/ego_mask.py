@@ -1,24 +1,38 @@
-"""The ego vehicle's pixels in a camera, estimated from the camera's own images.
+"""The ego vehicle's pixels in a camera, estimated from the camera's own images and its calibration.
 
-The body is rigidly fixed in a camera's image while the world moves through it, so over frames
-sampled across a log its pixels barely change (lighting only) while the world's change a lot. On
-greyscale frames decoded at reduced resolution:
+Real car bodies are glossy: their pixels mirror the moving scene, change brightness and colour with
+sun and shade, carry logos and glare, and can match the road or sky at the silhouette. A still-pixel
+test sees only the darkest, least reflective part of them. What stays fixed is the **geometry**:
+the body is one region under a silhouette that sits at the same pixels in every frame, attached to
+the image border that faces the car, inside where a car of the vehicle's size can be. The estimate
+is built from cues that hold for that geometry, on greyscale frames sampled across the log and
+decoded at reduced resolution:
 
-1. **Motion**: the world must have moved. The median temporal standard deviation of the pixels
-   above the horizon must reach ``MIN_WORLD_STD``; otherwise (a parked log, a static scene) the
-   camera gets no mask and a warning, because still pixels then say nothing about the body.
-2. **Still pixels**: temporal standard deviation below a threshold set from the world's own
-   variation (``STILL_FRACTION`` of the median above the horizon, clamped to ``STILL_STD_RANGE``).
-3. **Where the body can be** (the calibration): below the horizon by at least ``HORIZON_MARGIN_DEG``
-   (the body is below the camera), and connected to the bottom image border (the border that faces
-   the car for these level-mounted cameras).
-4. **Clean-up**: closing, hole filling and opening; components smaller than ``MIN_FRACTION`` of the
-   image are dropped. A camera left with no component does not see the ego: **no** mask, rather than
-   speckle.
-5. **Plausibility**: a mask covering more than ``MAX_FRACTION`` of the image is rejected (no mask,
-   a warning): the body of a car covers at most about a quarter of a ring camera's image (AV2's
-   hood about a tenth), so more means the "still" pixels are the scene.
-6. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
+1. **Prior** (:func:`body_prior`, from the calibration and a nominal ego box): the body can only be
+   on rays that hit the box (``reach``); a camera whose rays hit the box's lower body (up to
+   ``LOWER_BODY_FRACTION`` of its height: hood and trunk level) along at least
+   ``MUST_SEE_BORDER`` of its bottom border must see the body.
+2. **Motion**: the world must have moved (median temporal standard deviation outside the reach of
+   at least ``MIN_WORLD_STD`` grey levels, once each frame's exposure is divided out); else (parked,
+   a static scene) no mask and a warning.
+3. **Persistent edges**: the gradient of the log image (a brightness change multiplies an image,
+   so it leaves log gradients alone) keeps its orientation across frames at the silhouette and at
+   painted markings, while the world's edges move through: per pixel, the coherence of the
+   frames' gradient orientations (doubled angles, so a silhouette whose contrast flips sign between
+   a brighter and a darker background still counts).
+4. **Change energy**: how much fine structure changes between frames, after removing each frame's
+   smooth brightness change (lighting, shade, colour casts). Reflections on paint are the scene
+   mirrored and attenuated, so the body changes less than the world above it; a robust quantile
+   over frames keeps glare in a few frames from counting.
+5. **Silhouette** (dynamic programming over the image columns): per column, the row where the body
+   begins (or none), minimising the change energy claimed as body above a level set between the
+   body's and the world's, minus the persistent-edge strength on the silhouette, plus a penalty on
+   jumps between neighbouring columns; inside the reach only. The body is everything below.
+6. **Decision**: the mask is kept when the silhouette is a persistent edge with the world changing
+   more above it than the body below it, and it covers at least ``MIN_FRACTION`` of the image and at
+   most ``MAX_FRACTION``. Otherwise no mask, with the reason; for a camera that must see the body,
+   a warning.
+7. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
 """
 
 from __future__ import annotations
@@ -30,12 +44,57 @@ import PIL.Image
 from scipy import ndimage
 
 MIN_WORLD_STD = 4.0  #: grey levels: below this, the world did not move enough to tell the body from it
-STILL_FRACTION = 0.3
-STILL_STD_RANGE = (4.0, 12.0)  #: grey levels
-HORIZON_MARGIN_DEG = 2.0
-MIN_FRACTION = 0.005  #: of the image: smaller still regions are speckle, not a body
+MIN_FRACTION = 0.005  #: of the image: a smaller region is not a car body
 MAX_FRACTION = 0.30  #: of the image: a larger "body" is the scene standing still
-MIN_SAMPLES = 6  #: fewer sampled images than this cannot tell still from moving
+MIN_SAMPLES = 6  #: fewer sampled images than this cannot tell fixed from moving
+LOWER_BODY_FRACTION = 2 / 3  #: hood and trunk lid sit at about two thirds of a car's roof height
+MUST_SEE_BORDER = 0.45  #: share of the bottom border on the lower body that makes a camera see the body
+LOG_OFFSET = 16.0  #: grey levels added before the log, so that dark noise does not dominate
+LIGHT_SIGMA_PX = 4.0  #: brightness changes smoother than this (reduced pixels) are lighting, not motion
+EDGE_WEIGHT = 20.0  #: silhouette bonus per unit of persistent-edge strength
+JUMP_COST = 2.0  #: per row of silhouette change between neighbouring columns
+COST_CLIP = 0.5  #: a single pixel's change energy counts at most this much either way
+REFERENCE_BAND_PX = 12  #: rows (reduced) of world above the reach, and of either side of the silhouette
+DIP_FRACTION = 0.1  #: of the image width: narrower dips in the silhouette are filled
+MIN_EDGE = 0.35  #: mean persistent-edge strength a silhouette needs
+
+
+@dataclass(frozen=True)
+class EgoBox:
+    """The nominal ego vehicle: a box around the rear-axle origin (metres, ego frame x forward,
+    y left, z up). The default is AV2's car (a Ford Fusion Hybrid: about 4.9 x 1.9 x 1.5 m, the
+    rear axle ~1.05 m ahead of the rear bumper, the origin ~0.32 m above the road)."""
+
+    length_m: float = 4.9
+    width_m: float = 1.9
+    height_m: float = 1.5
+    rear_overhang_m: float = 1.05
+    origin_height_m: float = 0.32
+
+    def bounds(self, height_fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners in the ego frame [3] of the box, or of its lower part."""
+        lo = np.array([-self.rear_overhang_m, -self.width_m / 2, -self.origin_height_m])
+        hi = np.array([self.length_m - self.rear_overhang_m, self.width_m / 2,
+                       self.height_m * height_fraction - self.origin_height_m])  # fmt: skip
+        return lo, hi
+
+
+@dataclass(frozen=True)
+class BodyPrior:
+    """Where the body can be in one camera and whether the camera must see it.
+
+    Attributes:
+        reach: pixels whose rays hit the nominal ego box, bool [h,w].
+        lower_border: share of the bottom border whose rays hit the box's lower body.
+        must_see: ``lower_border >= MUST_SEE_BORDER``.
+    """
+
+    reach: np.ndarray
+    lower_border: float
+
+    @property
+    def must_see(self) -> bool:
+        return self.lower_border >= MUST_SEE_BORDER
 
 
 @dataclass(frozen=True)
@@ -45,71 +104,204 @@ class EgoMaskEstimate:
     Attributes:
         mask: ego pixels at the reduced resolution, bool [h,w]; None when no mask is written.
         decision: ``"mask"``, ``"not seen"`` (no body), or a fallback: ``"too few images"``,
-            ``"too little motion"``, ``"implausible coverage"``.
+            ``"too little motion"``, ``"too few distinct images"``, ``"implausible coverage"``,
+            ``"no persistent silhouette"``.
         covered_fraction: the share of the image the mask covers (0 without one).
-        still_threshold: the temporal standard deviation below which pixels counted as still.
-        world_std: the median temporal standard deviation above the horizon (grey levels).
+        world_std: the median temporal standard deviation outside the reach (grey levels).
+        edge: mean persistent-edge strength along the silhouette (0..1).
+        change_ratio: the world's change energy above the silhouette over the body's below it.
     """
 
     mask: np.ndarray | None
     decision: str
-    covered_fraction: float
-    still_threshold: float
-    world_std: float
+    covered_fraction: float = 0.0
+    world_std: float = 0.0
+    edge: float = 0.0
+    change_ratio: float = 0.0
 
 
-def below_horizon(
-    shape: tuple[int, int], focal_px: tuple[float, float], centre_px: tuple[float, float], R_camera_ego: np.ndarray
-) -> np.ndarray:
-    """Pixels whose ray points down in the ego frame by more than HORIZON_MARGIN_DEG, bool [h,w].
+def _rays_hit_box(origin: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Whether rays from ``origin`` [3] along ``directions`` [...,3] (ego frame) hit the box [lo, hi]."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - origin) / directions, (hi - origin) / directions
+    near = np.nanmax(np.minimum(t1, t2), axis=-1)
+    far = np.nanmin(np.maximum(t1, t2), axis=-1)
+    return far >= np.maximum(near, 0.0)
+
+
+def body_prior(
+    shape: tuple[int, int], focal_px: tuple[float, float], centre_px: tuple[float, float], T_camera_ego: np.ndarray,
+    box: EgoBox,
+) -> BodyPrior:  # fmt: skip
+    """The body prior of one camera at the reduced resolution.
 
     Args:
         shape: (h, w) of the reduced image; focal_px, centre_px: its (fx, fy) and principal point
-            (pixel-corner convention); R_camera_ego: camera (OpenCV) -> ego rotation [3,3].
+            (pixel-corner convention); T_camera_ego: camera (OpenCV) -> ego [4,4]; box: the vehicle.
     """
     h, w = shape
     u = (np.arange(w) + 0.5 - centre_px[0]) / focal_px[0]
     v = (np.arange(h) + 0.5 - centre_px[1]) / focal_px[1]
-    up = R_camera_ego[2]  # the ego z component of a camera-frame direction
-    z = up[0] * u[None, :] + up[1] * v[:, None] + up[2]
-    norm = np.sqrt(u[None, :] ** 2 + v[:, None] ** 2 + 1.0)
-    return z / norm < -np.sin(np.radians(HORIZON_MARGIN_DEG))
+    rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((h, w))), axis=-1) @ T_camera_ego[:3, :3].T
+    origin = T_camera_ego[:3, 3]
+    reach = _rays_hit_box(origin, rays, *box.bounds())
+    lower = _rays_hit_box(origin, rays[-1], *box.bounds(LOWER_BODY_FRACTION))
+    return BodyPrior(reach, float(lower.mean()))
 
 
-def estimate(frames: np.ndarray, allowed: np.ndarray) -> EgoMaskEstimate:
+def _log_frames(frames: np.ndarray) -> np.ndarray:
+    return np.log(frames + LOG_OFFSET) - np.log(LOG_OFFSET + 128.0)
+
+
+def persistent_edges(log_frames: np.ndarray) -> np.ndarray:
+    """Per pixel, how consistently the frames' gradients keep one orientation (0..1), float32 [h,w].
+
+    Args:
+        log_frames: log grey levels, float32 [N,h,w].
+    """
+    gx = ndimage.sobel(log_frames, axis=2)
+    gy = ndimage.sobel(log_frames, axis=1)
+    z = (gx + 1j * gy) ** 2  # doubled angle: a contrast whose sign flips keeps its orientation
+    energy = np.abs(z)
+    total = ndimage.gaussian_filter(energy.sum(axis=0), 1.0)
+    consistent = ndimage.gaussian_filter(z.sum(axis=0).real, 1.0) ** 2 + ndimage.gaussian_filter(
+        z.sum(axis=0).imag, 1.0) ** 2  # fmt: skip
+    coherence = np.sqrt(consistent) / (total + 1e-12)
+    floor = 1.0 / np.sqrt(len(log_frames))  # random orientations average to about this
+    noise = np.median(energy.mean(axis=0))  # a pixel this weak is flat: its orientation is noise
+    significant = 1.0 - np.exp(-energy.mean(axis=0) / (0.5 * noise + 1e-12))
+    return (np.clip((coherence - floor) / (1.0 - floor), 0.0, 1.0) * significant).astype(np.float32)
+
+
+def change_energy(frames: np.ndarray) -> np.ndarray:
+    """Per pixel, how much fine structure changes between frames once each frame's smooth
+    brightness change (lighting, shade, exposure) is divided out, grey levels, float32 [h,w].
+
+    Linear grey levels, not logs: a reflection adds the scene scaled by the paint's reflectance,
+    so on a dark glossy body it is small in grey levels although large relative to the paint.
+
+    Args:
+        frames: grey levels, float32 [N,h,w].
+    """
+    median = np.median(frames, axis=0)
+    smooth = (0, LIGHT_SIGMA_PX, LIGHT_SIGMA_PX)
+    gain = ndimage.gaussian_filter(frames, smooth) / (ndimage.gaussian_filter(median, LIGHT_SIGMA_PX) + 1.0)
+    change = frames - gain * median
+    fine = change - ndimage.gaussian_filter(change, smooth)
+    energy = ndimage.gaussian_filter(fine**2, (0, 2.5, 2.5))
+    return np.sqrt(np.quantile(energy, 0.75, axis=0)).astype(np.float32)
+
+
+def silhouette(cost_body: np.ndarray, bonus: np.ndarray, reach: np.ndarray, jump_cost: float) -> np.ndarray:
+    """Per column, the first body row (``h``: no body in that column), int [w]: the minimum of
+    the summed ``cost_body`` of the rows claimed, minus the ``bonus`` of the first one, plus
+    ``jump_cost`` per row of change between neighbouring columns (dynamic programming, exact).
+
+    Args:
+        cost_body: what claiming each pixel as body costs, float [h,w] (negative: body-like).
+        bonus: what a silhouette through each pixel earns, float [h,w]. reach: where the body
+            can be, bool [h,w].
+    """
+    h, w = cost_body.shape
+    claimed = np.vstack([np.cumsum(cost_body[::-1], axis=0)[::-1], np.zeros((1, w))])  # [h+1,w]: rows c.. h-1
+    earned = np.vstack([bonus, np.zeros((1, w))])
+    allowed = np.vstack([reach, np.ones((1, w), dtype=bool)])
+    allowed[:-1] &= np.flip(np.logical_and.accumulate(np.flip(reach, 0), axis=0), 0)  # reach from c down
+    data = np.where(allowed, claimed - earned, np.inf)
+    rows = np.arange(h + 1, dtype=np.float64)
+    total = np.empty((w, h + 1))
+    total[0] = data[:, 0]
+    for x in range(1, w):
+        prev = total[x - 1]
+        down = np.minimum.accumulate(prev - jump_cost * rows) + jump_cost * rows
+        up = np.minimum.accumulate((prev + jump_cost * rows)[::-1])[::-1] - jump_cost * rows
+        total[x] = data[:, x] + np.minimum(down, up)
+    path = np.empty(w, dtype=np.int64)
+    path[-1] = int(np.argmin(total[-1]))
+    for x in range(w - 1, 0, -1):
+        path[x - 1] = int(np.argmin(total[x - 1] + jump_cost * np.abs(rows - path[x])))
+    return path
+
+
+def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     """Estimate the ego pixels from greyscale frames sampled across a log.
 
     Args:
         frames: float32 [N,h,w], grey levels 0..255, at reduced resolution.
-        allowed: where the body can be (:func:`below_horizon`), bool [h,w].
+        prior: the camera's :func:`body_prior` at that resolution.
     """
     if len(frames) < MIN_SAMPLES:
-        return EgoMaskEstimate(None, "too few images", 0.0, 0.0, 0.0)
-    std = frames.std(axis=0)
-    world = ~allowed
-    world_std = float(np.median(std[world])) if world.any() else float(np.median(std))
-    threshold = float(np.clip(STILL_FRACTION * world_std, *STILL_STD_RANGE))
+        return EgoMaskEstimate(None, "too few images")
+    if not prior.reach.any():
+        return EgoMaskEstimate(None, "not seen")
+    world = ~prior.reach if (~prior.reach).any() else np.ones_like(prior.reach)
+    levels = np.median(frames[:, world], axis=1)  # each frame's exposure: not motion
+    exposed = frames * (np.median(levels) / np.maximum(levels, 1.0))[:, None, None]
+    # A stopped car gives the same view again: such repeats carry no evidence and would make the
+    # world look fixed, so only frames whose world differs from every kept one count.
+    kept: list[int] = []
+    for i in range(len(frames)):
+        if all(np.median(np.abs(exposed[i][world] - exposed[j][world])) >= MIN_WORLD_STD for j in kept):
+            kept.append(i)
+    std = exposed.std(axis=0)
+    world_std = float(np.median(std[world]))
+    if world_std >= MIN_WORLD_STD and len(kept) < MIN_SAMPLES:
+        return EgoMaskEstimate(None, "too few distinct images", world_std=world_std)
+    frames = frames[kept]
     if world_std < MIN_WORLD_STD:
-        return EgoMaskEstimate(None, "too little motion", 0.0, threshold, world_std)
-    candidate = (std < threshold) & allowed
-    labels, _ = ndimage.label(candidate)
-    touching = np.unique(labels[-1][labels[-1] > 0])
-    mask = np.isin(labels, touching)
-    mask = ndimage.binary_closing(mask, structure=np.ones((3, 3)), iterations=2, border_value=1)
-    mask = ndimage.binary_fill_holes(mask)
-    mask = ndimage.binary_opening(mask, structure=np.ones((3, 3)), iterations=1) & allowed
-    labels, n = ndimage.label(mask)
-    if n:
-        sizes = ndimage.sum(mask, labels, index=np.arange(1, n + 1))
-        keep = np.flatnonzero(sizes >= MIN_FRACTION * mask.size) + 1
-        touching = np.intersect1d(keep, np.unique(labels[-1]))
-        mask = np.isin(labels, touching)
+        return EgoMaskEstimate(None, "too little motion", world_std=world_std)
+    # Only the reach and a band above it (the world's reference) matter from here on.
+    r0 = max(0, int(np.flatnonzero(prior.reach.any(axis=1))[0]) - 2 * REFERENCE_BAND_PX)
+    crop, reach = frames[:, r0:], prior.reach[r0:]
+    edge = persistent_edges(_log_frames(crop))
+    change = change_energy(crop)
+    reference = _world_reference(change, reach)
+    cost = np.clip(np.log(np.maximum(change, 1e-3) / reference), -COST_CLIP, COST_CLIP)  # < 0: changes less than the world
+    top = silhouette(cost, EDGE_WEIGHT * edge, reach, jump_cost=JUMP_COST)
+    # A silhouette is smooth: a dip narrower than DIP_FRACTION of the image (where the paint
+    # matched the world behind it, so neither cue saw the outline) is filled from its sides.
+    top = ndimage.grey_opening(top, size=max(3, int(DIP_FRACTION * len(top))), mode="nearest")
+    h_crop = crop.shape[1]
+    on = top < h_crop
+    edge_on = float(np.mean(edge[top[on], np.flatnonzero(on)])) if on.any() else 0.0
+    ratio = _change_ratio(change, top)
+    top = top + r0
+    h, w = frames.shape[1:]
+    mask = np.arange(h)[:, None] >= top[None, :]
+    mask = ndimage.binary_opening(mask, structure=np.ones((3, 3))) & prior.reach
     covered = float(mask.mean())
-    if covered == 0.0:
-        return EgoMaskEstimate(None, "not seen", 0.0, threshold, world_std)
+    figures = {"covered_fraction": covered, "world_std": world_std, "edge": edge_on, "change_ratio": ratio}
+    if covered < MIN_FRACTION:
+        return EgoMaskEstimate(None, "not seen", **figures)
     if covered > MAX_FRACTION:
-        return EgoMaskEstimate(None, "implausible coverage", covered, threshold, world_std)
-    return EgoMaskEstimate(mask, "mask", covered, threshold, world_std)
+        return EgoMaskEstimate(None, "implausible coverage", **figures)
+    if edge_on < MIN_EDGE:
+        return EgoMaskEstimate(None, "no persistent silhouette", **figures)
+    return EgoMaskEstimate(mask, "mask", **figures)
+
+
+def _world_reference(change: np.ndarray, reach: np.ndarray, band_px: int = REFERENCE_BAND_PX) -> np.ndarray:
+    """Per column, the world's change energy just above the reach (the body cannot be there), [1,w];
+    columns without such a band take the median over all of them."""
+    h, w = change.shape
+    top = np.where(reach.any(axis=0), reach.argmax(axis=0), h)
+    rows = np.clip(top[None, :] - np.arange(1, band_px + 1)[:, None], 0, h - 1)
+    band = np.median(change[rows, np.arange(w)[None, :]], axis=0)
+    fine = top >= band_px
+    fallback = float(np.median(band[fine])) if fine.any() else float(np.median(change))
+    return np.where(fine, band, fallback)[None, :]
+
+
+def _change_ratio(change: np.ndarray, top: np.ndarray, band_px: int = REFERENCE_BAND_PX) -> float:
+    """Median change energy in a band above the silhouette over that in a band below it."""
+    h = change.shape[0]
+    on = np.flatnonzero((top < h) & (top >= band_px))
+    if not len(on):
+        return 0.0
+    offsets = np.arange(1, band_px + 1)
+    above = change[top[on][None, :] - offsets[:, None], on[None, :]]
+    below = change[np.minimum(top[on][None, :] + offsets[:, None] - 1, h - 1), on[None, :]]
+    return float(np.median(above) / max(float(np.median(below)), 1e-6))
 
 
 def upsample(mask: np.ndarray, width: int, height: int) -> np.ndarray:

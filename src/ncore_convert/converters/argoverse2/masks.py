@@ -53,41 +53,50 @@ def reduction(intr: av2.CameraIntrinsics) -> int:
 
 
 def _estimate(
-    log_dir: UPath, camera: str, stamps_ns: np.ndarray, intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray
-) -> EgoMask:
+    log_dir: UPath, camera: str, stamps_ns: np.ndarray, intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray,
+    box: ego_mask.EgoBox,
+) -> EgoMask:  # fmt: skip
     picks = spread_indices(len(stamps_ns), SAMPLES)
     frames = np.stack([av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), reduction(intr)) for i in picks])
     h, w = frames.shape[1:]
     sx, sy = w / intr.width_px, h / intr.height_px
-    allowed = ego_mask.below_horizon(
+    prior = ego_mask.body_prior(
         (h, w), (intr.fx_px * sx, intr.fy_px * sy), ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy),
-        T_camera_ego[:3, :3],
+        T_camera_ego, box,
     )  # fmt: skip
-    result = ego_mask.estimate(frames, allowed)
+    result = ego_mask.estimate(frames, prior)
     meta = {
         "method": "estimate",
         "decision": result.decision,
+        "must_see": prior.must_see,
         "samples": len(picks),
         "reduced_size_px": [w, h],
+        "reach_fraction": round(float(prior.reach.mean()), 5),
+        "lower_body_border_fraction": round(prior.lower_border, 3),
         "covered_fraction": round(result.covered_fraction, 5),
-        "still_threshold": round(result.still_threshold, 3),
+        "silhouette_edge": round(result.edge, 3),
+        "change_ratio": round(result.change_ratio, 3),
         "world_std": round(result.world_std, 3),
-        "rule": "pixels still over the sampled images, below the horizon, connected to the bottom border;"
-        f" no mask when the world moved less than {ego_mask.MIN_WORLD_STD} grey levels or the mask would"
-        f" cover more than {ego_mask.MAX_FRACTION:.0%} of the image",
+        "ego_box_m": [box.length_m, box.width_m, box.height_m],
+        "rule": "below the silhouette that best follows persistent edges with the world changing above it,"
+        " inside the nominal ego box's reach, attached to the bottom border; no mask when the world moved"
+        f" less than {ego_mask.MIN_WORLD_STD} grey levels, the silhouette is not persistent (edge <"
+        f" {ego_mask.MIN_EDGE}) or the mask would cover more than {ego_mask.MAX_FRACTION:.0%} of the image",
     }
     return EgoMask(meta, reduced=result.mask)
 
 
 def plan_ego_masks(
     log_dir: UPath, option: str, cameras: dict[str, tuple[np.ndarray, av2.CameraIntrinsics, np.ndarray]],
-    warnings: list[str],
+    warnings: list[str], box: ego_mask.EgoBox,
 ) -> dict[str, EgoMask]:  # fmt: skip
     """Every camera's ego mask under ``--ego-masks`` ``option`` (``estimate``, ``none`` or a folder).
 
     Args:
         cameras: camera id -> (its image timestamps in ns [N], intrinsics, T_camera_ego [4,4]).
-        warnings: fallbacks are reported here, one line per kind of fallback.
+        warnings: fallbacks are reported here, one line per kind of fallback; a camera that must
+            see the body (``ego_mask.BodyPrior.must_see``) but gets no mask is always one.
+        box: the nominal ego vehicle of the prior.
     """
     if option == "none":
         return {cam: EgoMask({"method": "none"}) for cam in cameras}
@@ -101,13 +110,16 @@ def plan_ego_masks(
             for cam in cameras
         }
     with ThreadPoolExecutor(max_workers=min(len(cameras), os.cpu_count() or 1) or 1) as pool:  # decoding frees the GIL
-        futures = {cam: pool.submit(_estimate, log_dir, cam, *inputs) for cam, inputs in cameras.items()}
+        futures = {cam: pool.submit(_estimate, log_dir, cam, *inputs, box) for cam, inputs in cameras.items()}
         masks = {cam: future.result() for cam, future in futures.items()}
     fallbacks: dict[str, list[str]] = {}
     for cam, mask in masks.items():
-        if mask.meta["decision"] not in ("mask", "not seen"):
-            fallbacks.setdefault(mask.meta["decision"], []).append(cam)
+        decision = mask.meta["decision"]
+        if decision != "mask" and (decision != "not seen" or mask.meta["must_see"]):
+            fallbacks.setdefault(decision, []).append(cam)
     for decision, cams in fallbacks.items():
+        seen = [cam for cam in cams if masks[cam].meta["must_see"]]
+        note = f" ({', '.join(seen)} must see the ego body by the calibration and the ego box)" if seen else ""
         warnings.append(f"{log_dir / 'sensors' / 'cameras'}: ego masks not estimated ({decision}) for"
-                        f" {', '.join(cams)}; no ego mask written")  # fmt: skip
+                        f" {', '.join(cams)}; no ego mask written{note}")  # fmt: skip
     return masks

@@ -19,6 +19,7 @@ from ncore_convert.contract import LidarModelSource, Profile, StoreType
 from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerTiming, calibrate_lidars
 from ncore_convert.converters.argoverse2.masks import EgoMask, plan_ego_masks
+from ncore_convert.transforms.ego_mask import EgoBox
 from ncore_convert.converters.common import ConsumerOptions, select_sensors
 from ncore_convert.errors import SourceError, UsageError
 from ncore_convert.sources import argoverse2 as av2
@@ -52,6 +53,7 @@ class Argoverse2Options(ConsumerOptions):
     lidar_model_source: LidarModelSource = "empirical"
     maps: bool = True
     ego_masks: str = "estimate"  #: "estimate", "none", or a folder of <camera_id>.png
+    ego_box_m: tuple[float, float, float] = (4.9, 1.9, 1.5)  #: the nominal ego vehicle (length, width, height)
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
 
@@ -302,7 +304,7 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
     cameras = {cam: consumer.camera_spec(_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids}
     camera_inputs = {cam: (inputs.image_timestamps_ns[cam], inputs.intrinsics[cam], inputs.T_sensor_ego[cam])
                      for cam in camera_ids}  # fmt: skip
-    ego_masks = plan_ego_masks(log_dir, options.ego_masks, camera_inputs, warnings)
+    ego_masks = plan_ego_masks(log_dir, options.ego_masks, camera_inputs, warnings, EgoBox(*options.ego_box_m))
     return LogPlan(
         inputs=inputs,
         options=options,
