@@ -34,6 +34,7 @@ from ncore_convert.run.executors import ExecutorKind
 from ncore_convert.run.pool import JobPool, default_workers
 from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
+from ncore_convert.transforms.ego_mask import EgoBox
 from ncore_convert.transforms.noise import ASYNC_MODES, DOFS, MODELS, PROCESSES
 
 #: The package each dataset command's converter lives in: its workers import it while the main
@@ -270,7 +271,7 @@ def av2_family_options(log_scope: str):
                          metavar="estimate|none|DIR",
                          help="Camera masks named 'ego' (the ego vehicle's pixels): estimated from a sample of each"
                          " camera's own images; none; or DIR/<camera_id>.png (binary, the camera's size)."),
-            click.option("--ego-box-m", type=float, nargs=3, default=(4.9, 1.9, 1.5), show_default=True,
+            click.option("--ego-box-m", type=float, nargs=3, default=EgoBox().dims_m, show_default=True,
                          metavar="LENGTH WIDTH HEIGHT",
                          help="The nominal ego vehicle for the ego-mask prior (metres, around the rear-axle origin):"
                          " where the body can be in each camera, and which cameras must see it."),

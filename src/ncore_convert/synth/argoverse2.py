@@ -399,7 +399,7 @@ def _write_images(
     truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, rng: np.random.Generator, config: SynthConfig
 ) -> None:
     """Every camera's images: a few pictures per camera (``synth.ego.pictures``: the world changing,
-    the ego body where the camera sees it) cycled at random, each made unique by a JPEG comment; in
+    the ego body where the camera sees it) cycled in order, each made unique by a JPEG comment; in
     the parked part of the log (``config.parked_fraction``) always the first picture."""
     parked_all = config.parked_fraction >= 1.0
     shared: dict[tuple[int, int], list[bytes]] = {}  # cameras without the body share pictures per size

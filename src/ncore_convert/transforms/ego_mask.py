@@ -12,7 +12,7 @@ decoded at reduced resolution:
    on rays that hit the box (``reach``); a camera whose rays hit the box's lower body (up to
    ``LOWER_BODY_FRACTION`` of its height: hood and trunk level) along at least
    ``MUST_SEE_BORDER`` of its bottom border must see the body.
-2. **Motion**: the world must have moved (median temporal standard deviation outside the reach of
+2. **Motion**: repeated views (a stopped car) are dropped; the world must have moved (median temporal standard deviation outside the reach of
    at least ``MIN_WORLD_STD`` grey levels, once each frame's exposure is divided out); else (parked,
    a static scene) no mask and a warning.
 3. **Persistent edges**: the gradient of the log image (a brightness change multiplies an image,
@@ -25,13 +25,16 @@ decoded at reduced resolution:
    mirrored and attenuated, so the body changes less than the world above it; a robust quantile
    over frames keeps glare in a few frames from counting.
 5. **Silhouette** (dynamic programming over the image columns): per column, the row where the body
-   begins (or none), minimising the change energy claimed as body above a level set between the
-   body's and the world's, minus the persistent-edge strength on the silhouette, plus a penalty on
-   jumps between neighbouring columns; inside the reach only. The body is everything below.
-6. **Decision**: the mask is kept when the silhouette is a persistent edge with the world changing
-   more above it than the body below it, and it covers at least ``MIN_FRACTION`` of the image and at
-   most ``MAX_FRACTION``. Otherwise no mask, with the reason; for a camera that must see the body,
-   a warning.
+   begins (or none), minimising the log change energy claimed as body relative to the world's just
+   above the reach (clipped to ``COST_CLIP``), minus ``EDGE_WEIGHT`` x the persistent-edge strength
+   on the silhouette, plus ``JUMP_COST`` per row of jump between neighbouring columns; inside the
+   reach only. Dips narrower than ``DIP_FRACTION`` of the width are filled. The body is everything
+   below.
+6. **Decision**: the mask is kept when it covers at least ``MIN_FRACTION`` and at most
+   ``MAX_FRACTION`` of the image and its silhouette's mean persistent-edge strength reaches
+   ``MIN_EDGE``. Otherwise no mask, with the reason; for a camera that must see the body, a warning
+   (the caller's). The change ratio across the silhouette is recorded, not required: reflections
+   near a grazing silhouette can change as much as the world.
 7. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
 """
 
@@ -70,6 +73,11 @@ class EgoBox:
     height_m: float = 1.5
     rear_overhang_m: float = 1.05
     origin_height_m: float = 0.32
+
+    @property
+    def dims_m(self) -> tuple[float, float, float]:
+        """(length, width, height) in metres: what ``--ego-box-m`` sets."""
+        return (self.length_m, self.width_m, self.height_m)
 
     def bounds(self, height_fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners in the ego frame [3] of the box, or of its lower part."""
@@ -164,8 +172,8 @@ def persistent_edges(log_frames: np.ndarray) -> np.ndarray:
     z = (gx + 1j * gy) ** 2  # doubled angle: a contrast whose sign flips keeps its orientation
     energy = np.abs(z)
     total = ndimage.gaussian_filter(energy.sum(axis=0), 1.0)
-    consistent = ndimage.gaussian_filter(z.sum(axis=0).real, 1.0) ** 2 + ndimage.gaussian_filter(
-        z.sum(axis=0).imag, 1.0) ** 2  # fmt: skip
+    summed = z.sum(axis=0)
+    consistent = ndimage.gaussian_filter(summed.real, 1.0) ** 2 + ndimage.gaussian_filter(summed.imag, 1.0) ** 2
     coherence = np.sqrt(consistent) / (total + 1e-12)
     floor = 1.0 / np.sqrt(len(log_frames))  # random orientations average to about this
     noise = np.median(energy.mean(axis=0))  # a pixel this weak is flat: its orientation is noise
@@ -239,9 +247,10 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     exposed = frames * (np.median(levels) / np.maximum(levels, 1.0))[:, None, None]
     # A stopped car gives the same view again: such repeats carry no evidence and would make the
     # world look fixed, so only frames whose world differs from every kept one count.
+    world_values = exposed[:, world]  # [N, world pixels]
     kept: list[int] = []
     for i in range(len(frames)):
-        if all(np.median(np.abs(exposed[i][world] - exposed[j][world])) >= MIN_WORLD_STD for j in kept):
+        if all(np.median(np.abs(world_values[i] - world_values[j])) >= MIN_WORLD_STD for j in kept):
             kept.append(i)
     std = exposed.std(axis=0)
     world_std = float(np.median(std[world]))
@@ -285,8 +294,7 @@ def _world_reference(change: np.ndarray, reach: np.ndarray, band_px: int = REFER
     columns without such a band take the median over all of them."""
     h, w = change.shape
     top = np.where(reach.any(axis=0), reach.argmax(axis=0), h)
-    rows = np.clip(top[None, :] - np.arange(1, band_px + 1)[:, None], 0, h - 1)
-    band = np.median(change[rows, np.arange(w)[None, :]], axis=0)
+    band = np.median(_rows_from(change, top, np.arange(w), -np.arange(1, band_px + 1)), axis=0)
     fine = top >= band_px
     fallback = float(np.median(band[fine])) if fine.any() else float(np.median(change))
     return np.where(fine, band, fallback)[None, :]
@@ -298,10 +306,16 @@ def _change_ratio(change: np.ndarray, top: np.ndarray, band_px: int = REFERENCE_
     on = np.flatnonzero((top < h) & (top >= band_px))
     if not len(on):
         return 0.0
-    offsets = np.arange(1, band_px + 1)
-    above = change[top[on][None, :] - offsets[:, None], on[None, :]]
-    below = change[np.minimum(top[on][None, :] + offsets[:, None] - 1, h - 1), on[None, :]]
+    above = _rows_from(change, top[on], on, -np.arange(1, band_px + 1))
+    below = _rows_from(change, top[on], on, np.arange(band_px))
     return float(np.median(above) / max(float(np.median(below)), 1e-6))
+
+
+def _rows_from(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """``values`` [h,w] at rows ``rows + offset`` (clipped to the image) of columns ``cols`` [K],
+    [len(offsets), K]."""
+    picked = np.clip(rows[None, :] + offsets[:, None], 0, values.shape[0] - 1)
+    return values[picked, cols[None, :]]
 
 
 def upsample(mask: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -19,7 +19,6 @@ from ncore_convert.contract import LidarModelSource, Profile, StoreType
 from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerTiming, calibrate_lidars
 from ncore_convert.converters.argoverse2.masks import EgoMask, plan_ego_masks
-from ncore_convert.transforms.ego_mask import EgoBox
 from ncore_convert.converters.common import ConsumerOptions, select_sensors
 from ncore_convert.errors import SourceError, UsageError
 from ncore_convert.sources import argoverse2 as av2
@@ -27,6 +26,7 @@ from ncore_convert.sources.files import require_folder
 from ncore_convert.transforms import labels, lidar_timing
 from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.dynamic import DynamicBoxes, TrackObservations
+from ncore_convert.transforms.ego_mask import EgoBox
 from ncore_convert.transforms.geometry import Trajectory, invert_se3
 from ncore_convert.transforms.timebase import NS_PER_US, WindowError, ceil_us, floor_us, in_window
 
@@ -53,7 +53,7 @@ class Argoverse2Options(ConsumerOptions):
     lidar_model_source: LidarModelSource = "empirical"
     maps: bool = True
     ego_masks: str = "estimate"  #: "estimate", "none", or a folder of <camera_id>.png
-    ego_box_m: tuple[float, float, float] = (4.9, 1.9, 1.5)  #: the nominal ego vehicle (length, width, height)
+    ego_box_m: tuple[float, float, float] = EgoBox().dims_m  #: the nominal ego vehicle (length, width, height)
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
 
