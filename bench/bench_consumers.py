@@ -117,8 +117,9 @@ def bench_ego_masks(work: Path, repeat: int) -> None:
     from ncore_convert.converters.argoverse2.masks import plan_ego_masks
     from ncore_convert.sources import argoverse2 as av2
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+    from ncore_convert.transforms.ego_mask import EgoBox
 
-    root = work / "consumers-av2-15s"
+    root = work / "consumers-av2-15s-realistic-body"
     log_id = cached(
         root, "15 s AV2 log", lambda r: write_log(UPath(r / "val"), SynthConfig(seconds=15.0, seed=22)).log_id
     )
@@ -130,7 +131,7 @@ def bench_ego_masks(work: Path, repeat: int) -> None:
     alone = []
     for _ in range(repeat):
         started = time.perf_counter()
-        plan_ego_masks(log_dir, "estimate", cameras, [])
+        plan_ego_masks(log_dir, "estimate", cameras, [], EgoBox())
         alone.append(time.perf_counter() - started)
     command = [
         str(Path(sys.executable).parent / "ncore-convert"),
