@@ -24,18 +24,24 @@ decoded at reduced resolution:
    smooth brightness change (lighting, shade, colour casts). Reflections on paint are the scene
    mirrored and attenuated, so the body changes less than the world above it; a robust quantile
    over frames keeps glare in a few frames from counting.
-5. **Silhouette** (dynamic programming over the image columns): per column, the row where the body
+5. **Fixed structure** (:func:`_fixed_structure`): the persistent-edge strength averaged along the
+   rows, above the world's own level. A body keeps structure at fixed pixels (markings, panel gaps,
+   shading, and the streaks of a grazing reflection, which run across the silhouette); the world
+   moving past keeps none. Next to a grazing silhouette the paint mirrors the scene just behind it,
+   compressed, and changes as much as the world: there this cue holds where the change energy fails.
+6. **Silhouette** (dynamic programming over the image columns): per column, the row where the body
    begins (or none), minimising the log change energy claimed as body relative to the world's just
-   above the reach (clipped to ``COST_CLIP``), minus ``EDGE_WEIGHT`` x the persistent-edge strength
-   on the silhouette, plus ``JUMP_COST`` per row of jump between neighbouring columns; inside the
-   reach only. Dips narrower than ``DIP_FRACTION`` of the width are filled. The body is everything
-   below.
-6. **Decision**: the mask is kept when it covers at least ``MIN_FRACTION`` and at most
-   ``MAX_FRACTION`` of the image and its silhouette's mean persistent-edge strength reaches
-   ``MIN_EDGE``. Otherwise no mask, with the reason; for a camera that must see the body, a warning
-   (the caller's). The change ratio across the silhouette is recorded, not required: reflections
-   near a grazing silhouette can change as much as the world.
-7. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
+   above the reach (clipped to ``COST_CLIP``) minus ``STRUCTURE_WEIGHT`` x the fixed structure,
+   minus ``EDGE_WEIGHT`` x the persistent-edge strength on the silhouette, plus ``JUMP_COST`` per
+   row of jump between neighbouring columns; inside the reach only. Dips narrower than
+   ``DIP_FRACTION`` of the width are filled. The body is everything below.
+7. **Decision**: the mask is kept when it covers at least ``MIN_FRACTION`` and at most
+   ``MAX_FRACTION`` of the image, differs from the world (it changes ``CHANGE_RATIO_UNIT`` times
+   less than the world above the silhouette, or keeps ``STRUCTURE_UNIT`` fixed structure, or a mix:
+   the two fractions add to at least 1; else "not seen": what a camera without a body gives) and its silhouette's mean persistent-edge strength
+   reaches ``MIN_EDGE``. Otherwise no mask, with the reason; for a camera that must see the body, a
+   warning (the caller's).
+8. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
 """
 
 from __future__ import annotations
@@ -59,7 +65,13 @@ JUMP_COST = 2.0  #: per row of silhouette change between neighbouring columns
 COST_CLIP = 0.5  #: a single pixel's change energy counts at most this much either way
 REFERENCE_BAND_PX = 12  #: rows (reduced) of world above the reach, and of either side of the silhouette
 DIP_FRACTION = 0.1  #: of the image width: narrower dips in the silhouette are filled
-MIN_EDGE = 0.35  #: mean persistent-edge strength a silhouette needs
+MIN_EDGE = 0.25  #: mean persistent-edge strength a silhouette needs
+CHANGE_RATIO_UNIT = 1.05  #: a body that changes this much less than the world above it ...
+STRUCTURE_UNIT = 0.1  #: ... or keeps this much fixed structure (or a mix: the two add) is not the world
+STRUCTURE_WEIGHT = 2.0  #: per pixel, what claiming fixed structure (persistent edges) as body earns
+STRUCTURE_SIGMA_PX = (0.7, 4.0)  #: (rows, columns): the structure is averaged along the silhouette
+STRUCTURE_MARGIN = 1.5  #: times the world's own persistent-edge level counts as no structure
+REPEAT_PIXELS = 20000  #: world pixels (evenly strided) compared to tell a repeated view
 
 
 @dataclass(frozen=True)
@@ -118,6 +130,7 @@ class EgoMaskEstimate:
         world_std: the median temporal standard deviation outside the reach (grey levels).
         edge: mean persistent-edge strength along the silhouette (0..1).
         change_ratio: the world's change energy above the silhouette over the body's below it.
+        structure: the median fixed structure (:func:`_fixed_structure`) below the silhouette.
     """
 
     mask: np.ndarray | None
@@ -126,6 +139,7 @@ class EgoMaskEstimate:
     world_std: float = 0.0
     edge: float = 0.0
     change_ratio: float = 0.0
+    structure: float = 0.0
 
 
 def _rays_hit_box(origin: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -247,7 +261,7 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     exposed = frames * (np.median(levels) / np.maximum(levels, 1.0))[:, None, None]
     # A stopped car gives the same view again: such repeats carry no evidence and would make the
     # world look fixed, so only frames whose world differs from every kept one count.
-    world_values = exposed[:, world]  # [N, world pixels]
+    world_values = exposed[:, world][:, :: max(1, int(world.sum()) // REPEAT_PIXELS)]  # [N, <= 2 x REPEAT_PIXELS]
     kept: list[int] = []
     for i in range(len(frames)):
         if all(np.median(np.abs(world_values[i] - world_values[j])) >= MIN_WORLD_STD for j in kept):
@@ -264,8 +278,9 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     crop, reach = frames[:, r0:], prior.reach[r0:]
     edge = persistent_edges(_log_frames(crop))
     change = change_energy(crop)
-    reference = _world_reference(change, reach)
-    cost = np.clip(np.log(np.maximum(change, 1e-3) / reference), -COST_CLIP, COST_CLIP)  # < 0: changes less than the world
+    cost = np.clip(np.log(np.maximum(change, 1e-3) / _world_reference(change, reach)), -COST_CLIP, COST_CLIP)
+    structure = _fixed_structure(edge, reach)
+    cost -= STRUCTURE_WEIGHT * structure  # < 0: changes less, keeps more structure, than the world
     top = silhouette(cost, EDGE_WEIGHT * edge, reach, jump_cost=JUMP_COST)
     # A silhouette is smooth: a dip narrower than DIP_FRACTION of the image (where the paint
     # matched the world behind it, so neither cue saw the outline) is filled from its sides.
@@ -274,19 +289,41 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     on = top < h_crop
     edge_on = float(np.mean(edge[top[on], np.flatnonzero(on)])) if on.any() else 0.0
     ratio = _change_ratio(change, top)
+    below = np.arange(h_crop)[:, None] >= top[None, :]
+    fixed = float(np.median(structure[below])) if below.any() else 0.0
     top = top + r0
     h, w = frames.shape[1:]
     mask = np.arange(h)[:, None] >= top[None, :]
     mask = ndimage.binary_opening(mask, structure=np.ones((3, 3))) & prior.reach
     covered = float(mask.mean())
-    figures = {"covered_fraction": covered, "world_std": world_std, "edge": edge_on, "change_ratio": ratio}
-    if covered < MIN_FRACTION:
+    figures = {"covered_fraction": covered, "world_std": world_std, "edge": edge_on, "change_ratio": ratio,
+               "structure": fixed}  # fmt: skip
+    # A body may change more than the world (reflections): only a lower change is evidence.
+    if covered < MIN_FRACTION or max(ratio - 1.0, 0.0) / (CHANGE_RATIO_UNIT - 1.0) + fixed / STRUCTURE_UNIT < 1.0:
         return EgoMaskEstimate(None, "not seen", **figures)
     if covered > MAX_FRACTION:
         return EgoMaskEstimate(None, "implausible coverage", **figures)
     if edge_on < MIN_EDGE:
         return EgoMaskEstimate(None, "no persistent silhouette", **figures)
     return EgoMaskEstimate(mask, "mask", **figures)
+
+
+def _fixed_structure(edge: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """Per pixel, how much more persistent structure surrounds it than the world just above the
+    reach holds, float32 [h,w]: ~0 on the world, up to ~1 on a body.
+
+    The persistent-edge strength (:func:`persistent_edges`) is averaged along the rows (a body's
+    structure, and the world's lack of it, run along the silhouette) but hardly across them, so
+    the step at the silhouette stays sharp; the world's own level (noise, a rare edge that stays)
+    is measured above the reach, where the body cannot be, and ``STRUCTURE_MARGIN`` times it
+    counts as none.
+
+    Args:
+        edge: persistent-edge strength 0..1, float32 [h,w]; reach: the prior's reach, bool [h,w].
+    """
+    density = ndimage.gaussian_filter(edge, STRUCTURE_SIGMA_PX)
+    world = _world_reference(density, reach)
+    return (density - STRUCTURE_MARGIN * world) / (1.0 - world)
 
 
 def _world_reference(change: np.ndarray, reach: np.ndarray, band_px: int = REFERENCE_BAND_PX) -> np.ndarray:
