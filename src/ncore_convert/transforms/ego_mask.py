@@ -38,8 +38,8 @@ decoded at reduced resolution:
 7. **Decision**: the mask is kept when it covers at least ``MIN_FRACTION`` and at most
    ``MAX_FRACTION`` of the image, differs from the world (it changes ``CHANGE_RATIO_UNIT`` times
    less than the world above the silhouette, or keeps ``STRUCTURE_UNIT`` fixed structure, or a mix:
-   the two fractions add to at least 1; else "not seen": what a camera without a body gives) and its silhouette's mean persistent-edge strength
-   reaches ``MIN_EDGE``. Otherwise no mask, with the reason; for a camera that must see the body, a
+   the two fractions add to at least 1; else "not seen": what a camera without a body gives) and
+   its silhouette's mean persistent-edge strength reaches ``MIN_EDGE``. Otherwise no mask, with the reason; for a camera that must see the body, a
    warning (the caller's).
 8. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
 """
@@ -289,11 +289,9 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     on = top < h_crop
     edge_on = float(np.mean(edge[top[on], np.flatnonzero(on)])) if on.any() else 0.0
     ratio = _change_ratio(change, top)
-    below = np.arange(h_crop)[:, None] >= top[None, :]
+    below = np.arange(h_crop)[:, None] >= top[None, :]  # the body, in the crop
     fixed = float(np.median(structure[below])) if below.any() else 0.0
-    top = top + r0
-    h, w = frames.shape[1:]
-    mask = np.arange(h)[:, None] >= top[None, :]
+    mask = np.vstack([np.zeros((r0, below.shape[1]), dtype=bool), below])
     mask = ndimage.binary_opening(mask, structure=np.ones((3, 3))) & prior.reach
     covered = float(mask.mean())
     figures = {"covered_fraction": covered, "world_std": world_std, "edge": edge_on, "change_ratio": ratio,
@@ -327,8 +325,9 @@ def _fixed_structure(edge: np.ndarray, reach: np.ndarray) -> np.ndarray:
 
 
 def _world_reference(change: np.ndarray, reach: np.ndarray, band_px: int = REFERENCE_BAND_PX) -> np.ndarray:
-    """Per column, the world's change energy just above the reach (the body cannot be there), [1,w];
-    columns without such a band take the median over all of them."""
+    """Per column, the world's level of a cue ``change`` [h,w] (change energy, fixed structure) just
+    above the reach (the body cannot be there), [1,w]; columns without such a band take the median
+    over all of them."""
     h, w = change.shape
     top = np.where(reach.any(axis=0), reach.argmax(axis=0), h)
     band = np.median(_rows_from(change, top, np.arange(w), -np.arange(1, band_px + 1)), axis=0)
