@@ -60,6 +60,7 @@ LOWER_BODY_FRACTION = 2 / 3  #: hood and trunk lid sit at about two thirds of a 
 MUST_SEE_BORDER = 0.45  #: share of the bottom border on the lower body that makes a camera see the body
 LOG_OFFSET = 16.0  #: grey levels added before the log, so that dark noise does not dominate
 LIGHT_SIGMA_PX = 4.0  #: brightness changes smoother than this (reduced pixels) are lighting, not motion
+SMOOTH_TRUNCATE = 2.0  #: Gaussian smoothing is a scale, not a shape: cut at 2 sigma (95 % of the weight)
 EDGE_WEIGHT = 20.0  #: silhouette bonus per unit of persistent-edge strength
 JUMP_COST = 2.0  #: per row of silhouette change between neighbouring columns
 COST_CLIP = 0.5  #: a single pixel's change energy counts at most this much either way
@@ -71,7 +72,12 @@ STRUCTURE_UNIT = 0.1  #: ... or keeps this much fixed structure (or a mix: the t
 STRUCTURE_WEIGHT = 2.0  #: per pixel, what claiming fixed structure (persistent edges) as body earns
 STRUCTURE_SIGMA_PX = (0.7, 4.0)  #: (rows, columns): the structure is averaged along the silhouette
 STRUCTURE_MARGIN = 1.5  #: times the world's own persistent-edge level counts as no structure
-REPEAT_PIXELS = 20000  #: world pixels (evenly strided) compared to tell a repeated view
+WORLD_SAMPLE_PIXELS = 20000  #: world pixels (evenly strided) behind the exposure and motion figures ...
+FOLD_PAIRS = 2  #: row differences compared on either side of a mirror fold
+FOLD_SIGMA_PX = 2.0  #: along the row, over which a fold's anticorrelation is pooled
+FOLD_FLOOR = 0.1  #: a fold score the world reaches by chance (its median is ~0)
+FOLD_WEIGHT = 12.0  #: silhouette bonus per unit of fold score above the floor
+REPEAT_PIXELS = 2000  #: ... and the fewer of them compared to tell a repeated view
 
 
 @dataclass(frozen=True)
@@ -129,6 +135,7 @@ class EgoMaskEstimate:
         covered_fraction: the share of the image the mask covers (0 without one).
         world_std: the median temporal standard deviation outside the reach (grey levels).
         edge: mean persistent-edge strength along the silhouette (0..1).
+        fold: mean mirror-fold score along the silhouette, over ``FOLD_FLOOR`` (:func:`mirror_folds`).
         change_ratio: the world's change energy above the silhouette over the body's below it.
         structure: the median fixed structure (:func:`_fixed_structure`) below the silhouette.
     """
@@ -138,6 +145,7 @@ class EgoMaskEstimate:
     covered_fraction: float = 0.0
     world_std: float = 0.0
     edge: float = 0.0
+    fold: float = 0.0
     change_ratio: float = 0.0
     structure: float = 0.0
 
@@ -181,8 +189,7 @@ def persistent_edges(log_frames: np.ndarray) -> np.ndarray:
     Args:
         log_frames: log grey levels, float32 [N,h,w].
     """
-    gx = ndimage.sobel(log_frames, axis=2)
-    gy = ndimage.sobel(log_frames, axis=1)
+    gx, gy = _sobel(log_frames)
     z = (gx + 1j * gy) ** 2  # doubled angle: a contrast whose sign flips keeps its orientation
     energy = np.abs(z)
     total = ndimage.gaussian_filter(energy.sum(axis=0), 1.0)
@@ -195,6 +202,45 @@ def persistent_edges(log_frames: np.ndarray) -> np.ndarray:
     return (np.clip((coherence - floor) / (1.0 - floor), 0.0, 1.0) * significant).astype(np.float32)
 
 
+def _sobel(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Sobel gradients (d/dx, d/dy) of images [N,h,w], as ``scipy.ndimage.sobel`` gives them
+    (mirrored borders), by slicing: the filter's 3x3 taps on a padded copy."""
+    p = np.pad(images, ((0, 0), (1, 1), (1, 1)), mode="symmetric")
+    across_rows = p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:]  # [N,h,w+2]
+    across_cols = p[:, :, :-2] + 2 * p[:, :, 1:-1] + p[:, :, 2:]  # [N,h+2,w]
+    return across_rows[:, :, 2:] - across_rows[:, :, :-2], across_cols[:, 2:] - across_cols[:, :-2]
+
+
+def mirror_folds(log_frames: np.ndarray) -> np.ndarray:
+    """Per pixel taken as the first body row of its column, how consistently the frames' vertical
+    log-gradients reverse across a line 1.5 rows above it (-1..1; ~0 on the world),
+    float32 [h,w].
+
+    Glossy paint at a grazing angle is a mirror: right under the silhouette it shows the world just
+    above it, flipped. Each frame's column profile then folds at the silhouette: the row
+    differences below it are those above it, reversed in sign (and compressed). The world moves
+    through, but the fold stays at the same rows, even where the mirror leaves no edge at all. The
+    score is the anticorrelation, over frames and ``FOLD_SIGMA_PX`` along the row, of the row
+    differences mirrored about the fold line (``FOLD_PAIRS`` of them).
+
+    Args:
+        log_frames: log grey levels, float32 [N,h,w].
+    """
+    diff = np.diff(log_frames, axis=1)  # [N,h-1,w]: row y+1 minus row y
+    h = log_frames.shape[1]
+    sums = np.zeros((3, h, log_frames.shape[2]), dtype=np.float32)  # product, energy above, energy below
+    for j in range(FOLD_PAIRS):
+        # For first body row t: the difference j rows above the fold line (diff[t-3-j]) against
+        # its mirror j rows below it (diff[t-1+j]); the line sits 1.5 rows above t.
+        above, below = diff[:, : h - 3 - 2 * j], diff[:, 2 + 2 * j :]
+        rows = slice(3 + j, h - j)
+        sums[0, rows] += (above * below).sum(axis=0)
+        sums[1, rows] += (above * above).sum(axis=0)
+        sums[2, rows] += (below * below).sum(axis=0)
+    sums = ndimage.gaussian_filter1d(sums, FOLD_SIGMA_PX, axis=2)
+    return (-sums[0] / np.sqrt(sums[1] * sums[2] + 1e-12)).astype(np.float32)
+
+
 def change_energy(frames: np.ndarray) -> np.ndarray:
     """Per pixel, how much fine structure changes between frames once each frame's smooth
     brightness change (lighting, shade, exposure) is divided out, grey levels, float32 [h,w].
@@ -205,13 +251,23 @@ def change_energy(frames: np.ndarray) -> np.ndarray:
     Args:
         frames: grey levels, float32 [N,h,w].
     """
-    median = np.median(frames, axis=0)
-    smooth = (0, LIGHT_SIGMA_PX, LIGHT_SIGMA_PX)
-    gain = ndimage.gaussian_filter(frames, smooth) / (ndimage.gaussian_filter(median, LIGHT_SIGMA_PX) + 1.0)
-    change = frames - gain * median
-    fine = change - ndimage.gaussian_filter(change, smooth)
-    energy = ndimage.gaussian_filter(fine**2, (0, 2.5, 2.5))
-    return np.sqrt(np.quantile(energy, 0.75, axis=0)).astype(np.float32)
+    median = _over_frames(frames, 0.5)
+    smooth = {"sigma": (0, LIGHT_SIGMA_PX, LIGHT_SIGMA_PX), "truncate": SMOOTH_TRUNCATE}
+    lit = ndimage.gaussian_filter(median, LIGHT_SIGMA_PX, truncate=SMOOTH_TRUNCATE) + 1.0
+    change = frames - ndimage.gaussian_filter(frames, **smooth) / lit * median
+    fine = change - ndimage.gaussian_filter(change, **smooth)
+    energy = ndimage.gaussian_filter(fine**2, (0, 2.5, 2.5), truncate=SMOOTH_TRUNCATE)
+    return np.sqrt(_over_frames(energy, 0.75)).astype(np.float32)
+
+
+def _over_frames(values: np.ndarray, q: float) -> np.ndarray:
+    """The ``q`` quantile over the frames of ``values`` [N,h,w], [h,w], as ``np.quantile`` gives
+    it (linear interpolation), from one sort (a few times faster for a handful of frames)."""
+    ordered = np.sort(values, axis=0)
+    position = q * (len(values) - 1)
+    lo = int(position)
+    hi = min(lo + 1, len(values) - 1)
+    return ordered[lo] + (position - lo) * (ordered[hi] - ordered[lo])
 
 
 def silhouette(cost_body: np.ndarray, bonus: np.ndarray, reach: np.ndarray, jump_cost: float) -> np.ndarray:
@@ -257,17 +313,19 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     if not prior.reach.any():
         return EgoMaskEstimate(None, "not seen")
     world = ~prior.reach if (~prior.reach).any() else np.ones_like(prior.reach)
-    levels = np.median(frames[:, world], axis=1)  # each frame's exposure: not motion
-    exposed = frames * (np.median(levels) / np.maximum(levels, 1.0))[:, None, None]
+    # The world's statistics come from an even stride of its pixels (a median needs no more).
+    picked = np.flatnonzero(world.ravel())[:: max(1, int(world.sum()) // WORLD_SAMPLE_PIXELS)]
+    samples = frames.reshape(len(frames), -1)[:, picked]  # [N, <= 2 x WORLD_SAMPLE_PIXELS]
+    levels = np.median(samples, axis=1)  # each frame's exposure: not motion
+    samples = samples * (np.median(levels) / np.maximum(levels, 1.0))[:, None]
     # A stopped car gives the same view again: such repeats carry no evidence and would make the
     # world look fixed, so only frames whose world differs from every kept one count.
-    world_values = exposed[:, world][:, :: max(1, int(world.sum()) // REPEAT_PIXELS)]  # [N, <= 2 x REPEAT_PIXELS]
-    kept: list[int] = []
-    for i in range(len(frames)):
-        if all(np.median(np.abs(world_values[i] - world_values[j])) >= MIN_WORLD_STD for j in kept):
+    compared = samples[:, :: max(1, samples.shape[1] // REPEAT_PIXELS)]
+    kept = [0]
+    for i in range(1, len(frames)):
+        if np.median(np.abs(compared[i] - compared[kept]), axis=1).min() >= MIN_WORLD_STD:
             kept.append(i)
-    std = exposed.std(axis=0)
-    world_std = float(np.median(std[world]))
+    world_std = float(np.median(samples.std(axis=0)))
     if world_std >= MIN_WORLD_STD and len(kept) < MIN_SAMPLES:
         return EgoMaskEstimate(None, "too few distinct images", world_std=world_std)
     frames = frames[kept]
@@ -276,32 +334,35 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     # Only the reach and a band above it (the world's reference) matter from here on.
     r0 = max(0, int(np.flatnonzero(prior.reach.any(axis=1))[0]) - 2 * REFERENCE_BAND_PX)
     crop, reach = frames[:, r0:], prior.reach[r0:]
-    edge = persistent_edges(_log_frames(crop))
+    log_crop = _log_frames(crop)
+    edge = persistent_edges(log_crop)
     change = change_energy(crop)
     cost = np.clip(np.log(np.maximum(change, 1e-3) / _world_reference(change, reach)), -COST_CLIP, COST_CLIP)
     structure = _fixed_structure(edge, reach)
     cost -= STRUCTURE_WEIGHT * structure  # < 0: changes less, keeps more structure, than the world
-    top = silhouette(cost, EDGE_WEIGHT * edge, reach, jump_cost=JUMP_COST)
+    fold = np.clip(mirror_folds(log_crop) - FOLD_FLOOR, 0.0, None)
+    bonus = EDGE_WEIGHT * edge + FOLD_WEIGHT * fold
+    top = silhouette(cost, bonus, reach, jump_cost=JUMP_COST)
     # A silhouette is smooth: a dip narrower than DIP_FRACTION of the image (where the paint
     # matched the world behind it, so neither cue saw the outline) is filled from its sides.
     top = ndimage.grey_opening(top, size=max(3, int(DIP_FRACTION * len(top))), mode="nearest")
     h_crop = crop.shape[1]
     on = top < h_crop
-    edge_on = float(np.mean(edge[top[on], np.flatnonzero(on)])) if on.any() else 0.0
+    edge_on, fold_on = (float(np.mean(cue[top[on], np.flatnonzero(on)])) if on.any() else 0.0 for cue in (edge, fold))
     ratio = _change_ratio(change, top)
     below = np.arange(h_crop)[:, None] >= top[None, :]  # the body, in the crop
     fixed = float(np.median(structure[below])) if below.any() else 0.0
     mask = np.vstack([np.zeros((r0, below.shape[1]), dtype=bool), below])
     mask = ndimage.binary_opening(mask, structure=np.ones((3, 3))) & prior.reach
     covered = float(mask.mean())
-    figures = {"covered_fraction": covered, "world_std": world_std, "edge": edge_on, "change_ratio": ratio,
-               "structure": fixed}  # fmt: skip
+    figures = {"covered_fraction": covered, "world_std": world_std, "edge": edge_on, "fold": fold_on,
+               "change_ratio": ratio, "structure": fixed}  # fmt: skip
     # A body may change more than the world (reflections): only a lower change is evidence.
     if covered < MIN_FRACTION or max(ratio - 1.0, 0.0) / (CHANGE_RATIO_UNIT - 1.0) + fixed / STRUCTURE_UNIT < 1.0:
         return EgoMaskEstimate(None, "not seen", **figures)
     if covered > MAX_FRACTION:
         return EgoMaskEstimate(None, "implausible coverage", **figures)
-    if edge_on < MIN_EDGE:
+    if edge_on + FOLD_WEIGHT / EDGE_WEIGHT * fold_on < MIN_EDGE:  # the silhouette's evidence, in edge units
         return EgoMaskEstimate(None, "no persistent silhouette", **figures)
     return EgoMaskEstimate(mask, "mask", **figures)
 
