@@ -152,11 +152,14 @@ class EgoMaskEstimate:
 
 def _rays_hit_box(origin: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Whether rays from ``origin`` [3] along ``directions`` [...,3] (ego frame) hit the box [lo, hi]."""
+    near = np.zeros(directions.shape[:-1])  # the slab test, one axis at a time
+    far = np.full(directions.shape[:-1], np.inf)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (lo - origin) / directions, (hi - origin) / directions
-    near = np.nanmax(np.minimum(t1, t2), axis=-1)
-    far = np.nanmin(np.maximum(t1, t2), axis=-1)
-    return far >= np.maximum(near, 0.0)
+        for k in range(3):
+            t1, t2 = (lo[k] - origin[k]) / directions[..., k], (hi[k] - origin[k]) / directions[..., k]
+            np.fmax(near, np.minimum(t1, t2), out=near)  # fmax/fmin skip the NaN of a ray in a slab's plane
+            np.fmin(far, np.maximum(t1, t2), out=far)
+    return far >= near
 
 
 def body_prior(
