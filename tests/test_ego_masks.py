@@ -2,9 +2,8 @@
 consumers read them: ``get_camera_sensor(id).get_mask_images()["ego"]`` through ``SequenceLoaderV4``.
 
 Two generator bodies: ``easy`` (still paint) and ``realistic`` (reflections, lighting, markings,
-glare, camouflaged silhouette). Issue 25's target on the realistic body (IoU >= 0.95 on every
-camera) is **not** reached yet (worst camera ~0.92); ``test_realistic_bodies`` holds the level
-measured today so that it cannot regress."""
+glare, camouflaged silhouette). Issue 25's target holds on both: IoU >= 0.95 on every
+body-seeing camera of AV2 and TbV over 3 seeds, and no mask on any other camera."""
 
 from __future__ import annotations
 
@@ -70,7 +69,8 @@ def test_estimated_masks_match_the_true_body(dataset, av2, tbv):
         assert _iou(mask > 0, truth) >= 0.95, (camera_id, _iou(mask > 0, truth))
         meta = _camera_meta(run.loader, camera_id)["ego_mask"]
         assert meta["method"] == "estimate" and meta["decision"] == "mask" and meta["samples"] == 16
-        assert meta["must_see"] is True and meta["silhouette_edge"] >= ego_mask.MIN_EDGE
+        evidence = meta["silhouette_edge"] + ego_mask.FOLD_WEIGHT / ego_mask.EDGE_WEIGHT * meta["silhouette_fold"]
+        assert meta["must_see"] is True and evidence >= ego_mask.MIN_EDGE - 0.002  # figures rounded to 3 places
         assert meta["covered_fraction"] == pytest.approx(truth.mean(), abs=0.01)
     for camera_id in set(run.loader.camera_ids) - set(masks):
         meta = _camera_meta(run.loader, camera_id)["ego_mask"]
@@ -230,9 +230,9 @@ def test_a_body_seeing_camera_without_a_mask_is_a_warning(tmp_path):
 
 @pytest.mark.parametrize("tbv", [False, True])
 def test_realistic_bodies(tmp_path, tbv):
-    """The realistic body (the default), 3 seeds: every body-seeing camera gets a mask, no other
-    camera does. Measured today (see docs/ego-masks.md): IoU 0.92..0.99, median ~0.96; the issue's
-    target is 0.95 on every camera. This holds the level measured today, not the target."""
+    """The realistic body (the default), 3 seeds: every body-seeing camera gets a mask with IoU >= 0.95
+    against the generator's true body (false-positive pixels above the silhouette count against it),
+    no other camera gets one, and no camera warns."""
     ious = []
     for seed in (41, 42, 43):
         truth = write_log(UPath(tmp_path / f"src{seed}" / "val"), SynthConfig(seconds=1.5, seed=seed, camera_fps=10,
@@ -244,4 +244,4 @@ def test_realistic_bodies(tmp_path, tbv):
         masks = _masks(open_sequence(tmp_path / f"out{seed}", truth.log_id))
         assert set(masks) == set(truth.ego_masks)
         ious += [_iou(masks[c] > 0, truth.ego_masks[c]) for c in masks]
-    assert min(ious) >= 0.9 and np.median(ious) >= 0.95, ious
+    assert min(ious) >= 0.95, ious

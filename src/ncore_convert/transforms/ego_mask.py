@@ -29,19 +29,27 @@ decoded at reduced resolution:
    shading, and the streaks of a grazing reflection, which run across the silhouette); the world
    moving past keeps none. Next to a grazing silhouette the paint mirrors the scene just behind it,
    compressed, and changes as much as the world: there this cue holds where the change energy fails.
-6. **Silhouette** (dynamic programming over the image columns): per column, the row where the body
+6. **Mirror folds** (:func:`mirror_folds`): glossy paint at a grazing angle is a mirror, so right
+   under the silhouette it shows the world just above it, flipped: each frame's column profile
+   folds there (the row differences below are those above, reversed in sign). The world moves
+   through but the fold stays at the same rows, even where the body's colour matches the road or
+   sky behind it and no edge is left. The fold line sits 1.5 rows above the first body row; that
+   offset was chosen on our synthetic bodies among 0.5, 1 and 1.5 rows, so it is a tuned figure.
+7. **Silhouette** (dynamic programming over the image columns): per column, the row where the body
    begins (or none), minimising the log change energy claimed as body relative to the world's just
    above the reach (clipped to ``COST_CLIP``) minus ``STRUCTURE_WEIGHT`` x the fixed structure,
-   minus ``EDGE_WEIGHT`` x the persistent-edge strength on the silhouette, plus ``JUMP_COST`` per
-   row of jump between neighbouring columns; inside the reach only. Dips narrower than
-   ``DIP_FRACTION`` of the width are filled. The body is everything below.
-7. **Decision**: the mask is kept when it covers at least ``MIN_FRACTION`` and at most
+   minus a silhouette bonus (``EDGE_WEIGHT`` x the persistent-edge strength plus ``FOLD_WEIGHT`` x
+   the fold score over ``FOLD_FLOOR``), plus ``JUMP_COST`` per row of jump between neighbouring
+   columns; inside the reach only. Dips narrower than ``DIP_FRACTION`` of the width are filled.
+   The body is everything below.
+8. **Decision**: the mask is kept when it covers at least ``MIN_FRACTION`` and at most
    ``MAX_FRACTION`` of the image, differs from the world (it changes ``CHANGE_RATIO_UNIT`` times
    less than the world above the silhouette, or keeps ``STRUCTURE_UNIT`` fixed structure, or a mix:
    the two fractions add to at least 1; else "not seen": what a camera without a body gives) and
-   its silhouette's mean persistent-edge strength reaches ``MIN_EDGE``. Otherwise no mask, with the reason; for a camera that must see the body, a
-   warning (the caller's).
-8. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
+   its silhouette is persistent: the mean edge strength plus ``FOLD_WEIGHT / EDGE_WEIGHT`` x the
+   mean fold score along it reaches ``MIN_EDGE``. Otherwise no mask, with the reason; for a camera
+   that must see the body, a warning (the caller's).
+9. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
 """
 
 from __future__ import annotations

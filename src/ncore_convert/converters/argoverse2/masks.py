@@ -75,15 +75,17 @@ def _estimate(
         "lower_body_border_fraction": round(prior.lower_border, 3),
         "covered_fraction": round(result.covered_fraction, 5),
         "silhouette_edge": round(result.edge, 3),
+        "silhouette_fold": round(result.fold, 3),
         "change_ratio": round(result.change_ratio, 3),
         "structure": round(result.structure, 3),
         "world_std": round(result.world_std, 3),
         "ego_box_m": [box.length_m, box.width_m, box.height_m],
-        "rule": "below the silhouette that best follows persistent edges, with the world changing more and"
+        "rule": "below the silhouette that best follows persistent edges and mirror folds, with the world changing more and"
         " keeping less fixed structure above it, inside the nominal ego box's reach, attached to the bottom"
         f" border; no mask when the world moved less than {ego_mask.MIN_WORLD_STD} grey levels, the region"
         f" is not distinct from the world (max(change ratio - 1, 0) / {ego_mask.CHANGE_RATIO_UNIT - 1:.2f} + structure /"
-        f" {ego_mask.STRUCTURE_UNIT} < 1), the silhouette is not persistent (edge < {ego_mask.MIN_EDGE}) or the"
+        f" {ego_mask.STRUCTURE_UNIT} < 1), the silhouette is not persistent (edge + {ego_mask.FOLD_WEIGHT / ego_mask.EDGE_WEIGHT:.2f}"
+        f" x fold < {ego_mask.MIN_EDGE}) or the"
         f" mask would cover more than {ego_mask.MAX_FRACTION:.0%} of the image",
     }
     return EgoMask(meta, reduced=result.mask)
