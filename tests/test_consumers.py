@@ -32,6 +32,7 @@ from ncore.impl.data.types import (
     ShutterType,
 )
 from ncore.impl.sensors.camera import camera_model_from_parameters
+from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert import contract
@@ -41,7 +42,14 @@ from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.sources.argoverse2 import read_intrinsics
 from ncore_convert.synth import opencood as synth_opencood
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-from ncore_convert.transforms.dynamic import dynamic_tracks, robust_speed_mps
+from ncore_convert.transforms import dynamic
+from ncore_convert.transforms.dynamic import (
+    TrackObservations,
+    box_motion,
+    classify_tracks,
+    static_pose,
+    track_motion,
+)
 from ncore_convert.transforms.labels import AV2_TO_NCORE
 from ncore_convert.validate.readback import world_points
 from ncore_convert.validate.sequence import validate_sequence
@@ -226,9 +234,11 @@ def test_opv2v_class_names_and_label_source(opv2v):
 
 
 def test_a_category_outside_the_table_is_kept_and_reported_once():
+    observations = TrackObservations(["a", "a", "b", "c"], np.array([0, 1, 0, 0]), np.zeros((4, 3)),
+                                     np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)))  # fmt: skip
     labels = cuboid_labels(
-        ["a", "a", "b", "c"], ["REGULAR_VEHICLE", "REGULAR_VEHICLE", "HOVERCRAFT", "HOVERCRAFT"], AV2_TO_NCORE,
-        "ncore", "auto", "EXTERNAL", np.array([0, 1, 0, 0]), np.zeros((4, 3)), "log/annotations.feather",
+        observations, ["REGULAR_VEHICLE", "REGULAR_VEHICLE", "HOVERCRAFT", "HOVERCRAFT"], AV2_TO_NCORE,
+        "ncore", "auto", "EXTERNAL", "world", "log/annotations.feather",
     )  # fmt: skip
     assert labels.class_ids == ["car", "car", "HOVERCRAFT", "HOVERCRAFT"] and labels.label_source == "EXTERNAL"
     assert labels.warnings == [
@@ -239,20 +249,58 @@ def test_a_category_outside_the_table_is_kept_and_reported_once():
 # --- dynamic tracks and dynamic_flag ---------------------------------------------------------------
 
 
-def test_robust_speed_ignores_a_stray_observation_and_jitter():
+def _track(t_us: np.ndarray, xy_m: np.ndarray) -> np.ndarray:
+    return np.column_stack([xy_m, np.full(len(t_us), 0.8)])
+
+
+def test_box_motion_tells_jitter_strays_and_slow_motion_apart():
+    """Known motions over a 15 s track at 10 Hz: jitter of 1.4 m peak with a stray box, a creeper,
+    a car that waits 10 s and drives off, one that drives off and comes back, a moving sign."""
     rng = np.random.default_rng(0)
-    t_us = np.arange(0, 5_000_000, 100_000)
-    parked = np.tile([10.0, 5.0, 0.8], (len(t_us), 1)) + rng.normal(0, 0.03, (len(t_us), 3))
-    parked[17] += [2.5, -1.0, 0.0]  # one stray observation
-    assert robust_speed_mps(t_us, parked) < 1 / 3.6
-    slow = parked.copy()
-    slow[:, 0] += 0.5 * t_us * 1e-6  # 0.5 m/s = 1.8 km/h
-    assert 0.4 < robust_speed_mps(t_us, slow) < 0.7
-    ids = ["parked"] * len(t_us) + ["slow"] * len(t_us) + ["ped"] * 3 + ["sign"] * len(t_us)
-    classes = ["car"] * (2 * len(t_us)) + ["pedestrian"] * 3 + ["sign"] * len(t_us)
-    times = np.concatenate([t_us, t_us, t_us[:3], t_us])
-    centres = np.concatenate([parked, slow, parked[:3], slow])  # the "sign" moves: still never dynamic
-    assert set(dynamic_tracks(ids, classes, times, centres)) == {"slow", "ped"}
+    t_us = np.arange(0, 15_000_000, 100_000)
+    t_s = t_us * 1e-6
+    walk = np.cumsum(rng.normal(0, 1, (len(t_us), 2)), axis=0)
+    walk -= np.linspace(0, 1, len(t_us))[:, None] * walk[-1]  # a walk that returns
+    parked = _track(t_us, np.array([10.0, 5.0]) + walk * (1.4 / np.linalg.norm(walk, axis=1).max()))
+    parked[70] += [6.0, -3.0, 0.0]  # one stray observation, 6.7 m off
+    net, deviation = box_motion(t_us, parked)
+    assert net < 1.5 and deviation < 1.6 and not track_motion(t_us, parked, None).dynamic
+    creeper = _track(t_us, np.column_stack([np.clip(t_s - 3.0, 0, 8) * 0.5, np.zeros(len(t_us))]))  # 4 m
+    assert box_motion(t_us, creeper)[0] == pytest.approx(4.0, abs=0.01)
+    stop_and_go = _track(t_us, np.column_stack([np.clip(t_s - 10.0, 0, None) * 3.0, np.zeros(len(t_us))]))
+    back = _track(t_us, np.column_stack([4.0 * np.sin(np.pi * t_s / 15.0), np.zeros(len(t_us))]))
+    net_back, deviation_back = box_motion(t_us, back)
+    assert net_back < 0.5 and deviation_back > dynamic.DEVIATION_DYNAMIC_M  # caught by the deviation only
+    ids = ["parked"] * 150 + ["creeper"] * 150 + ["go"] * 150 + ["back"] * 150 + ["ped"] * 3 + ["sign"] * 150
+    classes = ["car"] * 600 + ["pedestrian"] * 3 + ["sign"] * 150
+    times = np.concatenate([t_us] * 4 + [t_us[:3], t_us])
+    centres = np.concatenate([parked, creeper, stop_and_go, back, parked[:3], creeper])  # the "sign" moves
+    observations = TrackObservations(ids, times, centres, np.tile(np.eye(3), (len(ids), 1, 1)), np.ones((len(ids), 3)))
+    decided = {t: m.dynamic for t, m in classify_tracks(observations, classes).items()}
+    assert decided == {"parked": False, "creeper": True, "go": True, "back": True, "ped": True, "sign": False}
+
+
+def test_measured_speeds_decide_when_every_observation_has_one():
+    t_us = np.arange(0, 2_000_000, 100_000)
+    still = _track(t_us, np.zeros((len(t_us), 2)))
+    assert track_motion(t_us, still, np.full(len(t_us), 0.5)).dynamic  # 1.8 km/h, though the box stands still
+    assert not track_motion(t_us, still, np.full(len(t_us), 0.2)).dynamic  # 0.72 km/h
+    assert track_motion(t_us, still, np.where(t_us > 0, 0.0, np.nan)).max_speed_mps is None  # one missing: boxes
+
+
+def test_static_pose_is_the_median_box():
+    """The median centre and size, and the medoid rotation: a flipped box does not turn it."""
+    rng = np.random.default_rng(1)
+    yaw = 0.3 + rng.normal(0, 0.02, 41)
+    yaw[5] += np.pi  # an annotator flipped the heading once
+    R = Rotation.from_euler("z", yaw[:, None]).as_matrix()
+    centres = np.array([3.0, -2.0, 0.7]) + rng.normal(0, 0.2, (41, 3))
+    centres[7] += 5.0
+    dims = np.array([4.5, 1.9, 1.5]) + rng.normal(0, 0.05, (41, 3))
+    centre, R_med, dim = static_pose(centres, R, dims)
+    np.testing.assert_allclose(centre, np.median(centres, axis=0))
+    np.testing.assert_allclose(dim, np.median(dims, axis=0))
+    assert abs(Rotation.from_matrix(R_med).as_euler("xyz")[2] - 0.3) < 0.02
 
 
 def test_dynamic_tracks_are_the_generators_moving_boxes(av2):
@@ -261,6 +309,7 @@ def test_dynamic_tracks_are_the_generators_moving_boxes(av2):
     moving = {b.track_uuid for b in truth.scene.boxes if b.category == "PEDESTRIAN" or np.any(b.velocity_mps)}
     dynamic = _cuboids_meta(av2["default"].loader)[contract.DYNAMIC_TRACKS]
     assert set(dynamic) == moving & annotated and len(dynamic) > 5
+    assert all(set(figures) == {"net_m", "peak_deviation_m"} for figures in dynamic.values())
 
 
 def _flags(loader, lidar_id: str) -> list[np.ndarray]:
@@ -293,7 +342,7 @@ def test_av2_dynamic_flag_matches_the_generators_truth(av2):
             xyz_city = np.einsum("nij,nj->ni", T_sensor_city[:, :3, :3], xyz) + T_sensor_city[:, :3, 3]
             inside = np.zeros(len(xyz), dtype=bool)
             for box in (b for b, d in zip(boxes, is_dynamic, strict=True) if d):
-                local = (xyz_city - box.center0_m - np.outer(t_s, box.velocity_mps)) @ box.rotation
+                local = (xyz_city - box.center_m(t_s)) @ box.rotation
                 inside |= np.all(np.abs(local) <= box.dims_m / 2 + 0.5, axis=1)
             hits, hit_flagged = hits + hit.sum(), hit_flagged + (hit & flag).sum()
             flagged, rule, rule_flagged = (
@@ -319,6 +368,20 @@ def test_opv2v_dynamic_flag_matches_the_generators_truth(opv2v):
             parked_hits, flagged_parked = parked_hits + on_parked.sum(), flagged_parked + flag[on_parked].sum()
     assert moving_hits > 500 and flagged_moving == moving_hits
     assert parked_hits > 100 and flagged_parked <= 0.01 * parked_hits
+
+
+def test_opv2v_dynamic_tracks_come_from_carlas_speeds(opv2v):
+    """OPV2V boxes carry CARLA's exact speeds: they decide, and their maximum is recorded; the static
+    tracks' median boxes are in world_global, where the scenario's labels are merged."""
+    speeds = opv2v.truth.actor_speed_mps
+    meta = _cuboids_meta(opv2v.loader("default", next(iter(opv2v.truth.agents))))
+    dynamic, annotated = meta[contract.DYNAMIC_TRACKS], set(meta[contract.SOURCE_CLASS_BY_TRACK])
+    assert set(dynamic) == {str(a) for a, v in speeds.items() if v > 1 / 3.6} & annotated and dynamic
+    for track, figures in dynamic.items():
+        assert figures["max_speed_mps"] == pytest.approx(speeds[int(track)], abs=1e-3)
+    assert "measured speeds" in meta["dynamic_rule"]
+    static = meta[contract.STATIC_POSES]
+    assert static["frame"] == "world_global" and set(static["tracks"]) == annotated - set(dynamic) != set()
 
 
 def test_tbv_writes_no_dynamic_flag_and_says_so(tbv):

@@ -96,7 +96,7 @@ def test_cuboids_round_trip_to_simulated_boxes_in_world(synth_log):
         box = by_uuid[obs.track_id]
         assert obs.class_id == NCORE_CLASS[box.category]
         np.testing.assert_allclose(obs.bbox3.dim, box.dims_m, atol=1e-9)
-        ref = box.T_box_city((obs.timestamp_us * 1000 - truth.t0_ns) * 1e-9)
+        ref = box.T_annotated_city((obs.timestamp_us * 1000 - truth.t0_ns) * 1e-9)  # the annotator's box
         centre_err.append(np.linalg.norm(est[:3, 3] - ref[:3, 3]))
         rot_err.append(np.degrees(Rotation.from_matrix(est[:3, :3].T @ ref[:3, :3]).magnitude()))
     assert max(centre_err) <= 0.01

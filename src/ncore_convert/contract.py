@@ -49,8 +49,11 @@ CLIP = "clip"  #: {"seek_sec", "duration_sec", "start_us", "end_us"}: the window
 # --- keys of cuboid component metadata ---
 #: track id -> the dataset's own class name, when ``class_names`` is "ncore" (recoverable without the source)
 SOURCE_CLASS_BY_TRACK = "source_class_by_track"
-#: track id -> max robust speed (m/s) for tracks judged dynamic (the rule behind ``dynamic_flag``)
+#: track id -> {"net_m", "peak_deviation_m"[, "max_speed_mps"]} of the tracks judged dynamic (the rule
+#: behind ``dynamic_flag``)
 DYNAMIC_TRACKS = "dynamic_tracks"
+#: {"frame", "convention", "tracks": track id -> {"centroid", "dim", "rot"}}: each static track's median box
+STATIC_POSES = "static_poses"
 
 # --- camera masks ---
 EGO_MASK = "ego"  #: the camera mask of the ego vehicle's pixels (non-zero = ego), as 3DGRUT and NuRec read it

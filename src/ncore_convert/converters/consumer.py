@@ -13,6 +13,7 @@ from ncore_convert.contract import CameraModel, ClassNames, CuboidLabelSource, W
 from ncore_convert.converters.common import ConsumerOptions
 from ncore_convert.transforms import dynamic, labels
 from ncore_convert.transforms.camera_models import FThetaFit, Pinhole, fit_ftheta
+from ncore_convert.transforms.geometry import euler_xyz_from_rotation
 from ncore_convert.transforms.timebase import clip_window_us
 
 
@@ -107,7 +108,7 @@ class CuboidLabels:
         class_map: source class -> written class name, for every source class seen.
         label_source: the NCore ``LabelSource`` member name.
         meta: the cuboids component's metadata.
-        dynamic: dynamic track id -> robust speed (m/s).
+        dynamic: the ids of the dynamic tracks.
         warnings: one per log for source classes outside the table.
     """
 
@@ -115,43 +116,70 @@ class CuboidLabels:
     class_map: dict[str, str]
     label_source: str
     meta: dict
-    dynamic: dict[str, float]
+    dynamic: frozenset[str]
     warnings: list[str]
 
 
+def _motion_meta(observations: dynamic.TrackObservations, ncore_classes: list[str], frame: str) -> dict:
+    """The cuboids' metadata on motion: the dynamic tracks with their figures, the rule, and the
+    static tracks' median boxes in ``frame``."""
+    motion = dynamic.classify_tracks(observations, ncore_classes) if len(observations.track_ids) else {}
+    static_ids = {t for t, m in motion.items() if not m.dynamic}
+    poses = dynamic.static_poses(observations, static_ids)
+    rotations = euler_xyz_from_rotation(np.stack([p[1] for p in poses.values()])) if poses else []
+    speeds = "measured speeds (every observation of the track has one) over 1 km/h, else " if (
+        observations.speeds_mps is not None) else ""  # fmt: skip
+    return {
+        contract.DYNAMIC_TRACKS: {t: m.as_meta() for t, m in motion.items() if m.dynamic},
+        "dynamic_rule": f"class always dynamic ({', '.join(sorted(labels.ALWAYS_DYNAMIC))}); else {speeds}the box"
+        f" centres (median over {dynamic.MEDIAN_WINDOW} observations) moved: net displacement between the medians"
+        f" of the first and last {dynamic.END_WINDOW_S:g} s > {dynamic.NET_DYNAMIC_M:g} m, or a centre more than"
+        f" {dynamic.DEVIATION_DYNAMIC_M:g} m from the track's median centre; never: {', '.join(sorted(labels.ALWAYS_STATIC))}",
+        contract.STATIC_POSES: {
+            "frame": frame,
+            "convention": "the median box of each static track's observations, as NCore's BBox3: centroid (m),"
+            " dim (length, width, height, m), rot (x-y-z Euler angles, rad) in the frame named here; the"
+            " observations themselves are unchanged",
+            "tracks": {
+                t: {"centroid": [round(float(v), 4) for v in pose[0]], "dim": [round(float(v), 4) for v in pose[2]],
+                    "rot": [round(float(v), 6) for v in rot]}
+                for (t, pose), rot in zip(poses.items(), rotations, strict=True)
+            },  # fmt: skip
+        },
+    }
+
+
 def cuboid_labels(
-    track_ids: list[str],
+    observations: dynamic.TrackObservations,
     source_classes: list[str],
     table: dict[str, str],
     class_names: ClassNames,
     label_source_option: CuboidLabelSource,
     dataset_label_source: str,
-    timestamps_us: np.ndarray,
-    centers_m: np.ndarray,
+    frame: str,
     where: str,
 ) -> CuboidLabels:
-    """Class names, label source and dynamic tracks of a log's cuboid observations.
+    """Class names, label source, dynamic tracks and static poses of a log's cuboid observations.
 
     Args:
-        track_ids, source_classes: per observation [M]; table: source class -> NCore class.
-        timestamps_us: int64 [M]; centers_m: box centres in a fixed frame, float64 [M,3] (speeds).
+        observations: the boxes in the fixed frame named ``frame`` (``world``, ``world_global``).
+        source_classes: per observation [M]; table: source class -> NCore class.
         where: the source file or folder, for the warning.
     """
     written, ncore, unmapped = labels.output_classes(source_classes, table, class_names)
     source = labels.label_source(label_source_option, dataset_label_source)
-    moving = dynamic.dynamic_tracks(track_ids, ncore, timestamps_us, centers_m) if len(track_ids) else {}
     warnings = []
     if unmapped:
         warnings.append(f"{where}: categories without an NCore class name kept as they are: {', '.join(unmapped)}")
+    motion_meta = _motion_meta(observations, ncore, frame)
     meta = {
         "class_names": class_names,
         "label_source": source,
         "label_source_note": "AUTOLABEL is a compatibility setting for instant-nurec, not a provenance claim"
         if source == "AUTOLABEL" and dataset_label_source != "AUTOLABEL"
         else f"the dataset's labels are {dataset_label_source}",
-        contract.SOURCE_CLASS_BY_TRACK: dict(zip(track_ids, source_classes, strict=True)),
-        contract.DYNAMIC_TRACKS: moving,
-        "dynamic_rule": f"class always dynamic ({', '.join(sorted(labels.ALWAYS_DYNAMIC))}) or robust speed"
-        f" > {dynamic.DYNAMIC_SPEED_MPS:.4f} m/s; never: {', '.join(sorted(labels.ALWAYS_STATIC))}",
+        contract.SOURCE_CLASS_BY_TRACK: dict(zip(observations.track_ids, source_classes, strict=True)),
+        **motion_meta,
     }
+    moving = frozenset(motion_meta[contract.DYNAMIC_TRACKS])
     return CuboidLabels(written, dict(zip(source_classes, written, strict=True)), source, meta, moving, warnings)

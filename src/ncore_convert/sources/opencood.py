@@ -172,7 +172,8 @@ class Vehicles:
 
     Attributes:
         actor_ids: int64 [M]; location: actor origin [M,3]; angle: (roll, yaw, pitch) [M,3];
-        center: box-centre offset in the actor frame [M,3]; extent: half length, width, height [M,3].
+        center: box-centre offset in the actor frame [M,3]; extent: half length, width, height [M,3];
+        speed_kmh: CARLA's speed of each vehicle [M] (km/h, no direction), NaN where the entry has none.
     """
 
     actor_ids: np.ndarray
@@ -180,6 +181,7 @@ class Vehicles:
     angle: np.ndarray
     center: np.ndarray
     extent: np.ndarray
+    speed_kmh: np.ndarray
 
     def __len__(self) -> int:
         return len(self.actor_ids)
@@ -191,7 +193,8 @@ class AgentFrame:
 
     Attributes:
         lidar_pose: [6]; true_ego_pos: [6]; camera_cords: {camera index: [6]};
-        camera_intrinsic: {camera index: K [3,3]}; vehicles: the labelled vehicles.
+        camera_intrinsic: {camera index: K [3,3]}; vehicles: the labelled vehicles;
+        ego_speed_kmh: the agent's own speed (km/h; NaN when the file has none).
     """
 
     path: UPath
@@ -200,6 +203,7 @@ class AgentFrame:
     camera_cords: dict[int, np.ndarray]
     camera_intrinsic: dict[int, np.ndarray]
     vehicles: Vehicles
+    ego_speed_kmh: float = float("nan")
 
 
 def _vector(path: UPath, data: dict, key: str, size: int, where: str = "") -> np.ndarray:
@@ -221,7 +225,7 @@ def _vehicles(path: UPath, table: object) -> Vehicles:
     if not isinstance(table, dict):
         raise SourceError(path, "'vehicles' is not a mapping")
     columns: dict[str, list] = {"location": [], "angle": [], "center": [], "extent": []}
-    ids = []
+    ids, speeds = [], []
     for actor, entry in table.items():
         try:
             ids.append(int(actor))
@@ -231,10 +235,12 @@ def _vehicles(path: UPath, table: object) -> Vehicles:
             raise SourceError(path, f"vehicle {actor}: not a mapping")
         for name, column in columns.items():
             column.append(_vector(path, entry, name, 3, where=f"vehicle {actor}: "))
+        speeds.append(_vector(path, entry, "speed", 1, where=f"vehicle {actor}: ")[0] if "speed" in entry else np.nan)
     shape = (len(ids), 3)
     return Vehicles(
-        np.array(ids, dtype=np.int64), *(np.array(c, dtype=np.float64).reshape(shape) for c in columns.values())
-    )
+        np.array(ids, dtype=np.int64), *(np.array(c, dtype=np.float64).reshape(shape) for c in columns.values()),
+        np.array(speeds, dtype=np.float64),
+    )  # fmt: skip
 
 
 def read_agent_frame(agent_dir: UPath, key: str) -> AgentFrame:
@@ -257,6 +263,7 @@ def read_agent_frame(agent_dir: UPath, key: str) -> AgentFrame:
         camera_cords=cords,
         camera_intrinsic=intrinsic,
         vehicles=_vehicles(path, data.get("vehicles")),
+        ego_speed_kmh=_vector(path, data, "ego_speed", 1)[0] if "ego_speed" in data else float("nan"),
     )
 
 

@@ -13,6 +13,7 @@ A TbV log (``SynthConfig.tbv``) has TbV's differences: a TbV-style log id, no of
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,13 +26,14 @@ from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.ego import EGO_CAMERAS, true_mask
 from ncore_convert.synth.ego import pictures as ego_pictures
 from ncore_convert.synth.maps import write_map
-from ncore_convert.synth.scene import Scene, cast_rays, make_scene
+from ncore_convert.synth.scene import Box, Scene, cast_rays, make_scene
 from ncore_convert.transforms import vlp32c
 from ncore_convert.transforms.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
 
 MAX_RANGE_M = 200.0
 TBV_LIDAR_SCHEMA = pa.schema([f for f in av2.LIDAR_SCHEMA if f.name != "offset_ns"])
 SWEEP_PERIOD_NS = 100_000_000
+TRAFFIC_STREAM = 1  #: the scene's traffic and annotation jitter draw from their own stream of the seed
 #: Start of each unit's sweep window after the sweep timestamp (real data: up ~2.7 ms, down ~6 ms).
 UNIT_WINDOW_START_NS = {"up_lidar": 2_650_000, "down_lidar": 6_000_000}
 #: Own-frame spin direction (+1 counter-clockwise about +z) and column azimuth at sweep offset 0.
@@ -266,7 +268,7 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     log_dir = UPath(out_dir) / log_id
     n_sweeps = max(1, int(round(config.seconds * 10)))
     t0_ns = 315_970_000_000_000_000 + int(rng.integers(0, 10**12)) // 1000 * 1000
-    scene = make_scene(rng, config.seconds)
+    scene = make_scene(rng, config.seconds, np.random.default_rng([config.seed, TRAFFIC_STREAM]))
     T_sensor_ego, cams = calibration(config.tbv)
     truth = SynthTruth(log_dir, log_id, t0_ns, scene, T_sensor_ego)
 
@@ -368,17 +370,25 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
     write_feather_table(truth.log_dir / "annotations.feather", av2.ANNOTATIONS_SCHEMA, annotation_rows)
 
 
+ANNOTATION_RADIUS_M = 100.0  #: objects within this horizontal distance of the ego are annotated
+
+
+def annotated_boxes(scene: Scene, t_s: float, T_city_ego: np.ndarray) -> Iterator[tuple[Box, np.ndarray]]:
+    """The annotations at ``t_s`` (seconds from the log start): every annotated scene object within
+    ``ANNOTATION_RADIUS_M`` of the ego, with its box as annotated (jitter included) in the ego frame,
+    ``T_box_ego`` [4,4]. ``T_city_ego`` [4,4] maps city points into the ego frame at ``t_s``."""
+    for box in scene.boxes:
+        if box.annotated:
+            T_box_ego = T_city_ego @ box.T_annotated_city(t_s)
+            if np.linalg.norm(T_box_ego[:2, 3]) <= ANNOTATION_RADIUS_M:
+                yield box, T_box_ego
+
+
 def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, T_city_ego: np.ndarray, rows: dict) -> None:
-    """Annotation rows for every scene object within 100 m, with num_interior_pts from the stored cloud."""
-    t_s = (ts - truth.t0_ns) * 1e-9
+    """Annotation rows (:func:`annotated_boxes`), with num_interior_pts from the stored cloud."""
     by_x = np.argsort(xyz_ego[:, 0])
     x_sorted = xyz_ego[by_x, 0]
-    for box in truth.scene.boxes:
-        if not box.annotated:
-            continue
-        T_box_ego = T_city_ego @ box.T_box_city(t_s)
-        if np.linalg.norm(T_box_ego[:2, 3]) > 100.0:
-            continue
+    for box, T_box_ego in annotated_boxes(truth.scene, (ts - truth.t0_ns) * 1e-9, T_city_ego):
         reach_m = np.linalg.norm(box.dims_m) / 2  # only points within this x distance can be inside
         near = by_x[np.searchsorted(x_sorted, T_box_ego[0, 3] - reach_m) : np.searchsorted(
             x_sorted, T_box_ego[0, 3] + reach_m, "right")]  # fmt: skip

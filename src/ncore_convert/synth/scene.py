@@ -14,6 +14,15 @@ from scipy.spatial.transform import Rotation
 GROUND_Z_M = 45.0  #: city height of the ground plane
 EGO_ORIGIN_HEIGHT_M = 0.33  #: ego origin above ground (AV2 rear-axle origin)
 CITY_ORIGIN_M = np.array([5072.4, 2283.9])  #: offset of the scene from the city origin (large, as in AV2)
+NEXT_LANE_M = 3.4  #: lateral offset of the lanes next to the ego's
+FAR_LANE_M = 9.5  #: lateral offset of the slow traffic's lane, clear of the parked cars and pedestrians
+PARKED_JITTER_M = (0.1, 1.5)  #: peak of a parked car's annotation walk (the real AV2 sample: 0.1-1.4 m)
+PARKED_JITTER_DEG = (1.0, 4.0)  #: peak of its heading walk
+SLOW_JITTER_M = (0.05, 0.3)  #: the same for the slow traffic, which annotators follow more closely
+SLOW_JITTER_DEG = (0.5, 1.5)
+CREEPER_MIN_S = 9.0  #: logs this long get a creeper (0.5 m/s for 8 s) and a car that drives and parks
+GO_STOP_M = 6.0  #: how far the latter drives before it parks
+STOP_AND_GO_MIN_S = 13.0  #: logs this long get a car that waits 10 s, then drives off
 
 
 def rotation_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
@@ -54,12 +63,58 @@ class EgoMotion:
 
 
 @dataclass(frozen=True)
-class Box:
-    """An oriented box moving at constant velocity (city frame).
+class AnnotationJitter:
+    """How a human annotator's boxes of one track wander around the true box: a mean-reverting random
+    walk of the centre (horizontal) and heading, sampled on a time grid and interpolated.
 
     Attributes:
-        center0_m: centre at t = 0, [3]; velocity_mps: [3]; rotation: city_R_box [3,3];
-        dims_m: (length, width, height) along box x, y, z; category: AV2 class or "BUILDING".
+        times_s: the grid, float64 [K] (increasing); offset_m: centre offsets [K,3] (z = 0);
+        yaw_rad: heading offsets [K].
+    """
+
+    times_s: np.ndarray
+    offset_m: np.ndarray
+    yaw_rad: np.ndarray
+
+    def at(self, t_s: float) -> tuple[np.ndarray, float]:
+        """(centre offset [3] in metres, heading offset in radians) at time ``t_s``."""
+        offset = np.array([np.interp(t_s, self.times_s, self.offset_m[:, k]) for k in range(3)])
+        return offset, float(np.interp(t_s, self.times_s, self.yaw_rad))
+
+
+def returning_walk(rng: np.random.Generator, times_s: np.ndarray, peak: float, dims: int, tau_s: float) -> np.ndarray:
+    """A mean-reverting (Ornstein-Uhlenbeck) walk on ``times_s`` [K] that starts at 0 and is scaled so
+    that its largest distance from 0 is ``peak``: float64 [K,dims]."""
+    dt = np.diff(times_s, prepend=times_s[0])
+    walk = np.zeros((len(times_s), dims))
+    for k in range(1, len(times_s)):
+        walk[k] = walk[k - 1] * (1.0 - dt[k] / tau_s) + np.sqrt(dt[k]) * rng.normal(size=dims)
+    largest = np.linalg.norm(walk, axis=1).max()
+    return walk * (peak / largest) if largest > 0 else walk
+
+
+def annotation_jitter(
+    rng: np.random.Generator, t_lo_s: float, t_hi_s: float, peak_m: float, peak_yaw_rad: float
+) -> AnnotationJitter:
+    """Jitter over ``[t_lo_s, t_hi_s]`` on a 0.1 s grid: the centre's walk peaks at ``peak_m`` from
+    the true centre, the heading's at ``peak_yaw_rad``; 3 cm of white noise per grid step on top."""
+    times = np.arange(t_lo_s, t_hi_s + 0.1, 0.1)
+    xy = returning_walk(rng, times, peak_m, 2, tau_s=float(rng.uniform(1.5, 4.0)))
+    xy += rng.normal(0.0, 0.03, xy.shape)
+    yaw = returning_walk(rng, times, peak_yaw_rad, 1, tau_s=float(rng.uniform(1.5, 4.0)))[:, 0]
+    return AnnotationJitter(times, np.column_stack([xy, np.zeros(len(times))]), yaw)
+
+
+@dataclass(frozen=True)
+class Box:
+    """An oriented box (city frame), standing still or moving at constant velocity within a time window.
+
+    Attributes:
+        center0_m: centre at t = 0 if it moved all the time, [3]; velocity_mps: [3] while it moves;
+        rotation: city_R_box [3,3]; dims_m: (length, width, height) along box x, y, z;
+        category: AV2 class or "BUILDING"; move_from_s, move_until_s: it moves only within this
+        window (seconds from the log start; default: always); jitter: how its annotations wander
+        (None: annotations are exact).
     """
 
     center0_m: np.ndarray
@@ -69,15 +124,37 @@ class Box:
     category: str
     track_uuid: str
     intensity: int
+    move_from_s: float = -np.inf
+    move_until_s: float = np.inf
+    jitter: AnnotationJitter | None = None
 
     @property
     def annotated(self) -> bool:
         return self.category != "BUILDING"
 
+    def center_m(self, t_s: np.ndarray | float) -> np.ndarray:
+        """The true centre at times ``t_s`` (scalar -> [3], [N] -> [N,3])."""
+        t_moving = np.clip(np.asarray(t_s, dtype=np.float64), self.move_from_s, self.move_until_s)
+        return self.center0_m + np.multiply.outer(t_moving, self.velocity_mps)
+
+    def moved_m(self, t_lo_s: float, t_hi_s: float) -> float:
+        """The true distance travelled between two times (the truth a motion test is scored on)."""
+        return float(np.linalg.norm(self.center_m(t_hi_s) - self.center_m(t_lo_s)))
+
     def T_box_city(self, t_s: float) -> np.ndarray:
+        """The true box pose at ``t_s``, [4,4]."""
         T = np.eye(4)
         T[:3, :3] = self.rotation
-        T[:3, 3] = self.center0_m + self.velocity_mps * t_s
+        T[:3, 3] = self.center_m(t_s)
+        return T
+
+    def T_annotated_city(self, t_s: float) -> np.ndarray:
+        """The box as annotated at ``t_s``: the true pose with the annotator's jitter, [4,4]."""
+        T = self.T_box_city(t_s)
+        if self.jitter is not None:
+            offset, yaw = self.jitter.at(t_s)
+            T[:3, 3] += offset
+            T[:3, :3] = Rotation.from_euler("Z", yaw).as_matrix() @ self.rotation
         return T
 
 
@@ -87,8 +164,16 @@ class Scene:
     boxes: list[Box]
 
 
-def make_scene(rng: np.random.Generator, seconds: float) -> Scene:
-    """Ego on a gentle arc with parked and moving cars, pedestrians, bollards and buildings."""
+def make_scene(rng: np.random.Generator, seconds: float, traffic_rng: np.random.Generator) -> Scene:
+    """Ego on a gentle arc with parked and moving cars, pedestrians, bollards and buildings.
+
+    Parked cars' annotations jitter like human labels of real parked cars (AV2: a returning walk of
+    0.1-1.5 m peak, heading a few degrees). A log of at least ``CREEPER_MIN_S`` adds a creeper
+    (0.5 m/s for 8 s) and a car that drives ``GO_STOP_M`` and parks; one of at least
+    ``STOP_AND_GO_MIN_S`` adds a car that waits 10 s and then drives off; their annotations jitter
+    a little (5-30 cm). ``traffic_rng`` draws all of that, so ``rng``'s stream (and everything the
+    generator draws from it after the scene) is the same as without it.
+    """
     ego = EgoMotion(speed_mps=float(rng.uniform(6.0, 9.0)), yaw_rate_rps=float(rng.uniform(0.03, 0.07)),
                     yaw0_rad=float(rng.uniform(-np.pi, np.pi)))  # fmt: skip
 
@@ -105,10 +190,14 @@ def make_scene(rng: np.random.Generator, seconds: float) -> Scene:
 
     boxes: list[Box] = []
 
-    def add(center, yaw, dims, category, velocity=(0.0, 0.0, 0.0), tilt=(0.0, 0.0), intensity=60):
+    def add(center, yaw, dims, category, velocity=(0.0, 0.0, 0.0), tilt=(0.0, 0.0), intensity=60, **motion):
         R = Rotation.from_euler("ZYX", [yaw, tilt[0], tilt[1]]).as_matrix()
         boxes.append(Box(np.asarray(center, float), np.asarray(velocity, float), R, np.asarray(dims, float),
-                         category, uuid(), intensity))  # fmt: skip
+                         category, uuid(), intensity, **motion))  # fmt: skip
+
+    def jitter(peak_m: tuple[float, float], peak_yaw_deg: tuple[float, float]) -> AnnotationJitter:
+        return annotation_jitter(traffic_rng, -2.0, seconds + 2.0, float(traffic_rng.uniform(*peak_m)),
+                                 np.radians(traffic_rng.uniform(*peak_yaw_deg)))  # fmt: skip
 
     t_end = seconds + 2.0
     for t in np.arange(-1.0, t_end, 1.1):  # parked cars on both curbs, slightly tilted (full 3-DOF boxes)
@@ -117,10 +206,11 @@ def make_scene(rng: np.random.Generator, seconds: float) -> Scene:
                 dims = (rng.uniform(4.2, 5.0), rng.uniform(1.8, 2.0), rng.uniform(1.4, 1.8))
                 c, yaw = along(t + rng.uniform(-0.2, 0.2), side * rng.uniform(4.5, 5.5), GROUND_Z_M + dims[2] / 2)
                 add(c, yaw + rng.normal(0, 0.05), dims, "REGULAR_VEHICLE",
-                    tilt=(rng.normal(0, 0.03), rng.normal(0, 0.03)), intensity=int(rng.integers(40, 120)))  # fmt: skip
+                    tilt=(rng.normal(0, 0.03), rng.normal(0, 0.03)), intensity=int(rng.integers(40, 120)),
+                    jitter=jitter(PARKED_JITTER_M, PARKED_JITTER_DEG))  # fmt: skip
     for _ in range(3):  # cars moving in the next lane
         dims = (rng.uniform(4.3, 5.2), 1.9, 1.6)
-        c, yaw = along(rng.uniform(0, seconds + 1.0), rng.choice([-2.0, 2.0]) * 1.7, GROUND_Z_M + dims[2] / 2)
+        c, yaw = along(rng.uniform(0, seconds + 1.0), rng.choice([-1.0, 1.0]) * NEXT_LANE_M, GROUND_Z_M + dims[2] / 2)
         speed = rng.uniform(3.0, 10.0)
         add(c, yaw, dims, "REGULAR_VEHICLE", velocity=(speed * np.cos(yaw), speed * np.sin(yaw), 0.0),
             intensity=int(rng.integers(60, 160)))  # fmt: skip
@@ -135,7 +225,31 @@ def make_scene(rng: np.random.Generator, seconds: float) -> Scene:
         for side in (-1, 1):
             c, yaw = along(t, side * rng.uniform(14.0, 18.0), GROUND_Z_M + 6.0)
             add(c, yaw, (14.0, 6.0, 12.0), "BUILDING", intensity=int(rng.integers(10, 40)))
+    _add_slow_traffic(traffic_rng, seconds, along, add, jitter)
     return Scene(ego, boxes)
+
+
+def _add_slow_traffic(rng: np.random.Generator, seconds: float, along, add, jitter) -> None:
+    """The creeper, the car that drives and parks, and the stop-and-go car (see :func:`make_scene`);
+    their velocity is along the road, their window of motion inside the log."""
+
+    def moving(t_pos_s: float, lateral_m: float, speed_mps: float, start_s: float, end_s: float) -> None:
+        dims = (rng.uniform(4.3, 5.0), 1.9, 1.6)
+        c, yaw = along(t_pos_s, lateral_m, GROUND_Z_M + dims[2] / 2)
+        v = speed_mps * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        add(c - v * start_s, yaw, dims, "REGULAR_VEHICLE", velocity=v, intensity=int(rng.integers(60, 160)),
+            move_from_s=start_s, move_until_s=end_s, jitter=jitter(SLOW_JITTER_M, SLOW_JITTER_DEG))  # fmt: skip
+
+    side = rng.choice([-1.0, 1.0])
+    if seconds >= CREEPER_MIN_S:
+        start = float(rng.uniform(0.0, seconds - 8.0))
+        moving(start + 4.0, side * FAR_LANE_M, 0.5, start, start + 8.0)  # 0.5 m/s for 8 s: 4 m
+        speed = float(rng.uniform(1.5, 2.5))
+        moving(float(rng.uniform(3.0, 6.0)), -side * FAR_LANE_M, speed, 0.5, 0.5 + GO_STOP_M / speed)
+    if seconds >= STOP_AND_GO_MIN_S:
+        moving(float(rng.uniform(4.0, 8.0)), rng.choice([-1.0, 1.0]) * NEXT_LANE_M, float(rng.uniform(3.0, 6.0)),
+               10.0, np.inf)  # fmt: skip
+
 
 
 def _rays_towards(azimuth_sorted: np.ndarray, order: np.ndarray, offset_m: np.ndarray, sin_half: float) -> np.ndarray:
@@ -189,7 +303,7 @@ def cast_rays(
         # Only rays whose azimuth points at the box can hit it: seen from the rays' mean origin, the
         # box (at the sweep's middle time) lies within a disc of radius r, padded by the spread of
         # the origins and the box's motion during the sweep.
-        center = box.center0_m + box.velocity_mps * t_mid_s
+        center = box.center_m(t_mid_s)
         r = np.linalg.norm(box.dims_m) / 2 + spread_m + np.linalg.norm(box.velocity_mps) * half_span_s
         distance = np.linalg.norm(center[:2] - center_m[:2])
         if distance - r > max_range_m:
@@ -197,7 +311,7 @@ def cast_rays(
         idx = slice(None) if distance <= r else _rays_towards(azimuth_sorted, order, center - center_m, r / distance)
         o, d, t = origins_m[idx], directions[idx], times_s[idx]
         if np.any(box.velocity_mps):
-            o_b = (o - box.center0_m - np.outer(t, box.velocity_mps)) @ box.rotation
+            o_b = (o - box.center_m(t)) @ box.rotation
         else:
             o_b = (o - box.center0_m) @ box.rotation
         d_b = d @ box.rotation

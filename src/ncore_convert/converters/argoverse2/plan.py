@@ -381,15 +381,12 @@ def _cuboid_labels(
         return None, None
     T_rig_world_at = T_rig_world.interpolate(T_rig_world.relative_seconds(annotations.timestamps_ns))
     T_box_world = T_rig_world_at @ annotations.T_object_ego
-    timestamps_us = floor_us(annotations.timestamps_ns)
+    observations = TrackObservations(annotations.track_uuids, floor_us(annotations.timestamps_ns),
+                                     T_box_world[:, :3, 3], T_box_world[:, :3, :3], annotations.dims_m)  # fmt: skip
     cuboid_labels = consumer.cuboid_labels(
-        annotations.track_uuids, annotations.categories, labels.AV2_TO_NCORE, options.class_names,
-        options.cuboid_label_source, "EXTERNAL", timestamps_us, T_box_world[:, :3, 3],
-        str(inputs.log_dir / "annotations.feather"),
+        observations, annotations.categories, labels.AV2_TO_NCORE, options.class_names,
+        options.cuboid_label_source, "EXTERNAL", "world", str(inputs.log_dir / "annotations.feather"),
     )  # fmt: skip
     if not with_lidar:
         return cuboid_labels, None
-    observations = TrackObservations(
-        annotations.track_uuids, timestamps_us, T_box_world[:, :3, 3], T_box_world[:, :3, :3], annotations.dims_m
-    )
     return cuboid_labels, DynamicBoxes.select(observations, cuboid_labels.dynamic)

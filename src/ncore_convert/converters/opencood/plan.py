@@ -120,12 +120,13 @@ class AgentPlan:
 
 @dataclass(frozen=True)
 class Boxes:
-    """Merged vehicle labels of one tick: actor ids [M], right-handed ``T_box_world_global`` [M,4,4]
-    and (length, width, height) [M,3]."""
+    """Merged vehicle labels of one tick: actor ids [M], right-handed ``T_box_world_global`` [M,4,4],
+    (length, width, height) [M,3] and CARLA's speed [M] (m/s, NaN where the YAML has none)."""
 
     actor_ids: np.ndarray
     T_box_world_global: np.ndarray
     dims_m: np.ndarray
+    speeds_mps: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -246,7 +247,7 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
     """Per frame key: the union of every agent's labelled vehicles by actor id (first agent in id
     order wins; disagreements are reported), plus each CAV's own box, which its YAML lacks (from
     ``true_ego_pos`` and the logreplay CAV model, unless another agent labelled it)."""
-    merged: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+    merged: dict[str, dict[int, tuple[np.ndarray, np.ndarray, float]]] = {}
     disagreements: dict[str, int] = {}
     for agent_id in sorted(frames, key=int):
         for frame in frames[agent_id]:
@@ -255,9 +256,10 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
             if len(v):
                 T_box_world_global, dims = carla.boxes_world_right_handed(v.location, v.angle, v.center, v.extent)
                 tick = merged.setdefault(key, {})
-                for actor, pose, dim in zip(v.actor_ids.tolist(), T_box_world_global, dims, strict=True):
+                speeds = v.speed_kmh / 3.6
+                for actor, pose, dim, speed in zip(v.actor_ids.tolist(), T_box_world_global, dims, speeds, strict=True):
                     if actor not in tick:
-                        tick[actor] = (pose, dim)
+                        tick[actor] = (pose, dim, float(speed))
                     elif np.linalg.norm(tick[actor][0][:3, 3] - pose[:3, 3]) > LABEL_TOLERANCE_M:
                         disagreements[key] = disagreements.get(key, 0) + 1
     for agent_id in frames:
@@ -270,7 +272,7 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
                     frame.true_ego_pos[None, :3], frame.true_ego_pos[None, 3:],
                     np.array([src.CAV_BOX_CENTER_M]), np.array([src.CAV_BOX_EXTENT_M]),
                 )  # fmt: skip
-                tick[int(agent_id)] = (pose[0], dims[0])
+                tick[int(agent_id)] = (pose[0], dims[0], frame.ego_speed_kmh / 3.6)
     if disagreements:
         warnings.append(
             f"agents label the same actor more than {LABEL_TOLERANCE_M} m apart at key(s)"
@@ -279,7 +281,7 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
     out = {}
     for key, tick in merged.items():
         ids = np.array(sorted(tick), dtype=np.int64)
-        out[key] = Boxes(ids, np.array([tick[i][0] for i in ids]), np.array([tick[i][1] for i in ids]))
+        out[key] = Boxes(ids, *(np.array([tick[i][k] for i in ids]) for k in range(3)))
     return out
 
 
@@ -492,12 +494,13 @@ def _with_labels(plan: ScenarioPlan, scenario_dir: UPath) -> ScenarioPlan:
     track_ids = [str(i) for b in boxes for i in b.actor_ids]
     T_box = np.concatenate([b.T_box_world_global for b in boxes]) if boxes else np.zeros((0, 4, 4))
     stamps = np.repeat(ticks_us, counts)
-    cuboid_labels = consumer.cuboid_labels(
-        track_ids, [VEHICLE_CLASS] * len(track_ids), labels.OPENCOOD_TO_NCORE, plan.options.class_names,
-        plan.options.cuboid_label_source, "GT_SYNTHETIC", stamps, T_box[:, :3, 3], str(scenario_dir),
-    )  # fmt: skip
     dims = np.concatenate([b.dims_m for b in boxes]) if boxes else np.zeros((0, 3))
-    observations = TrackObservations(track_ids, stamps, T_box[:, :3, 3], T_box[:, :3, :3], dims)
+    speeds = np.concatenate([b.speeds_mps for b in boxes]) if boxes else np.zeros(0)
+    observations = TrackObservations(track_ids, stamps, T_box[:, :3, 3], T_box[:, :3, :3], dims, speeds)
+    cuboid_labels = consumer.cuboid_labels(
+        observations, [VEHICLE_CLASS] * len(track_ids), labels.OPENCOOD_TO_NCORE, plan.options.class_names,
+        plan.options.cuboid_label_source, "GT_SYNTHETIC", "world_global", str(scenario_dir),
+    )  # fmt: skip
     dynamic_boxes = DynamicBoxes.select(observations, cuboid_labels.dynamic)
     return replace(plan, cuboid_labels=cuboid_labels, dynamic_boxes=dynamic_boxes,
                    warnings=plan.warnings + cuboid_labels.warnings)  # fmt: skip
