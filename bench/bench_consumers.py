@@ -6,10 +6,10 @@ Not a test. Prints, medians over --repeat runs, measured side by side in one run
 - the f-theta fit of each camera type (AV2 portrait front 1550x2048, AV2 ring 2048x1550, TbV half
   resolution 1024x775, OPV2V 800x600 at 100° HFOV): seconds, and its worst / median error over
   every pixel centre;
-- per sweep of a synthetic 2 s AV2 log (about 96k points, every annotated track) and of the real
-  AV2 sample: reading the sweep and making both units' ray bundles (decompensation, model
-  elements), beside dynamic_flag of both units (the sweep to world, the grown-box tests), and their
-  ratio;
+- on a synthetic 13 s AV2 log with jittering parked cars and slow traffic, and on the real AV2
+  sample: the track decision per log (this rule with its static poses, and the speed rule before
+  issue 26, restated here), and per sweep reading the sweep and making both units' ray bundles
+  beside dynamic_flag of both units with either rule's dynamic tracks, and their ratios;
 - a whole-log conversion (in this process, no validation) with the default pinhole and with
   ``--camera-model ftheta``, and their ratio;
 - ego-mask estimation on a 15 s log: alone, and the whole command with ``--ego-masks none`` and
@@ -62,32 +62,94 @@ def synth_av2(work: Path) -> tuple[Path, str]:
     return root, log_id
 
 
+def synth_traffic(work: Path) -> tuple[Path, str]:
+    """A 13 s lidar-only log with jittering parked cars and the slow traffic (issue 26)."""
+    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+    root = work / "consumers-av2-13s-traffic"
+    config = SynthConfig(seconds=13.0, seed=23, camera_fps=0)
+    return root, cached(root, "13 s AV2 log with slow traffic", lambda r: write_log(UPath(r / "val"), config).log_id)
+
+
+def speed_rule_ids(observations, classes: list[str]) -> set[str]:
+    """The rule before issue 26, restated here only for the comparison: dynamic when the class always
+    is, or when the speed of the box centres (median over 5 observations, 2 s baseline) exceeds
+    1 km/h anywhere; never for always-static classes."""
+    from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, ALWAYS_STATIC
+
+    ids = np.asarray(observations.track_ids)
+    out = set()
+    for track in np.unique(ids):
+        rows = np.flatnonzero(ids == track)
+        rows = rows[np.argsort(observations.timestamps_us[rows])]
+        t_s = (observations.timestamps_us[rows] - observations.timestamps_us[rows[0]]) * 1e-6
+        padded = np.concatenate([np.repeat(observations.centers_m[rows[:1]], 2, 0), observations.centers_m[rows],
+                                 np.repeat(observations.centers_m[rows[-1:]], 2, 0)])  # fmt: skip
+        smooth = np.median(np.lib.stride_tricks.sliding_window_view(padded, 5, axis=0), axis=-1)
+        later = np.searchsorted(t_s, t_s + min(2.0, t_s[-1]) - 1e-9)
+        ok = (later < len(t_s)) & (later > np.arange(len(t_s)))
+        i, j = np.flatnonzero(ok), later[ok]
+        speed = (np.linalg.norm(smooth[j] - smooth[i], axis=1) / (t_s[j] - t_s[i])).max(initial=0.0)
+        cls = classes[rows[0]]
+        if cls not in ALWAYS_STATIC and (cls in ALWAYS_DYNAMIC or (t_s[-1] >= 0.3 and speed > 1 / 3.6)):
+            out.add(str(track))
+    return out
+
+
 def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
+    """Per log, the track decision (this rule with its static poses, and the speed rule before it);
+    per sweep, reading and ray bundles beside dynamic_flag with either rule's dynamic tracks."""
     from ncore_convert.converters.argoverse2.convert import sweep_dynamic_flags
     from ncore_convert.converters.argoverse2.lidar import read_covered_sweep, sweep_ray_bundles
     from ncore_convert.converters.argoverse2.plan import Argoverse2Options, plan_log
+    from ncore_convert.transforms import dynamic
+    from ncore_convert.transforms.labels import AV2_TO_NCORE
 
     plan = plan_log(UPath(root), log_id, Argoverse2Options(split="val", camera_ids=()))
-    traj, boxes = plan.T_rig_world, plan.dynamic_boxes
-    T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
-    rays_s, flag_s, points = [], [], []
+    traj, annotations = plan.T_rig_world, plan.inputs.annotations
+    T_box_world = traj.interpolate(traj.relative_seconds(annotations.timestamps_ns)) @ annotations.T_object_ego
+    observations = dynamic.TrackObservations(annotations.track_uuids, annotations.timestamps_ns // 1000,
+                                             T_box_world[:, :3, 3], T_box_world[:, :3, :3], annotations.dims_m)  # fmt: skip
+    classes = [AV2_TO_NCORE.get(c, c) for c in annotations.categories]
+    decide_s: dict[str, list[float]] = {"after": [], "before": []}
     for _ in range(repeat):
-        for sweep_ns in plan.sweep_timestamps_ns:
+        started = time.perf_counter()
+        motion = dynamic.classify_tracks(observations, classes)
+        dynamic.static_poses(observations, {t for t, m in motion.items() if not m.dynamic})
+        middle = time.perf_counter()
+        before_ids = speed_rule_ids(observations, classes)
+        decide_s["after"].append(middle - started)
+        decide_s["before"].append(time.perf_counter() - middle)
+    tracks = {"after": {t for t, m in motion.items() if m.dynamic}, "before": before_ids}
+    boxes = {rule: dynamic.DynamicBoxes.select(observations, ids) for rule, ids in tracks.items()}
+    T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
+    rays_s: list[float] = []
+    flag_s: dict[str, list[float]] = {"after": [], "before": []}
+    points = []
+    sweeps = plan.sweep_timestamps_ns[:: max(1, len(plan.sweep_timestamps_ns) // 20)]  # at most ~20 sweeps
+    for _ in range(repeat):
+        for sweep_ns in sweeps:
             started = time.perf_counter()
             sweep = read_covered_sweep(plan.inputs.log_dir, int(sweep_ns), traj, True)
             units = sweep_ray_bundles(sweep, plan.lidar_calibration, traj, T_sensor_rig)
-            middle = time.perf_counter()
-            flags = sweep_dynamic_flags(sweep, traj, boxes)
-            _per_unit = [flags[unit_rays.sweep_rows] for unit_rays in units.values()]
-            done = time.perf_counter()
-            rays_s.append(middle - started)
-            flag_s.append(done - middle)
+            rays_s.append(time.perf_counter() - started)
             points.append(len(sweep.xyz_ego_m))
-    rays_ms, flag_ms = statistics.median(rays_s) * 1e3, statistics.median(flag_s) * 1e3
-    print(f"dynamic_flag per sweep ({int(np.median(points))} points, {len(boxes)} dynamic tracks,"
-          f" medians over {len(rays_s)} sweeps)", flush=True)  # fmt: skip
-    print(f"  read + ray bundles (both units): {rays_ms:.1f} ms; dynamic_flag (both units): {flag_ms:.1f} ms;"
-          f" ratio {flag_ms / rays_ms:.3f}", flush=True)  # fmt: skip
+            for rule in ("after", "before"):  # interleaved
+                started = time.perf_counter()
+                flags = sweep_dynamic_flags(sweep, traj, boxes[rule])
+                _per_unit = [flags[unit_rays.sweep_rows] for unit_rays in units.values()]
+                flag_s[rule].append(time.perf_counter() - started)
+    rays_ms = statistics.median(rays_s) * 1e3
+    after_ms, before_ms = (statistics.median(flag_s[r]) * 1e3 for r in ("after", "before"))
+    print(f"{len(set(annotations.track_uuids))} tracks over {np.ptp(annotations.timestamps_ns) * 1e-9:.1f} s;"
+          f" dynamic: {len(tracks['after'])} (this rule), {len(tracks['before'])} (the speed rule before it)",
+          flush=True)  # fmt: skip
+    print(f"  track decision per log: this rule + static poses {statistics.median(decide_s['after']) * 1e3:.1f} ms,"
+          f" speed rule {statistics.median(decide_s['before']) * 1e3:.1f} ms", flush=True)  # fmt: skip
+    print(f"  per sweep ({int(np.median(points))} points, medians over {len(rays_s)} sweeps): read + ray bundles"
+          f" (both units) {rays_ms:.1f} ms; dynamic_flag (both units) {after_ms:.1f} ms with this rule,"
+          f" {before_ms:.1f} ms before it; ratios to the read {after_ms / rays_ms:.3f} / {before_ms / rays_ms:.3f},"
+          f" after / before {after_ms / before_ms:.3f}", flush=True)  # fmt: skip
 
 
 def bench_conversion(root: Path, log_id: str, work: Path, repeat: int) -> None:
@@ -170,12 +232,12 @@ def main() -> None:
     work = work_dir(args)
     bench_fit(args.repeat)
     root, log_id = synth_av2(work)
-    print("synthetic log:", end=" ")
-    bench_dynamic_flag(root, log_id, max(1, args.repeat // 2))
+    print("dynamic_flag, synthetic 13 s log with jittering parked cars and slow traffic:", end=" ")
+    bench_dynamic_flag(*synth_traffic(work), max(1, args.repeat // 2))
     from bench_input_checks import sample_log
 
     sample = sample_log()
-    print("real AV2 sample (2 sweeps; speeds from its annotations over the whole log):", end=" ")
+    print("dynamic_flag, real AV2 sample (2 sweeps; annotations over 15.5 s):", end=" ")
     bench_dynamic_flag(Path(str(sample.parent.parent)), sample.name, args.repeat * 4)
     bench_conversion(root, log_id, work, max(1, args.repeat // 2))
     bench_ego_masks(work, max(1, args.repeat // 2 + 1))
