@@ -56,6 +56,7 @@ def test_points_and_intensity_read_back_exactly(tmp_path, write):
         (HEADER.format(n=1, data="binary_compressed"), "DATA binary_compressed is not supported"),
         (HEADER.format(n=1, data="ascii").replace("TYPE F F F F", "TYPE F F F Q"), "unsupported PCD field types"),
         ("VERSION 0.7\nFIELDS x\n", "no DATA line"),
+        (HEADER.format(n=1, data="ascii").replace("FIELDS x y z", "FIELDS x x z") + "1 2 3 0\n", "names a field twice"),
     ],
 )
 def test_bad_files_name_the_file_and_the_cause(tmp_path, text, cause):

@@ -133,8 +133,9 @@ def _motion_meta(observations: dynamic.TrackObservations, ncore_classes: list[st
         contract.DYNAMIC_TRACKS: {t: m.as_meta() for t, m in motion.items() if m.dynamic},
         "dynamic_rule": f"class always dynamic ({', '.join(sorted(labels.ALWAYS_DYNAMIC))}); else {speeds}the box"
         f" centres (median over {dynamic.MEDIAN_WINDOW} observations) moved: net displacement between the medians"
-        f" of the first and last {dynamic.END_WINDOW_S:g} s > {dynamic.NET_DYNAMIC_M:g} m, or a centre more than"
-        f" {dynamic.DEVIATION_DYNAMIC_M:g} m from the track's median centre; never: {', '.join(sorted(labels.ALWAYS_STATIC))}",
+        f" of the first and last {dynamic.END_WINDOW_S:g} s (a quarter of a track shorter than 2 s) >"
+        f" {dynamic.NET_DYNAMIC_M:g} m, or a centre more than {dynamic.DEVIATION_DYNAMIC_M:g} m from the track's"
+        f" median centre; never: {', '.join(sorted(labels.ALWAYS_STATIC))}",
         contract.STATIC_POSES: {
             "frame": frame,
             "convention": "the median box of each static track's observations, as NCore's BBox3: centroid (m),"

@@ -44,6 +44,8 @@ def _parse_header(path: UPath, lines: list[bytes]) -> PcdHeader:
     counts = entries.get("COUNT", ["1"] * len(fields))
     if not len(fields) == len(sizes) == len(types) == len(counts):
         raise SourceError(path, "PCD header FIELDS, SIZE, TYPE and COUNT differ in length")
+    if len(set(fields)) < len(fields):
+        raise SourceError(path, f"PCD header names a field twice ({' '.join(fields)})")
     if any(c != "1" for c in counts):
         raise SourceError(path, f"PCD fields with COUNT other than 1 are not supported ({counts})")
     try:
