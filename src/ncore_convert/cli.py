@@ -15,6 +15,7 @@ from functools import partial
 from typing import get_args
 
 import click
+from click.core import ParameterSource
 from upath import UPath
 
 from ncore_convert import __version__
@@ -23,8 +24,10 @@ from ncore_convert.contract import (
     CameraModel,
     ClassNames,
     CuboidLabelSource,
+    PRESETS,
     Layout,
     LidarModelSource,
+    Preset,
     Profile,
     StoreType,
     WorldGlobalMode,
@@ -169,6 +172,7 @@ def cli(
     (3DGUT, 3DGRT, instant-nurec, NuRec; docs/consumers.md):
 
     \b
+      --preset ncore|3dgut|3dgrt|nurec|instant-nurec  (sets the ones below)
       --camera-model ideal-pinhole|opencv-pinhole|ftheta
       --class-names ncore|source
       --cuboid-label-source auto|external|gt-synthetic|autolabel
@@ -225,6 +229,11 @@ def store_options(f):
 def consumer_options(f):
     """Options every dataset command shares that shape the output for its consumers (docs/consumers.md)."""
     for option in reversed([
+        click.option("--preset", type=click.Choice(get_args(Preset)), default="ncore",
+                     help="Set the options below as this consumer needs them (explicit flags still win): 3dgut, 3dgrt"
+                     " and nurec: an OpenCV pinhole and world_global at the identity; instant-nurec: f-theta cameras"
+                     " and AUTOLABEL cuboids; ncore: the defaults, as NCore's own converter writes. The run report"
+                     " and the converter metadata record the preset and what it resolved to."),
         click.option("--camera-model", type=click.Choice(get_args(CameraModel)), default="ideal-pinhole",
                      help="How cameras are stored: NCore's ideal pinhole; an OpenCV pinhole with zero distortion"
                      " (the same rays; 3DGUT reads it); or an f-theta model fitted to the pinhole over the whole"
@@ -307,6 +316,18 @@ def _dataset(command: str):
     return DATASETS[command]
 
 
+def _with_preset(option_values: dict) -> dict:
+    """``option_values`` with the ``--preset``'s options in place of every one the user left at its
+    default (a flag given on the command line, even at the default value, wins)."""
+    ctx = click.get_current_context()
+    chosen = {
+        name: value
+        for name, value in PRESETS[option_values["preset"]].items()
+        if ctx.get_parameter_source(name) in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
+    }
+    return {**option_values, **chosen}
+
+
 def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **option_values) -> None:
     """Run a dataset command: the requested logs or scenarios (all if none), each converted, validated
     (unless --no-validate) and published by the runner on the chosen executor. ``option_values``
@@ -317,6 +338,7 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
         from ncore_convert.validate.tree import convert_and_validate
 
         dataset = _dataset(command)
+        option_values = _with_preset(option_values)
         options = dataset.options(camera_ids=obj.camera_ids, lidar_ids=obj.lidar_ids, **option_values)
         try:
             dataset.check_sensors(options)

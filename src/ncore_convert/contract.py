@@ -25,6 +25,16 @@ CameraModel = Literal["ideal-pinhole", "opencv-pinhole", "ftheta"]  #: how a pin
 ClassNames = Literal["ncore", "source"]  #: cuboid class names: NCore's lowercase names, or the dataset's own
 CuboidLabelSource = Literal["auto", "external", "gt-synthetic", "autolabel"]  #: the observations' LabelSource
 WorldGlobalMode = Literal["none", "identity", "localized"]  #: what ``world -> world_global`` holds
+Preset = Literal["ncore", "3dgut", "3dgrt", "nurec", "instant-nurec"]  #: ``--preset``: a consumer's options
+#: ``--preset`` -> the consumer options it sets (docs/consumers.md says why); explicit flags override
+#: them. ``ncore`` sets nothing: the defaults, which match NCore's own AV2 converter.
+PRESETS: dict[str, dict[str, str]] = {
+    "ncore": {},
+    "3dgut": {"camera_model": "opencv-pinhole", "world_global_mode": "identity"},
+    "3dgrt": {"camera_model": "opencv-pinhole", "world_global_mode": "identity"},
+    "nurec": {"camera_model": "opencv-pinhole", "world_global_mode": "identity"},
+    "instant-nurec": {"camera_model": "ftheta", "cuboid_label_source": "autolabel"},
+}
 
 # --- dataset ids: the sequence metadata's ``source_dataset`` ---
 ARGOVERSE2_SENSOR = "argoverse2-sensor"

@@ -9,7 +9,7 @@ from typing import Any
 
 from upath import UPath
 
-from ncore_convert.contract import CameraModel, ClassNames, CuboidLabelSource, WorldGlobalMode
+from ncore_convert.contract import CameraModel, ClassNames, CuboidLabelSource, Preset, WorldGlobalMode
 
 
 @dataclass(frozen=True)
@@ -39,8 +39,10 @@ class Dataset:
 @dataclass(frozen=True, kw_only=True)
 class ConsumerOptions:
     """Options every dataset command shares that shape the output for its consumers
-    (docs/consumers.md): camera model, class names, label source, clip window, world_global."""
+    (docs/consumers.md): the preset they came from, camera model, class names, label source, clip
+    window, world_global."""
 
+    preset: Preset = "ncore"  #: recorded only: the CLI has already resolved the options it sets
     camera_model: CameraModel = "ideal-pinhole"
     class_names: ClassNames = "ncore"
     cuboid_label_source: CuboidLabelSource = "auto"

@@ -1,0 +1,130 @@
+"""``--preset``: each consumer's options by one flag (issue 27), read back as that consumer reads them.
+
+The consumers' conventions, restated from their loaders (../shared/reference/consumers.md):
+
+- 3DGUT (3DGRUT's ``NCoreDataset``): builds ``ncore.sensors.CameraModel.from_parameters`` per
+  camera, and its ``_get_camera_model_parameters_for_resolution`` gives intrinsics to the tracer only
+  for ``OpenCVPinholeCameraModel``, ``OpenCVFisheyeCameraModel`` and ``FThetaCameraModel`` (None
+  otherwise, and the tracer raises). It applies the inverse of the ``world -> world_global`` edge
+  (``pose_graph.get_edge("world", "world_global").T_source_target``) to every pose, in float32: the
+  scene must sit near the origin. It reads the lidars' per-frame generic data ``dynamic_flag``
+  (int8, one per point, 1 = dynamic) to drop moving points from its seed cloud.
+- 3DGRT: the same loader; an ideal pinhole loads, but logs "unsupported camera model" per batch.
+- instant-nurec: its pinned nvidia-ncore 18.7 decodes no ideal pinhole and its renderer converts
+  only f-theta; it keeps only ``AUTOLABEL`` cuboid observations, and knows ``pedestrian`` as dynamic.
+- NuRec: as 3DGUT.
+- ncore: NCore's own AV2 converter: an ideal pinhole, ``world_global`` at the city pose.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from conftest import component_meta, open_sequence
+from ncore.data.v4 import CuboidsComponent
+from ncore.impl.data.types import LabelSource
+from ncore.impl.sensors.camera import camera_model_from_parameters
+from ncore.sensors import FThetaCameraModel, IdealPinholeCameraModel, OpenCVFisheyeCameraModel, OpenCVPinholeCameraModel
+from upath import UPath
+
+from ncore_convert import contract
+from ncore_convert.cli import cli
+from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+UNITS = ("up_lidar", "down_lidar")
+GETS_INTRINSICS_3DGUT = (OpenCVPinholeCameraModel, OpenCVFisheyeCameraModel, FThetaCameraModel)
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory):
+    root = tmp_path_factory.mktemp("presets")
+    truth = write_log(UPath(root / "src" / "val"), SynthConfig(seconds=1.0, seed=9, camera_fps=2))
+    return root, truth
+
+
+def _convert(source, name: str, *flags: str):
+    root, truth = source
+    out = root / name
+    args = ["--no-progress", "--no-validate", "--root-dir", str(root / "src"), "--output-dir", str(out),
+            "argoverse2-v4", "--split", "val", *flags]  # fmt: skip
+    result = CliRunner().invoke(cli, args, catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "conversion-report.json").read_text())
+    return open_sequence(out / truth.log_id, truth.log_id), report
+
+
+def _camera_models(loader) -> set[type]:
+    return {
+        type(camera_model_from_parameters(loader.get_camera_sensor(c).model_parameters, device="cpu",
+                                          dtype=torch.float32))  # fmt: skip
+        for c in loader.camera_ids
+    }
+
+
+def _world_global(loader) -> np.ndarray:
+    return np.asarray(loader.pose_graph.get_edge("world", "world_global").T_source_target, dtype=np.float64)
+
+
+def _dynamic_flags_readable(loader) -> None:
+    for unit in UNITS:
+        lidar = loader.get_lidar_sensor(unit)
+        for i in range(len(lidar.frames_timestamps_us)):
+            flag = lidar.get_frame_generic_data(i, "dynamic_flag")
+            assert flag.dtype == np.int8 and flag.shape == (lidar.get_frame_ray_bundle_count(i),)
+
+
+def _recorded(loader, report, preset: str) -> dict:
+    """The options the sequence's converter metadata records: the preset and what it resolved to,
+    the same as the run report's."""
+    options = loader.generic_meta_data[contract.CONVERTER]["options"]
+    assert options["preset"] == preset
+    assert {k: v for k, v in report["converter"]["options"].items() if k in options} == {
+        k: v for k, v in options.items() if k in report["converter"]["options"]
+    }
+    return options
+
+
+@pytest.mark.parametrize("preset", ["3dgut", "3dgrt", "nurec"])
+def test_the_3dgrut_and_nurec_presets(source, preset):
+    loader, report = _convert(source, preset, "--preset", preset)
+    assert _camera_models(loader) == {OpenCVPinholeCameraModel}  # intrinsics for the tracer, no warning
+    for c in loader.camera_ids:
+        params = loader.get_camera_sensor(c).model_parameters
+        assert not np.any(params.radial_coeffs) and not np.any(params.tangential_coeffs)
+    np.testing.assert_array_equal(_world_global(loader), np.eye(4))  # the scene at the origin
+    _dynamic_flags_readable(loader)
+    options = _recorded(loader, report, preset)
+    assert (options["camera_model"], options["world_global_mode"]) == ("opencv-pinhole", "identity")
+
+
+def test_the_instant_nurec_preset(source):
+    loader, report = _convert(source, "instant-nurec", "--preset", "instant-nurec")
+    assert _camera_models(loader) == {FThetaCameraModel}
+    observations = list(loader.get_cuboid_track_observations())
+    assert observations and {o.source for o in observations} == {LabelSource.AUTOLABEL}
+    assert "pedestrian" in {o.class_id for o in observations}
+    assert "not a provenance claim" in component_meta(loader, CuboidsComponent, "default")["label_source_note"]
+    options = _recorded(loader, report, "instant-nurec")
+    assert (options["camera_model"], options["cuboid_label_source"]) == ("ftheta", "autolabel")
+
+
+def test_the_ncore_preset_is_the_default(source):
+    loader, report = _convert(source, "ncore")
+    assert _camera_models(loader) == {IdealPinholeCameraModel}
+    T = _world_global(loader)
+    first = source[1].T_ego_city(np.array([min(s.timestamp_ns for s in source[1].sweeps)]))[0]
+    assert np.linalg.norm(T[:3, 3]) > 1000.0 and np.linalg.norm(T[:2, 3] - first[:2, 3]) < 20.0  # the city
+    assert {o.source for o in loader.get_cuboid_track_observations()} == {LabelSource.EXTERNAL}
+    options = _recorded(loader, report, "ncore")
+    assert (options["camera_model"], options["world_global_mode"]) == ("ideal-pinhole", "localized")
+
+
+def test_an_explicit_flag_overrides_the_preset(source):
+    loader, report = _convert(source, "override", "--preset", "3dgut", "--camera-model", "ideal-pinhole")
+    assert _camera_models(loader) == {IdealPinholeCameraModel}  # given explicitly, even at its default value
+    np.testing.assert_array_equal(_world_global(loader), np.eye(4))  # the rest of the preset holds
+    assert _recorded(loader, report, "3dgut")["camera_model"] == "ideal-pinhole"
