@@ -1,0 +1,109 @@
+"""Per-point lidar colours from camera images: the ``rgb`` that 3DGRUT seeds its Gaussians with.
+
+Each point takes the colour of the camera pixel it projects to:
+
+- per camera, in that camera's frame nearest to the point's own time, with the camera's pose at
+  the frame's time (the point is where the lidar saw it; a static point is still there);
+- only where the pixel shows the world (not the ``ego`` body: ``usable``);
+- only if nothing nearer hides it: a depth buffer of the frame's projected points, kept per cell of
+  ``CELL_RAD`` of view angle (wider than the lidar's spacing between scan lines, so an occluder's
+  points cover every cell it hides), where a point is visible when it is at most ``DEPTH_TOLERANCE``
+  (relative, plus ``DEPTH_TOLERANCE_M``) behind the nearest point of its cell;
+- for points on dynamic objects (``dynamic``), only from a frame within ``DYNAMIC_DT_US`` of the
+  point: the object moves, the pixel shows where it was then;
+- of the cameras that see a point, the one whose frame is nearest in time.
+
+Points no camera colours get ``FILL_RGB``. Cameras are pinholes (every camera of our datasets is:
+AV2 images are undistorted, CARLA's are ideal), in the OpenCV frame (x right, y down, z forward),
+with NCore's pixel-corner convention: pixel (i, j) covers [i, i+1) x [j, j+1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+FILL_RGB = (128, 128, 128)  #: the colour of a point no camera sees: neutral grey
+DYNAMIC_DT_US = 5_000  #: a point on a moving object takes colour only from a frame this close in time
+CELL_RAD = np.radians(1.0)  #: depth-buffer cell, as an angle of view
+DEPTH_TOLERANCE = 0.05  #: a point this far behind (relative) its cell's nearest point is still visible ...
+DEPTH_TOLERANCE_M = 0.3  #: ... plus this much
+MIN_DEPTH_M = 0.3  #: points nearer the camera than this are not coloured
+
+
+@dataclass(frozen=True)
+class ColourFrame:
+    """One camera image to take colours from.
+
+    Attributes:
+        camera_id: the camera; timestamp_us: the frame's time (µs).
+        T_world_camera: float64 [4,4], maps world points into the camera frame at the frame's time.
+        focal_px, centre_px: (fx, fy) and (cx, cy) of the pinhole at the image's resolution
+            (pixel-corner convention).
+        image_rgb: uint8 [H,W,3].
+        usable: bool [H,W], the pixels that show the world (False on the ego body); None: all.
+    """
+
+    camera_id: str
+    timestamp_us: int
+    T_world_camera: np.ndarray
+    focal_px: tuple[float, float]
+    centre_px: tuple[float, float]
+    image_rgb: np.ndarray
+    usable: np.ndarray | None = None
+
+
+def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points (rows of ``xyz_world_m`` [N,3], all of them: each may hide another) that ``frame``
+    sees: their indices [V] and pixel (column, row) [V] each, int."""
+    h, w = frame.image_rgb.shape[:2]
+    xyz = xyz_world_m @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
+    z = xyz[:, 2]
+    ahead = np.flatnonzero(z > MIN_DEPTH_M)
+    u = frame.focal_px[0] * xyz[ahead, 0] / z[ahead] + frame.centre_px[0]
+    v = frame.focal_px[1] * xyz[ahead, 1] / z[ahead] + frame.centre_px[1]
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    rows, cols, lines, depth = ahead[inside], u[inside].astype(np.int64), v[inside].astype(np.int64), z[ahead][inside]
+    if frame.usable is not None:
+        ok = frame.usable[lines, cols]
+        rows, cols, lines, depth = rows[ok], cols[ok], lines[ok], depth[ok]
+    cell_px = max(1, int(round(CELL_RAD * max(frame.focal_px))))
+    cell_w = -(-w // cell_px)
+    cells = (lines // cell_px) * cell_w + cols // cell_px
+    nearest = np.full((-(-h // cell_px)) * cell_w, np.inf)
+    np.minimum.at(nearest, cells, depth)
+    seen = depth <= nearest[cells] * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
+    return rows[seen], cols[seen], lines[seen]
+
+
+def point_colours(
+    xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray, frames: list[ColourFrame]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's colour (see the module docstring).
+
+    Args:
+        xyz_world_m: the points in a fixed frame, where the lidar saw them, float64 [N,3].
+        timestamps_us: each point's own time, int64 [N].
+        dynamic: the points on moving objects (``dynamic_flag``), bool [N].
+        frames: the camera frames to take colours from, in the same fixed frame.
+
+    Returns:
+        rgb: uint8 [N,3], ``FILL_RGB`` where no camera sees the point; coloured: bool [N].
+    """
+    n = len(xyz_world_m)
+    rgb = np.tile(np.array(FILL_RGB, dtype=np.uint8), (n, 1))
+    best_dt = np.full(n, np.inf)
+    t_us = np.asarray(timestamps_us, dtype=np.int64)
+    for camera_id in sorted({f.camera_id for f in frames}):
+        own = sorted((f for f in frames if f.camera_id == camera_id), key=lambda f: f.timestamp_us)
+        times = np.array([f.timestamp_us for f in own], dtype=np.int64)
+        after = np.clip(np.searchsorted(times, t_us), 1, max(1, len(times) - 1))
+        nearest = after - 1 if len(times) == 1 else np.where(t_us - times[after - 1] <= times[after] - t_us, after - 1, after)
+        for k, frame in enumerate(own):
+            rows, cols, lines = _visible_pixels(frame, xyz_world_m)
+            dt = np.abs(t_us[rows] - frame.timestamp_us).astype(np.float64)
+            take = (nearest[rows] == k) & (dt < best_dt[rows]) & (~dynamic[rows] | (dt <= DYNAMIC_DT_US))
+            rgb[rows[take]] = frame.image_rgb[lines[take], cols[take]]
+            best_dt[rows[take]] = dt[take]
+    return rgb, np.isfinite(best_dt)

@@ -1,0 +1,143 @@
+"""Per-point lidar colours (issue 27) on an analytic scene: one world that both the camera and the
+lidar see, ray-cast exactly (``synth.scene.cast_rays``), so every point's true colour is known.
+
+The scene: a checkered ground (5 m squares, two colours), a wall, a parked car in front of it and a
+car driving across. The lidar sits 1.2 m left of and 0.6 m above the camera, so it sees parts of
+the wall that the parked car hides from the camera: those must never take the car's colour.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ncore_convert.synth.scene import Box, EgoMotion, Scene, cast_rays
+from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, FILL_RGB, ColourFrame, point_colours
+
+GROUND_Z = 0.0
+WIDTH, HEIGHT, FOCAL = 720, 540, 450.0
+R_CAMERA_RIG = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # rig (x fwd, y left, z up) -> OpenCV
+CAMERA_M = np.array([0.0, 0.0, 1.6])
+LIDAR_M = np.array([0.0, 1.2, 2.2])
+COLOURS = {0: (200, 40, 40), 1: (40, 40, 200), 2: (40, 200, 40)}  # wall, parked car, moving car
+GROUND = ((90, 90, 90), (160, 160, 120))
+SKY = (135, 180, 235)
+
+
+def _box(centre, dims, velocity=(0.0, 0.0, 0.0), category="REGULAR_VEHICLE") -> Box:
+    return Box(np.array(centre, float), np.array(velocity, float), np.eye(3), np.array(dims, float), category, "", 50)
+
+
+SCENE = Scene(
+    EgoMotion(1.0, 0.01, 0.0),  # unused: rays are given in the scene frame
+    [_box((30.0, 0.0, 4.0), (1.0, 40.0, 8.0), category="BUILDING"), _box((18.0, -1.0, 0.8), (4.5, 1.9, 1.6)),
+     _box((12.0, 6.0, 0.8), (4.5, 1.9, 1.6), velocity=(0.0, -10.0, 0.0))],
+)  # fmt: skip
+
+
+def _surface_colour(origins: np.ndarray, directions: np.ndarray, times_s: np.ndarray) -> tuple[np.ndarray, ...]:
+    """First hit along each ray: its range (inf: none) and the true colour there, uint8 [N,3]."""
+    distance, _, box = cast_rays(origins, directions, times_s, SCENE, 200.0, ground_z_m=GROUND_Z)
+    colour = np.tile(np.array(SKY, np.uint8), (len(origins), 1))
+    hit_ground = np.isfinite(distance) & (box < 0)
+    xy = origins[hit_ground, :2] + directions[hit_ground, :2] * distance[hit_ground, None]
+    colour[hit_ground] = np.array(GROUND, np.uint8)[(np.floor(xy[:, 0] / 5) + np.floor(xy[:, 1] / 5)).astype(int) % 2]
+    for index, rgb in COLOURS.items():
+        colour[box == index] = rgb
+    return distance, colour, box
+
+
+def _frame(time_s: float, usable: np.ndarray | None = None) -> ColourFrame:
+    """The camera's picture at ``time_s``, rendered per pixel centre from the same scene."""
+    cols, rows = np.meshgrid(np.arange(WIDTH) + 0.5, np.arange(HEIGHT) + 0.5)
+    d_cam = np.stack([(cols - WIDTH / 2) / FOCAL, (rows - HEIGHT / 2) / FOCAL, np.ones_like(cols)], -1).reshape(-1, 3)
+    d_world = d_cam @ R_CAMERA_RIG  # camera -> rig (= world here)
+    d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)
+    _, colour, _ = _surface_colour(np.tile(CAMERA_M, (len(d_world), 1)), d_world, np.full(len(d_world), time_s))
+    T_world_camera = np.eye(4)
+    T_world_camera[:3, :3] = R_CAMERA_RIG
+    T_world_camera[:3, 3] = -R_CAMERA_RIG @ CAMERA_M
+    return ColourFrame("cam", round(time_s * 1e6), T_world_camera, (FOCAL, FOCAL), (WIDTH / 2, HEIGHT / 2),
+                       colour.reshape(HEIGHT, WIDTH, 3), usable)  # fmt: skip
+
+
+def _lidar(time_s: float, spread_s: float = 0.0) -> tuple[np.ndarray, ...]:
+    """Points of a spinning lidar's sweep (32 beams, -25..+15 deg, 0.2 deg azimuth steps, the
+    front 120 deg), their times, true colour and whether they hit the moving car."""
+    elevation = np.radians(np.concatenate([np.linspace(-25, -8, 10), np.linspace(-7, 3, 18), np.linspace(5, 15, 4)]))
+    azimuth = np.radians(np.arange(-60.0, 60.0, 0.2))
+    az, el = np.meshgrid(azimuth, elevation)
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+    t = time_s + spread_s * (np.repeat(azimuth[None], len(elevation), 0).reshape(-1) / np.radians(120.0))
+    origins = np.tile(LIDAR_M, (len(d), 1))
+    distance, colour, box = _surface_colour(origins, d, t)
+    hit = np.isfinite(distance)
+    xyz = origins[hit] + d[hit] * distance[hit, None]
+    return xyz, (t[hit] * 1e6).round().astype(np.int64), colour[hit], box[hit] == 2
+
+
+def _seen_by_camera(xyz: np.ndarray, time_us: np.ndarray) -> np.ndarray:
+    """Whether the camera sees each point (in the image, nothing nearer on the ray to it)."""
+    ray = xyz - CAMERA_M
+    distance = np.linalg.norm(ray, axis=1)
+    first, _, _ = _surface_colour(np.tile(CAMERA_M, (len(xyz), 1)), ray / distance[:, None], time_us * 1e-6)
+    cam = ray @ R_CAMERA_RIG.T
+    u, v = FOCAL * cam[:, 0] / cam[:, 2] + WIDTH / 2, FOCAL * cam[:, 1] / cam[:, 2] + HEIGHT / 2
+    inside = (cam[:, 2] > 0.3) & (u >= 0) & (u < WIDTH) & (v >= 0) & (v < HEIGHT)
+    return inside & (first >= distance - 0.05)
+
+
+@pytest.fixture(scope="module")
+def static_sweep():
+    xyz, t_us, truth, on_mover = _lidar(0.0)
+    frame = _frame(0.0)
+    rgb, coloured = point_colours(xyz, t_us, on_mover, [frame])
+    return xyz, t_us, truth, on_mover, frame, rgb, coloured
+
+
+def test_coloured_points_carry_their_surfaces_colour(static_sweep):
+    xyz, t_us, truth, _, _, rgb, coloured = static_sweep
+    right = np.all(rgb[coloured] == truth[coloured], axis=1)
+    assert coloured.sum() > 5000 and right.mean() >= 0.98, (coloured.sum(), right.mean())
+    assert np.all(rgb[~coloured] == FILL_RGB)
+
+
+def test_points_the_camera_sees_are_coloured(static_sweep):
+    xyz, t_us, _, _, _, _, coloured = static_sweep
+    seen = _seen_by_camera(xyz, t_us)
+    assert seen.sum() > 5000 and coloured[seen].mean() >= 0.90, coloured[seen].mean()
+
+
+def test_hidden_points_never_take_the_occluders_colour(static_sweep):
+    """Wall points the lidar sees behind the parked car, which hides them from the camera."""
+    xyz, t_us, truth, _, _, rgb, coloured = static_sweep
+    hidden_wall = np.all(truth == COLOURS[0], axis=1) & ~_seen_by_camera(xyz, t_us)
+    assert hidden_wall.sum() > 100, hidden_wall.sum()  # the scene does hide some
+    assert not np.any(np.all(rgb[hidden_wall] == COLOURS[1], axis=1))
+    assert not coloured[hidden_wall & (xyz[:, 1] > -3.5) & (xyz[:, 1] < 1.5)].any()
+
+
+def test_no_colour_from_unusable_pixels():
+    xyz, t_us, truth, on_mover = _lidar(0.0)
+    usable = np.ones((HEIGHT, WIDTH), dtype=bool)
+    usable[HEIGHT // 2 :] = False  # an "ego body" over the lower half
+    rgb, coloured = point_colours(xyz, t_us, on_mover, [_frame(0.0, usable)])
+    cam = (xyz - CAMERA_M) @ R_CAMERA_RIG.T
+    lower = (cam[:, 2] > 0.3) & (FOCAL * cam[:, 1] / np.maximum(cam[:, 2], 1e-9) + HEIGHT / 2 >= HEIGHT // 2)
+    assert lower.sum() > 1000 and not coloured[lower].any() and coloured[~lower].any()
+
+
+def test_moving_points_only_from_a_frame_close_in_time():
+    """A sweep spread over 100 ms: points on the moving car (10 m/s) take colour only from a frame
+    within 5 ms of them, and then the car's own colour; static points from the nearest frame."""
+    xyz, t_us, truth, on_mover = _lidar(0.0, spread_s=0.1)
+    car_s = np.median(t_us[on_mover]) * 1e-6  # one frame catches the car, as a camera facing it would
+    frames = [_frame(t) for t in (-0.05, 0.0, car_s)]
+    rgb, coloured = point_colours(xyz, t_us, on_mover, frames)
+    nearest_dt = np.min(np.abs(t_us[:, None] - np.array([f.timestamp_us for f in frames])[None]), axis=1)
+    assert on_mover.sum() > 50 and (on_mover & (nearest_dt > DYNAMIC_DT_US)).any()
+    assert not coloured[on_mover & (nearest_dt > DYNAMIC_DT_US)].any()
+    close = on_mover & coloured
+    assert close.sum() > 10 and np.all(rgb[close] == COLOURS[2], axis=1).mean() >= 0.9
+    static = ~on_mover & coloured
+    assert np.all(rgb[static] == truth[static], axis=1).mean() >= 0.98
