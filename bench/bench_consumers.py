@@ -12,6 +12,8 @@ Not a test. Prints, medians over --repeat runs, measured side by side in one run
   beside dynamic_flag of both units with either rule's dynamic tracks, and their ratios;
 - a whole-log conversion (in this process, no validation) with the default pinhole and with
   ``--camera-model ftheta``, and their ratio;
+- the same log with and without ``--lidar-rgb`` (per-point colours from the cameras), and the
+  colouring's own time;
 - ego-mask estimation on a 15 s log: alone, and the whole command with ``--ego-masks none`` and
   ``estimate``, and the share of the conversion it costs.
 
@@ -169,6 +171,28 @@ def bench_conversion(root: Path, log_id: str, work: Path, repeat: int) -> None:
           f" ftheta {ftheta:.2f} s, ratio {ftheta / pinhole:.3f}", flush=True)  # fmt: skip
 
 
+def bench_lidar_rgb(root: Path, log_id: str, work: Path, repeat: int) -> None:
+    """The 2 s log converted in this process (no validation) without and with ``--lidar-rgb``,
+    interleaved; the colouring's own time from the run's counters."""
+    from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+
+    seconds: dict[bool, list[float]] = {False: [], True: []}
+    colour_s = []
+    for _ in range(repeat):
+        for rgb in seconds:
+            out = work / "consumers-out"
+            shutil.rmtree(out, ignore_errors=True)
+            started = time.perf_counter()
+            summary = convert_log(UPath(root), UPath(out), log_id, Argoverse2Options(split="val", lidar_rgb=rgb))
+            seconds[rgb].append(time.perf_counter() - started)
+            if rgb:
+                colour_s.append(summary.colour_seconds)
+    shutil.rmtree(work / "consumers-out", ignore_errors=True)
+    off, on = statistics.median(seconds[False]), statistics.median(seconds[True])
+    print(f"--lidar-rgb, 2 s AV2 log, 9 cameras at 20 fps, one process (medians of {repeat}): off {off:.2f} s,"
+          f" on {on:.2f} s, ratio {on / off:.3f}; colouring itself {statistics.median(colour_s):.2f} s", flush=True)
+
+
 def bench_ego_masks(work: Path, repeat: int) -> None:
     """Ego-mask estimation on a 15 s synthetic AV2 log (9 cameras at 20 fps): the estimation alone,
     and the whole command with ``--ego-masks none`` and ``estimate`` (2 workers, no validation),
@@ -240,6 +264,7 @@ def main() -> None:
     print("dynamic_flag, real AV2 sample (2 sweeps; annotations over 15.5 s):", end=" ")
     bench_dynamic_flag(Path(str(sample.parent.parent)), sample.name, args.repeat * 4)
     bench_conversion(root, log_id, work, max(1, args.repeat // 2))
+    bench_lidar_rgb(root, log_id, work, max(1, args.repeat // 2))
     bench_ego_masks(work, max(1, args.repeat // 2 + 1))
 
 

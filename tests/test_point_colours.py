@@ -57,8 +57,9 @@ def _frame(time_s: float, usable: np.ndarray | None = None) -> ColourFrame:
     T_world_camera = np.eye(4)
     T_world_camera[:3, :3] = R_CAMERA_RIG
     T_world_camera[:3, 3] = -R_CAMERA_RIG @ CAMERA_M
+    image = colour.reshape(HEIGHT, WIDTH, 3)
     return ColourFrame("cam", round(time_s * 1e6), T_world_camera, (FOCAL, FOCAL), (WIDTH / 2, HEIGHT / 2),
-                       colour.reshape(HEIGHT, WIDTH, 3), usable)  # fmt: skip
+                       (WIDTH, HEIGHT), lambda: image, usable)  # fmt: skip
 
 
 def _lidar(time_s: float, spread_s: float = 0.0) -> tuple[np.ndarray, ...]:
@@ -141,3 +142,16 @@ def test_moving_points_only_from_a_frame_close_in_time():
     assert close.sum() > 10 and np.all(rgb[close] == COLOURS[2], axis=1).mean() >= 0.9
     static = ~on_mover & coloured
     assert np.all(rgb[static] == truth[static], axis=1).mean() >= 0.98
+
+
+def test_frames_no_point_takes_are_not_decoded():
+    """Decoding is most of the cost: a frame nearest to no point is never loaded."""
+    xyz, t_us, _, on_mover = _lidar(0.0)
+    late = _frame(0.0)
+
+    def fail():
+        raise AssertionError("decoded a frame no point takes")
+
+    far = ColourFrame("cam", 1_000_000, late.T_world_camera, late.focal_px, late.centre_px, late.size_px, fail)
+    rgb, coloured = point_colours(xyz, t_us, on_mover, [_frame(0.0), far])
+    assert coloured.sum() > 5000

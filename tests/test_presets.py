@@ -69,12 +69,24 @@ def _world_global(loader) -> np.ndarray:
     return np.asarray(loader.pose_graph.get_edge("world", "world_global").T_source_target, dtype=np.float64)
 
 
-def _dynamic_flags_readable(loader) -> None:
+def _lidar_data_as_3dgrut_reads_it(loader, with_rgb: bool) -> None:
+    """Per lidar frame, as 3DGRUT's ``get_point_clouds`` reads it: the point cloud (return 0,
+    motion-compensated, with start points), ``dynamic_flag`` int8 one per point, and, when present,
+    ``rgb`` of the point cloud's shape, uint8 (coloured where a camera frame is near: the fixture's
+    cameras run at 2 fps)."""
+    coloured = 0
     for unit in UNITS:
         lidar = loader.get_lidar_sensor(unit)
         for i in range(len(lidar.frames_timestamps_us)):
+            pc = lidar.get_frame_point_cloud(i, motion_compensation=True, with_start_points=True, return_index=0)
             flag = lidar.get_frame_generic_data(i, "dynamic_flag")
-            assert flag.dtype == np.int8 and flag.shape == (lidar.get_frame_ray_bundle_count(i),)
+            assert flag.dtype == np.int8 and flag.shape == (len(pc.xyz_m_start),)
+            assert lidar.has_frame_generic_data(i, "rgb") == with_rgb
+            if with_rgb:
+                rgb = lidar.get_frame_generic_data(i, "rgb")
+                assert rgb.dtype == np.uint8 and rgb.shape == pc.xyz_m_start.shape
+                coloured += int(np.any(rgb != 128, axis=1).sum())
+    assert (coloured > 10000) == with_rgb, coloured
 
 
 def _recorded(loader, report, preset: str) -> dict:
@@ -96,9 +108,10 @@ def test_the_3dgrut_and_nurec_presets(source, preset):
         params = loader.get_camera_sensor(c).model_parameters
         assert not np.any(params.radial_coeffs) and not np.any(params.tangential_coeffs)
     np.testing.assert_array_equal(_world_global(loader), np.eye(4))  # the scene at the origin
-    _dynamic_flags_readable(loader)
+    _lidar_data_as_3dgrut_reads_it(loader, with_rgb=True)
     options = _recorded(loader, report, preset)
-    assert (options["camera_model"], options["world_global_mode"]) == ("opencv-pinhole", "identity")
+    assert (options["camera_model"], options["world_global_mode"], options["lidar_rgb"]) == (
+        "opencv-pinhole", "identity", True)  # fmt: skip
 
 
 def test_the_instant_nurec_preset(source):
@@ -119,12 +132,26 @@ def test_the_ncore_preset_is_the_default(source):
     first = source[1].T_ego_city(np.array([min(s.timestamp_ns for s in source[1].sweeps)]))[0]
     assert np.linalg.norm(T[:3, 3]) > 1000.0 and np.linalg.norm(T[:2, 3] - first[:2, 3]) < 20.0  # the city
     assert {o.source for o in loader.get_cuboid_track_observations()} == {LabelSource.EXTERNAL}
+    _lidar_data_as_3dgrut_reads_it(loader, with_rgb=False)
     options = _recorded(loader, report, "ncore")
     assert (options["camera_model"], options["world_global_mode"]) == ("ideal-pinhole", "localized")
 
 
 def test_an_explicit_flag_overrides_the_preset(source):
-    loader, report = _convert(source, "override", "--preset", "3dgut", "--camera-model", "ideal-pinhole")
+    loader, report = _convert(source, "override", "--preset", "3dgut", "--camera-model", "ideal-pinhole",
+                              "--no-lidar-rgb")  # fmt: skip
+    _lidar_data_as_3dgrut_reads_it(loader, with_rgb=False)
     assert _camera_models(loader) == {IdealPinholeCameraModel}  # given explicitly, even at its default value
     np.testing.assert_array_equal(_world_global(loader), np.eye(4))  # the rest of the preset holds
     assert _recorded(loader, report, "3dgut")["camera_model"] == "ideal-pinhole"
+
+
+def test_lidar_rgb_on_opv2v_is_not_written_yet_and_says_so(tmp_path):
+    from ncore_convert.synth import opencood as synth_opencood
+
+    config = synth_opencood.SynthConfig(dataset="opv2v", frames=2, seed=3, lidar_columns=90)
+    (truth,) = synth_opencood.write_dataset(UPath(tmp_path / "src"), config)
+    args = ["--no-progress", "--no-validate", "--root-dir", str(tmp_path / "src"), "--output-dir", str(tmp_path / "out"),
+            "opv2v-v4", "--split", "test", "--preset", "3dgut"]  # fmt: skip
+    result = CliRunner().invoke(cli, args, catch_exceptions=False)
+    assert result.exit_code == 0 and "per-point rgb is not written for OPV2V/V2XSet yet" in result.output

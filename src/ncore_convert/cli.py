@@ -178,6 +178,7 @@ def cli(
       --cuboid-label-source auto|external|gt-synthetic|autolabel
       --seek-sec S --duration-sec D
       --world-global-mode none|identity|localized
+      --lidar-rgb/--no-lidar-rgb
     """
     ctx.obj = GroupOptions(
         root_dir=root_dir,
@@ -250,6 +251,10 @@ def consumer_options(f):
         click.option("--duration-sec", type=click.FloatRange(min=0.0, min_open=True), default=None,
                      show_default="none: to the end",
                      help="Keep this many seconds from the seek point; lidar frames are kept whole or dropped."),
+        click.option("--lidar-rgb/--no-lidar-rgb", default=False, show_default="off",
+                     help="Colour every lidar point from the camera frame nearest its time (occlusion-tested, never"
+                     " from ego pixels): per-point generic data 'rgb', uint8 [N,3], which 3DGRUT seeds its colours"
+                     " from. AV2 and TbV; on OPV2V/V2XSet not yet (a warning says so)."),
         click.option("--world-global-mode", type=click.Choice(get_args(WorldGlobalMode)), default="localized",
                      help="What world -> world_global holds: the dataset's global frame ('localized'), the identity"
                      " (scene at the origin for 3DGRUT), or no world_global node ('none'); the global pose is kept"

@@ -28,11 +28,11 @@ WorldGlobalMode = Literal["none", "identity", "localized"]  #: what ``world -> w
 Preset = Literal["ncore", "3dgut", "3dgrt", "nurec", "instant-nurec"]  #: ``--preset``: a consumer's options
 #: ``--preset`` -> the consumer options it sets (docs/consumers.md says why); explicit flags override
 #: them. ``ncore`` sets nothing: the defaults, which match NCore's own AV2 converter.
-PRESETS: dict[str, dict[str, str]] = {
+PRESETS: dict[str, dict[str, object]] = {
     "ncore": {},
-    "3dgut": {"camera_model": "opencv-pinhole", "world_global_mode": "identity"},
-    "3dgrt": {"camera_model": "opencv-pinhole", "world_global_mode": "identity"},
-    "nurec": {"camera_model": "opencv-pinhole", "world_global_mode": "identity"},
+    "3dgut": {"camera_model": "opencv-pinhole", "world_global_mode": "identity", "lidar_rgb": True},
+    "3dgrt": {"camera_model": "opencv-pinhole", "world_global_mode": "identity", "lidar_rgb": True},
+    "nurec": {"camera_model": "opencv-pinhole", "world_global_mode": "identity", "lidar_rgb": True},
     "instant-nurec": {"camera_model": "ftheta", "cuboid_label_source": "autolabel"},
 }
 
@@ -72,6 +72,7 @@ EGO_MASK_MAX_FRACTION = 0.5
 
 # --- per-frame lidar generic data ---
 DYNAMIC_FLAG = "dynamic_flag"  #: int8 [N]: 1 = the point lies in a dynamic track's box grown by 0.5 m
+LIDAR_RGB = "rgb"  #: uint8 [N,3]: the point's colour from the cameras (3DGRUT's ``lidar_color_generic_data_name``)
 
 # --- keys of sensor metadata ---
 #: sensor metadata: frame key -> why the source frame was not written (unreadable YAML, PCD or image)

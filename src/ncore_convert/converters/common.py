@@ -49,6 +49,7 @@ class ConsumerOptions:
     seek_sec: float | None = None  #: time skipped from the start of the log, s
     duration_sec: float | None = None  #: time kept from there, s (None: to the end)
     world_global_mode: WorldGlobalMode = "localized"
+    lidar_rgb: bool = False  #: per-point ``rgb`` from the cameras on every lidar frame
 
 
 def select_sensors(requested: tuple[str, ...] | None, known: tuple[str, ...], kind: str) -> list[str]:

@@ -175,12 +175,22 @@ def read_jpeg(log_dir: UPath, camera: str, timestamp_ns: int) -> bytes:
 def read_jpeg_grey(log_dir: UPath, camera: str, timestamp_ns: int, reduction: int) -> np.ndarray:
     """One image decoded greyscale at 1/``reduction`` of its size (JPEG DCT scaling: only what that
     size needs is decoded), float32 [h,w] grey levels; SourceError naming the file if it does not decode."""
+    return _decode_reduced(log_dir, camera, timestamp_ns, reduction, "L").astype(np.float32)
+
+
+def read_jpeg_rgb(log_dir: UPath, camera: str, timestamp_ns: int, reduction: int) -> np.ndarray:
+    """One image decoded in colour at 1/``reduction`` of its size, uint8 [h,w,3]; SourceError naming
+    the file if it does not decode."""
+    return _decode_reduced(log_dir, camera, timestamp_ns, reduction, "RGB")
+
+
+def _decode_reduced(log_dir: UPath, camera: str, timestamp_ns: int, reduction: int, mode: str) -> np.ndarray:
     path = image_path(log_dir, camera, timestamp_ns)
     data = read_jpeg(log_dir, camera, timestamp_ns)
     try:
         with PIL.Image.open(io.BytesIO(data)) as image:
-            image.draft("L", (image.width // reduction, image.height // reduction))
-            return np.asarray(image.convert("L"), dtype=np.float32)
+            image.draft(mode, (image.width // reduction, image.height // reduction))
+            return np.asarray(image.convert(mode))
     except (OSError, ValueError, PIL.UnidentifiedImageError) as err:
         raise SourceError(path, f"JPEG does not decode ({err})") from None
 

@@ -20,6 +20,7 @@ with NCore's pixel-corner convention: pixel (i, j) covers [i, i+1) x [j, j+1).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,7 @@ CELL_RAD = np.radians(1.0)  #: depth-buffer cell, as an angle of view
 DEPTH_TOLERANCE = 0.05  #: a point this far behind (relative) its cell's nearest point is still visible ...
 DEPTH_TOLERANCE_M = 0.3  #: ... plus this much
 MIN_DEPTH_M = 0.3  #: points nearer the camera than this are not coloured
+VIEW_MARGIN = 0.5  #: a camera's frames project only the points its middle frame sees, its image grown by this
 
 
 @dataclass(frozen=True)
@@ -41,8 +43,10 @@ class ColourFrame:
         T_world_camera: float64 [4,4], maps world points into the camera frame at the frame's time.
         focal_px, centre_px: (fx, fy) and (cx, cy) of the pinhole at the image's resolution
             (pixel-corner convention).
-        image_rgb: uint8 [H,W,3].
-        usable: bool [H,W], the pixels that show the world (False on the ego body); None: all.
+        size_px: the image's (width, height).
+        load_rgb: returns the image, uint8 [height,width,3]; called only if a point takes its colour
+            from this frame (decoding is most of the cost).
+        usable: bool [height,width], the pixels that show the world (False on the ego body); None: all.
     """
 
     camera_id: str
@@ -50,21 +54,32 @@ class ColourFrame:
     T_world_camera: np.ndarray
     focal_px: tuple[float, float]
     centre_px: tuple[float, float]
-    image_rgb: np.ndarray
+    size_px: tuple[int, int]
+    load_rgb: Callable[[], np.ndarray]
     usable: np.ndarray | None = None
 
 
-def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The points (rows of ``xyz_world_m`` [N,3], all of them: each may hide another) that ``frame``
-    sees: their indices [V] and pixel (column, row) [V] each, int."""
-    h, w = frame.image_rgb.shape[:2]
+def _in_view(frame: ColourFrame, xyz_world_m: np.ndarray, margin: float) -> np.ndarray:
+    """The rows of ``xyz_world_m`` [N,3] in front of ``frame``'s camera that project into its image
+    grown by ``margin`` of its size on every side, int [K]."""
     xyz = xyz_world_m @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
     z = xyz[:, 2]
     ahead = np.flatnonzero(z > MIN_DEPTH_M)
-    u = frame.focal_px[0] * xyz[ahead, 0] / z[ahead] + frame.centre_px[0]
-    v = frame.focal_px[1] * xyz[ahead, 1] / z[ahead] + frame.centre_px[1]
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    rows, cols, lines, depth = ahead[inside], u[inside].astype(np.int64), v[inside].astype(np.int64), z[ahead][inside]
+    (w, h), (fx, fy), (cx, cy) = frame.size_px, frame.focal_px, frame.centre_px
+    u = fx * xyz[ahead, 0] / z[ahead] + cx
+    v = fy * xyz[ahead, 1] / z[ahead] + cy
+    return ahead[(u >= -margin * w) & (u < (1 + margin) * w) & (v >= -margin * h) & (v < (1 + margin) * h)]
+
+
+def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points (rows of ``xyz_world_m`` [N,3], all that may be in view: each may hide another)
+    that ``frame`` sees: their indices [V] and pixel (column, row) [V] each, int."""
+    w, h = frame.size_px
+    rows = _in_view(frame, xyz_world_m, 0.0)
+    xyz = xyz_world_m[rows] @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
+    depth = xyz[:, 2]
+    cols = np.minimum((frame.focal_px[0] * xyz[:, 0] / depth + frame.centre_px[0]).astype(np.int64), w - 1)
+    lines = np.minimum((frame.focal_px[1] * xyz[:, 1] / depth + frame.centre_px[1]).astype(np.int64), h - 1)
     if frame.usable is not None:
         ok = frame.usable[lines, cols]
         rows, cols, lines, depth = rows[ok], cols[ok], lines[ok], depth[ok]
@@ -100,10 +115,13 @@ def point_colours(
         times = np.array([f.timestamp_us for f in own], dtype=np.int64)
         after = np.clip(np.searchsorted(times, t_us), 1, max(1, len(times) - 1))
         nearest = after - 1 if len(times) == 1 else np.where(t_us - times[after - 1] <= times[after] - t_us, after - 1, after)
+        near = _in_view(own[len(own) // 2], xyz_world_m, VIEW_MARGIN)  # once per camera: the frames are close
         for k, frame in enumerate(own):
-            rows, cols, lines = _visible_pixels(frame, xyz_world_m)
+            rows, cols, lines = _visible_pixels(frame, xyz_world_m[near])
+            rows = near[rows]
             dt = np.abs(t_us[rows] - frame.timestamp_us).astype(np.float64)
             take = (nearest[rows] == k) & (dt < best_dt[rows]) & (~dynamic[rows] | (dt <= DYNAMIC_DT_US))
-            rgb[rows[take]] = frame.image_rgb[lines[take], cols[take]]
-            best_dt[rows[take]] = dt[take]
+            if take.any():
+                rgb[rows[take]] = frame.load_rgb()[lines[take], cols[take]]
+                best_dt[rows[take]] = dt[take]
     return rgb, np.isfinite(best_dt)

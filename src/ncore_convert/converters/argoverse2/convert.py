@@ -16,6 +16,7 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters import consumer
+from ncore_convert.converters.argoverse2.colours import SweepColours, rgb_note
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, read_covered_sweep, sweep_ray_bundles
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
@@ -47,6 +48,7 @@ class Counts(Tally):
     maps: int = 0
     lidar_seconds: float = 0.0  #: read + decompensate + write of all sweeps
     dynamic_flag_seconds: float = 0.0  #: of which: dynamic_flag of every frame
+    colour_seconds: float = 0.0  #: of which: per-point rgb of every frame (decoding included)
     camera_seconds: float = 0.0  #: read + write of all images
     warnings: list[str] = field(default_factory=list)
 
@@ -176,21 +178,31 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     calibration = plan.lidar_calibration
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
     boxes = plan.dynamic_boxes
-    flag_meta = {contract.DYNAMIC_FLAG: _dynamic_flag_note(plan)}
+    colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
+    flag_meta = {contract.DYNAMIC_FLAG: _dynamic_flag_note(plan), contract.LIDAR_RGB: _rgb_note(plan)}
     lidars = {  # one metadata dict per lidar: the writer updates it in place
         unit: writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta})
         for unit in plan.lidar_ids
     }
     not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
     source_points = {unit: 0 for unit in lidars}
+    coloured_points = {unit: 0 for unit in lidars}
     for sweep_ns in plan.sweep_timestamps_ns:
         sweep = read_covered_sweep(log_dir, int(sweep_ns), plan.T_rig_world, not plan.options.tbv)
+        xyz_world = sweep_world_points(sweep, plan.T_rig_world)
         flag_started = time.perf_counter()
-        sweep_flags = sweep_dynamic_flags(sweep, plan.T_rig_world, boxes) if boxes is not None else None
+        sweep_flags = None if boxes is None else dynamic_flags(xyz_world, _point_times_us(sweep), boxes)
         result.dynamic_flag_seconds += time.perf_counter() - flag_started
-        for unit, unit_rays in sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig).items():
+        units = sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig)
+        colour_started = time.perf_counter()
+        unit_rgb = None if colours is None else _unit_colours(colours, units, xyz_world, sweep_flags)
+        result.colour_seconds += time.perf_counter() - colour_started
+        for unit, unit_rays in units.items():
             rays = unit_rays.rays
             generic = {} if sweep_flags is None else {contract.DYNAMIC_FLAG: sweep_flags[unit_rays.sweep_rows]}
+            if unit_rgb is not None:
+                generic[contract.LIDAR_RGB], coloured = unit_rgb[unit]
+                coloured_points[unit] += int(coloured.sum())
             frame_meta = {
                 "av2_sweep_timestamp_ns": int(sweep_ns),
                 "points_zero_range": rays.n_zero_range,
@@ -207,7 +219,8 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
         result.sweeps += 1
         progress(1)
     for unit, stream in lidars.items():
-        stream.set_meta({"source_points": source_points[unit], contract.POINTS_NOT_STORED: not_stored[unit]})
+        counts = {"source_points": source_points[unit], contract.POINTS_NOT_STORED: not_stored[unit]}
+        stream.set_meta(counts if colours is None else {**counts, "rgb_coloured_points": coloured_points[unit]})
     if result.points_not_stored:
         result.warnings.append(
             f"{result.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
@@ -215,13 +228,41 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     result.lidar_seconds = time.perf_counter() - started
 
 
-def sweep_dynamic_flags(sweep: av2.Sweep, T_rig_world: Trajectory, boxes: DynamicBoxes) -> np.ndarray:
-    """``dynamic_flag`` of every row of an AV2 sweep (with ``offset_ns``), int8 [N]. AV2's points are
-    motion-compensated to the sweep time, so the sweep's pose places each in ``world`` as it was at
-    its own time (``timestamp_ns + offset_ns``)."""
+def sweep_world_points(sweep: av2.Sweep, T_rig_world: Trajectory) -> np.ndarray:
+    """Every row of an AV2 or TbV sweep in ``world``, float64 [N,3]. The points are motion-compensated
+    to the sweep time, so the sweep's pose places each where it was at its own time."""
     T_sweep_world = T_rig_world.interpolate(T_rig_world.relative_seconds(np.array([sweep.timestamp_ns])))[0]
-    xyz_world = transform_points(T_sweep_world, sweep.xyz_ego_m.astype(np.float64))
-    return dynamic_flags(xyz_world, floor_us(sweep.timestamp_ns + sweep.offset_ns.astype(np.int64)), boxes)
+    return transform_points(T_sweep_world, sweep.xyz_ego_m.astype(np.float64))
+
+
+def _point_times_us(sweep: av2.Sweep) -> np.ndarray:
+    """Each row's own time (AV2's ``timestamp_ns + offset_ns``), µs, int64 [N]."""
+    return floor_us(sweep.timestamp_ns + sweep.offset_ns.astype(np.int64))
+
+
+def sweep_dynamic_flags(sweep: av2.Sweep, T_rig_world: Trajectory, boxes: DynamicBoxes) -> np.ndarray:
+    """``dynamic_flag`` of every row of an AV2 sweep (with ``offset_ns``), int8 [N]."""
+    return dynamic_flags(sweep_world_points(sweep, T_rig_world), _point_times_us(sweep), boxes)
+
+
+def _unit_colours(
+    colours: SweepColours, units: dict, xyz_world: np.ndarray, sweep_flags: np.ndarray | None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Unit -> (``rgb`` uint8 [N,3], coloured bool [N]) of its stored rays: the sweep's units coloured
+    together (each unit's points can hide the other's), at the rays' own times."""
+    rows = np.concatenate([u.sweep_rows for u in units.values()])
+    times_us = np.concatenate([u.rays.timestamp_us.astype(np.int64) for u in units.values()])
+    dynamic = np.zeros(len(rows), bool) if sweep_flags is None else sweep_flags[rows] == 1
+    rgb, coloured = colours.colours(xyz_world[rows], times_us, dynamic)
+    bounds = np.cumsum([0] + [len(u.sweep_rows) for u in units.values()])
+    return {unit: (rgb[a:b], coloured[a:b]) for unit, a, b in zip(units, bounds[:-1], bounds[1:], strict=True)}
+
+
+def _rgb_note(plan: LogPlan) -> str:
+    """What the lidar metadata says of ``rgb`` (written, or why not)."""
+    if not plan.options.lidar_rgb:
+        return "not written (--lidar-rgb is off)"
+    return rgb_note() if plan.camera_ids else "not written: no cameras converted"
 
 
 def _dynamic_flag_note(plan: LogPlan) -> str:

@@ -159,7 +159,8 @@ def _write_sensors(
         meta = {"agent_id": agent.agent_id, "carla_lidar": plan.lidar_specs[agent.agent_id], **agent.lidar_model_meta,
                 "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
                 "mounting": agent.mounts[src.LIDAR],
-                contract.DYNAMIC_FLAG: consumer.dynamic_flag_note(len(plan.dynamic_boxes))}  # fmt: skip
+                contract.DYNAMIC_FLAG: consumer.dynamic_flag_note(len(plan.dynamic_boxes)),
+                contract.LIDAR_RGB: "not written: not implemented for OPV2V/V2XSet yet"}  # fmt: skip
         T_lidar_rig = agent.T_sensor_rig[src.LIDAR]
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
         not_stored = 0

@@ -1,0 +1,79 @@
+"""Per-point ``rgb`` of AV2 and TbV lidar frames (``--lidar-rgb``): the camera frames around each sweep,
+with the cameras' poses at their own times and their ego masks, handed to
+:func:`ncore_convert.transforms.point_colours.point_colours`. Images are decoded in colour at the
+ego-mask estimator's reduction (2048 px -> 512 px), only when a point takes its colour from them,
+and once per log (a small cache carries them to the next sweep)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import PIL.Image
+
+from ncore_convert.converters.argoverse2.masks import reduction
+from ncore_convert.converters.argoverse2.plan import LogPlan
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, FILL_RGB, ColourFrame, point_colours
+from ncore_convert.transforms.timebase import NS_PER_US
+
+#: Camera frames this far (µs) beyond a sweep's first and last point are candidates: a 20 Hz
+#: camera has a frame within 25 ms of any time (TbV's 20 Hz ring cameras too).
+FRAME_MARGIN_US = 30_000
+
+
+def rgb_note() -> str:
+    """What a lidar's metadata says of the ``rgb`` written on its frames."""
+    return (
+        "written: uint8 [N,3] per point, the colour of the camera pixel it projects to in the frame nearest its"
+        f" own time (occlusion by a depth buffer of the sweep's points, never from ego pixels, points on dynamic"
+        f" tracks only from a frame within {DYNAMIC_DT_US / 1000:g} ms); {list(FILL_RGB)} where no camera sees it"
+        " (rgb_coloured_points counts the others)"
+    )
+
+
+class SweepColours:
+    """The cameras of one log as colour sources (see the module docstring)."""
+
+    def __init__(self, plan: LogPlan) -> None:
+        self._plan = plan
+        self._cameras = {}
+        for cam in plan.camera_ids:
+            intr = plan.inputs.intrinsics[cam]
+            k = reduction(intr)
+            size = (-(-intr.width_px // k), -(-intr.height_px // k))  # JPEG DCT scaling rounds up
+            sx, sy = size[0] / intr.width_px, size[1] / intr.height_px
+            mask = plan.ego_masks[cam].image(intr.width_px, intr.height_px) if plan.ego_masks else None
+            usable = None if mask is None else ~(np.asarray(mask.resize(size, PIL.Image.NEAREST)) > 0)
+            self._cameras[cam] = (k, size, (intr.fx_px * sx, intr.fy_px * sy),
+                                  ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy), usable)  # fmt: skip
+        self._decode = lru_cache(maxsize=4 * max(1, len(self._cameras)))(self._read)
+
+    def _read(self, cam: str, timestamp_ns: int) -> np.ndarray:
+        return av2.read_jpeg_rgb(self._plan.inputs.log_dir, cam, timestamp_ns, self._cameras[cam][0])
+
+    def frames(self, t_lo_us: int, t_hi_us: int) -> list[ColourFrame]:
+        """Every camera frame from ``t_lo_us - FRAME_MARGIN_US`` to ``t_hi_us + FRAME_MARGIN_US``."""
+        out = []
+        traj = self._plan.T_rig_world
+        for cam, (_, size, focal, centre, usable) in self._cameras.items():
+            stamps_ns = self._plan.inputs.image_timestamps_ns[cam]
+            lo = np.searchsorted(stamps_ns, (t_lo_us - FRAME_MARGIN_US) * NS_PER_US)
+            hi = np.searchsorted(stamps_ns, (t_hi_us + FRAME_MARGIN_US) * NS_PER_US, side="right")
+            picked = stamps_ns[lo:hi]
+            if not len(picked):
+                continue
+            T_rig_world = traj.interpolate(traj.relative_seconds(picked))
+            T_camera_world = T_rig_world @ self._plan.inputs.T_sensor_ego[cam]
+            for ts, T in zip(picked.tolist(), T_camera_world, strict=True):
+                out.append(ColourFrame(cam, ts // NS_PER_US, invert_se3(T), focal, centre, size,
+                                       lambda cam=cam, ts=ts: self._decode(cam, ts), usable))  # fmt: skip
+        return out
+
+    def colours(self, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:func:`point_colours` of a sweep's points (arguments as there) from the frames around it."""
+        if not len(xyz_world_m):
+            return np.zeros((0, 3), np.uint8), np.zeros(0, bool)
+        t_us = np.asarray(timestamps_us, dtype=np.int64)
+        return point_colours(xyz_world_m, t_us, dynamic, self.frames(int(t_us.min()), int(t_us.max())))
