@@ -254,7 +254,7 @@ def consumer_options(f):
         click.option("--lidar-rgb/--no-lidar-rgb", default=False, show_default="off",
                      help="Colour every lidar point from the camera frame nearest its time (occlusion-tested, never"
                      " from ego pixels): per-point generic data 'rgb', uint8 [N,3], which 3DGRUT seeds its colours"
-                     " from. AV2 and TbV; on OPV2V/V2XSet not yet (a warning says so)."),
+                     " from. AV2, TbV, OPV2V, V2XSet."),
         click.option("--world-global-mode", type=click.Choice(get_args(WorldGlobalMode)), default="localized",
                      help="What world -> world_global holds: the dataset's global frame ('localized'), the identity"
                      " (scene at the origin for 3DGRUT), or no world_global node ('none'); the global pose is kept"

@@ -285,6 +285,12 @@ def read_png(agent_dir: UPath, key: str, index: int) -> bytes:
     return data
 
 
+def decode_png_rgb(data: bytes) -> np.ndarray:
+    """A PNG read by :func:`read_png`, decoded: uint8 [height,width,3]."""
+    with PIL.Image.open(io.BytesIO(data), formats=["PNG"]) as image:
+        return np.asarray(image.convert("RGB"))
+
+
 def read_points(agent_dir: UPath, key: str) -> tuple[np.ndarray, np.ndarray]:
     """A sweep in the CARLA lidar frame (left-handed: x forward, y right, z up).
 

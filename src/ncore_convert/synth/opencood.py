@@ -10,8 +10,10 @@ camera axes (x optical axis, y right, z up). On disk: ``<root>/<split>/<scenario
 The scene: a curved road with CAVs (positive actor ids) and other vehicles driving on it, parked
 vehicles, pillars (static landmarks) and building fronts; V2XSet adds infrastructure units
 (negative ids) with a lidar on a pole and four cameras pitched down 35°. The lidar is a 64-channel
-CARLA ray-cast lidar (all points at the tick). Each camera image carries a red 3x3 marker on the
-pixel where each pillar's centre projects.
+CARLA ray-cast lidar (all points at the tick). The cameras see the same world as the lidar: each
+picture is ray-cast from the scene (flat colours: a checkered ground, a colour per vehicle, red
+pillars, brown buildings, sky), and carries a red 3x3 marker on the pixel where each pillar's centre
+projects.
 """
 
 from __future__ import annotations
@@ -40,7 +42,11 @@ RSU_LIDAR_HEIGHT_M = 4.5
 CAMERA_MOUNTS = ((2.5, 0.0, 1.0, 0.0), (0.0, 0.3, 1.8, 100.0), (0.0, -0.3, 1.8, -100.0), (-2.0, 0.0, 1.5, 180.0))
 RSU_CAMERA_PITCH_DEG = -35.0
 PILLAR_DIMS_M = (0.8, 0.8, 4.0)
-MARKER_RGB = (255, 0, 0)
+MARKER_RGB = (255, 0, 0)  #: the pillars' colour, and their centre markers
+SKY_RGB, BUILDING_RGB, GROUND_RGB = (135, 180, 235), (170, 120, 90), ((90, 90, 90), (150, 150, 130))
+CHECKER_M = 10.0  #: the ground's checker squares
+RENDER_STEP = 2  #: cameras are ray-cast at half their resolution, each ray's colour repeated over 2x2 pixels
+RENDER_RANGE_M = 300.0
 PCD_HEADER = (
     "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\n"
     "COUNT 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n"
@@ -109,8 +115,9 @@ class SynthConfig:
 @dataclass
 class AgentTruth:
     """Per frame key: CARLA lidar pose [6], the actor id hit by each stored point (-1 ground,
-    -2 pillar, -3 building), the stored intensity (uint8) and the marker pixels
-    {camera index: {pillar index: (u, v)}}. Point arrays only with ``keep_truth``."""
+    -2 pillar, -3 building), the stored intensity (uint8), the true colour of each point's surface
+    (:func:`surface_rgb`, uint8 [N,3]) and the marker pixels {camera index: {pillar index: (u, v)}}.
+    Point arrays only with ``keep_truth``."""
 
     agent_id: str
     lidar_pose: dict[str, list[float]] = field(default_factory=dict)
@@ -118,6 +125,7 @@ class AgentTruth:
     intensity_u8: dict[str, np.ndarray] = field(default_factory=dict)
     n_points: dict[str, int] = field(default_factory=dict)
     markers: dict[str, dict[int, dict[int, tuple[float, float]]]] = field(default_factory=dict)
+    point_rgb: dict[str, np.ndarray] = field(default_factory=dict)  #: the true colour of each point's surface
 
 
 @dataclass
@@ -199,16 +207,40 @@ def _lidar_rays(block: dict, dt: float) -> np.ndarray:
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
 
 
-def _png(camera_index: int, pixels: list[tuple[float, float]]) -> bytes:
-    """An 800x600 RGB image: a gradient per camera, with a red 3x3 marker on each pixel in ``pixels``."""
-    rows = np.linspace(40, 200, HEIGHT, dtype=np.float32)[:, None]
-    cols = np.linspace(0, 60, WIDTH, dtype=np.float32)[None, :]
-    image = np.empty((HEIGHT, WIDTH, 3), dtype=np.uint8)
-    image[..., 0] = 0
-    image[..., 1] = (rows * 0.5 + cols).astype(np.uint8)
-    image[..., 2] = (rows + 30 * camera_index).clip(0, 255).astype(np.uint8)
-    for u, v in pixels:
-        c, r = int(np.floor(u)), int(np.floor(v))
+def surface_rgb(kind: np.ndarray, xyz_world_m: np.ndarray) -> np.ndarray:
+    """The flat colour of the surface at each hit, uint8 [N,3]: ``kind`` is the actor id hit (>= 0),
+    -1 ground (a checker of ``CHECKER_M`` squares), -2 pillar, -3 building, -4 nothing (sky);
+    ``xyz_world_m`` [N,3] the hit in CARLA's world."""
+    rgb = np.tile(np.array(SKY_RGB, np.uint8), (len(kind), 1))
+    ground = kind == -1
+    square = (np.floor(xyz_world_m[ground, 0] / CHECKER_M) + np.floor(xyz_world_m[ground, 1] / CHECKER_M)).astype(int)
+    rgb[ground] = np.array(GROUND_RGB, np.uint8)[square % 2]
+    rgb[kind == -2] = MARKER_RGB
+    rgb[kind == -3] = BUILDING_RGB
+    for actor in np.unique(kind[kind >= 0]):
+        rgb[kind == actor] = np.random.default_rng(int(actor)).integers(30, 230, 3)
+    return rgb
+
+
+def _render_png(scene: Scene, lookup: np.ndarray, T_cam_world: np.ndarray, pixels: list[tuple[float, float]]) -> bytes:
+    """An 800x600 picture of ``scene`` from the CARLA camera ``T_cam_world`` (UE4 axes), flat-shaded
+    with :func:`surface_rgb` (``lookup``: scene box index -> kind, its last entry the ground),
+    ray-cast at 1/``RENDER_STEP`` resolution through the pixel centres and repeated to full size;
+    with a red 3x3 marker on each pixel in ``pixels``."""
+    cols = (np.arange(WIDTH // RENDER_STEP) + 0.5) * RENDER_STEP
+    rows = (np.arange(HEIGHT // RENDER_STEP) + 0.5) * RENDER_STEP
+    u, v = np.meshgrid(cols, rows)
+    d_cam = np.stack([np.ones_like(u), (u - WIDTH / 2) / FOCAL_PX, -(v - HEIGHT / 2) / FOCAL_PX], -1).reshape(-1, 3)
+    d_world = d_cam @ T_cam_world[:3, :3].T
+    d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)
+    origins = np.broadcast_to(T_cam_world[:3, 3], d_world.shape)
+    distance, _, index = cast_rays(origins, d_world, np.zeros(len(d_world)), scene, RENDER_RANGE_M, ground_z_m=0.0)
+    kind = np.where(np.isfinite(distance), lookup[index], -4)
+    hit = origins + d_world * np.where(np.isfinite(distance), distance, 0.0)[:, None]
+    small = surface_rgb(kind, hit).reshape(len(rows), len(cols), 3)
+    image = np.repeat(np.repeat(small, RENDER_STEP, axis=0), RENDER_STEP, axis=1)
+    for uu, vv in pixels:
+        c, r = int(np.floor(uu)), int(np.floor(vv))
         image[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] = MARKER_RGB
     out = io.BytesIO()
     PIL.Image.fromarray(image).save(out, format="PNG", compress_level=1)
@@ -258,7 +290,9 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
     for j in range(config.cavs, config.cavs + 12):
         moving = j % 3 != 0
         extent = (float(rng.uniform(2.0, 2.6)), float(rng.uniform(0.9, 1.1)), float(rng.uniform(0.7, 0.9)))
-        lane = float(rng.choice([-1.75, 0.0, 1.75])) if moving else float(rng.choice([-5.0, 6.5]))
+        # moving traffic keeps to the lanes beside the CAVs' (0 and 1.75 m): a vehicle driving through a
+        # CAV would hold its cameras inside a box, seeing through it while its lidar does not
+        lane = float(rng.choice([-1.75, -3.5])) if moving else float(rng.choice([-5.0, 6.5]))
         others.append(_Actor(ids[j], lane, float(rng.uniform(-60, 80)), float(rng.uniform(4, 12)) if moving else 0.0,
                              extent, (0.0, 0.0, extent[2]), int(rng.integers(20, 250))))  # fmt: skip
     pillars, buildings = [], []
@@ -355,7 +389,7 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                 inside = front & (uv[:, 0] >= 1) & (uv[:, 0] < WIDTH - 1) & (uv[:, 1] >= 1) & (uv[:, 1] < HEIGHT - 1)
                 markers[index_cam] = {int(p): (float(uv[p, 0]), float(uv[p, 1])) for p in np.flatnonzero(inside)}
                 (scenario_dir / agent_id / f"{key}_camera{index_cam}.png").write_bytes(
-                    _png(index_cam, list(markers[index_cam].values()))
+                    _render_png(scene, lookup, T_cam_world, list(markers[index_cam].values()))
                 )
                 extrinsic = np.linalg.inv(T_cam_world) @ T_lidar_world
                 frame[f"camera{index_cam}"] = {"cords": carla_pose_list(T_cam_world), "intrinsic": [list(r) for r in K],
@@ -368,6 +402,8 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             if config.keep_truth:
                 agent_truth.hit_actor[key] = hit_actor
                 agent_truth.intensity_u8[key] = intensity
+                agent_truth.point_rgb[key] = surface_rgb(hit_actor, xyz.astype(np.float64) @ T_lidar_world[:3, :3].T
+                                                         + T_lidar_world[:3, 3])  # fmt: skip
     return truth
 
 

@@ -6,9 +6,11 @@ Each point takes the colour of the camera pixel it projects to:
   the frame's time (the point is where the lidar saw it; a static point is still there);
 - only where the pixel shows the world (not the ``ego`` body: ``usable``);
 - only if nothing nearer hides it: a depth buffer of the frame's projected points, kept per cell of
-  ``CELL_RAD`` of view angle (wider than the lidar's spacing between scan lines, so an occluder's
-  points cover every cell it hides), where a point is visible when it is at most ``DEPTH_TOLERANCE``
-  (relative, plus ``DEPTH_TOLERANCE_M``) behind the nearest point of its cell;
+  ``CELL_RAD`` of view angle high and half that wide (more than a lidar's spacing between scan
+  lines and between its columns, so an occluder's points fall in every cell it hides), where a point
+  is visible when it is at most ``DEPTH_TOLERANCE`` (relative, plus ``DEPTH_TOLERANCE_M``) behind
+  the nearest point of its cell and of the cells left and right of it (the pixels at a silhouette
+  show the occluder up to a cell beyond its last points);
 - for points on dynamic objects (``dynamic``), only from a frame within ``DYNAMIC_DT_US`` of the
   point: the object moves, the pixel shows where it was then;
 - of the cameras that see a point, the one whose frame is nearest in time.
@@ -27,7 +29,7 @@ import numpy as np
 
 FILL_RGB = (128, 128, 128)  #: the colour of a point no camera sees: neutral grey
 DYNAMIC_DT_US = 5_000  #: a point on a moving object takes colour only from a frame this close in time
-CELL_RAD = np.radians(1.0)  #: depth-buffer cell, as an angle of view
+CELL_RAD = np.radians(1.0)  #: depth-buffer cell, as an angle of view: its height; its width is half that
 DEPTH_TOLERANCE = 0.05  #: a point this far behind (relative) its cell's nearest point is still visible ...
 DEPTH_TOLERANCE_M = 0.3  #: ... plus this much
 MIN_DEPTH_M = 0.3  #: points nearer the camera than this are not coloured
@@ -83,12 +85,29 @@ def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.nda
     if frame.usable is not None:
         ok = frame.usable[lines, cols]
         rows, cols, lines, depth = rows[ok], cols[ok], lines[ok], depth[ok]
-    cell_px = max(1, int(round(CELL_RAD * max(frame.focal_px))))
-    cell_w = -(-w // cell_px)
-    cells = (lines // cell_px) * cell_w + cols // cell_px
-    nearest = np.full((-(-h // cell_px)) * cell_w, np.inf)
-    np.minimum.at(nearest, cells, depth)
-    seen = depth <= nearest[cells] * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
+    cell_h = max(1, int(round(CELL_RAD * frame.focal_px[1])))
+    cell_w = max(1, int(round(CELL_RAD / 2 * frame.focal_px[0])))
+    n_cols = -(-w // cell_w) + 2  # a column either side
+    cell_r, cell_c = lines // cell_h + 1, cols // cell_w + 1  # and a row above
+    cells = cell_r * n_cols + cell_c
+    grid = np.full((-(-h // cell_h) + 1) * n_cols, np.inf)
+    np.minimum.at(grid, cells, depth)
+    # What can hide a point lies above it in the picture or level with it (a nearer point below it is
+    # the ground in front of it): the nearest point at or above its row in its own cell and in the
+    # cells left and right of it (the pixels at a silhouette show the occluder up to a cell beyond
+    # its last points), and of the whole cell above
+    order = np.lexsort((lines, cells))
+    key = cells[order] * (h + 1) + lines[order]
+    big = 2.0 * (float(depth.max()) + 1.0) if len(depth) else 1.0
+    running = np.minimum.accumulate(depth[order] - cells[order] * big) + cells[order] * big  # per cell, down to a row
+
+    def at_or_above(cell: np.ndarray) -> np.ndarray:
+        i = np.searchsorted(key, cell * (h + 1) + lines, side="right") - 1
+        found = (i >= 0) & (cells[order][np.maximum(i, 0)] == cell)
+        return np.where(found, running[np.maximum(i, 0)], np.inf)
+
+    nearest = np.minimum.reduce([at_or_above(cells), at_or_above(cells - 1), at_or_above(cells + 1), grid[cells - n_cols]])
+    seen = depth <= nearest * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
     return rows[seen], cols[seen], lines[seen]
 
 

@@ -31,6 +31,7 @@ from ncore_convert.transforms.carla_lidar import assign_elements
 from ncore_convert.transforms.dynamic import dynamic_flags
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3, transform_points
 from ncore_convert.transforms.lidar import ray_bundle
+from ncore_convert.transforms.point_colours import FILL_RGB, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 from ncore_convert.writer import Cuboids, SequenceWriter, write_scenario_manifest, write_sequence_meta
 
@@ -151,6 +152,37 @@ def _write_base(
         writer.store_lidar_model(names.sensor(src.LIDAR), agent.lidar_model)
 
 
+def _rgb_note(plan: ScenarioPlan, agent: AgentPlan) -> str:
+    """What a lidar's metadata says of ``rgb`` (written, or why not)."""
+    if not plan.options.lidar_rgb:
+        return "not written (--lidar-rgb is off)"
+    if not agent.camera_ids:
+        return "not written: no cameras converted"
+    return (
+        "written: uint8 [N,3] per point, the colour of the pixel it projects to in the agent's own cameras at the"
+        f" same tick (occlusion by a depth buffer of the frame's points); {list(FILL_RGB)} where no camera sees it"
+        " (rgb_coloured_points counts the others)"
+    )
+
+
+def _colour_frames(agent: AgentPlan, frame: int, key: str, t_us: int) -> list[ColourFrame]:
+    """The agent's camera images of tick ``key`` (frame index ``frame``) as colour sources: every
+    point and picture of a CARLA tick is taken at the tick. An unreadable image is left out (the
+    camera stream reports it)."""
+    out = []
+    for cam in agent.camera_ids:
+        try:
+            data = src.read_png(agent.agent_dir, key, agent.camera_index[cam])
+        except SourceError:
+            continue
+        pinhole = agent.cameras[cam].pinhole
+        T_camera_world_global = agent.T_rig_world_global[frame] @ agent.T_sensor_rig[cam]
+        out.append(ColourFrame(cam, t_us, invert_se3(T_camera_world_global), pinhole.focal_length_px,
+                               pinhole.principal_point_px, pinhole.resolution_px,
+                               lambda data=data: src.decode_png_rgb(data)))  # fmt: skip
+    return out
+
+
 def _write_sensors(
     writer: SequenceWriter, plan: ScenarioPlan, agent: AgentPlan, names: Names, counts: Counts, progress: Progress
 ) -> None:
@@ -160,10 +192,10 @@ def _write_sensors(
                 "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
                 "mounting": agent.mounts[src.LIDAR],
                 contract.DYNAMIC_FLAG: consumer.dynamic_flag_note(len(plan.dynamic_boxes)),
-                contract.LIDAR_RGB: "not written: not implemented for OPV2V/V2XSet yet"}  # fmt: skip
+                contract.LIDAR_RGB: _rgb_note(plan, agent)}  # fmt: skip
         T_lidar_rig = agent.T_sensor_rig[src.LIDAR]
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
-        not_stored = 0
+        not_stored = coloured_points = 0
         skipped = dict(agent.skipped_keys)
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
@@ -176,21 +208,27 @@ def _write_sensors(
             xyz = carla.points_right_handed(xyz_carla.astype(np.float64))
             rays = ray_bundle(xyz, np.full(len(xyz), int(t_us) * NS_PER_US, dtype=np.int64), intensity_u8, int(t_us))
             T_lidar_world_global = agent.T_rig_world_global[frame] @ T_lidar_rig
-            flags = dynamic_flags(
-                transform_points(T_lidar_world_global, xyz[rays.source_index]), rays.timestamp_us, plan.dynamic_boxes
-            )
+            xyz_world_global = transform_points(T_lidar_world_global, xyz[rays.source_index])
+            flags = dynamic_flags(xyz_world_global, rays.timestamp_us, plan.dynamic_boxes)
+            generic = {contract.DYNAMIC_FLAG: flags}
+            if plan.options.lidar_rgb and agent.camera_ids:
+                frames = _colour_frames(agent, frame, key, int(t_us))
+                generic[contract.LIDAR_RGB], coloured = point_colours(xyz_world_global, rays.timestamp_us, flags == 1,
+                                                                      frames)  # fmt: skip
+                coloured_points += int(coloured.sum())
             elements = None if agent.lidar_model is None else assign_elements(agent.lidar_model, rays.direction)
             lidar.store_frame(
                 rays,
                 {"carla_frame": int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite},
                 model_element=elements,
-                generic_data={contract.DYNAMIC_FLAG: flags},
+                generic_data=generic,
             )
             counts.frames += 1
             counts.points += len(rays)
             not_stored += rays.n_zero_range + rays.n_non_finite
             progress(1)
-        lidar.set_meta({**meta, contract.SKIPPED_FRAMES: skipped})
+        lidar.set_meta({**meta, contract.SKIPPED_FRAMES: skipped, **(
+            {"rgb_coloured_points": coloured_points} if plan.options.lidar_rgb and agent.camera_ids else {})})
         counts.points_not_stored += not_stored
         if not_stored:
             counts.warnings.append(

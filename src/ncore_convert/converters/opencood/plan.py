@@ -297,8 +297,6 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     if not all_keys:
         raise SourceError(scenario_dir, "no frame YAMLs (<key>.yaml) in any agent folder")
     warnings: list[str] = []
-    if options.lidar_rgb:
-        warnings.append(f"{scenario_dir}: --lidar-rgb: per-point rgb is not written for OPV2V/V2XSet yet; no rgb")
     steps = np.diff([int(k) for k in all_keys])
     if len(steps) and np.any(steps != np.median(steps)):
         warnings.append(f"{scenario_dir}: frame keys do not step uniformly (steps {sorted(set(steps.tolist()))})")
