@@ -605,6 +605,10 @@ def synth():
 
 def synth_camera_options(f):
     """The camera-picture options of ``synth argoverse2`` and ``synth tbv``."""
+    f = click.option("--world", type=click.Choice(["pattern", "render"]), default="pattern", show_default=True,
+                     help="The pictures: a few textured pictures per camera, cycled (cheap); or each picture ray-cast"
+                     " from the scene the lidar sees at its own time, flat-shaded (one world: lidar colours can be"
+                     " checked against it; ~0.3 s per picture).")(f)
     f = click.option("--ego-body", type=click.Choice(["realistic", "easy"]), default="realistic", show_default=True,
                      help="The ego body in the cameras that see it: glossy paint with reflections, lighting changes,"
                      " markings, glare and camouflaged silhouette stretches; or still paint under ±5 % light.")(f)
@@ -629,13 +633,13 @@ def synth_camera_options(f):
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )
 @synth_camera_options
-def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, parked_fraction, ego_body):
+def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, parked_fraction, ego_body, world):
     """A synthetic Argoverse 2 Sensor log: real schemas, two simulated VLP-32C units, cameras (with the
     ego body in five of them), cuboids."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     config = SynthConfig(seconds=seconds, seed=seed, swap_lidar_halves=swap_lidar_halves, camera_fps=camera_fps,
-                         parked_fraction=parked_fraction, ego_body=ego_body)  # fmt: skip
+                         parked_fraction=parked_fraction, ego_body=ego_body, world=world)  # fmt: skip
     truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
@@ -655,13 +659,13 @@ def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, park
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )
 @synth_camera_options
-def synth_tbv(out_dir, seconds, seed, camera_fps, parked_fraction, ego_body):
+def synth_tbv(out_dir, seconds, seed, camera_fps, parked_fraction, ego_body, world):
     """A synthetic TbV log: flat layout, no offset_ns, 7 ring cameras (6 at half resolution; the ego body
     in three), no annotations."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     config = SynthConfig(seconds=seconds, seed=seed, camera_fps=camera_fps, tbv=True, parked_fraction=parked_fraction,
-                         ego_body=ego_body)  # fmt: skip
+                         ego_body=ego_body, world=world)  # fmt: skip
     truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"

@@ -12,11 +12,13 @@ A TbV log (``SynthConfig.tbv``) has TbV's differences: a TbV-style log id, no of
 
 from __future__ import annotations
 
+import io
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
+import PIL.Image
 import pyarrow as pa
 import pyarrow.feather as feather
 from scipy.spatial.transform import Rotation
@@ -26,7 +28,7 @@ from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.ego import EGO_CAMERAS, true_mask
 from ncore_convert.synth.ego import pictures as ego_pictures
 from ncore_convert.synth.maps import write_map
-from ncore_convert.synth.scene import Box, Scene, cast_rays, make_scene
+from ncore_convert.synth.scene import Box, Scene, cast_rays, make_scene, surface_rgb
 from ncore_convert.transforms import vlp32c
 from ncore_convert.transforms.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
 
@@ -79,6 +81,10 @@ class SynthConfig:
     #: how the ego body is rendered: ``realistic`` (reflections, lighting, markings, glare,
     #: camouflaged silhouette) or ``easy`` (still paint under ±5 % light); see ``synth.ego``
     ego_body: str = "realistic"
+    #: the cameras' pictures: ``pattern`` (a few textured pictures per camera, cycled: cheap) or
+    #: ``render`` (each picture ray-cast from the scene the lidar sees at its own time, flat-shaded,
+    #: the ego body painted flat: one world, ~0.2 s per picture)
+    world: str = "pattern"
 
     @property
     def cameras(self) -> tuple[str, ...]:
@@ -118,6 +124,8 @@ class SynthTruth:
     image_paths: list[UPath] = field(default_factory=list)
     n_cuboids: int = 0
     ego_masks: dict[str, np.ndarray] = field(default_factory=dict)  #: camera -> true ego pixels, bool [H,W]
+    #: camera -> (focal length, cx, cy) in px, AV2's convention (pixel centres at integers)
+    intrinsics: dict[str, tuple[float, float, float]] = field(default_factory=dict)
 
     @property
     def n_images(self) -> int:
@@ -203,6 +211,50 @@ def _unique_jpeg(template: bytes, comment: str) -> bytes:
     """Make a template unique per frame by inserting a JPEG comment (COM) segment after SOI."""
     payload = comment.encode()
     return template[:2] + b"\xff\xfe" + (len(payload) + 2).to_bytes(2, "big") + payload + template[2:]
+
+
+RENDER_STEP = 4  #: rendered pictures are ray-cast at 1/4 of their size, each ray's colour over 4x4 pixels
+BODY_RGB = (60, 60, 70)  #: the ego body in rendered pictures
+
+
+def render_picture(scene: Scene, T_camera_city: np.ndarray, intrinsics: tuple[float, float, float],
+                   size: tuple[int, int], t_s: float) -> np.ndarray:  # fmt: skip
+    """The camera's picture of the scene at ``t_s`` (moving boxes where they are then), ray-cast
+    through the centre of every ``RENDER_STEP`` x ``RENDER_STEP`` block, flat-shaded with
+    :func:`synth.scene.surface_rgb`; uint8 [height,width,3]. ``T_camera_city`` maps the (OpenCV)
+    camera frame into the city."""
+    f, cx, cy = intrinsics
+    width, height = size
+    u, v = np.meshgrid(np.arange(0, width, RENDER_STEP) + (RENDER_STEP - 1) / 2,
+                       np.arange(0, height, RENDER_STEP) + (RENDER_STEP - 1) / 2)  # fmt: skip
+    d = np.stack([(u - cx) / f, (v - cy) / f, np.ones_like(u)], -1).reshape(-1, 3) @ T_camera_city[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    origins = np.broadcast_to(T_camera_city[:3, 3], d.shape)
+    distance, _, box = cast_rays(origins, d, np.full(len(d), t_s), scene, MAX_RANGE_M)
+    hit = np.isfinite(distance)
+    rgb = surface_rgb(scene, box, origins + d * np.where(hit, distance, 0.0)[:, None], hit).reshape(*u.shape, 3)
+    return np.repeat(np.repeat(rgb, RENDER_STEP, axis=0), RENDER_STEP, axis=1)[:height, :width]
+
+
+def _write_rendered_images(truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, config: SynthConfig) -> None:
+    """Every camera's pictures rendered from the scene at their own times (``world="render"``),
+    with the ego body painted flat where the camera sees it."""
+    step = max(1, int(round(20.0 / config.camera_fps)))
+    for cam, stamps in cam_ns.items():
+        _, width, height = cams[cam]
+        for i, ts in enumerate(stamps[::step]):
+            t_s = (int(ts) - truth.t0_ns) * 1e-9
+            T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
+            rgb = render_picture(truth.scene, T_camera_city, truth.intrinsics[cam], (width, height), t_s)
+            if cam in truth.ego_masks:
+                rgb[truth.ego_masks[cam]] = BODY_RGB
+            path = av2.image_path(truth.log_dir, cam, int(ts))
+            if i == 0:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            out = io.BytesIO()
+            PIL.Image.fromarray(rgb).save(out, format="JPEG", quality=92)
+            path.write_bytes(out.getvalue())
+            truth.image_paths.append(path)
 
 
 def simulate_unit(
@@ -304,6 +356,7 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     cx_px = [cams[c][1] / 2 + rng.uniform(-4, 4) for c in config.cameras]
     cy_px = [cams[c][2] / 2 + rng.uniform(-4, 4) for c in config.cameras]
     for c, cx, cy in zip(config.cameras, cx_px, cy_px, strict=True):
+        truth.intrinsics[c] = (cams[c][0], cx, cy)
         if c in EGO_CAMERAS:
             truth.ego_masks[c] = true_mask(c, T_sensor_ego[c], cams[c][0], cx, cy, cams[c][1], cams[c][2])
     write_feather_table(
@@ -411,6 +464,9 @@ def _write_images(
     """Every camera's images: a few pictures per camera (``synth.ego.pictures``: the world changing,
     the ego body where the camera sees it) cycled in order, each made unique by a JPEG comment; in
     the parked part of the log (``config.parked_fraction``) always the first picture."""
+    if config.world == "render":
+        _write_rendered_images(truth, cam_ns, cams, config)
+        return
     parked_all = config.parked_fraction >= 1.0
     shared: dict[tuple[int, int], list[bytes]] = {}  # cameras without the body share pictures per size
     parked_until_ns = truth.t0_ns + int(config.parked_fraction * config.seconds * 1e9)

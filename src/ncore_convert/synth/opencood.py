@@ -19,7 +19,7 @@ projects.
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import PIL.Image
@@ -47,6 +47,7 @@ SKY_RGB, BUILDING_RGB, GROUND_RGB = (135, 180, 235), (170, 120, 90), ((90, 90, 9
 CHECKER_M = 10.0  #: the ground's checker squares
 RENDER_STEP = 2  #: cameras are ray-cast at half their resolution, each ray's colour repeated over 2x2 pixels
 RENDER_RANGE_M = 300.0
+CAV_CLEARANCE_M = 7.0  #: along the lane, no other vehicle's centre comes nearer a CAV's than this
 PCD_HEADER = (
     "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\n"
     "COUNT 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n"
@@ -207,6 +208,19 @@ def _lidar_rays(block: dict, dt: float) -> np.ndarray:
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
 
 
+def _clear_of_cavs(others: list[_Actor], cavs: list[_Actor], span_s: float) -> list[_Actor]:
+    """``others`` with every vehicle that would drive through a CAV during the scenario moved to the
+    lane left of the CAVs': a CAV's cameras inside another vehicle's box would see through it, while
+    its lidar does not."""
+    t_s = np.linspace(0.0, span_s, 50)
+
+    def through_a_cav(act: _Actor) -> bool:
+        return any(act.lane_m == cav.lane_m and np.min(np.abs(act.start_m - cav.start_m + (act.speed_mps - cav.speed_mps)
+                   * t_s)) < CAV_CLEARANCE_M for cav in cavs)  # fmt: skip
+
+    return [replace(act, lane_m=-1.75) if act.speed_mps and through_a_cav(act) else act for act in others]
+
+
 def surface_rgb(kind: np.ndarray, xyz_world_m: np.ndarray) -> np.ndarray:
     """The flat colour of the surface at each hit, uint8 [N,3]: ``kind`` is the actor id hit (>= 0),
     -1 ground (a checker of ``CHECKER_M`` squares), -2 pillar, -3 building, -4 nothing (sky);
@@ -290,11 +304,10 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
     for j in range(config.cavs, config.cavs + 12):
         moving = j % 3 != 0
         extent = (float(rng.uniform(2.0, 2.6)), float(rng.uniform(0.9, 1.1)), float(rng.uniform(0.7, 0.9)))
-        # moving traffic keeps to the lanes beside the CAVs' (0 and 1.75 m): a vehicle driving through a
-        # CAV would hold its cameras inside a box, seeing through it while its lidar does not
-        lane = float(rng.choice([-1.75, -3.5])) if moving else float(rng.choice([-5.0, 6.5]))
+        lane = float(rng.choice([-1.75, 0.0, 1.75])) if moving else float(rng.choice([-5.0, 6.5]))
         others.append(_Actor(ids[j], lane, float(rng.uniform(-60, 80)), float(rng.uniform(4, 12)) if moving else 0.0,
                              extent, (0.0, 0.0, extent[2]), int(rng.integers(20, 250))))  # fmt: skip
+    others = _clear_of_cavs(others, cavs, config.frames * config.key_step * config.fixed_delta_seconds)
     pillars, buildings = [], []
     for s in np.arange(-40.0, 80.0, 9.0):
         for side in (-1, 1):

@@ -266,6 +266,30 @@ def _rays_towards(azimuth_sorted: np.ndarray, order: np.ndarray, offset_m: np.nd
                            for a, b in parts])  # fmt: skip
 
 
+SKY_RGB, BUILDING_RGB = (135, 180, 235), (170, 120, 90)
+GROUND_RGB = ((90, 90, 90), (150, 150, 130))
+CHECKER_M = 10.0  #: the ground's checker squares
+
+
+def surface_rgb(scene: Scene, box_index: np.ndarray, xyz_m: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """The flat colour of the surface at each ray's hit, uint8 [N,3]: the sky where nothing is hit,
+    the ground checkered in ``CHECKER_M`` squares of the scene's x, y, buildings brown, every other
+    box a colour of its own (drawn from its index).
+
+    Args:
+        box_index: the hit box (index into ``scene.boxes``; -1 ground), int [N]; xyz_m: the hit
+            [N,3]; hit: whether anything was hit, bool [N].
+    """
+    rgb = np.tile(np.array(SKY_RGB, np.uint8), (len(box_index), 1))
+    ground = hit & (box_index < 0)
+    square = (np.floor(xyz_m[ground, 0] / CHECKER_M) + np.floor(xyz_m[ground, 1] / CHECKER_M)).astype(int)
+    rgb[ground] = np.array(GROUND_RGB, np.uint8)[square % 2]
+    for b in np.unique(box_index[hit & (box_index >= 0)]):
+        own = hit & (box_index == b)
+        rgb[own] = BUILDING_RGB if scene.boxes[b].category == "BUILDING" else np.random.default_rng(int(b)).integers(30, 230, 3)
+    return rgb
+
+
 def cast_rays(
     origins_m: np.ndarray,
     directions: np.ndarray,

@@ -9,8 +9,9 @@ Each point takes the colour of the camera pixel it projects to:
   ``CELL_RAD`` of view angle high and half that wide (more than a lidar's spacing between scan
   lines and between its columns, so an occluder's points fall in every cell it hides), where a point
   is visible when it is at most ``DEPTH_TOLERANCE`` (relative, plus ``DEPTH_TOLERANCE_M``) behind
-  the nearest point of its cell and of the cells left and right of it (the pixels at a silhouette
-  show the occluder up to a cell beyond its last points);
+  the nearest point at or above its row in its cell and the cells left and right of it (the pixels
+  at a silhouette show the occluder up to a cell beyond its last points) and in the whole cell
+  above (the ground in front of a point lies below it in the picture and does not hide it);
 - for points on dynamic objects (``dynamic``), only from a frame within ``DYNAMIC_DT_US`` of the
   point: the object moves, the pixel shows where it was then;
 - of the cameras that see a point, the one whose frame is nearest in time.
