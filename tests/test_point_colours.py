@@ -157,6 +157,53 @@ def test_frames_no_point_takes_are_not_decoded():
     assert coloured.sum() > 5000
 
 
+def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
+    """A car right in front of a low camera, with the lidar 3 m behind and 1.2 m above the camera
+    (OPV2V's front camera and roof lidar): the lidar sees the wall over the car's roof, but hardly
+    any of the car's back, which fills the camera's picture. Only the car's labelled box
+    (``ColourFrame.solids``) tells that the wall behind it is hidden."""
+    from dataclasses import replace
+
+    from ncore_convert.synth.scene import render, surface_rgb
+
+    camera_m, lidar_m = np.array([0.0, 0.0, 1.0]), np.array([-3.0, 0.0, 2.2])
+    car = _box((3.2, 0.0, 0.75), (4.0, 1.9, 1.5))
+    scene = Scene(None, [_box((30.0, 0.0, 4.0), (1.0, 40.0, 8.0), category="BUILDING"), car])
+    box_rgb = np.array([COLOURS[0], COLOURS[1]], np.uint8)
+    T_camera_scene = np.eye(4)
+    T_camera_scene[:3, :3], T_camera_scene[:3, 3] = R_CAMERA_RIG.T, camera_m
+    image, _ = render(scene, box_rgb, T_camera_scene, (FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT), 1,
+                      ground_z_m=GROUND_Z)  # fmt: skip
+    az, el = np.meshgrid(np.radians(np.arange(-40.0, 40.0, 0.2)), np.radians(np.linspace(-25.0, 5.0, 64)))
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+    distance, _, box = cast_rays(np.tile(lidar_m, (len(d), 1)), d, np.zeros(len(d)), scene, 200.0, GROUND_Z)
+    hit = np.isfinite(distance)
+    xyz = lidar_m + d[hit] * distance[hit, None]
+    truth = surface_rgb(box_rgb, box[hit], xyz, np.ones(hit.sum(), bool))
+    ray = xyz - camera_m
+    first, _, _ = cast_rays(np.tile(camera_m, (len(xyz), 1)), ray / np.linalg.norm(ray, axis=1)[:, None],
+                            np.zeros(len(xyz)), scene, 200.0, GROUND_Z)  # fmt: skip
+    hidden_wall = (box[hit] == 0) & (first < np.linalg.norm(ray, axis=1) - 0.05)
+    T_box_world = np.eye(4)
+    T_box_world[:3, 3] = car.center0_m
+    frame = replace(_frame(0.0), T_world_camera=np.linalg.inv(T_camera_scene), load_rgb=lambda: image)
+    t_us, still = np.zeros(len(xyz), np.int64), np.zeros(len(xyz), bool)
+
+    points_only, _ = point_colours(xyz, t_us, still, [frame])
+    assert hidden_wall.sum() > 500 and np.all(points_only[hidden_wall] == COLOURS[1], axis=1).sum() > 100
+
+    inside_camera = (np.eye(4), np.ones(3))  # a box around the camera hides nothing
+    solids = (np.stack([T_box_world, inside_camera[0]]), np.stack([car.dims_m / 2, inside_camera[1]]))
+    rgb, coloured = point_colours(xyz, t_us, still, [replace(frame, solids=solids)])
+    assert not coloured[hidden_wall].any()
+    assert coloured.sum() > 3000 and np.all(rgb[coloured] == truth[coloured], axis=1).mean() >= 0.98
+    seen = first >= np.linalg.norm(ray, axis=1) - 0.05
+    cam = ray @ R_CAMERA_RIG.T
+    in_picture = (cam[:, 2] > 0.3) & (np.abs(FOCAL * cam[:, 0] / np.maximum(cam[:, 2], 1e-9)) < WIDTH / 2) & (
+        np.abs(FOCAL * cam[:, 1] / np.maximum(cam[:, 2], 1e-9)) < HEIGHT / 2)  # fmt: skip
+    assert coloured[seen & in_picture].mean() >= 0.9
+
+
 def test_av2_lidar_rgb_on_a_rendered_world(tmp_path):
     """``synth argoverse2`` with ``world="render"``: every picture ray-cast from the scene the lidar
     sees. The converted ``rgb`` (``--lidar-rgb``) against each point's surface colour, within JPEG's
@@ -168,7 +215,7 @@ def test_av2_lidar_rgb_on_a_rendered_world(tmp_path):
     from ncore_convert.converters.argoverse2 import Argoverse2Options
     from ncore_convert.sources.argoverse2 import read_intrinsics
     from ncore_convert.synth.argoverse2 import SynthConfig
-    from ncore_convert.synth.scene import surface_rgb
+    from ncore_convert.synth.scene import box_colours, surface_rgb
 
     config = SynthConfig(seconds=1.0, seed=5, camera_fps=10, world="render", keep_truth=True)
     run = synth_and_convert(tmp_path, config, Argoverse2Options(split="val", lidar_rgb=True, ego_masks="none"))
@@ -184,7 +231,7 @@ def test_av2_lidar_rgb_on_a_rendered_world(tmp_path):
             xyz = sweep.direction_sensor[rows] * sweep.distance_m[rows, None]
             xyz_city = np.einsum("nij,nj->ni", T[:, :3, :3], xyz) + T[:, :3, 3]
             box = sweep.box_index[rows]
-            expected = surface_rgb(scene, box, xyz_city, np.ones(len(box), bool)).astype(int)
+            expected = surface_rgb(box_colours(scene), box, xyz_city, np.ones(len(box), bool)).astype(int)
             rgb = lidar.get_frame_generic_data(i, "rgb").astype(int)
             coloured = np.any(rgb != 128, axis=1)
             right += int((np.abs(rgb - expected).max(axis=1) <= 30)[coloured].sum())

@@ -148,10 +148,11 @@ def test_an_explicit_flag_overrides_the_preset(source):
 
 def test_opv2v_lidar_rgb_carries_the_true_colours(tmp_path):
     """OPV2V's synthetic cameras are ray-cast from the lidar's own scene (one world), so every point's
-    true colour is known. Issue 27 asks >= 98 % of the coloured points to carry it; measured today
-    97.7 % (the misses: occluders the lidar barely sees from 3 m behind the front camera, and colour
-    edges): this holds the level measured today, not the target. >= 90 % of the points that project
-    into one of the agent's cameras are coloured (occluded ones included in the count)."""
+    true colour is known. Issue 27: >= 98 % of the coloured points carry it (measured 98.6-98.7 % on
+    seeds 3, 5, 7, 11; the misses are pixels on a colour edge and silhouettes), and >= 90 % of the
+    points that project into one of the agent's cameras are coloured (occluded ones included in the
+    count). The front camera sits 3 m ahead of and 0.9 m below the lidar: a car alongside hides
+    what the lidar sees over its roof, which only its labelled box tells."""
     from ncore_convert.synth import opencood as synth_opencood
 
     config = synth_opencood.SynthConfig(dataset="opv2v", frames=3, seed=3, keep_truth=True)  # 720 columns: 0.5 deg
@@ -186,7 +187,7 @@ def test_opv2v_lidar_rgb_carries_the_true_colours(tmp_path):
                 seen |= ahead & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
             in_view += int(seen.sum())
             coloured_in_view += int((seen & coloured).sum())
-    assert coloured_total > 5000 and right / coloured_total >= 0.97, (right, coloured_total)
+    assert coloured_total > 5000 and right / coloured_total >= 0.98, (right, coloured_total)
     assert coloured_in_view / in_view >= 0.90, (coloured_in_view, in_view)
 
 

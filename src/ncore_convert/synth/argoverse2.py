@@ -28,7 +28,7 @@ from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.ego import EGO_CAMERAS, true_mask
 from ncore_convert.synth.ego import pictures as ego_pictures
 from ncore_convert.synth.maps import write_map
-from ncore_convert.synth.scene import Box, Scene, cast_rays, make_scene, surface_rgb
+from ncore_convert.synth.scene import Box, Scene, box_colours, cast_rays, make_scene, render
 from ncore_convert.transforms import vlp32c
 from ncore_convert.transforms.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
 
@@ -217,35 +217,19 @@ RENDER_STEP = 4  #: rendered pictures are ray-cast at 1/4 of their size, each ra
 BODY_RGB = (60, 60, 70)  #: the ego body in rendered pictures
 
 
-def render_picture(scene: Scene, T_camera_city: np.ndarray, intrinsics: tuple[float, float, float],
-                   size: tuple[int, int], t_s: float) -> np.ndarray:  # fmt: skip
-    """The camera's picture of the scene at ``t_s`` (moving boxes where they are then), ray-cast
-    through the centre of every ``RENDER_STEP`` x ``RENDER_STEP`` block, flat-shaded with
-    :func:`synth.scene.surface_rgb`; uint8 [height,width,3]. ``T_camera_city`` maps the (OpenCV)
-    camera frame into the city."""
-    f, cx, cy = intrinsics
-    width, height = size
-    u, v = np.meshgrid(np.arange(0, width, RENDER_STEP) + (RENDER_STEP - 1) / 2,
-                       np.arange(0, height, RENDER_STEP) + (RENDER_STEP - 1) / 2)  # fmt: skip
-    d = np.stack([(u - cx) / f, (v - cy) / f, np.ones_like(u)], -1).reshape(-1, 3) @ T_camera_city[:3, :3].T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    origins = np.broadcast_to(T_camera_city[:3, 3], d.shape)
-    distance, _, box = cast_rays(origins, d, np.full(len(d), t_s), scene, MAX_RANGE_M)
-    hit = np.isfinite(distance)
-    rgb = surface_rgb(scene, box, origins + d * np.where(hit, distance, 0.0)[:, None], hit).reshape(*u.shape, 3)
-    return np.repeat(np.repeat(rgb, RENDER_STEP, axis=0), RENDER_STEP, axis=1)[:height, :width]
-
-
 def _write_rendered_images(truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, config: SynthConfig) -> None:
     """Every camera's pictures rendered from the scene at their own times (``world="render"``),
     with the ego body painted flat where the camera sees it."""
     step = max(1, int(round(20.0 / config.camera_fps)))
+    box_rgb = box_colours(truth.scene)
     for cam, stamps in cam_ns.items():
         _, width, height = cams[cam]
         for i, ts in enumerate(stamps[::step]):
             t_s = (int(ts) - truth.t0_ns) * 1e-9
             T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
-            rgb = render_picture(truth.scene, T_camera_city, truth.intrinsics[cam], (width, height), t_s)
+            f, cx, cy = truth.intrinsics[cam]  # AV2's principal point: pixel centres at integers
+            rgb, _ = render(truth.scene, box_rgb, T_camera_city, (f, f, cx + 0.5, cy + 0.5), (width, height), RENDER_STEP,
+                            t_s, MAX_RANGE_M)  # fmt: skip
             if cam in truth.ego_masks:
                 rgb[truth.ego_masks[cam]] = BODY_RGB
             path = av2.image_path(truth.log_dir, cam, int(ts))

@@ -12,8 +12,8 @@ vehicles, pillars (static landmarks) and building fronts; V2XSet adds infrastruc
 (negative ids) with a lidar on a pole and four cameras pitched down 35°. The lidar is a 64-channel
 CARLA ray-cast lidar (all points at the tick). The cameras see the same world as the lidar: each
 picture is ray-cast from the scene (flat colours: a checkered ground, a colour per vehicle, red
-pillars, brown buildings, sky), and carries a red 3x3 marker on the pixel where each pillar's centre
-projects.
+pillars, brown buildings, sky). A pillar whose centre's pixel and the 8 around it show the pillar is
+a marker: the truth keeps where its centre projects.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.sources import opencood as src
-from ncore_convert.synth.scene import Box, Scene, cast_rays
+from ncore_convert.synth.scene import BUILDING_RGB, Box, Scene, cast_rays, own_colour, render, surface_rgb
 
 WIDTH, HEIGHT, FOV_DEG = 800, 600, 100.0
 FOCAL_PX = float(WIDTH / (2.0 * np.tan(np.radians(FOV_DEG / 2))))
@@ -42,10 +42,10 @@ RSU_LIDAR_HEIGHT_M = 4.5
 CAMERA_MOUNTS = ((2.5, 0.0, 1.0, 0.0), (0.0, 0.3, 1.8, 100.0), (0.0, -0.3, 1.8, -100.0), (-2.0, 0.0, 1.5, 180.0))
 RSU_CAMERA_PITCH_DEG = -35.0
 PILLAR_DIMS_M = (0.8, 0.8, 4.0)
-MARKER_RGB = (255, 0, 0)  #: the pillars' colour, and their centre markers
-SKY_RGB, BUILDING_RGB, GROUND_RGB = (135, 180, 235), (170, 120, 90), ((90, 90, 90), (150, 150, 130))
-CHECKER_M = 10.0  #: the ground's checker squares
+PILLAR_RGB = (255, 0, 0)  #: the pillars' colour: where one's centre projects, its face is the marker
 RENDER_STEP = 2  #: cameras are ray-cast at half their resolution, each ray's colour repeated over 2x2 pixels
+#: UE4 camera axes (x forward, y right, z up) of the OpenCV ones (x right, y down, z forward)
+T_UE4_OPENCV = np.array([[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 RENDER_RANGE_M = 300.0
 CAV_CLEARANCE_M = 7.0  #: along the lane, no other vehicle's centre comes nearer a CAV's than this
 PCD_HEADER = (
@@ -117,7 +117,8 @@ class SynthConfig:
 class AgentTruth:
     """Per frame key: CARLA lidar pose [6], the actor id hit by each stored point (-1 ground,
     -2 pillar, -3 building), the stored intensity (uint8), the true colour of each point's surface
-    (:func:`surface_rgb`, uint8 [N,3]) and the marker pixels {camera index: {pillar index: (u, v)}}.
+    (:func:`synth.scene.surface_rgb`, uint8 [N,3]) and the marker pixels {camera index: {pillar index:
+    (u, v)}}: where each pillar's centre projects, if the picture shows that pillar there.
     Point arrays only with ``keep_truth``."""
 
     agent_id: str
@@ -221,44 +222,23 @@ def _clear_of_cavs(others: list[_Actor], cavs: list[_Actor], span_s: float) -> l
     return [replace(act, lane_m=-1.75) if act.speed_mps and through_a_cav(act) else act for act in others]
 
 
-def surface_rgb(kind: np.ndarray, xyz_world_m: np.ndarray) -> np.ndarray:
-    """The flat colour of the surface at each hit, uint8 [N,3]: ``kind`` is the actor id hit (>= 0),
-    -1 ground (a checker of ``CHECKER_M`` squares), -2 pillar, -3 building, -4 nothing (sky);
-    ``xyz_world_m`` [N,3] the hit in CARLA's world."""
-    rgb = np.tile(np.array(SKY_RGB, np.uint8), (len(kind), 1))
-    ground = kind == -1
-    square = (np.floor(xyz_world_m[ground, 0] / CHECKER_M) + np.floor(xyz_world_m[ground, 1] / CHECKER_M)).astype(int)
-    rgb[ground] = np.array(GROUND_RGB, np.uint8)[square % 2]
-    rgb[kind == -2] = MARKER_RGB
-    rgb[kind == -3] = BUILDING_RGB
-    for actor in np.unique(kind[kind >= 0]):
-        rgb[kind == actor] = np.random.default_rng(int(actor)).integers(30, 230, 3)
-    return rgb
-
-
-def _render_png(scene: Scene, lookup: np.ndarray, T_cam_world: np.ndarray, pixels: list[tuple[float, float]]) -> bytes:
-    """An 800x600 picture of ``scene`` from the CARLA camera ``T_cam_world`` (UE4 axes), flat-shaded
-    with :func:`surface_rgb` (``lookup``: scene box index -> kind, its last entry the ground),
-    ray-cast at 1/``RENDER_STEP`` resolution through the pixel centres and repeated to full size;
-    with a red 3x3 marker on each pixel in ``pixels``."""
-    cols = (np.arange(WIDTH // RENDER_STEP) + 0.5) * RENDER_STEP
-    rows = (np.arange(HEIGHT // RENDER_STEP) + 0.5) * RENDER_STEP
-    u, v = np.meshgrid(cols, rows)
-    d_cam = np.stack([np.ones_like(u), (u - WIDTH / 2) / FOCAL_PX, -(v - HEIGHT / 2) / FOCAL_PX], -1).reshape(-1, 3)
-    d_world = d_cam @ T_cam_world[:3, :3].T
-    d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)
-    origins = np.broadcast_to(T_cam_world[:3, 3], d_world.shape)
-    distance, _, index = cast_rays(origins, d_world, np.zeros(len(d_world)), scene, RENDER_RANGE_M, ground_z_m=0.0)
-    kind = np.where(np.isfinite(distance), lookup[index], -4)
-    hit = origins + d_world * np.where(np.isfinite(distance), distance, 0.0)[:, None]
-    small = surface_rgb(kind, hit).reshape(len(rows), len(cols), 3)
-    image = np.repeat(np.repeat(small, RENDER_STEP, axis=0), RENDER_STEP, axis=1)
-    for uu, vv in pixels:
-        c, r = int(np.floor(uu)), int(np.floor(vv))
-        image[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] = MARKER_RGB
+def _render_png(scene: Scene, box_rgb: np.ndarray, T_cam_world: np.ndarray) -> tuple[bytes, np.ndarray]:
+    """An 800x600 PNG of ``scene`` from the CARLA camera ``T_cam_world`` (UE4 axes), flat-shaded with
+    the boxes' colours ``box_rgb`` (:func:`synth.scene.render`), and what each pixel shows, int
+    [600,800] (a scene box index, -1 ground, ``SKY``)."""
+    pinhole = (FOCAL_PX, FOCAL_PX, WIDTH / 2, HEIGHT / 2)
+    image, shows = render(scene, box_rgb, T_cam_world @ T_UE4_OPENCV, pinhole, (WIDTH, HEIGHT), RENDER_STEP,
+                          max_range_m=RENDER_RANGE_M, ground_z_m=0.0)  # fmt: skip
     out = io.BytesIO()
     PIL.Image.fromarray(image).save(out, format="PNG", compress_level=1)
-    return out.getvalue()
+    return out.getvalue(), shows
+
+
+def _shows_around(shows: np.ndarray, uv_px: np.ndarray, box: int) -> bool:
+    """Whether the pixel at ``uv_px`` (u, v) and the 8 around it show scene box ``box`` (``shows``:
+    a picture's box index per pixel)."""
+    c, r = int(np.floor(uv_px[0])), int(np.floor(uv_px[1]))
+    return bool(np.all(shows[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] == box))
 
 
 def _yaml(data: dict) -> bytes:
@@ -364,6 +344,8 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             boxes = [b for b, act in zip(actor_boxes, actors, strict=True) if act.actor_id != own]
             box_actor = [act.actor_id for act in actors if act.actor_id != own]
             scene = Scene(None, boxes + pillar_boxes + buildings)
+            box_rgb = np.array([own_colour(a) for a in box_actor] + [PILLAR_RGB] * len(pillar_boxes)
+                               + [BUILDING_RGB] * len(buildings), dtype=np.uint8)  # fmt: skip
             rays_lidar = rays[infra]
             origins = np.broadcast_to(T_lidar_world[:3, 3], rays_lidar.shape)
             directions = rays_lidar @ T_lidar_world[:3, :3].T
@@ -399,11 +381,11 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             for index_cam, (mx, my, mz, yaw) in enumerate(CAMERA_MOUNTS):
                 T_cam_world = T_base_world @ carla_pose_matrix(np.array([mx, my, mz, 0.0, yaw, pitch]))
                 uv, front = project_ue4(T_cam_world, truth.pillars_m)
-                inside = front & (uv[:, 0] >= 1) & (uv[:, 0] < WIDTH - 1) & (uv[:, 1] >= 1) & (uv[:, 1] < HEIGHT - 1)
-                markers[index_cam] = {int(p): (float(uv[p, 0]), float(uv[p, 1])) for p in np.flatnonzero(inside)}
-                (scenario_dir / agent_id / f"{key}_camera{index_cam}.png").write_bytes(
-                    _render_png(scene, lookup, T_cam_world, list(markers[index_cam].values()))
-                )
+                png, shows = _render_png(scene, box_rgb, T_cam_world)
+                (scenario_dir / agent_id / f"{key}_camera{index_cam}.png").write_bytes(png)
+                inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < WIDTH) & (uv[:, 1] >= 0) & (uv[:, 1] < HEIGHT)
+                visible = [p for p in np.flatnonzero(inside) if _shows_around(shows, uv[p], len(boxes) + p)]
+                markers[index_cam] = {int(p): (float(uv[p, 0]), float(uv[p, 1])) for p in visible}
                 extrinsic = np.linalg.inv(T_cam_world) @ T_lidar_world
                 frame[f"camera{index_cam}"] = {"cords": carla_pose_list(T_cam_world), "intrinsic": [list(r) for r in K],
                                                "extrinsic": [_floats(row) for row in extrinsic]}  # fmt: skip
@@ -415,8 +397,8 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             if config.keep_truth:
                 agent_truth.hit_actor[key] = hit_actor
                 agent_truth.intensity_u8[key] = intensity
-                agent_truth.point_rgb[key] = surface_rgb(hit_actor, xyz.astype(np.float64) @ T_lidar_world[:3, :3].T
-                                                         + T_lidar_world[:3, 3])  # fmt: skip
+                xyz_world = xyz.astype(np.float64) @ T_lidar_world[:3, :3].T + T_lidar_world[:3, 3]
+                agent_truth.point_rgb[key] = surface_rgb(box_rgb, index[hit], xyz_world, np.ones(len(xyz), bool))
     return truth
 
 

@@ -269,25 +269,77 @@ def _rays_towards(azimuth_sorted: np.ndarray, order: np.ndarray, offset_m: np.nd
 SKY_RGB, BUILDING_RGB = (135, 180, 235), (170, 120, 90)
 GROUND_RGB = ((90, 90, 90), (150, 150, 130))
 CHECKER_M = 10.0  #: the ground's checker squares
+SKY = -2  #: the "box index" of a ray that hits nothing, in :func:`render`
 
 
-def surface_rgb(scene: Scene, box_index: np.ndarray, xyz_m: np.ndarray, hit: np.ndarray) -> np.ndarray:
+def own_colour(seed: int) -> np.ndarray:
+    """A box's flat colour drawn from ``seed`` (its index or actor id), uint8 [3]."""
+    return np.random.default_rng(int(seed)).integers(30, 230, 3).astype(np.uint8)
+
+
+def box_colours(scene: Scene) -> np.ndarray:
+    """The flat colour of every box of ``scene``, uint8 [B,3]: buildings brown, every other box a
+    colour of its own, drawn from its index."""
+    return np.array([BUILDING_RGB if b.category == "BUILDING" else own_colour(k) for k, b in enumerate(scene.boxes)],
+                    dtype=np.uint8).reshape(-1, 3)  # fmt: skip
+
+
+def surface_rgb(box_rgb: np.ndarray, box_index: np.ndarray, xyz_m: np.ndarray, hit: np.ndarray) -> np.ndarray:
     """The flat colour of the surface at each ray's hit, uint8 [N,3]: the sky where nothing is hit,
-    the ground checkered in ``CHECKER_M`` squares of the scene's x, y, buildings brown, every other
-    box a colour of its own (drawn from its index).
+    the ground checkered in ``CHECKER_M`` squares of the scene's x, y, each box its colour.
 
     Args:
-        box_index: the hit box (index into ``scene.boxes``; -1 ground), int [N]; xyz_m: the hit
-            [N,3]; hit: whether anything was hit, bool [N].
+        box_rgb: each scene box's colour, uint8 [B,3] (:func:`box_colours`); box_index: the hit box
+            (index into the scene's boxes; -1 ground), int [N]; xyz_m: the hit [N,3]; hit: whether
+            anything was hit, bool [N].
     """
     rgb = np.tile(np.array(SKY_RGB, np.uint8), (len(box_index), 1))
     ground = hit & (box_index < 0)
     square = (np.floor(xyz_m[ground, 0] / CHECKER_M) + np.floor(xyz_m[ground, 1] / CHECKER_M)).astype(int)
     rgb[ground] = np.array(GROUND_RGB, np.uint8)[square % 2]
-    for b in np.unique(box_index[hit & (box_index >= 0)]):
-        own = hit & (box_index == b)
-        rgb[own] = BUILDING_RGB if scene.boxes[b].category == "BUILDING" else np.random.default_rng(int(b)).integers(30, 230, 3)
+    boxes = hit & (box_index >= 0)
+    rgb[boxes] = box_rgb[box_index[boxes]]
     return rgb
+
+
+def render(
+    scene: Scene,
+    box_rgb: np.ndarray,
+    T_camera_scene: np.ndarray,
+    pinhole_px: tuple[float, float, float, float],
+    size_px: tuple[int, int],
+    step: int,
+    t_s: float = 0.0,
+    max_range_m: float = 300.0,
+    ground_z_m: float = GROUND_Z_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A flat-shaded picture of ``scene`` (moving boxes where they are at ``t_s``): one ray through
+    the centre of every ``step`` x ``step`` block of pixels, its colour (:func:`surface_rgb`) over
+    the block.
+
+    Args:
+        T_camera_scene: maps the camera frame (OpenCV: x right, y down, z forward) into the scene.
+        pinhole_px: fx, fy, cx, cy, with pixel (i, j) covering [i, i+1) x [j, j+1).
+        size_px: the picture's (width, height).
+
+    Returns:
+        rgb: uint8 [height,width,3]; box_index: what each pixel shows, int [height,width] (an index
+        into ``scene.boxes``, -1 the ground, ``SKY`` nothing).
+    """
+    fx, fy, cx, cy = pinhole_px
+    width, height = size_px
+    u, v = np.meshgrid(np.arange(0, width, step) + step / 2, np.arange(0, height, step) + step / 2)
+    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1).reshape(-1, 3) @ T_camera_scene[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    origins = np.broadcast_to(T_camera_scene[:3, 3], d.shape)
+    distance, _, index = cast_rays(origins, d, np.full(len(d), t_s), scene, max_range_m, ground_z_m)
+    hit = np.isfinite(distance)
+    rgb = surface_rgb(box_rgb, index, origins + d * np.where(hit, distance, 0.0)[:, None], hit)
+
+    def full(small: np.ndarray) -> np.ndarray:
+        return np.repeat(np.repeat(small.reshape(*u.shape, *small.shape[1:]), step, axis=0), step, axis=1)[:height, :width]
+
+    return full(rgb), full(np.where(hit, index, SKY))
 
 
 def cast_rays(

@@ -50,6 +50,9 @@ class ColourFrame:
         load_rgb: returns the image, uint8 [height,width,3]; called only if a point takes its colour
             from this frame (decoding is most of the cost).
         usable: bool [height,width], the pixels that show the world (False on the ego body); None: all.
+        solids: boxes known to be solid at the frame's time (labelled vehicles): box -> fixed frame
+            ``T_box_world`` float64 [K,4,4] and half sizes float64 [K,3], m. A point behind one is hidden
+            even where the lidar saw none of the box's face the camera sees. None: no boxes.
     """
 
     camera_id: str
@@ -60,6 +63,7 @@ class ColourFrame:
     size_px: tuple[int, int]
     load_rgb: Callable[[], np.ndarray]
     usable: np.ndarray | None = None
+    solids: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def _in_view(frame: ColourFrame, xyz_world_m: np.ndarray, margin: float) -> np.ndarray:
@@ -74,6 +78,59 @@ def _in_view(frame: ColourFrame, xyz_world_m: np.ndarray, margin: float) -> np.n
     return ahead[(u >= -margin * w) & (u < (1 + margin) * w) & (v >= -margin * h) & (v < (1 + margin) * h)]
 
 
+def _nearest_in_front(cols: np.ndarray, lines: np.ndarray, depth: np.ndarray, occluder: np.ndarray,
+                      cell_px: tuple[int, int], size_px: tuple[int, int]) -> np.ndarray:  # fmt: skip
+    """For each projected point (pixel ``cols``, ``lines``, int [V]; camera ``depth`` [V], m), the
+    depth of the nearest ``occluder`` (bool [V]) that may hide it in a buffer of cells of
+    ``cell_px`` (width, height): at or above its row in its own cell and in the cells left and right
+    of it (the pixels at a silhouette show the occluder up to a cell beyond its last points), and
+    anywhere in the cell above (a nearer point below a point is the ground in front of it and does
+    not hide it); inf where there is none, float64 [V]."""
+    (w, h), (cell_w, cell_h) = size_px, cell_px
+    n_cols = -(-w // cell_w) + 2  # a column either side
+    cells = (lines // cell_h + 1) * n_cols + cols // cell_w + 1  # and a row above
+    grid = np.full((-(-h // cell_h) + 1) * n_cols, np.inf)
+    np.minimum.at(grid, cells[occluder], depth[occluder])
+    o_cells, o_lines, o_depth = cells[occluder], lines[occluder], depth[occluder]
+    order = np.lexsort((o_lines, o_cells))
+    o_cells, o_lines, o_depth = o_cells[order], o_lines[order], o_depth[order]
+    key = o_cells * (h + 1) + o_lines
+    big = 2.0 * (float(o_depth.max()) + 1.0) if len(o_depth) else 1.0
+    running = np.minimum.accumulate(o_depth - o_cells * big) + o_cells * big  # per cell, down to a row
+
+    def at_or_above(cell: np.ndarray) -> np.ndarray:
+        i = np.searchsorted(key, cell * (h + 1) + lines, side="right") - 1
+        found = (i >= 0) & (o_cells[np.maximum(i, 0)] == cell)
+        return np.where(found, running[np.maximum(i, 0)], np.inf)
+
+    return np.minimum.reduce([at_or_above(cells), at_or_above(cells - 1), at_or_above(cells + 1), grid[cells - n_cols]])
+
+
+def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray) -> np.ndarray:
+    """The points (float64 [V,3], fixed frame) whose line of sight from ``frame``'s camera enters one
+    of its ``solids`` more than the depth tolerance before reaching the point, bool [V]. A box the
+    camera is inside hides nothing."""
+    hidden = np.zeros(len(xyz_world_m), bool)
+    if frame.solids is None or not len(xyz_world_m):
+        return hidden
+    R_wc, t_wc = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
+    camera_m = -R_wc.T @ t_wc  # the camera's centre in the fixed frame
+    distance_m = np.linalg.norm(xyz_world_m - camera_m, axis=1)
+    allowed_m = distance_m * (1.0 - DEPTH_TOLERANCE) - DEPTH_TOLERANCE_M  # an entry nearer than this hides
+    for T_box_world, half_m in zip(*frame.solids, strict=True):
+        R, t = T_box_world[:3, :3], T_box_world[:3, 3]
+        origin = (camera_m - t) @ R
+        if np.all(np.abs(origin) <= half_m):
+            continue
+        step = (xyz_world_m - t) @ R - origin  # the line of sight in the box frame, as a fraction of its length
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a, b = (-half_m - origin) / step, (half_m - origin) / step
+        enter = np.nanmax(np.fmin(a, b), axis=1)
+        leave = np.nanmin(np.fmax(a, b), axis=1)
+        hidden |= (enter <= leave) & (enter > 0) & (enter * distance_m < allowed_m)
+    return hidden
+
+
 def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The points (rows of ``xyz_world_m`` [N,3], all that may be in view: each may hide another)
     that ``frame`` sees: their indices [V] and pixel (column, row) [V] each, int."""
@@ -86,34 +143,18 @@ def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.nda
     if frame.usable is not None:
         ok = frame.usable[lines, cols]
         rows, cols, lines, depth = rows[ok], cols[ok], lines[ok], depth[ok]
-    cell_h = max(1, int(round(CELL_RAD * frame.focal_px[1])))
-    cell_w = max(1, int(round(CELL_RAD / 2 * frame.focal_px[0])))
-    n_cols = -(-w // cell_w) + 2  # a column either side
-    cell_r, cell_c = lines // cell_h + 1, cols // cell_w + 1  # and a row above
-    cells = cell_r * n_cols + cell_c
-    grid = np.full((-(-h // cell_h) + 1) * n_cols, np.inf)
-    np.minimum.at(grid, cells, depth)
-    # What can hide a point lies above it in the picture or level with it (a nearer point below it is
-    # the ground in front of it): the nearest point at or above its row in its own cell and in the
-    # cells left and right of it (the pixels at a silhouette show the occluder up to a cell beyond
-    # its last points), and of the whole cell above
-    order = np.lexsort((lines, cells))
-    key = cells[order] * (h + 1) + lines[order]
-    big = 2.0 * (float(depth.max()) + 1.0) if len(depth) else 1.0
-    running = np.minimum.accumulate(depth[order] - cells[order] * big) + cells[order] * big  # per cell, down to a row
-
-    def at_or_above(cell: np.ndarray) -> np.ndarray:
-        i = np.searchsorted(key, cell * (h + 1) + lines, side="right") - 1
-        found = (i >= 0) & (cells[order][np.maximum(i, 0)] == cell)
-        return np.where(found, running[np.maximum(i, 0)], np.inf)
-
-    nearest = np.minimum.reduce([at_or_above(cells), at_or_above(cells - 1), at_or_above(cells + 1), grid[cells - n_cols]])
+    cell_px = (max(1, int(round(CELL_RAD / 2 * frame.focal_px[0]))), max(1, int(round(CELL_RAD * frame.focal_px[1]))))
+    nearest = _nearest_in_front(cols, lines, depth, np.ones(len(rows), bool), cell_px, (w, h))
     seen = depth <= nearest * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
+    seen[seen] = ~_behind_solids(frame, xyz_world_m[rows[seen]])
     return rows[seen], cols[seen], lines[seen]
 
 
 def point_colours(
-    xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray, frames: list[ColourFrame]
+    xyz_world_m: np.ndarray,
+    timestamps_us: np.ndarray,
+    dynamic: np.ndarray,
+    frames: list[ColourFrame],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each point's colour (see the module docstring).
 

@@ -165,10 +165,16 @@ def _rgb_note(plan: ScenarioPlan, agent: AgentPlan) -> str:
     )
 
 
-def _colour_frames(agent: AgentPlan, frame: int, key: str, t_us: int) -> list[ColourFrame]:
+def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t_us: int) -> list[ColourFrame]:
     """The agent's camera images of tick ``key`` (frame index ``frame``) as colour sources: every
-    point and picture of a CARLA tick is taken at the tick. An unreadable image is left out (the
-    camera stream reports it)."""
+    point and picture of a CARLA tick is taken at the tick, and so are the tick's labelled vehicles
+    (the agent's own excepted), solid occluders. An unreadable image is left out (the camera stream
+    reports it)."""
+    boxes = plan.boxes.get(key)
+    solids = None
+    if boxes is not None:
+        others = boxes.actor_ids != int(agent.agent_id)
+        solids = (boxes.T_box_world_global[others], boxes.dims_m[others] / 2.0)
     out = []
     for cam in agent.camera_ids:
         try:
@@ -179,7 +185,7 @@ def _colour_frames(agent: AgentPlan, frame: int, key: str, t_us: int) -> list[Co
         T_camera_world_global = agent.T_rig_world_global[frame] @ agent.T_sensor_rig[cam]
         out.append(ColourFrame(cam, t_us, invert_se3(T_camera_world_global), pinhole.focal_length_px,
                                pinhole.principal_point_px, pinhole.resolution_px,
-                               lambda data=data: src.decode_png_rgb(data)))  # fmt: skip
+                               lambda data=data: src.decode_png_rgb(data), solids=solids))  # fmt: skip
     return out
 
 
@@ -212,7 +218,7 @@ def _write_sensors(
             flags = dynamic_flags(xyz_world_global, rays.timestamp_us, plan.dynamic_boxes)
             generic = {contract.DYNAMIC_FLAG: flags}
             if plan.options.lidar_rgb and agent.camera_ids:
-                frames = _colour_frames(agent, frame, key, int(t_us))
+                frames = _colour_frames(plan, agent, frame, key, int(t_us))
                 generic[contract.LIDAR_RGB], coloured = point_colours(xyz_world_global, rays.timestamp_us, flags == 1,
                                                                       frames)  # fmt: skip
                 coloured_points += int(coloured.sum())
