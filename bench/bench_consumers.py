@@ -172,25 +172,35 @@ def bench_conversion(root: Path, log_id: str, work: Path, repeat: int) -> None:
 
 
 def bench_lidar_rgb(root: Path, log_id: str, work: Path, repeat: int) -> None:
-    """The 2 s log converted in this process (no validation) without and with ``--lidar-rgb``,
-    interleaved; the colouring's own time from the run's counters."""
+    """The 2 s log converted in this process (no validation) without ``--lidar-rgb``, and with it
+    decoding images one at a time and ``DECODE_THREADS`` at a time, interleaved; the colouring's own
+    time from the run's counters."""
     from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+    from ncore_convert.transforms import point_colours
 
-    seconds: dict[bool, list[float]] = {False: [], True: []}
-    colour_s = []
+    threads = point_colours.DECODE_THREADS
+    seconds: dict[int, list[float]] = {0: [], 1: [], threads: []}  # 0: --no-lidar-rgb
+    colour_s: dict[int, list[float]] = {1: [], threads: []}
     for _ in range(repeat):
-        for rgb in seconds:
+        for decoders in seconds:
+            point_colours.DECODE_THREADS = max(1, decoders)
             out = work / "consumers-out"
             shutil.rmtree(out, ignore_errors=True)
             started = time.perf_counter()
-            summary = convert_log(UPath(root), UPath(out), log_id, Argoverse2Options(split="val", lidar_rgb=rgb))
-            seconds[rgb].append(time.perf_counter() - started)
-            if rgb:
-                colour_s.append(summary.colour_seconds)
+            options = Argoverse2Options(split="val", lidar_rgb=bool(decoders))
+            summary = convert_log(UPath(root), UPath(out), log_id, options)
+            seconds[decoders].append(time.perf_counter() - started)
+            if decoders:
+                colour_s[decoders].append(summary.colour_seconds)
+    point_colours.DECODE_THREADS = threads
     shutil.rmtree(work / "consumers-out", ignore_errors=True)
-    off, on = statistics.median(seconds[False]), statistics.median(seconds[True])
-    print(f"--lidar-rgb, 2 s AV2 log, 9 cameras at 20 fps, one process (medians of {repeat}): off {off:.2f} s,"
-          f" on {on:.2f} s, ratio {on / off:.3f}; colouring itself {statistics.median(colour_s):.2f} s", flush=True)
+    off = statistics.median(seconds[0])
+    print(f"--lidar-rgb, 2 s AV2 log, 9 cameras at 20 fps, one process (medians of {repeat}): off {off:.2f} s", end="")
+    for decoders in (1, threads):
+        on = statistics.median(seconds[decoders])
+        print(f"; on, {decoders} decoder thread(s): {on:.2f} s, ratio {on / off:.3f}, colouring itself"
+              f" {statistics.median(colour_s[decoders]):.2f} s", end="")
+    print(flush=True)
 
 
 def bench_ego_masks(work: Path, repeat: int) -> None:

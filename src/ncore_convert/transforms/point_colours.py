@@ -24,6 +24,7 @@ with NCore's pixel-corner convention: pixel (i, j) covers [i, i+1) x [j, j+1).
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,7 @@ CELL_RAD = np.radians(1.0)  #: depth-buffer cell, as an angle of view: its heigh
 DEPTH_TOLERANCE = 0.05  #: a point this far behind (relative) its cell's nearest point is still visible ...
 DEPTH_TOLERANCE_M = 0.3  #: ... plus this much
 MIN_DEPTH_M = 0.3  #: points nearer the camera than this are not coloured
+DECODE_THREADS = 4  #: images are decoded this many at a time
 VIEW_MARGIN = 0.5  #: a camera's frames project only the points its middle frame sees, its image grown by this
 
 
@@ -47,8 +49,8 @@ class ColourFrame:
         focal_px, centre_px: (fx, fy) and (cx, cy) of the pinhole at the image's resolution
             (pixel-corner convention).
         size_px: the image's (width, height).
-        load_rgb: returns the image, uint8 [height,width,3]; called only if a point takes its colour
-            from this frame (decoding is most of the cost).
+        load_rgb: returns the image, uint8 [height,width,3]; called only if a point keeps its colour
+            from this frame (decoding is slow), from up to ``DECODE_THREADS`` threads.
         usable: bool [height,width], the pixels that show the world (False on the ego body); None: all.
         solids: boxes known to be solid at the frame's time (labelled vehicles): box -> fixed frame
             ``T_box_world`` float64 [K,4,4] and half sizes float64 [K,3], m. A point behind one is hidden
@@ -168,9 +170,11 @@ def point_colours(
         rgb: uint8 [N,3], ``FILL_RGB`` where no camera sees the point; coloured: bool [N].
     """
     n = len(xyz_world_m)
-    rgb = np.tile(np.array(FILL_RGB, dtype=np.uint8), (n, 1))
     best_dt = np.full(n, np.inf)
     t_us = np.asarray(timestamps_us, dtype=np.int64)
+    taken: list[ColourFrame] = []  # the frames some point took, in order: a later one may take a point over
+    owner = np.full(n, -1, dtype=np.int64)  # each point's frame in ``taken``
+    pixel = np.zeros((n, 2), dtype=np.int64)  # and its (row, column) there
     for camera_id in sorted({f.camera_id for f in frames}):
         own = sorted((f for f in frames if f.camera_id == camera_id), key=lambda f: f.timestamp_us)
         times = np.array([f.timestamp_us for f in own], dtype=np.int64)
@@ -183,6 +187,16 @@ def point_colours(
             dt = np.abs(t_us[rows] - frame.timestamp_us).astype(np.float64)
             take = (nearest[rows] == k) & (dt < best_dt[rows]) & (~dynamic[rows] | (dt <= DYNAMIC_DT_US))
             if take.any():
-                rgb[rows[take]] = frame.load_rgb()[lines[take], cols[take]]
+                owner[rows[take]] = len(taken)
+                pixel[rows[take]] = np.stack([lines[take], cols[take]], axis=1)
                 best_dt[rows[take]] = dt[take]
+                taken.append(frame)
+    rgb = np.tile(np.array(FILL_RGB, dtype=np.uint8), (n, 1))
+    by_frame = np.argsort(owner, kind="stable")
+    bounds = np.searchsorted(owner[by_frame], np.arange(len(taken) + 1))
+    needed = [i for i in range(len(taken)) if bounds[i + 1] > bounds[i]]  # frames that kept a point
+    with ThreadPoolExecutor(max_workers=max(1, min(DECODE_THREADS, len(needed)))) as pool:  # decoders release the GIL
+        for i, image in zip(needed, pool.map(lambda i: taken[i].load_rgb(), needed), strict=True):
+            points = by_frame[bounds[i] : bounds[i + 1]]
+            rgb[points] = image[pixel[points, 0], pixel[points, 1]]
     return rgb, np.isfinite(best_dt)
