@@ -167,3 +167,28 @@ def test_dynamic_flag_on_a_long_log_with_jitter(long_log):
                 unexplained += int((~near_mover).sum())
     assert hits > 5000 and hit_flagged / hits >= 0.99, (hit_flagged, hits)
     assert parked_hits > 50000 and unexplained == 0, (parked_flagged, parked_hits, unexplained)
+
+
+def test_solid_boxes_place_static_tracks_at_their_median_and_moving_ones_at_the_time():
+    """The occluders of ``--lidar-rgb``: a parked car whose annotations jitter sits at its median box
+    at any time; a car driving at 10 m/s sits where its boxes are at that time, interpolated, and only
+    while it is observed (up to ``HOLD_S`` beyond its ends)."""
+    rng = np.random.default_rng(0)
+    times_us = np.arange(0, 1_000_001, 100_000)
+    parked = np.array([10.0, 5.0, 0.8]) + np.c_[rng.normal(0.0, 0.3, (len(times_us), 2)), np.zeros(len(times_us))]
+    driving = np.array([[0.0, -3.0, 0.8]]) + np.outer(times_us[:4] * 1e-6, [10.0, 0.0, 0.0])
+    observations = TrackObservations(
+        ["parked"] * len(times_us) + ["driving"] * 4,
+        np.r_[times_us, times_us[:4]],
+        np.r_[parked, driving],
+        np.tile(np.eye(3), (len(times_us) + 4, 1, 1)),
+        np.tile([4.5, 1.9, 1.6], (len(times_us) + 4, 1)),
+    )
+    solids = dynamic.SolidBoxes.select(observations, {"driving"})
+    T, half = solids.at(150_000)
+    assert len(T) == 2
+    np.testing.assert_allclose(T[0, :3, 3], np.median(parked, axis=0))
+    np.testing.assert_allclose(T[1, :3, 3], [1.5, -3.0, 0.8])
+    np.testing.assert_allclose(half, [[2.25, 0.95, 0.8]] * 2)
+    T_late, _ = solids.at(300_000 + round(dynamic.HOLD_S * 1e6) + 1)
+    assert len(T_late) == 1 and np.allclose(T_late[0], T[0])

@@ -207,9 +207,11 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
 def test_av2_lidar_rgb_on_a_rendered_world(tmp_path):
     """``synth argoverse2`` with ``world="render"``: every picture ray-cast from the scene the lidar
     sees. The converted ``rgb`` (``--lidar-rgb``) against each point's surface colour, within JPEG's
-    tolerance (the pictures are JPEGs, decoded at 1/4): >= 98 % of the coloured points right, and
-    >= 90 % of the static points that the cameras see coloured (moving ones wait for a frame within
-    5 ms, which the 10 fps cameras here rarely have)."""
+    tolerance (the pictures are JPEGs, decoded at 1/4): >= 98 % of the coloured points right
+    (measured 98.3 % here, 98.0 % with seed 6; most misses are ground points on a checker edge),
+    and >= 90 % of the static points that the cameras' pictures contain coloured (measured 90.2 %:
+    occluded ones count, and the annotated boxes hide what lies behind them; moving points wait for
+    a frame within 5 ms, which the 10 fps cameras here rarely have)."""
     from conftest import synth_and_convert
 
     from ncore_convert.converters.argoverse2 import Argoverse2Options

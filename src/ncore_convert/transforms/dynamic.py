@@ -191,7 +191,7 @@ class DynamicBoxes:
     Attributes:
         bounds: track k's rows are ``bounds[k]:bounds[k+1]``, int [T+1].
         timestamps_us: int64 [M]; centers_m: [M,3]; R_box_frame: [M,3,3];
-        half_extent_m: half the box size grown by BOX_MARGIN_M, [M,3].
+        half_extent_m: half the box size, grown by a margin (BOX_MARGIN_M for ``dynamic_flag``), [M,3].
         reach_m: per track, the largest distance from its centre to a grown corner, [T].
         speed_mps: per track, the largest speed between consecutive observations, [T].
     """
@@ -205,14 +205,16 @@ class DynamicBoxes:
     speed_mps: np.ndarray
 
     @classmethod
-    def select(cls, observations: TrackObservations, dynamic: Collection[str]) -> DynamicBoxes:
-        """The observations of the ``dynamic`` tracks (their ids)."""
+    def select(
+        cls, observations: TrackObservations, dynamic: Collection[str], margin_m: float = BOX_MARGIN_M
+    ) -> DynamicBoxes:
+        """The observations of the ``dynamic`` tracks (their ids), boxes grown by ``margin_m``."""
         ids = np.asarray(observations.track_ids, dtype=object).astype(str)
         keep = np.flatnonzero(np.isin(ids, list(dynamic)))
         order, bounds = _by_track(ids[keep], observations.timestamps_us[keep])
         keep = keep[order]
         centers = observations.centers_m[keep]
-        half = observations.dims_m[keep] / 2 + BOX_MARGIN_M
+        half = observations.dims_m[keep] / 2 + margin_m
         times = observations.timestamps_us[keep].astype(np.int64)
         reach = np.array(
             [np.linalg.norm(half[a:b], axis=1).max() for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
@@ -226,6 +228,51 @@ class DynamicBoxes:
 
     def __len__(self) -> int:
         return len(self.bounds) - 1
+
+
+@dataclass(frozen=True)
+class SolidBoxes:
+    """The labelled objects as solid occluders (lidar colouring): each static track at its median box
+    (:func:`static_pose`: a parked car's annotation jitter averaged out), each moving track where its
+    box is at a given time.
+
+    Attributes:
+        static_T_box_frame: box -> fixed frame, float64 [S,4,4]; static_half_m: half sizes [S,3].
+        moving: the other tracks' observations, not grown.
+    """
+
+    static_T_box_frame: np.ndarray
+    static_half_m: np.ndarray
+    moving: DynamicBoxes
+
+    @classmethod
+    def select(cls, observations: TrackObservations, dynamic: Collection[str]) -> SolidBoxes:
+        """Every track of ``observations``; ``dynamic``: the ids of the moving ones."""
+        ids = set(np.asarray(observations.track_ids, dtype=object).astype(str).tolist())
+        poses = static_poses(observations, ids - set(dynamic))
+        T = np.tile(np.eye(4), (len(poses), 1, 1))
+        half = np.zeros((len(poses), 3))
+        for k, (centre, R, dims) in enumerate(poses.values()):
+            T[k, :3, :3], T[k, :3, 3], half[k] = R, centre, dims / 2
+        return cls(T, half, DynamicBoxes.select(observations, dynamic, margin_m=0.0))
+
+    def at(self, t_us: int) -> tuple[np.ndarray, np.ndarray]:
+        """The boxes at ``t_us``: box -> fixed frame [K,4,4] and half sizes [K,3]; a moving track's
+        centre interpolated, its rotation and size the nearest observation's, while it is observed
+        (up to ``HOLD_S`` beyond its ends)."""
+        hold_us = round(HOLD_S * 1e6)
+        T_moving, half_moving = [], []
+        for k in range(len(self.moving)):
+            a, b = int(self.moving.bounds[k]), int(self.moving.bounds[k + 1])
+            times = self.moving.timestamps_us[a:b]
+            if times[0] - hold_us <= t_us <= times[-1] + hold_us:
+                centre, nearest = _centres_at(times, self.moving.centers_m[a:b], np.array([t_us]))
+                T = np.eye(4)
+                T[:3, :3], T[:3, 3] = self.moving.R_box_frame[a + int(nearest[0])], centre[0]
+                T_moving.append(T)
+                half_moving.append(self.moving.half_extent_m[a + int(nearest[0])])
+        return (np.concatenate([self.static_T_box_frame, np.reshape(T_moving, (-1, 4, 4))]),
+                np.concatenate([self.static_half_m, np.reshape(half_moving, (-1, 3))]))  # fmt: skip
 
 
 def dynamic_flags(xyz_m: np.ndarray, timestamps_us: np.ndarray, boxes: DynamicBoxes) -> np.ndarray:

@@ -24,6 +24,7 @@ with NCore's pixel-corner convention: pixel (i, j) covers [i, i+1) x [j, j+1).
 from __future__ import annotations
 
 from collections.abc import Callable
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -55,6 +56,8 @@ class ColourFrame:
         solids: boxes known to be solid at the frame's time (labelled vehicles): box -> fixed frame
             ``T_box_world`` float64 [K,4,4] and half sizes float64 [K,3], m. A point behind one is hidden
             even where the lidar saw none of the box's face the camera sees. None: no boxes.
+        solids_slack_m: how far the boxes may be off their objects (annotation error), m: a box does
+            not hide the points within this distance of it, which may be its object's own.
     """
 
     camera_id: str
@@ -66,6 +69,7 @@ class ColourFrame:
     load_rgb: Callable[[], np.ndarray]
     usable: np.ndarray | None = None
     solids: tuple[np.ndarray, np.ndarray] | None = None
+    solids_slack_m: float = 0.0
 
 
 def _in_view(frame: ColourFrame, xyz_world_m: np.ndarray, margin: float) -> np.ndarray:
@@ -108,28 +112,61 @@ def _nearest_in_front(cols: np.ndarray, lines: np.ndarray, depth: np.ndarray, oc
     return np.minimum.reduce([at_or_above(cells), at_or_above(cells - 1), at_or_above(cells + 1), grid[cells - n_cols]])
 
 
-def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray) -> np.ndarray:
-    """The points (float64 [V,3], fixed frame) whose line of sight from ``frame``'s camera enters one
-    of its ``solids`` more than the depth tolerance before reaching the point, bool [V]. A box the
-    camera is inside hides nothing."""
+_CORNER_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+_EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(_CORNER_SIGNS[i] != _CORNER_SIGNS[j]) == 1])
+
+
+def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray, cols: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """The points (float64 [V,3], fixed frame; their pixel ``cols``, ``lines``, int [V]) whose line of
+    sight from ``frame``'s camera enters one of its ``solids`` more than the depth tolerance before
+    reaching the point, bool [V]. A box the camera is inside hides nothing, nor does a box hide the
+    points within ``frame.solids_slack_m`` of it (its object's own: the depth buffer decides those).
+    Each box in view tests only the points in its picture's bounding rectangle."""
     hidden = np.zeros(len(xyz_world_m), bool)
     if frame.solids is None or not len(xyz_world_m):
         return hidden
     R_wc, t_wc = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
     camera_m = -R_wc.T @ t_wc  # the camera's centre in the fixed frame
-    distance_m = np.linalg.norm(xyz_world_m - camera_m, axis=1)
-    allowed_m = distance_m * (1.0 - DEPTH_TOLERANCE) - DEPTH_TOLERANCE_M  # an entry nearer than this hides
-    for T_box_world, half_m in zip(*frame.solids, strict=True):
-        R, t = T_box_world[:3, :3], T_box_world[:3, 3]
-        origin = (camera_m - t) @ R
-        if np.all(np.abs(origin) <= half_m):
+    (w, h), (fx, fy), (cx, cy) = frame.size_px, frame.focal_px, frame.centre_px
+    by_col = np.argsort(cols, kind="stable")
+    cols_sorted = cols[by_col]
+    T_box_world, half_all = frame.solids
+    R_all, t_all = T_box_world[:, :3, :3], T_box_world[:, :3, 3]
+    origin_all = np.einsum("kji,kj->ki", R_all, camera_m - t_all)  # the camera in each box's frame
+    corners = np.einsum("kij,kcj->kci", R_all, _CORNER_SIGNS[None] * half_all[:, None]) + t_all[:, None]
+    corners = corners @ R_wc.T + t_wc  # [K,8,3] in the camera frame
+    # the bounding rectangle of each box's picture: its corners ahead of the camera, and where its
+    # edges cross the plane MIN_DEPTH_M ahead of it
+    start, end = corners[:, _EDGES[:, 0]], corners[:, _EDGES[:, 1]]  # [K,12,3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = (MIN_DEPTH_M - start[..., 2]) / (end[..., 2] - start[..., 2])
+        crossing = np.where(((f > 0) & (f < 1))[..., None], start + f[..., None] * (end - start), np.nan)
+    points = np.concatenate([np.where(corners[..., 2:] >= MIN_DEPTH_M, corners, np.nan), crossing], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a box wholly behind the camera: all NaN
+        u, v = fx * points[..., 0] / points[..., 2] + cx, fy * points[..., 1] / points[..., 2] + cy
+        u_lo, u_hi, v_lo, v_hi = (np.floor(np.nanmin(u, axis=1)), np.floor(np.nanmax(u, axis=1)),
+                                  np.floor(np.nanmin(v, axis=1)), np.floor(np.nanmax(v, axis=1)))  # fmt: skip
+    camera_inside = np.all(np.abs(origin_all) <= half_all, axis=1)
+    candidates = ~camera_inside & (u_hi >= 0) & (u_lo < w) & (v_hi >= 0) & (v_lo < h)  # NaN: False
+    for k in np.flatnonzero(candidates):
+        R, t, half_m, origin = R_all[k], t_all[k], half_all[k], origin_all[k]
+        near = by_col[np.searchsorted(cols_sorted, u_lo[k]) : np.searchsorted(cols_sorted, u_hi[k], side="right")]
+        near = near[(lines[near] >= v_lo[k]) & (lines[near] <= v_hi[k])]
+        if not len(near):
             continue
-        step = (xyz_world_m - t) @ R - origin  # the line of sight in the box frame, as a fraction of its length
+        local = (xyz_world_m[near] - t) @ R
+        if frame.solids_slack_m > 0:  # a point this close to a loose box may be its object's own
+            away = np.any(np.abs(local) > half_m + frame.solids_slack_m, axis=1)
+            near, local = near[away], local[away]
+        distance_m = np.linalg.norm(xyz_world_m[near] - camera_m, axis=1)
+        step = local - origin  # the line of sight in the box frame, as a fraction of its length
         with np.errstate(divide="ignore", invalid="ignore"):
-            a, b = (-half_m - origin) / step, (half_m - origin) / step
-        enter = np.nanmax(np.fmin(a, b), axis=1)
-        leave = np.nanmin(np.fmax(a, b), axis=1)
-        hidden |= (enter <= leave) & (enter > 0) & (enter * distance_m < allowed_m)
+            low, high = (-half_m - origin) / step, (half_m - origin) / step
+        enter = np.nanmax(np.fmin(low, high), axis=1)
+        leave = np.nanmin(np.fmax(low, high), axis=1)
+        allowed_m = distance_m * (1.0 - DEPTH_TOLERANCE) - DEPTH_TOLERANCE_M  # an entry nearer than this hides
+        hidden[near[(enter <= leave) & (enter > 0) & (enter * distance_m < allowed_m)]] = True
     return hidden
 
 
@@ -148,7 +185,7 @@ def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.nda
     cell_px = (max(1, int(round(CELL_RAD / 2 * frame.focal_px[0]))), max(1, int(round(CELL_RAD * frame.focal_px[1]))))
     nearest = _nearest_in_front(cols, lines, depth, np.ones(len(rows), bool), cell_px, (w, h))
     seen = depth <= nearest * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
-    seen[seen] = ~_behind_solids(frame, xyz_world_m[rows[seen]])
+    seen[seen] = ~_behind_solids(frame, xyz_world_m[rows[seen]], cols[seen], lines[seen])
     return rows[seen], cols[seen], lines[seen]
 
 

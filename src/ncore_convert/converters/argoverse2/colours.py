@@ -1,5 +1,6 @@
 """Per-point ``rgb`` of AV2 and TbV lidar frames (``--lidar-rgb``): the camera frames around each sweep,
-with the cameras' poses at their own times and their ego masks, handed to
+with the cameras' poses at their own times, their ego masks and the annotated boxes at their times
+(solid occluders), handed to
 :func:`ncore_convert.transforms.point_colours.point_colours`. Images are decoded in colour at the
 ego-mask estimator's reduction (2048 px -> 512 px), only when a point takes its colour from them,
 and once per log (a small cache carries them to the next sweep)."""
@@ -21,14 +22,18 @@ from ncore_convert.transforms.timebase import NS_PER_US
 #: Camera frames this far (µs) beyond a sweep's first and last point are candidates: a 20 Hz
 #: camera has a frame within 25 ms of any time (TbV's 20 Hz ring cameras too).
 FRAME_MARGIN_US = 30_000
+#: How far an annotated box may be off its object: a parked car's annotations wander 0.1-1.4 m on the
+#: real sample, and their median (the static box) is nearer; a box does not hide points this close to it.
+LABEL_SLACK_M = 0.5
 
 
 def rgb_note() -> str:
     """What a lidar's metadata says of the ``rgb`` written on its frames."""
     return (
         "written: uint8 [N,3] per point, the colour of the camera pixel it projects to in the frame nearest its"
-        f" own time (occlusion by a depth buffer of the sweep's points, never from ego pixels, points on dynamic"
-        f" tracks only from a frame within {DYNAMIC_DT_US / 1000:g} ms); {list(FILL_RGB)} where no camera sees it"
+        " own time (occlusion by a depth buffer of the sweep's points and by the annotated boxes, never from ego"
+        f" pixels, points on dynamic tracks only from a frame within {DYNAMIC_DT_US / 1000:g} ms); {list(FILL_RGB)}"
+        " where no camera sees it"
         " (rgb_coloured_points counts the others)"
     )
 
@@ -67,8 +72,10 @@ class SweepColours:
             T_rig_world = traj.interpolate(traj.relative_seconds(picked))
             T_camera_world = T_rig_world @ self._plan.inputs.T_sensor_ego[cam]
             for ts, T in zip(picked.tolist(), T_camera_world, strict=True):
+                solids = None if self._plan.solids is None else self._plan.solids.at(ts // NS_PER_US)
                 out.append(ColourFrame(cam, ts // NS_PER_US, invert_se3(T), focal, centre, size,
-                                       lambda cam=cam, ts=ts: self._decode(cam, ts), usable))  # fmt: skip
+                                       lambda cam=cam, ts=ts: self._decode(cam, ts), usable, solids,
+                                       LABEL_SLACK_M))  # fmt: skip
         return out
 
     def colours(self, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray) -> tuple[np.ndarray, ...]:

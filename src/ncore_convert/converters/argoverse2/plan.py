@@ -25,7 +25,7 @@ from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.files import require_folder
 from ncore_convert.transforms import labels, lidar_timing
 from ncore_convert.transforms.camera_models import Pinhole
-from ncore_convert.transforms.dynamic import DynamicBoxes, TrackObservations
+from ncore_convert.transforms.dynamic import DynamicBoxes, SolidBoxes, TrackObservations
 from ncore_convert.transforms.ego_mask import EgoBox
 from ncore_convert.transforms.geometry import Trajectory, invert_se3
 from ncore_convert.transforms.timebase import NS_PER_US, WindowError, ceil_us, floor_us, in_window
@@ -213,6 +213,8 @@ class LogPlan:
         cameras: how each camera is stored (model type, f-theta fit).
         cuboid_labels: class names, label source and dynamic tracks (None without annotations).
         dynamic_boxes: the dynamic tracks' boxes in ``world`` (None: no ``dynamic_flag``).
+        solids: every track's box in ``world`` as an occluder for ``--lidar-rgb`` (None: not colouring,
+            or no annotations).
         ego_masks: each camera's ego mask (``--ego-masks``).
     """
 
@@ -230,6 +232,7 @@ class LogPlan:
     cameras: dict[str, consumer.CameraSpec] | None = None
     cuboid_labels: consumer.CuboidLabels | None = None
     dynamic_boxes: DynamicBoxes | None = None
+    solids: SolidBoxes | None = None
     ego_masks: dict[str, EgoMask] | None = None
 
     @property
@@ -298,7 +301,7 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
     }
     if window_us is not None:
         generic_meta[contract.CLIP] = consumer.clip_meta(options, window_us)
-    cuboid_labels, dynamic_boxes = _cuboid_labels(inputs, options, T_rig_world, bool(lidar_ids))
+    cuboid_labels, dynamic_boxes, solids = _cuboid_labels(inputs, options, T_rig_world, bool(lidar_ids))
     if cuboid_labels is not None:
         warnings.extend(cuboid_labels.warnings)
     cameras = {cam: consumer.camera_spec(_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids}
@@ -320,6 +323,7 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
         cameras=cameras,
         cuboid_labels=cuboid_labels,
         dynamic_boxes=dynamic_boxes,
+        solids=solids,
         ego_masks=ego_masks,
     )
 
@@ -373,12 +377,13 @@ def _clipped(inputs: LogInputs, window_us: tuple[int, int]) -> LogInputs:
 
 def _cuboid_labels(
     inputs: LogInputs, options: Argoverse2Options, T_rig_world: Trajectory, with_lidar: bool
-) -> tuple[consumer.CuboidLabels | None, DynamicBoxes | None]:
-    """Class names, label source and dynamic tracks of the annotations (None, None without), and the
-    dynamic tracks' boxes in ``world`` for ``dynamic_flag`` (None without lidars)."""
+) -> tuple[consumer.CuboidLabels | None, DynamicBoxes | None, SolidBoxes | None]:
+    """Class names, label source and dynamic tracks of the annotations (all None without), the
+    dynamic tracks' boxes in ``world`` for ``dynamic_flag``, and every track's as occluders for
+    ``--lidar-rgb`` (None without lidars, or without colouring)."""
     annotations = inputs.annotations
     if annotations is None:
-        return None, None
+        return None, None, None
     T_rig_world_at = T_rig_world.interpolate(T_rig_world.relative_seconds(annotations.timestamps_ns))
     T_box_world = T_rig_world_at @ annotations.T_object_ego
     observations = TrackObservations(annotations.track_uuids, floor_us(annotations.timestamps_ns),
@@ -388,5 +393,6 @@ def _cuboid_labels(
         options.cuboid_label_source, "EXTERNAL", "world", str(inputs.log_dir / "annotations.feather"),
     )  # fmt: skip
     if not with_lidar:
-        return cuboid_labels, None
-    return cuboid_labels, DynamicBoxes.select(observations, cuboid_labels.dynamic)
+        return cuboid_labels, None, None
+    solids = SolidBoxes.select(observations, cuboid_labels.dynamic) if options.lidar_rgb else None
+    return cuboid_labels, DynamicBoxes.select(observations, cuboid_labels.dynamic), solids

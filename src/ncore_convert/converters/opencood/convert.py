@@ -160,7 +160,8 @@ def _rgb_note(plan: ScenarioPlan, agent: AgentPlan) -> str:
         return "not written: no cameras converted"
     return (
         "written: uint8 [N,3] per point, the colour of the pixel it projects to in the agent's own cameras at the"
-        f" same tick (occlusion by a depth buffer of the frame's points); {list(FILL_RGB)} where no camera sees it"
+        f" same tick (occlusion by a depth buffer of the frame's points and by the tick's labelled vehicles);"
+        f" {list(FILL_RGB)} where no camera sees it"
         " (rgb_coloured_points counts the others)"
     )
 
