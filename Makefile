@@ -28,7 +28,8 @@ demo: $(STAMP)
 	@echo "demo output: $(DEMO)/out"
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	# one worker per core; a test file's tests stay on one worker, so its module fixtures are built once
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 bench: $(STAMP)
 	$(PY) bench/bench_argoverse2.py
