@@ -23,12 +23,14 @@ with NCore's pixel-corner convention: pixel (i, j) covers [i, i+1) x [j, j+1).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 import warnings
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+
+from ncore_convert.transforms.geometry import invert_se3
 
 FILL_RGB = (128, 128, 128)  #: the colour of a point no camera sees: neutral grey
 DYNAMIC_DT_US = 5_000  #: a point on a moving object takes colour only from a frame this close in time
@@ -84,25 +86,25 @@ def _in_view(frame: ColourFrame, xyz_world_m: np.ndarray, margin: float) -> np.n
     return ahead[(u >= -margin * w) & (u < (1 + margin) * w) & (v >= -margin * h) & (v < (1 + margin) * h)]
 
 
-def _nearest_in_front(cols: np.ndarray, lines: np.ndarray, depth: np.ndarray, occluder: np.ndarray,
-                      cell_px: tuple[int, int], size_px: tuple[int, int]) -> np.ndarray:  # fmt: skip
+def _nearest_in_front(cols: np.ndarray, lines: np.ndarray, depth: np.ndarray, cell_px: tuple[int, int],
+                      size_px: tuple[int, int]) -> np.ndarray:  # fmt: skip
     """For each projected point (pixel ``cols``, ``lines``, int [V]; camera ``depth`` [V], m), the
-    depth of the nearest ``occluder`` (bool [V]) that may hide it in a buffer of cells of
-    ``cell_px`` (width, height): at or above its row in its own cell and in the cells left and right
-    of it (the pixels at a silhouette show the occluder up to a cell beyond its last points), and
-    anywhere in the cell above (a nearer point below a point is the ground in front of it and does
-    not hide it); inf where there is none, float64 [V]."""
+    depth of the nearest point that may hide it in a buffer of cells of ``cell_px`` (width, height):
+    at or above its row in its own cell and in the cells left and right of it (the pixels at a
+    silhouette show the occluder up to a cell beyond its last points), and anywhere in the cell
+    above (a nearer point below a point is the ground in front of it and does not hide it); inf
+    where there is none, float64 [V]."""
     (w, h), (cell_w, cell_h) = size_px, cell_px
     n_cols = -(-w // cell_w) + 2  # a column either side
     cells = (lines // cell_h + 1) * n_cols + cols // cell_w + 1  # and a row above
-    grid = np.full((-(-h // cell_h) + 1) * n_cols, np.inf)
-    np.minimum.at(grid, cells[occluder], depth[occluder])
-    o_cells, o_lines, o_depth = cells[occluder], lines[occluder], depth[occluder]
-    order = np.lexsort((o_lines, o_cells))
-    o_cells, o_lines, o_depth = o_cells[order], o_lines[order], o_depth[order]
-    key = o_cells * (h + 1) + o_lines
+    order = np.lexsort((lines, cells))
+    o_cells, o_depth = cells[order], depth[order]
+    key = o_cells * (h + 1) + lines[order]
     big = 2.0 * (float(o_depth.max()) + 1.0) if len(o_depth) else 1.0
     running = np.minimum.accumulate(o_depth - o_cells * big) + o_cells * big  # per cell, down to a row
+    grid = np.full((-(-h // cell_h) + 1) * n_cols, np.inf)  # per cell, its nearest point: its last running value
+    last = np.flatnonzero(np.r_[o_cells[1:] != o_cells[:-1], True]) if len(o_cells) else np.zeros(0, np.int64)
+    grid[o_cells[last]] = running[last]
 
     def at_or_above(cell: np.ndarray) -> np.ndarray:
         i = np.searchsorted(key, cell * (h + 1) + lines, side="right") - 1
@@ -126,7 +128,7 @@ def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray, cols: np.ndarray
     if frame.solids is None or not len(xyz_world_m):
         return hidden
     R_wc, t_wc = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
-    camera_m = -R_wc.T @ t_wc  # the camera's centre in the fixed frame
+    camera_m = invert_se3(frame.T_world_camera)[:3, 3]  # the camera's centre in the fixed frame
     (w, h), (fx, fy), (cx, cy) = frame.size_px, frame.focal_px, frame.centre_px
     by_col = np.argsort(cols, kind="stable")
     cols_sorted = cols[by_col]
@@ -183,7 +185,7 @@ def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.nda
         ok = frame.usable[lines, cols]
         rows, cols, lines, depth = rows[ok], cols[ok], lines[ok], depth[ok]
     cell_px = (max(1, int(round(CELL_RAD / 2 * frame.focal_px[0]))), max(1, int(round(CELL_RAD * frame.focal_px[1]))))
-    nearest = _nearest_in_front(cols, lines, depth, np.ones(len(rows), bool), cell_px, (w, h))
+    nearest = _nearest_in_front(cols, lines, depth, cell_px, (w, h))
     seen = depth <= nearest * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
     seen[seen] = ~_behind_solids(frame, xyz_world_m[rows[seen]], cols[seen], lines[seen])
     return rows[seen], cols[seen], lines[seen]
