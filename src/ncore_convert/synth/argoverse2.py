@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.synth.ego import EGO_CAMERAS, true_mask
+from ncore_convert.synth.ego import EGO_CAMERAS, N_PICTURES, true_mask
 from ncore_convert.synth.ego import pictures as ego_pictures
 from ncore_convert.synth.maps import write_map
 from ncore_convert.synth.scene import Box, Scene, box_colours, cast_rays, make_scene, render
@@ -452,17 +452,25 @@ def _write_images(
         _write_rendered_images(truth, cam_ns, cams, config)
         return
     parked_all = config.parked_fraction >= 1.0
-    shared: dict[tuple[int, int], list[bytes]] = {}  # cameras without the body share pictures per size
     parked_until_ns = truth.t0_ns + int(config.parked_fraction * config.seconds * 1e9)
+    step = max(1, int(round(20.0 / config.camera_fps)))
+    # as many pictures as a camera shows (at most N_PICTURES); cameras without the body share them per size
+    count = {cam: min(N_PICTURES, len(stamps[::step])) for cam, stamps in cam_ns.items()}
+    shared_count: dict[tuple[int, int], int] = {}
+    for cam in cam_ns:
+        if cam not in truth.ego_masks:
+            size = tuple(cams[cam][1:])
+            shared_count[size] = max(shared_count.get(size, 0), count[cam])
+    shared: dict[tuple[int, int], list[bytes]] = {}
     for cam, stamps in cam_ns.items():
         _, width, height = cams[cam]
         if cam in truth.ego_masks:
-            variants = ego_pictures(rng, width, height, truth.ego_masks[cam], parked_all, config.ego_body)
+            variants = ego_pictures(rng, width, height, truth.ego_masks[cam], parked_all, config.ego_body, count[cam])
         else:
             if (width, height) not in shared:
-                shared[(width, height)] = ego_pictures(rng, width, height, None, parked_all)
+                shared[(width, height)] = ego_pictures(rng, width, height, None, parked_all,
+                                                       count=shared_count[(width, height)])  # fmt: skip
             variants = shared[(width, height)]
-        step = max(1, int(round(20.0 / config.camera_fps)))
         for i, ts in enumerate(stamps[::step]):
             path = av2.image_path(truth.log_dir, cam, int(ts))
             if i == 0:
