@@ -399,8 +399,8 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_av2_clip_window(tmp_path):
-    truth = synth_and_convert(tmp_path / "whole", SynthConfig(seconds=2.0, seed=7, camera_fps=5)).truth
-    root, out = tmp_path / "whole" / "src", tmp_path / "clip"
+    root, out = tmp_path / "src", tmp_path / "clip"
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=2.0, seed=7, camera_fps=5))
     done = _cli("--root-dir", str(root), "--output-dir", str(out), "argoverse2-v4", "--split", "val",
                 "--seek-sec", "0.55", "--duration-sec", "0.6")  # fmt: skip
     assert done.returncode == 0, done.stdout + done.stderr

@@ -47,15 +47,31 @@ def _without(entry: dict, fields: set[tuple[str, ...]]) -> dict:
     return out
 
 
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory):
+    """Synthesise each source once (by its synth arguments): its --root-dir."""
+    roots: dict[tuple[str, ...], Path] = {}
+
+    def source(synth_args: list[str], split_folder: str) -> Path:
+        if tuple(synth_args) not in roots:
+            root = tmp_path_factory.mktemp("determinism-src")
+            cli = str(BIN / "ncore-convert")
+            subprocess.run([cli, "synth", *synth_args, "--out", str(root / split_folder)], check=True)
+            roots[tuple(synth_args)] = root
+        return roots[tuple(synth_args)]
+
+    return source
+
+
 @pytest.mark.parametrize("case", list(SYNTH))
-def test_two_runs_write_identical_sequences(case, tmp_path):
+def test_two_runs_write_identical_sequences(case, tmp_path, sources):
     synth_args, split_folder, command, command_args = SYNTH[case]
     cli = str(BIN / "ncore-convert")
-    subprocess.run([cli, "synth", *synth_args, "--out", str(tmp_path / "src" / split_folder)], check=True)
+    source_root = sources(synth_args, split_folder)
     outputs = []
     for run, workers in (("a", "1"), ("b", "2")):
         out = tmp_path / run
-        convert = [cli, "--no-progress", "--workers", workers, "--root-dir", str(tmp_path / "src"), "--output-dir"]
+        convert = [cli, "--no-progress", "--workers", workers, "--root-dir", str(source_root), "--output-dir"]
         subprocess.run([*convert, str(out), command, *command_args], check=True, capture_output=True)
         outputs.append(out)
     first, second = (_files(out) for out in outputs)

@@ -7,6 +7,7 @@ body-seeing camera of AV2 and TbV over 3 seeds, and no mask on any other camera.
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -209,13 +210,14 @@ def test_the_prior_on_the_real_calibration():
                     "stereo_front_right"}  # fmt: skip
 
 
-def test_a_body_seeing_camera_without_a_mask_is_a_warning(tmp_path):
-    """ring_rear_left's pictures replaced by a body-less camera's: the prior says it must see the
-    body, so its missing mask is a warning naming it, and its metadata records why."""
-    root = tmp_path / "src"
-    truth = write_log(UPath(root / "val"), SynthConfig(seconds=1.0, seed=35, camera_fps=10, ego_body="easy"))
-    rear = sorted((Path(truth.log_dir.path) / "sensors" / "cameras" / "ring_rear_left").glob("*.jpg"))
-    side = sorted((Path(truth.log_dir.path) / "sensors" / "cameras" / "ring_side_left").glob("*.jpg"))
+def test_a_body_seeing_camera_without_a_mask_is_a_warning(tmp_path, av2):
+    """ring_rear_left's pictures replaced by a body-less camera's (in a copy of the module's log): the
+    prior says it must see the body, so its missing mask is a warning naming it, and its metadata
+    records why."""
+    root, truth = tmp_path / "src", av2.truth
+    shutil.copytree(av2.seq_dir.parent.parent / "src", root)
+    rear = sorted((root / "val" / truth.log_id / "sensors" / "cameras" / "ring_rear_left").glob("*.jpg"))
+    side = sorted((root / "val" / truth.log_id / "sensors" / "cameras" / "ring_side_left").glob("*.jpg"))
     for target, source in zip(rear, side * 2, strict=False):
         target.write_bytes(source.read_bytes())
     summary = convert_log(UPath(root), UPath(tmp_path / "out"), truth.log_id,

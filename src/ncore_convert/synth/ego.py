@@ -82,7 +82,8 @@ def _smooth_field(rng: np.random.Generator, width: int, height: int, cell_px: in
     """A random field in [-1, 1] that varies over about ``cell_px`` pixels, float32 [H,W]."""
     coarse = rng.uniform(-1, 1, (height // cell_px + 2, width // cell_px + 2)).astype(np.float32)
     image = PIL.Image.fromarray(coarse, mode="F").resize((width, height), PIL.Image.BILINEAR)
-    return np.clip(np.asarray(image), -1, 1)
+    field = np.array(image)
+    return np.clip(field, -1, 1, out=field)
 
 
 class _RealisticBody:
@@ -167,9 +168,14 @@ def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray
     out = []
     for _ in range(count):
         world_rng = np.random.default_rng(world_seed) if parked else rng  # parked: the same world each time
-        blobs = 45 * _smooth_field(world_rng, width, height, 48) + 20 * _smooth_field(world_rng, width, height, 9)
+        # in place, but the same float32 operations in the same order as the plain expressions
+        grey = _smooth_field(world_rng, width, height, 48)
+        grey *= 45
+        grey += 20 * _smooth_field(world_rng, width, height, 9)  # the world's blobs
         noise = rng.standard_normal((height, width), dtype=np.float32)
-        grey = (road + blobs) * rng.uniform(*EXPOSURE) + 5 * noise
+        grey += road
+        grey *= rng.uniform(*EXPOSURE)
+        grey += 5 * noise
         cast = np.array([0, 5, 12], dtype=np.float32)  # a blue cast, growing down the picture
         if realistic is not None:
             r0 = realistic.r0
@@ -179,10 +185,12 @@ def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray
             grey = np.where(mask, paint * rng.uniform(*LIGHTING["easy"]) + 2 * noise, grey)
         rgb = np.empty((height, width, 3), dtype=np.uint8)
         for c in range(3):  # channel by channel: a third of the memory traffic of one [H,W,3] float pass
-            channel = grey.copy() if realistic is not None else grey
             if realistic is not None:
-                channel[r0:] = np.where(mask[r0:], rendered * gains[c], grey[r0:])
-            channel = channel + cast[c] * v
+                channel = grey.copy()
+                channel[r0:] = np.where(mask[r0:], rendered * gains[c], grey[r0:])  # float32, as stored
+                channel += cast[c] * v
+            else:
+                channel = grey + cast[c] * v
             rgb[..., c] = np.clip(channel, 0, 255, out=channel)
         buf = io.BytesIO()
         PIL.Image.fromarray(rgb).save(buf, format="JPEG", quality=80)
