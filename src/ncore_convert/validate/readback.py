@@ -27,6 +27,8 @@ from ncore_convert.transforms.sampling import spread_indices
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
 SAMPLED_FRAMES = 5
+#: added to a box's half diagonal for the bounding-sphere prefilter (points are float32 there)
+BOUND_MARGIN_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -118,14 +120,28 @@ def _T_reference_world(loader: SequenceLoaderV4, box) -> np.ndarray:
 
 def box_point_counts(loader: SequenceLoaderV4, boxes: list, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How many of the points (world, float64 [N,3]) lie inside each box, int [B], and the box centres
-    in world, float64 [B,3]; each box is tested in its own reference frame at its reference time."""
+    in world, float64 [B,3]; each box is tested in its own reference frame at its reference time
+    (one pose per reference frame and time; only the points within the box's bounding sphere go to
+    NCore's ``is_within_3d_bboxes``)."""
     counts, centres = np.zeros(len(boxes), dtype=np.int64), np.zeros((len(boxes), 3))
+    groups: dict[tuple[str, int], list[int]] = {}
     for k, box in enumerate(boxes):
-        T_ref_world = _T_reference_world(loader, box)
-        centres[k] = T_ref_world[:3, :3] @ np.asarray(box.bbox3.centroid) + T_ref_world[:3, 3]
-        xyz_ref = (xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3]
-        bbox = np.array([[*box.bbox3.centroid, *box.bbox3.dim, *box.bbox3.rot]], dtype=np.float32)
-        counts[k] = int(is_within_3d_bboxes(xyz_ref.astype(np.float32), bbox).sum())
+        groups.setdefault((box.reference_frame_id, box.reference_frame_timestamp_us), []).append(k)
+    for members in groups.values():
+        T_ref_world = _T_reference_world(loader, boxes[members[0]])
+        xyz_ref = ((xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3]).astype(np.float32)
+        by_x = np.argsort(xyz_ref[:, 0], kind="stable")
+        x_sorted = xyz_ref[by_x, 0]
+        for k in members:
+            box = boxes[k]
+            centre_ref = np.asarray(box.bbox3.centroid, dtype=np.float64)
+            centres[k] = T_ref_world[:3, :3] @ centre_ref + T_ref_world[:3, 3]
+            radius_m = 0.5 * float(np.linalg.norm(box.bbox3.dim)) + BOUND_MARGIN_M
+            lo, hi = np.searchsorted(x_sorted, [centre_ref[0] - radius_m, centre_ref[0] + radius_m])
+            candidates = xyz_ref[by_x[lo:hi]]
+            candidates = candidates[(np.abs(candidates - centre_ref) <= radius_m).all(axis=1)]
+            bbox = np.array([[*box.bbox3.centroid, *box.bbox3.dim, *box.bbox3.rot]], dtype=np.float32)
+            counts[k] = int(is_within_3d_bboxes(candidates, bbox).sum())
     return counts, centres
 
 

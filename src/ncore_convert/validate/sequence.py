@@ -65,6 +65,15 @@ def _covered(loader: SequenceLoaderV4, sensor_id: str, timestamps_us: np.ndarray
     return True
 
 
+def _uncovered(loader: SequenceLoaderV4, sensor_id: str, spans_us: np.ndarray) -> list[int]:
+    """The frames (uint64 [F,2] µs spans) whose start or end the poses do not cover: one pose
+    evaluation for all of them (the pose curve is interpolated, so the ends decide), frame by frame
+    only to name the failures."""
+    if _covered(loader, sensor_id, spans_us.ravel()):
+        return []
+    return [i for i in range(len(spans_us)) if not _covered(loader, sensor_id, spans_us[i])]
+
+
 def _occupancy(loader: SequenceLoaderV4, lidar_id: str, observations: list) -> tuple[int, int]:
     """(near boxes holding a point, near boxes) over the sampled frames of one lidar."""
     frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us
@@ -88,7 +97,8 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str, observ
     _within_sequence(report, name, frames_us, loader.sequence_timestamp_interval_us)
     _regularity(report, name, frames_us[:, 1])
     model = lidar.model_parameters
-    worst_norm, outside_time, bad_intensity, bad_element, uncovered, points, unreadable = 0.0, 0, 0, 0, [], 0, []
+    worst_norm, outside_time, bad_intensity, bad_element, points, unreadable = 0.0, 0, 0, 0, 0, []
+    spans_us = frames_us.astype(np.uint64).copy()  # per frame: its interval widened to its points' times
     for i in range(lidar.frames_count):
         try:
             direction = lidar.get_frame_ray_bundle_direction(i)
@@ -104,9 +114,9 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str, observ
         bad_intensity += int(np.sum(~((intensity >= 0) & (intensity <= 1))))
         if model is not None and (element := lidar.get_frame_ray_bundle_model_element(i)) is not None:
             bad_element += int(np.sum((element[:, 0] >= model.n_rows) | (element[:, 1] >= model.n_columns)))
-        span = [t_us.min(), t_us.max()] if len(t_us) else []
-        if not _covered(loader, lidar_id, np.array([frames_us[i, 0], frames_us[i, 1], *span])):
-            uncovered.append(i)
+        if len(t_us):
+            spans_us[i] = min(spans_us[i, 0], t_us.min()), max(spans_us[i, 1], t_us.max())
+    uncovered = _uncovered(loader, lidar_id, spans_us)
     first = f" ({unreadable[0]})" if unreadable else ""
     report.add(
         f"{name}: frames readable", not unreadable, f"{len(unreadable)} of {lidar.frames_count} unreadable{first}"
@@ -136,8 +146,7 @@ def _check_camera(report: Report, loader: SequenceLoaderV4, camera_id: str, lida
     _within_sequence(report, name, frames_us, loader.sequence_timestamp_interval_us)
     _regularity(report, name, frames_us[:, 1])
     _check_ego_mask(report, camera, name)
-    every = _covered(loader, camera_id, frames_us.ravel())  # one call; frame by frame only to name the failures
-    uncovered = [] if every else [i for i in range(len(frames_us)) if not _covered(loader, camera_id, frames_us[i])]
+    uncovered = _uncovered(loader, camera_id, frames_us)
     report.add(f"{name}: poses cover every frame", not uncovered, f"{len(uncovered)} of {len(frames_us)} uncovered")
     if lidar_frames_us is not None and len(lidar_frames_us) and len(frames_us):
         mid_cam = frames_us.astype(np.float64).mean(axis=1)
@@ -208,11 +217,11 @@ def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4) -> None:
         source = loader.get_point_clouds_source(lidar_id)
         if not source.pcs_count or not source.has_pc_generic_data(0, contract.DYNAMIC_FLAG):
             continue
-        bad = []
+        bad, lidar = [], loader.get_lidar_sensor(lidar_id)
         for i in range(source.pcs_count):
             try:
                 flag = source.get_pc_generic_data(i, contract.DYNAMIC_FLAG)
-                n = loader.get_lidar_sensor(lidar_id).get_frame_ray_bundle_count(i)
+                n = lidar.get_frame_ray_bundle_count(i)
             except (KeyError, ValueError, OSError):  # an unreadable frame: "frames readable" names it
                 continue
             if flag.dtype != np.int8 or flag.shape != (n,) or not np.isin(flag, (0, 1)).all():
@@ -249,5 +258,5 @@ def validate_sequence(sequence_json: UPath, source_root: UPath | None = None) ->
     for camera_id in loader.camera_ids:
         _check_camera(report, loader, camera_id, lidar_frames)
     if source_root is not None:
-        compare_with_source(report, sequence, source_root)
+        compare_with_source(report, sequence, source_root, observations)
     return report

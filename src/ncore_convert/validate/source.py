@@ -29,15 +29,16 @@ from ncore_convert.validate.report import Report
 INTERIOR_TOLERANCE = 0.02
 
 
-def compare_with_source(report: Report, sequence: OpenSequence, source_root: UPath) -> None:
-    """Add the ``source:`` checks of one sequence (read from ``source_root``, the converter's --root-dir)."""
+def compare_with_source(report: Report, sequence: OpenSequence, source_root: UPath, observations: list) -> None:
+    """Add the ``source:`` checks of one sequence (read from ``source_root``, the converter's --root-dir;
+    ``observations``: the sequence's cuboid observations, as ``get_cuboid_track_observations`` gives them)."""
     meta = sequence.loader.generic_meta_data
     dataset = meta.get(contract.SOURCE_DATASET)
     try:
         if dataset in contract.ARGOVERSE2_DATASETS:
-            _compare_av2(report, sequence, UPath(source_root), meta)
+            _compare_av2(report, sequence, UPath(source_root), meta, observations)
         elif dataset in contract.OPENCOOD_DATASETS:
-            _compare_opencood(report, sequence, UPath(source_root), meta)
+            _compare_opencood(report, sequence, UPath(source_root), meta, len(observations))
         else:
             report.add("source: dataset known", False, f"source_dataset {dataset!r} is not one this tool converts")
     except SourceError as err:
@@ -77,7 +78,7 @@ def _in_window_ns(timestamps_ns: np.ndarray, window_us: tuple[int, int] | None) 
     return timestamps_ns if window_us is None else timestamps_ns[in_window(floor_us(timestamps_ns), window_us)]
 
 
-def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict) -> None:
+def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict, observations: list) -> None:
     loader = sequence.loader
     log_dir = av2.log_dir(root, meta.get(contract.AV2_SPLIT), meta[contract.AV2_LOG_ID])
     if not log_dir.is_dir():
@@ -104,7 +105,6 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
             _count(report, f"{camera} images", loader.get_camera_sensor(camera).frames_count, images)
         elif images and _camera_selected(options, camera):
             report.add(f"source: {camera} images", False, f"0 converted, {images} in the source")
-    observations = list(loader.get_cuboid_track_observations())
     interior = av2.read_interior_points(log_dir)
     if interior is not None and window_us is not None:
         interior = interior.subset(in_window(floor_us(interior.timestamps_ns), window_us))
@@ -151,7 +151,7 @@ def _frame_starting_at(loader: SequenceLoaderV4, lidar_id: str, start_us: int) -
     return int(index[0]) if len(index) else None
 
 
-def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta: dict) -> None:
+def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta: dict, n_cuboids: int) -> None:
     loader = sequence.loader
     scenario_dir = ocd.scenario_dir(root, meta[contract.OPENCOOD_SPLIT], meta[contract.SCENARIO])
     if not scenario_dir.is_dir():
@@ -194,8 +194,7 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
     reference = next((a for a in agents if meta[contract.AGENTS][a].get("opencood_ego")), agents[0])
     readable = [k for k in keys[reference] if _vehicle_ids(str(scenario_dir / reference), k) is not None]
     labels = sum(len(_labelled(scenario_dir, keys, key)) for key in readable)  # the reference's frames
-    _count(report, "cuboids (every agent's labels per frame, plus the CAVs)",
-           sum(1 for _ in loader.get_cuboid_track_observations()), labels)  # fmt: skip
+    _count(report, "cuboids (every agent's labels per frame, plus the CAVs)", n_cuboids, labels)
 
 
 def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str) -> set[int]:
