@@ -184,7 +184,7 @@ def test_solid_boxes_place_static_tracks_at_their_median_and_moving_ones_at_the_
         np.tile(np.eye(3), (len(times_us) + 4, 1, 1)),
         np.tile([4.5, 1.9, 1.6], (len(times_us) + 4, 1)),
     )
-    solids = dynamic.SolidBoxes.select(observations, {"driving"})
+    solids = dynamic.SolidBoxes.select(observations, dynamic.static_poses(observations, {"parked"}), {"driving"})
     T, half = solids.at(150_000)
     assert len(T) == 2
     np.testing.assert_allclose(T[0, :3, 3], np.median(parked, axis=0))
@@ -192,3 +192,32 @@ def test_solid_boxes_place_static_tracks_at_their_median_and_moving_ones_at_the_
     np.testing.assert_allclose(half, [[2.25, 0.95, 0.8]] * 2)
     T_late, _ = solids.at(300_000 + round(dynamic.HOLD_S * 1e6) + 1)
     assert len(T_late) == 1 and np.allclose(T_late[0], T[0])
+
+
+def test_dynamic_boxes_at_a_time_equal_each_tracks_own_interpolation():
+    """``DynamicBoxes.at`` (all tracks in one pass) against :func:`_centres_at` track by track, on
+    random tracks of 1 to 6 observations, at times before, inside and after them."""
+    rng = np.random.default_rng(3)
+    ids, times, centres = [], [], []
+    for k in range(40):
+        n = int(rng.integers(1, 7))
+        ids += [f"t{k}"] * n
+        times.append(np.sort(rng.choice(np.arange(0, 3_000_000, 50_000), n, replace=False)))
+        centres.append(rng.normal(0.0, 20.0, (n, 3)))
+    n_all = len(ids)
+    observations = TrackObservations(ids, np.concatenate(times), np.concatenate(centres),
+                                     np.tile(np.eye(3), (n_all, 1, 1)), np.ones((n_all, 3)))  # fmt: skip
+    boxes = dynamic.DynamicBoxes.select(observations, set(ids))
+    hold_us = round(dynamic.HOLD_S * 1e6)
+    for t_us in rng.integers(-400_000, 3_400_000, 60).tolist() + [0, 2_950_000]:
+        tracks, at_centres, nearest = boxes.at(t_us)
+        expected = []
+        for k in range(len(boxes)):
+            a, b = int(boxes.bounds[k]), int(boxes.bounds[k + 1])
+            track_times = boxes.timestamps_us[a:b]
+            if track_times[0] - hold_us <= t_us <= track_times[-1] + hold_us:
+                centre, near = dynamic._centres_at(track_times, boxes.centers_m[a:b], np.array([t_us]))
+                expected.append((k, centre[0], a + int(near[0])))
+        assert tracks.tolist() == [e[0] for e in expected]
+        np.testing.assert_allclose(at_centres.reshape(-1, 3), np.reshape([e[1] for e in expected], (-1, 3)), atol=1e-9)
+        assert nearest.tolist() == [e[2] for e in expected]

@@ -110,6 +110,8 @@ class CuboidLabels:
         meta: the cuboids component's metadata.
         dynamic: the ids of the dynamic tracks.
         warnings: one per log for source classes outside the table.
+        static_poses: track id -> :func:`dynamic.static_pose` (centre [3], rotation [3,3], size [3])
+            of every static track, in the observations' frame.
     """
 
     class_ids: list[str]
@@ -118,14 +120,13 @@ class CuboidLabels:
     meta: dict
     dynamic: frozenset[str]
     warnings: list[str]
+    static_poses: dict[str, tuple[np.ndarray, ...]]
 
 
-def _motion_meta(observations: dynamic.TrackObservations, ncore_classes: list[str], frame: str) -> dict:
-    """The cuboids' metadata on motion: the dynamic tracks with their figures, the rule, and the
-    static tracks' median boxes in ``frame``."""
-    motion = dynamic.classify_tracks(observations, ncore_classes) if len(observations.track_ids) else {}
-    static_ids = {t for t, m in motion.items() if not m.dynamic}
-    poses = dynamic.static_poses(observations, static_ids)
+def _motion_meta(observations: dynamic.TrackObservations, poses: dict[str, tuple[np.ndarray, ...]],
+                 motion: dict[str, dynamic.TrackMotion], frame: str) -> dict:  # fmt: skip
+    """The cuboids' metadata on motion: the dynamic tracks with their figures (``motion``), the rule,
+    and the static tracks' median boxes (``poses``) in ``frame``."""
     rotations = euler_xyz_from_rotation(np.stack([p[1] for p in poses.values()])) if poses else []
     speeds = "measured speeds (every observation of the track has one) over 1 km/h, else " if (
         observations.speeds_mps is not None) else ""  # fmt: skip
@@ -172,7 +173,9 @@ def cuboid_labels(
     warnings = []
     if unmapped:
         warnings.append(f"{where}: categories without an NCore class name kept as they are: {', '.join(unmapped)}")
-    motion_meta = _motion_meta(observations, ncore, frame)
+    motion = dynamic.classify_tracks(observations, ncore) if len(observations.track_ids) else {}
+    poses = dynamic.static_poses(observations, {t for t, m in motion.items() if not m.dynamic})
+    motion_meta = _motion_meta(observations, poses, motion, frame)
     meta = {
         "class_names": class_names,
         "label_source": source,
@@ -183,4 +186,5 @@ def cuboid_labels(
         **motion_meta,
     }
     moving = frozenset(motion_meta[contract.DYNAMIC_TRACKS])
-    return CuboidLabels(written, dict(zip(source_classes, written, strict=True)), source, meta, moving, warnings)
+    return CuboidLabels(written, dict(zip(source_classes, written, strict=True)), source, meta, moving, warnings,
+                        poses)  # fmt: skip

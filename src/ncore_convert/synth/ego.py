@@ -165,6 +165,7 @@ def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray
     realistic = _RealisticBody(rng, mask) if mask is not None and body == "realistic" else None
     if mask is not None and realistic is None:
         paint = 70 + 25 * _smooth_field(rng, width, height, 64) + 40 * np.clip(1.2 - v, 0, 1)
+    cast = np.array([0, 5, 12], dtype=np.float32)  # a blue cast, growing down the picture
     out = []
     for _ in range(count):
         world_rng = np.random.default_rng(world_seed) if parked else rng  # parked: the same world each time
@@ -176,7 +177,6 @@ def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray
         grey += road
         grey *= rng.uniform(*EXPOSURE)
         grey += 5 * noise
-        cast = np.array([0, 5, 12], dtype=np.float32)  # a blue cast, growing down the picture
         if realistic is not None:
             r0 = realistic.r0
             gains = rng.uniform(0.9, 1.1, 3).astype(np.float32)  # the body's colour cast

@@ -229,6 +229,29 @@ class DynamicBoxes:
     def __len__(self) -> int:
         return len(self.bounds) - 1
 
+    def at(self, t_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The tracks observed at ``t_us`` (up to ``HOLD_S`` beyond their ends), int [K]; their centres
+        then, as :func:`_centres_at` gives them, [K,3]; and the row of each one's nearest observation, int [K]."""
+        hold_us = round(HOLD_S * 1e6)
+        first, last = self.bounds[:-1], self.bounds[1:] - 1
+        tracks = np.flatnonzero((self.timestamps_us[first] - hold_us <= t_us) & (t_us <= self.timestamps_us[last] + hold_us))
+        a, b = first[tracks], last[tracks] + 1
+        single = b - a == 1
+        if not len(tracks):
+            return tracks, np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        # the observation at or before t_us within each track (one bisection over (track, time) keys),
+        # kept off the track's last so that a segment follows it
+        times = self.timestamps_us
+        t0, length = int(times.min()), int(times.max() - times.min()) + 1
+        key = np.repeat(np.arange(len(self), dtype=np.int64), np.diff(self.bounds)) * length + (times - t0)
+        before = np.searchsorted(key, tracks * length + min(max(t_us - t0, 0), length - 1), side="right") - 1
+        i = np.clip(before, a, np.maximum(b - 2, a))
+        j = np.where(single, i, i + 1)
+        span = np.where(single, 1, self.timestamps_us[j] - self.timestamps_us[i])
+        alpha = np.where(single, 0.0, (t_us - self.timestamps_us[i]) / span)
+        centres = self.centers_m[i] + alpha[:, None] * (self.centers_m[j] - self.centers_m[i])
+        return tracks, centres, np.where(alpha < 0.5, i, j)
+
 
 @dataclass(frozen=True)
 class SolidBoxes:
@@ -246,13 +269,13 @@ class SolidBoxes:
     moving: DynamicBoxes
 
     @classmethod
-    def select(cls, observations: TrackObservations, dynamic: Collection[str]) -> SolidBoxes:
-        """Every track of ``observations``; ``dynamic``: the ids of the moving ones."""
-        ids = set(np.asarray(observations.track_ids, dtype=object).astype(str).tolist())
-        poses = static_poses(observations, ids - set(dynamic))
-        T = np.tile(np.eye(4), (len(poses), 1, 1))
-        half = np.zeros((len(poses), 3))
-        for k, (centre, R, dims) in enumerate(poses.values()):
+    def select(cls, observations: TrackObservations, static: dict[str, tuple[np.ndarray, ...]],
+               dynamic: Collection[str]) -> SolidBoxes:  # fmt: skip
+        """``static``: track id -> :func:`static_pose` of the static tracks (as :func:`static_poses`
+        gives them); ``dynamic``: the ids of the moving tracks, taken from ``observations``."""
+        T = np.tile(np.eye(4), (len(static), 1, 1))
+        half = np.zeros((len(static), 3))
+        for k, (centre, R, dims) in enumerate(static.values()):
             T[k, :3, :3], T[k, :3, 3], half[k] = R, centre, dims / 2
         return cls(T, half, DynamicBoxes.select(observations, dynamic, margin_m=0.0))
 
@@ -260,19 +283,11 @@ class SolidBoxes:
         """The boxes at ``t_us``: box -> fixed frame [K,4,4] and half sizes [K,3]; a moving track's
         centre interpolated, its rotation and size the nearest observation's, while it is observed
         (up to ``HOLD_S`` beyond its ends)."""
-        hold_us = round(HOLD_S * 1e6)
-        T_moving, half_moving = [], []
-        for k in range(len(self.moving)):
-            a, b = int(self.moving.bounds[k]), int(self.moving.bounds[k + 1])
-            times = self.moving.timestamps_us[a:b]
-            if times[0] - hold_us <= t_us <= times[-1] + hold_us:
-                centre, nearest = _centres_at(times, self.moving.centers_m[a:b], np.array([t_us]))
-                T = np.eye(4)
-                T[:3, :3], T[:3, 3] = self.moving.R_box_frame[a + int(nearest[0])], centre[0]
-                T_moving.append(T)
-                half_moving.append(self.moving.half_extent_m[a + int(nearest[0])])
-        return (np.concatenate([self.static_T_box_frame, np.reshape(T_moving, (-1, 4, 4))]),
-                np.concatenate([self.static_half_m, np.reshape(half_moving, (-1, 3))]))  # fmt: skip
+        tracks, centres, nearest = self.moving.at(t_us)
+        T_moving = np.tile(np.eye(4), (len(tracks), 1, 1))
+        T_moving[:, :3, :3], T_moving[:, :3, 3] = self.moving.R_box_frame[nearest], centres
+        return (np.concatenate([self.static_T_box_frame, T_moving]),
+                np.concatenate([self.static_half_m, self.moving.half_extent_m[nearest]]))  # fmt: skip
 
 
 def dynamic_flags(xyz_m: np.ndarray, timestamps_us: np.ndarray, boxes: DynamicBoxes) -> np.ndarray:

@@ -394,5 +394,7 @@ def _cuboid_labels(
     )  # fmt: skip
     if not with_lidar:
         return cuboid_labels, None, None
-    solids = SolidBoxes.select(observations, cuboid_labels.dynamic) if options.lidar_rgb else None
+    solids = None
+    if options.lidar_rgb:
+        solids = SolidBoxes.select(observations, cuboid_labels.static_poses, cuboid_labels.dynamic)
     return cuboid_labels, DynamicBoxes.select(observations, cuboid_labels.dynamic), solids
