@@ -40,6 +40,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_validate.py
 	$(PY) bench/bench_input_checks.py
 	$(PY) bench/bench_consumers.py
+	$(PY) bench/bench_speed.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info
