@@ -28,8 +28,9 @@ demo: $(STAMP)
 	@echo "demo output: $(DEMO)/out"
 
 test: $(STAMP)
-	# one worker per core; a test file's tests stay on one worker, so its module fixtures are built once
-	$(PY) -m pytest -q -n auto --dist loadfile
+	# one worker per core; a file's tests stay on one worker (module fixtures built once), the cases
+	# of OWN_SCOPE tests go out one by one, slowest files first (tests/conftest.py)
+	$(PY) -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	$(PY) bench/bench_argoverse2.py

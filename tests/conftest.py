@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import os
+import pickle
 import socket
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+from filelock import FileLock
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from upath import UPath
 
@@ -18,6 +21,35 @@ from ncore_convert.synth.argoverse2 import SynthConfig, SynthTruth, write_log
 from ncore_convert.transforms.geometry import Trajectory, invert_se3, transform_points
 
 REPO = Path(__file__).resolve().parents[1]
+#: The slowest test files, slowest first (per-file seconds in docs/tests.md). ``make test`` hands
+#: whole files to the workers in this order, then the rest: the long ones start first, so no worker
+#: is left with one at the end. A stale list costs balance, never a test.
+SLOW_FIRST = ("test_ego_masks", "test_consumers", "test_validate", "test_noise", "test_determinism",
+              "test_dynamic_tracks", "test_bad_input", "test_resume", "test_point_colours", "test_presets")  # fmt: skip
+#: Tests whose cases each build their own data and are slow: each case goes to whichever worker is
+#: free, instead of staying with its file.
+OWN_SCOPE = ("tests/test_ego_masks.py::test_realistic_bodies[",)
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Files in ``SLOW_FIRST`` order, then the rest; a file's tests keep their order."""
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.module.__name__, len(rank)))
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` (a file's tests on one worker, so its module fixtures are built once),
+    except that each case of an ``OWN_SCOPE`` test is scheduled on its own. (pytest-xdist's
+    ``loadgroup`` marks would say this, but they are ignored with pytest 9.2: pytest-xdist#1386.)"""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class FilesAndOwnScopes(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return nodeid if nodeid.startswith(OWN_SCOPE) else super()._split_scope(nodeid)
+
+    return FilesAndOwnScopes(config, log)
 BIN = Path(sys.executable).parent  #: the venv's scripts: ncore-convert, ray, moto_server
 AV2_SAMPLE_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 
@@ -121,10 +153,27 @@ def synth_and_convert(tmp: Path, config: SynthConfig, options: Argoverse2Options
     return Converted(truth, summary, seq_dir, open_sequence(seq_dir, truth.log_id))
 
 
+def shared_by_workers(tmp_path_factory, name: str, make: Callable[[Path], Converted]) -> Converted:
+    """``make(folder)`` once per test run, by whichever pytest-xdist worker asks first; the others
+    wait for it (a file lock in the run's base directory, which the workers share) and read the
+    same files. The tests must not change them (they copy what they corrupt)."""
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / f"shared-{name}"
+    state = folder / "converted.pickle"
+    with FileLock(f"{folder}.lock"):
+        if not state.is_file():
+            run = make(folder)
+            state.write_bytes(pickle.dumps((run.truth, run.summary, run.seq_dir)))
+            return run
+    truth, summary, seq_dir = pickle.loads(state.read_bytes())
+    return Converted(truth, summary, seq_dir, open_sequence(seq_dir, seq_dir.name))
+
+
 @pytest.fixture(scope="session")
 def synth_log(tmp_path_factory) -> Converted:
-    """A 1 s synthetic log with images at 20 fps, converted with default options."""
-    return synth_and_convert(tmp_path_factory.mktemp("synth"), SynthConfig(seconds=1.0, seed=1, keep_truth=True))
+    """A 1 s synthetic log with images at 20 fps, converted with default options (one per test run)."""
+    config = SynthConfig(seconds=1.0, seed=1, keep_truth=True)
+    return shared_by_workers(tmp_path_factory, "synth", lambda folder: synth_and_convert(folder, config))
 
 
 @pytest.fixture(scope="session")
@@ -144,6 +193,11 @@ def av2_sample_root() -> Path:
 
 @pytest.fixture(scope="session")
 def real_log(av2_sample_root, tmp_path_factory) -> Converted:
-    seq_dir = tmp_path_factory.mktemp("real") / AV2_SAMPLE_LOG
-    summary = convert_log(UPath(av2_sample_root), UPath(seq_dir), AV2_SAMPLE_LOG, Argoverse2Options(split="val"))
-    return Converted(None, summary, seq_dir, open_sequence(seq_dir, AV2_SAMPLE_LOG))
+    """The real sample, converted with default options (one per test run)."""
+
+    def convert(folder: Path) -> Converted:
+        seq_dir = folder / AV2_SAMPLE_LOG
+        summary = convert_log(UPath(av2_sample_root), UPath(seq_dir), AV2_SAMPLE_LOG, Argoverse2Options(split="val"))
+        return Converted(None, summary, seq_dir, open_sequence(seq_dir, AV2_SAMPLE_LOG))
+
+    return shared_by_workers(tmp_path_factory, "real", convert)

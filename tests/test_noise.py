@@ -359,17 +359,25 @@ class Converted:
         return self.reader(agent_id).open_component_readers(PosesComponent.Reader)[instance]
 
 
-def convert(tmp: Path, settings_=SETTINGS, layout: str = "agents") -> Converted:
-    (truth,) = write_dataset(UPath(tmp / "src"), CONFIG)
+@pytest.fixture(scope="module")
+def source(tmp_path_factory) -> tuple[Path, ScenarioTruth]:
+    """The synthetic scenario (``CONFIG``), written once: every conversion here reads this one input."""
+    root = tmp_path_factory.mktemp("noise-src")
+    (truth,) = write_dataset(UPath(root), CONFIG)
+    return root, truth
+
+
+def convert(source: tuple[Path, ScenarioTruth], tmp: Path, settings_=SETTINGS, layout: str = "agents") -> Converted:
+    root, truth = source
     out = tmp / "out" / truth.scenario
     options = OpenCoodOptions(dataset="v2xset", split=CONFIG.split, layout=layout, noise=settings_)
-    convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario, options)
+    convert_scenario(UPath(root), UPath(out), truth.scenario, options)
     return Converted(truth, out)
 
 
 @pytest.fixture(scope="module")
-def converted(tmp_path_factory) -> Converted:
-    return convert(tmp_path_factory.mktemp("noise"))
+def converted(tmp_path_factory, source) -> Converted:
+    return convert(source, tmp_path_factory.mktemp("noise"))
 
 
 def lidar_world_global(loader: SequenceLoaderV4, t_us: int) -> np.ndarray:
@@ -476,8 +484,8 @@ def test_cuboids_and_calibration_are_shared_by_every_poses_instance(converted):
         )
 
 
-def test_scenario_layout_holds_every_agent_in_the_noisy_instance(tmp_path, converted):
-    scenario = convert(tmp_path, SETTINGS[:1], layout="scenario")
+def test_scenario_layout_holds_every_agent_in_the_noisy_instance(tmp_path, converted, source):
+    scenario = convert(source, tmp_path, SETTINGS[:1], layout="scenario")
     reader = SequenceComponentGroupsReader([UPath(scenario.out / f"{scenario.truth.scenario}.json")])
     loader = SequenceLoaderV4(reader, poses_component_group_name="opencood_test")
     data = reader.open_component_readers(PosesComponent.Reader)["opencood_test"]
@@ -492,9 +500,9 @@ def test_scenario_layout_holds_every_agent_in_the_noisy_instance(tmp_path, conve
         )
 
 
-def test_same_seed_same_output_other_seed_other_output(tmp_path, converted):
-    again = convert(tmp_path / "again", SETTINGS[1:])
-    reseeded = convert(tmp_path / "reseeded", (make_setting({**SETTINGS[2].as_dict(), "seed": 9}),))
+def test_same_seed_same_output_other_seed_other_output(tmp_path, converted, source):
+    again = convert(source, tmp_path / "again", SETTINGS[1:])
+    reseeded = convert(source, tmp_path / "reseeded", (make_setting({**SETTINGS[2].as_dict(), "seed": 9}),))
     for agent in converted.truth.agents:
         for s in SETTINGS[1:]:
             a, b = converted.pose_data(agent, s.name), again.pose_data(agent, s.name)

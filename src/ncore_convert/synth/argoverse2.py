@@ -229,7 +229,7 @@ def _write_rendered_images(truth: SynthTruth, cam_ns: dict[str, np.ndarray], cam
             T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
             f, cx, cy = truth.intrinsics[cam]  # AV2's principal point: pixel centres at integers
             rgb, _ = render(truth.scene, box_rgb, T_camera_city, (f, f, cx + 0.5, cy + 0.5), (width, height), RENDER_STEP,
-                            t_s, MAX_RANGE_M)  # fmt: skip
+                            t_s, MAX_RANGE_M, with_index=False)  # fmt: skip
             if cam in truth.ego_masks:
                 rgb[truth.ego_masks[cam]] = BODY_RGB
             path = av2.image_path(truth.log_dir, cam, int(ts))

@@ -252,8 +252,9 @@ def _add_slow_traffic(rng: np.random.Generator, seconds: float, along, add, jitt
 
 
 
-def _rays_towards(azimuth_sorted: np.ndarray, order: np.ndarray, offset_m: np.ndarray, sin_half: float) -> np.ndarray:
-    """Indices of the rays whose azimuth lies within asin(sin_half) of the azimuth of offset_m [3]."""
+def _azimuth_spans(azimuth_sorted: np.ndarray, offset_m: np.ndarray, sin_half: float) -> list[tuple[int, int]]:
+    """The [start, stop) ranges of ``azimuth_sorted`` (ascending, radians) within asin(sin_half) of
+    the azimuth of offset_m [3]: one range, or two where the window wraps around ±pi."""
     center = np.arctan2(offset_m[1], offset_m[0])
     half = np.arcsin(min(1.0, sin_half))
     lo, hi = center - half, center + half
@@ -262,8 +263,8 @@ def _rays_towards(azimuth_sorted: np.ndarray, order: np.ndarray, offset_m: np.nd
         parts = [(lo + 2 * np.pi, np.pi), (-np.pi, hi)]
     elif hi > np.pi:
         parts = [(lo, np.pi), (-np.pi, hi - 2 * np.pi)]
-    return np.concatenate([order[np.searchsorted(azimuth_sorted, a):np.searchsorted(azimuth_sorted, b, "right")]
-                           for a, b in parts])  # fmt: skip
+    return [(int(np.searchsorted(azimuth_sorted, a)), int(np.searchsorted(azimuth_sorted, b, "right")))
+            for a, b in parts]  # fmt: skip
 
 
 SKY_RGB, BUILDING_RGB = (135, 180, 235), (170, 120, 90)
@@ -312,10 +313,11 @@ def render(
     t_s: float = 0.0,
     max_range_m: float = 300.0,
     ground_z_m: float = GROUND_Z_M,
-) -> tuple[np.ndarray, np.ndarray]:
+    with_index: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:
     """A flat-shaded picture of ``scene`` (moving boxes where they are at ``t_s``): one ray through
     the centre of every ``step`` x ``step`` block of pixels, its colour (:func:`surface_rgb`) over
-    the block.
+    the block; and, ``with_index``, what each pixel shows.
 
     Args:
         T_camera_scene: maps the camera frame (OpenCV: x right, y down, z forward) into the scene.
@@ -324,7 +326,7 @@ def render(
 
     Returns:
         rgb: uint8 [height,width,3]; box_index: what each pixel shows, int [height,width] (an index
-        into ``scene.boxes``, -1 the ground, ``SKY`` nothing).
+        into ``scene.boxes``, -1 the ground, ``SKY`` nothing), None without ``with_index``.
     """
     fx, fy, cx, cy = pinhole_px
     width, height = size_px
@@ -336,10 +338,33 @@ def render(
     hit = np.isfinite(distance)
     rgb = surface_rgb(box_rgb, index, origins + d * np.where(hit, distance, 0.0)[:, None], hit)
 
-    def full(small: np.ndarray) -> np.ndarray:
-        return np.repeat(np.repeat(small.reshape(*u.shape, *small.shape[1:]), step, axis=0), step, axis=1)[:height, :width]
+    def full(small: np.ndarray) -> np.ndarray:  # each ray's value over its step x step block
+        rows, cols = u.shape
+        blocks = small.reshape(rows, 1, cols, 1, *small.shape[1:])
+        tiled = np.broadcast_to(blocks, (rows, step, cols, step, *small.shape[1:]))
+        return tiled.reshape(rows * step, cols * step, *small.shape[1:])[:height, :width]
 
-    return full(rgb), full(np.where(hit, index, SKY))
+    return full(rgb), full(np.where(hit, index, SKY)) if with_index else None
+
+
+#: Slack of the bounding-sphere test in cast_rays (metres): far above rounding, far below a box.
+SPHERE_MARGIN_M = 1e-3
+
+
+def _near_sphere(origins_m: np.ndarray, directions: np.ndarray, center_m: np.ndarray, radius_m: float) -> np.ndarray:
+    """Which rays (``origins_m``, unit ``directions``: [K,3]) pass within ``radius_m`` (+
+    ``SPHERE_MARGIN_M``) of ``center_m`` [3] ahead of their origin (bool [K]): the only ones that
+    can hit what that sphere bounds. One shared origin (stride 0, a camera's) is not gathered."""
+    if not len(directions):
+        return np.zeros(0, dtype=bool)
+    if origins_m.strides[0] == 0:
+        w = center_m - origins_m[0]  # [3]
+        along, w2 = directions @ w, float(w @ w)
+    else:
+        w = center_m - origins_m  # [K,3]
+        along, w2 = np.einsum("ij,ij->i", directions, w), np.einsum("ij,ij->i", w, w)
+    ahead = np.maximum(along, 0.0)
+    return w2 - ahead * ahead <= (radius_m + SPHERE_MARGIN_M) ** 2
 
 
 def cast_rays(
@@ -373,24 +398,36 @@ def cast_rays(
     center_m = origins_m.mean(axis=0)
     spread_m = float(np.max(np.linalg.norm(origins_m[:, :2] - center_m[:2], axis=1), initial=0.0))
     t_mid_s, half_span_s = float(np.median(times_s)), float(np.ptp(times_s)) / 2 if n else 0.0
-    order = np.argsort(np.arctan2(directions[:, 1], directions[:, 0]))
-    azimuth_sorted = np.arctan2(directions[order, 1], directions[order, 0])
+    box_reach_m = [float(np.linalg.norm(box.dims_m)) / 2 for box in scene.boxes]  # bounding-sphere radii
+    motion_m = [float(np.linalg.norm(box.velocity_mps)) * half_span_s for box in scene.boxes]  # over the rays' times
+    # the rays sorted by azimuth, so that the rays towards a box are contiguous slices
+    azimuth = np.arctan2(directions[:, 1], directions[:, 0])
+    order = np.argsort(azimuth)
+    azimuth_sorted, directions_sorted = azimuth[order], directions[order]
+    origins_sorted = origins_m if origins_m.strides[0] == 0 else origins_m[order]
     for b, box in enumerate(scene.boxes):
         # Only rays whose azimuth points at the box can hit it: seen from the rays' mean origin, the
         # box (at the sweep's middle time) lies within a disc of radius r, padded by the spread of
         # the origins and the box's motion during the sweep.
         center = box.center_m(t_mid_s)
-        r = np.linalg.norm(box.dims_m) / 2 + spread_m + np.linalg.norm(box.velocity_mps) * half_span_s
+        r = box_reach_m[b] + spread_m + motion_m[b]
         distance = np.linalg.norm(center[:2] - center_m[:2])
         if distance - r > max_range_m:
             continue
-        idx = slice(None) if distance <= r else _rays_towards(azimuth_sorted, order, center - center_m, r / distance)
-        o, d, t = origins_m[idx], directions[idx], times_s[idx]
+        spans = [(0, n)] if distance <= r else _azimuth_spans(azimuth_sorted, center - center_m, r / distance)
+        # of those, the rays that pass the box's bounding sphere (padded by its motion)
+        reach_m = box_reach_m[b] + motion_m[b]
+        idx = np.concatenate([order[a:z][_near_sphere(origins_sorted[a:z], directions_sorted[a:z], center, reach_m)]
+                              for a, z in spans])  # fmt: skip
+        if not len(idx):
+            continue
         if np.any(box.velocity_mps):
-            o_b = (o - box.center_m(t)) @ box.rotation
+            o_b = (origins_m[idx] - box.center_m(times_s[idx])) @ box.rotation
+        elif origins_m.strides[0] == 0:  # one origin: one origin in the box frame
+            o_b = np.broadcast_to((origins_m[:1] - box.center0_m) @ box.rotation, (len(idx), 3))
         else:
-            o_b = (o - box.center0_m) @ box.rotation
-        d_b = d @ box.rotation
+            o_b = (origins_m[idx] - box.center0_m) @ box.rotation
+        d_b = directions[idx] @ box.rotation
         t_near = np.full(len(o_b), -np.inf)
         t_far = np.full(len(o_b), np.inf)
         with np.errstate(divide="ignore", invalid="ignore"):
