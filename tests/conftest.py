@@ -146,10 +146,15 @@ def component_meta(loader: SequenceLoaderV4, component, instance: str) -> dict:
 
 
 def synth_and_convert(tmp: Path, config: SynthConfig, options: Argoverse2Options | None = None) -> Converted:
+    """Synthesise ``config`` into ``tmp/src/val`` and convert it into ``tmp/out``."""
     truth = write_log(UPath(tmp / "src" / "val"), config)
-    options = options or Argoverse2Options(split="val")
-    seq_dir = tmp / "out" / truth.log_id
-    summary = convert_log(UPath(tmp / "src"), UPath(seq_dir), truth.log_id, options)
+    return convert_synthetic(truth, tmp / "out", options or Argoverse2Options(split="val"))
+
+
+def convert_synthetic(truth: SynthTruth, out: Path, options: Argoverse2Options) -> Converted:
+    """Convert the synthetic AV2 log of ``truth`` (written under ``<root>/val``) into ``out``."""
+    seq_dir = out / truth.log_id
+    summary = convert_log(UPath(truth.log_dir.parent.parent), UPath(seq_dir), truth.log_id, options)
     return Converted(truth, summary, seq_dir, open_sequence(seq_dir, truth.log_id))
 
 

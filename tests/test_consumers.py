@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import BIN, Converted, component_meta, open_sequence, synth_and_convert
+from conftest import BIN, Converted, component_meta, convert_synthetic, open_sequence, synth_and_convert
 from ncore.data.v4 import (
     CameraSensorComponent,
     CuboidsComponent,
@@ -65,10 +65,10 @@ def av2(tmp_path_factory) -> dict[str, Converted]:
     tmp = tmp_path_factory.mktemp("consumers-av2")
     config = SynthConfig(seconds=1.0, seed=4, keep_truth=True, camera_fps=2)
     runs = {"default": synth_and_convert(tmp / "default", config)}
-    runs["consumer"] = synth_and_convert(tmp / "consumer", config, Argoverse2Options(split="val", **CONSUMER))
-    runs["opencv"] = synth_and_convert(
-        tmp / "opencv", config, Argoverse2Options(split="val", camera_model="opencv-pinhole", lidar_ids=())
-    )
+    truth = runs["default"].truth
+    runs["consumer"] = convert_synthetic(truth, tmp / "consumer", Argoverse2Options(split="val", **CONSUMER))
+    options = Argoverse2Options(split="val", camera_model="opencv-pinhole", lidar_ids=())
+    runs["opencv"] = convert_synthetic(truth, tmp / "opencv", options)
     return runs
 
 
