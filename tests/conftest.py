@@ -24,8 +24,9 @@ REPO = Path(__file__).resolve().parents[1]
 #: The slowest test files, slowest first (per-file seconds in docs/tests.md). ``make test`` hands
 #: whole files to the workers in this order, then the rest: the long ones start first, so no worker
 #: is left with one at the end. A stale list costs balance, never a test.
-SLOW_FIRST = ("test_ego_masks", "test_consumers", "test_validate", "test_noise", "test_determinism",
-              "test_dynamic_tracks", "test_bad_input", "test_resume", "test_point_colours", "test_presets")  # fmt: skip
+SLOW_FIRST = ("test_validate", "test_ego_masks", "test_consumers", "test_determinism", "test_bad_input",
+              "test_dynamic_tracks", "test_resume", "test_ray", "test_fuzz_readers", "test_presets",
+              "test_point_colours")  # fmt: skip
 #: Tests whose cases each build their own data and are slow: each case goes to whichever worker is
 #: free, instead of staying with its file.
 OWN_SCOPE = ("tests/test_ego_masks.py::test_realistic_bodies[",)
