@@ -54,6 +54,12 @@ def open_sequence(sequence_json: UPath, poses_instance: str = DEFAULT_INSTANCE) 
     return OpenSequence(SequenceLoaderV4(reader, poses_component_group_name=poses_instance), reader)
 
 
+def cuboid_observations(sequence_json: UPath) -> list:
+    """Every cuboid observation of a sequence, decoded by nvidia-ncore (the slow part of validation:
+    a pool worker can do it while the other checks run)."""
+    return list(open_sequence(sequence_json).loader.get_cuboid_track_observations())
+
+
 def read_manifest(manifest_path: UPath) -> ScenarioManifest:
     return ScenarioManifest.from_dict(json.loads(UPath(manifest_path).read_text()))
 

@@ -8,6 +8,8 @@ cuboid-occupancy check, which needs the motion-compensated points of a frame, ru
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from upath import UPath
@@ -90,7 +92,9 @@ def _occupancy(loader: SequenceLoaderV4, lidar_id: str, observations: list) -> t
     return held, near
 
 
-def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str, observations: list) -> None:
+def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> bool:
+    """Every frame read back; returns whether the frames allow the occupancy check (all readable,
+    every point time within its frame and covered by the poses)."""
     lidar = loader.get_lidar_sensor(lidar_id)
     frames_us = lidar.frames_timestamps_us
     name = f"lidar {lidar_id}"
@@ -130,13 +134,16 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str, observ
     which = f": {uncovered[:5]}" if uncovered else ""
     report.add(f"{name}: poses cover every frame and point time", not uncovered,
                f"{len(uncovered)} of {lidar.frames_count} frames uncovered{which}")  # fmt: skip
-    if observations and not uncovered and not unreadable and outside_time == 0:  # what motion compensation needs
-        held, near = _occupancy(loader, lidar_id, observations)
-        decisive = near >= OCCUPANCY_MIN_BOXES
-        ok = not decisive or held >= OCCUPANCY_MIN_FRACTION * near
-        report.add(f"{name}: cuboids hold points", ok,
-                   f"{held} of {near} boxes within {OCCUPANCY_RANGE_M:.0f} m hold a point"
-                   + ("" if decisive else " (too few boxes to decide)"))  # fmt: skip
+    return not uncovered and not unreadable and outside_time == 0  # what motion compensation needs
+
+
+def _check_occupancy(report: Report, loader: SequenceLoaderV4, lidar_id: str, observations: list) -> None:
+    held, near = _occupancy(loader, lidar_id, observations)
+    decisive = near >= OCCUPANCY_MIN_BOXES
+    ok = not decisive or held >= OCCUPANCY_MIN_FRACTION * near
+    report.add(f"lidar {lidar_id}: cuboids hold points", ok,
+               f"{held} of {near} boxes within {OCCUPANCY_RANGE_M:.0f} m hold a point"
+               + ("" if decisive else " (too few boxes to decide)"))  # fmt: skip
 
 
 def _check_camera(report: Report, loader: SequenceLoaderV4, camera_id: str, lidar_frames_us: np.ndarray | None) -> None:
@@ -230,9 +237,12 @@ def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4) -> None:
                    f"int8 in {{0, 1}}, one per ray; {len(bad)} of {source.pcs_count} frames not")  # fmt: skip
 
 
-def validate_sequence(sequence_json: UPath, source_root: UPath | None = None) -> Report:
+def validate_sequence(sequence_json: UPath, source_root: UPath | None = None, observations: Future | None = None) -> Report:
     """Open a sequence (its ``<sequence_id>.json``) with the default instance names and check it;
-    with ``source_root`` (the converter's --root-dir), also compare its counts with the source."""
+    with ``source_root`` (the converter's --root-dir), also compare its counts with the source.
+    ``observations``: the sequence's cuboid observations (:func:`readback.cuboid_observations`)
+    being decoded elsewhere, e.g. in a worker process; without it they are decoded here, after the
+    checks that do not need them. The checks and their order are the same either way."""
     report = Report(str(sequence_json))
     try:
         sequence = open_sequence(sequence_json)
@@ -248,15 +258,22 @@ def validate_sequence(sequence_json: UPath, source_root: UPath | None = None) ->
         "opens with SequenceLoaderV4", True, f"{len(loader.lidar_ids)} lidar(s), {len(loader.camera_ids)} camera(s)"
     )
     _check_world_global(report, loader)
-    observations = list(loader.get_cuboid_track_observations())
-    _check_window(report, loader, observations)
-    _check_dynamic_flag(report, loader)
-    lidar_frames = None
+    window, flag, cameras = Report(report.sequence), Report(report.sequence), Report(report.sequence)
+    _check_dynamic_flag(flag, loader)
+    lidars, lidar_frames = [], None
     for lidar_id in loader.lidar_ids:
-        _check_lidar(report, loader, lidar_id, observations)
+        part = Report(report.sequence)
+        lidars.append((lidar_id, part, _check_lidar(part, loader, lidar_id)))
         lidar_frames = loader.get_lidar_sensor(lidar_id).frames_timestamps_us if lidar_frames is None else lidar_frames
     for camera_id in loader.camera_ids:
-        _check_camera(report, loader, camera_id, lidar_frames)
+        _check_camera(cameras, loader, camera_id, lidar_frames)
+    decoded = list(loader.get_cuboid_track_observations()) if observations is None else observations.result()
+    _check_window(window, loader, decoded)
+    for lidar_id, part, frames_allow in lidars:
+        if decoded and frames_allow:
+            _check_occupancy(part, loader, lidar_id, decoded)
+    for part in (window, flag, *(part for _, part, _ in lidars), cameras):
+        report.checks += part.checks
     if source_root is not None:
-        compare_with_source(report, sequence, source_root, observations)
+        compare_with_source(report, sequence, source_root, decoded)
     return report
