@@ -65,7 +65,8 @@ def main() -> None:
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     root = work / "speed-av2-15s"
-    log_id = cached(root, "the 15 s AV2 log", lambda r: write_log(UPath(r / "val"), SynthConfig(seconds=15.0, seed=2)).log_id)
+    config = SynthConfig(seconds=15.0, seed=2)
+    log_id = cached(root, "the 15 s AV2 log", lambda r: write_log(UPath(r / "val"), config).log_id)
     log_dir = root / "val" / log_id
     repo = Path(args.ncore_repo) if args.ncore_repo else None
     if repo is not None and not (repo / "tools" / "data_converter" / "argoverse2" / "main.py").is_file():

@@ -237,7 +237,9 @@ def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4) -> None:
                    f"int8 in {{0, 1}}, one per ray; {len(bad)} of {source.pcs_count} frames not")  # fmt: skip
 
 
-def validate_sequence(sequence_json: UPath, source_root: UPath | None = None, observations: Future | None = None) -> Report:
+def validate_sequence(
+    sequence_json: UPath, source_root: UPath | None = None, observations: Future | None = None
+) -> Report:
     """Open a sequence (its ``<sequence_id>.json``) with the default instance names and check it;
     with ``source_root`` (the converter's --root-dir), also compare its counts with the source.
     ``observations``: the sequence's cuboid observations (:func:`readback.cuboid_observations`)
