@@ -35,6 +35,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -229,21 +230,27 @@ class DynamicBoxes:
     def __len__(self) -> int:
         return len(self.bounds) - 1
 
+    @cached_property
+    def _track_time_key(self) -> tuple[np.ndarray, int, int]:
+        """Every row's (track, time) as one ascending int64 key, track * length + (time - t0) [M]; t0; length."""
+        times = self.timestamps_us
+        t0, length = int(times.min()), int(times.max() - times.min()) + 1
+        return np.repeat(np.arange(len(self), dtype=np.int64), np.diff(self.bounds)) * length + (times - t0), t0, length
+
     def at(self, t_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The tracks observed at ``t_us`` (up to ``HOLD_S`` beyond their ends), int [K]; their centres
         then, as :func:`_centres_at` gives them, [K,3]; and the row of each one's nearest observation, int [K]."""
         hold_us = round(HOLD_S * 1e6)
         first, last = self.bounds[:-1], self.bounds[1:] - 1
-        tracks = np.flatnonzero((self.timestamps_us[first] - hold_us <= t_us) & (t_us <= self.timestamps_us[last] + hold_us))
-        a, b = first[tracks], last[tracks] + 1
-        single = b - a == 1
+        start_us, end_us = self.timestamps_us[first] - hold_us, self.timestamps_us[last] + hold_us
+        tracks = np.flatnonzero((start_us <= t_us) & (t_us <= end_us))
         if not len(tracks):
             return tracks, np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        a, b = first[tracks], last[tracks] + 1
+        single = b - a == 1
         # the observation at or before t_us within each track (one bisection over (track, time) keys),
         # kept off the track's last so that a segment follows it
-        times = self.timestamps_us
-        t0, length = int(times.min()), int(times.max() - times.min()) + 1
-        key = np.repeat(np.arange(len(self), dtype=np.int64), np.diff(self.bounds)) * length + (times - t0)
+        key, t0, length = self._track_time_key
         before = np.searchsorted(key, tracks * length + min(max(t_us - t0, 0), length - 1), side="right") - 1
         i = np.clip(before, a, np.maximum(b - 2, a))
         j = np.where(single, i, i + 1)

@@ -27,7 +27,7 @@ from ncore_convert.transforms.sampling import spread_indices
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
 SAMPLED_FRAMES = 5
-#: added to a box's half diagonal for the bounding-sphere prefilter (points are float32 there)
+#: added to a box's half diagonal for the prefilter of box_point_counts (points are float32 there)
 BOUND_MARGIN_M = 0.01
 
 
@@ -127,8 +127,8 @@ def _T_reference_world(loader: SequenceLoaderV4, box) -> np.ndarray:
 def box_point_counts(loader: SequenceLoaderV4, boxes: list, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How many of the points (world, float64 [N,3]) lie inside each box, int [B], and the box centres
     in world, float64 [B,3]; each box is tested in its own reference frame at its reference time
-    (one pose per reference frame and time; only the points within the box's bounding sphere go to
-    NCore's ``is_within_3d_bboxes``)."""
+    (one pose per reference frame and time; only the points in the cube around the box's bounding
+    sphere go to NCore's ``is_within_3d_bboxes``)."""
     counts, centres = np.zeros(len(boxes), dtype=np.int64), np.zeros((len(boxes), 3))
     groups: dict[tuple[str, int], list[int]] = {}
     for k, box in enumerate(boxes):
