@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
+import PIL.Image
 import pyarrow.feather as feather
 import pyarrow.ipc as ipc
+import pytest
 from conftest import AV2_SAMPLE_LOG
 
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.synth import ego
 from ncore_convert.transforms import vlp32c
 
 TABLES = [
@@ -91,3 +94,16 @@ def test_elevations_follow_the_beam_table(synth_log):
     beams = sweep.laser_number % 32
     elevation = np.degrees(np.arcsin(sweep.direction_sensor[:, 2]))
     np.testing.assert_allclose(elevation, vlp32c.BEAM_ELEVATION_DEG[beams], atol=1e-9)
+
+
+@pytest.mark.parametrize("size", [(1550, 2048), (4096, 3000)])
+def test_picture_pixels_read_through_arrow_equal_pillows_own(size):
+    """``synth.ego.pixels`` (the generator's fast path from Pillow to numpy) gives Pillow's own
+    pixels, both where the rows are one block (read through Arrow) and where they are not (AV2's
+    size, and one over Pillow's block size)."""
+    width, height = size
+    values = np.random.default_rng(0).uniform(-1, 1, (height // 9, width // 9)).astype(np.float32)
+    image = PIL.Image.fromarray(values, mode="F").resize((width, height), PIL.Image.BILINEAR)
+    got = ego.pixels(image)
+    assert got.dtype == np.float32 and got.shape == (height, width)
+    np.testing.assert_array_equal(got, np.asarray(image))
