@@ -98,6 +98,9 @@ LAYER_RULES = [
     (("transforms",), ("sources", "converters", "writer", "validate", "run")),
     (("sources",), ("converters", "writer", "validate")),
     (("validate", "preview", "evaluate"), ("converters",)),
+    # the read-back views (NCore seen as a dataset's own layout) and the converters stay apart
+    (("views",), ("converters", "writer", "run")),
+    (("converters", "sources", "transforms", "writer", "validate", "run"), ("views",)),
 ]
 
 
@@ -190,7 +193,8 @@ def test_av2_transform_names_stay_in_the_av2_reader(project):
 
 def test_the_checks_find_known_violations(tmp_path):
     """Negative control: a package with a function-level cycle, a TYPE_CHECKING cycle, an upward
-    import, a stray writer use, a stray loader and an av2 name past the reader."""
+    import, a view importing a converter and a converter a view, a stray writer use, a stray loader
+    and an av2 name past the reader."""
     pkg = tmp_path / "ncore_convert"
     files = {
         "__init__.py": "",
@@ -207,6 +211,9 @@ def test_the_checks_find_known_violations(tmp_path):
         ),
         "validate/__init__.py": "",
         "validate/check.py": "from ncore_convert.converters.a import x\nloader = SequenceLoaderV4(reader)\n",
+        "views/__init__.py": "",
+        "views/look.py": "from ncore_convert.validate import check\nfrom ncore_convert.converters import b\n",
+        "converters/c.py": "def g():\n    from ncore_convert.views import look\n",
     }
     for rel, text in files.items():
         (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -219,6 +226,8 @@ def test_the_checks_find_known_violations(tmp_path):
     assert layer_violations(graph, "ncore_convert") == [
         "ncore_convert.transforms.geo imports ncore_convert.sources.reader",
         "ncore_convert.validate.check imports ncore_convert.converters.a",
+        "ncore_convert.views.look imports ncore_convert.converters.b",
+        "ncore_convert.converters.c imports ncore_convert.views.look",
     ]
     assert ncore_writer_users(trees) == {"ncore_convert.converters.b"}
     assert loader_constructors(trees) == {"ncore_convert.validate.check"}

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from ncore_convert.transforms.carla import (
     boxes_world_right_handed,
+    carla_pose_from_matrix,
     carla_pose_matrix,
     mirror_transform,
     points_right_handed,
@@ -149,3 +150,18 @@ def test_decompensation_then_recompensation_is_the_identity(traj, T_sensor_rig, 
     # a point fired at the reference time only changes frame: rig -> sensor
     at_ref = decompensate(xyz, np.full(len(xyz), ref_ns), ref_ns, traj, T_sensor_rig)
     np.testing.assert_allclose(at_ref, transform_points(invert_se3(T_sensor_rig), xyz), atol=1e-7)
+
+
+@PROPERTY
+@given(carla_poses)
+def test_a_carla_pose_is_recovered_from_its_matrix(pose):
+    """``carla_pose_from_matrix`` inverts ``carla_pose_matrix``: the same matrix back, and away from
+    gimbal lock the same angles (roll and yaw up to whole turns)."""
+    recovered = carla_pose_from_matrix(carla_pose_matrix(pose))
+    np.testing.assert_allclose(carla_pose_matrix(recovered), carla_pose_matrix(pose), atol=1e-9)
+    np.testing.assert_allclose(recovered[:3], pose[:3], rtol=0, atol=0)
+    assert -90.0 <= recovered[5] <= 90.0 and np.all(np.abs(recovered[3:5]) <= 180.0)
+    if abs(pose[5]) < 89.0:  # else the same rotation may take other angles
+        turns = (recovered[3:5] - pose[3:5]) / 360.0
+        np.testing.assert_allclose(turns, np.round(turns), atol=1e-9)
+        np.testing.assert_allclose(recovered[5], pose[5], atol=1e-9)

@@ -79,6 +79,8 @@ LIDAR_RGB = "rgb"  #: uint8 [N,3]: the point's colour from the cameras (3DGRUT's
 SKIPPED_FRAMES = "skipped_frames"
 #: lidar metadata (AV2: per cause; OpenCOOD: per frame) of points that have no unit direction
 POINTS_NOT_STORED = "points_not_stored"
+#: OpenCOOD lidar frame metadata: the frame's CARLA frame counter (its OpenCOOD key, as an int)
+CARLA_FRAME = "carla_frame"
 
 # --- component instances ---
 #: The instance name every component is written under, and the one ``SequenceLoaderV4`` opens by default.

@@ -43,6 +43,20 @@ def carla_pose_matrix(pose: np.ndarray) -> np.ndarray:
     return T[0] if single else T
 
 
+def carla_pose_from_matrix(T: np.ndarray) -> np.ndarray:
+    """The CARLA pose ``[x, y, z, roll, yaw, pitch]`` (metres, degrees; [6] or [N,6]) of a
+    left-handed ``T_x_world`` ([4,4] or [N,4,4]): the inverse of :func:`carla_pose_matrix`, with
+    pitch in [-90, 90] and roll and yaw in (-180, 180]."""
+    T = np.asarray(T, dtype=np.float64)
+    single = T.ndim == 2
+    T = T.reshape(-1, 4, 4)
+    pitch = np.degrees(np.arcsin(np.clip(T[:, 2, 0], -1.0, 1.0)))
+    yaw = np.degrees(np.arctan2(T[:, 1, 0], T[:, 0, 0]))
+    roll = np.degrees(np.arctan2(-T[:, 2, 1], T[:, 2, 2]))
+    pose = np.concatenate([T[:, :3, 3], np.stack([roll, yaw, pitch], axis=1)], axis=1)
+    return pose[0] if single else pose
+
+
 def mirror_transform(T_carla: np.ndarray) -> np.ndarray:
     """A left-handed CARLA transform ([...,4,4]) as the right-handed one: ``S · T · S``."""
     return S @ T_carla @ S

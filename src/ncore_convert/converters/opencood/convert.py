@@ -226,7 +226,7 @@ def _write_sensors(
             elements = None if agent.lidar_model is None else assign_elements(agent.lidar_model, rays.direction)
             lidar.store_frame(
                 rays,
-                {"carla_frame": int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite},
+                {contract.CARLA_FRAME: int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite},
                 model_element=elements,
                 generic_data=generic,
             )
