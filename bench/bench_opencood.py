@@ -8,6 +8,11 @@
 3. Per real OPV2V frame (``../shared/data/opv2v-lidar-sample``, ~56k points): the PCD parse beside
    the lidar model's element assignment (nearest laser, nearest azimuth column), and their ratio.
 
+4. Reading back (issue 29): agent-frames per second through the OpenCOOD view of the converted
+   scenario (``views.opencood``: the lidar points, the frame's YAML and its camera PNGs) beside
+   reading the raw files the way the converter does (``read_pcd``, the safe YAML loader, the PNG
+   bytes), interleaved frame by frame over a sample of agent-frames.
+
 Figures are medians over --repeat runs.
 
     python bench/bench_opencood.py [--work /tmp/ncore-bench] [--repeat 3]
@@ -105,6 +110,31 @@ def model_cost(repeat: int) -> None:
           f" {assign_ms:.1f} ms, ratio {assign_ms / parse_ms:.3f}", flush=True)  # fmt: skip
 
 
+def readback_rates(root: Path, out: Path, repeat: int, sample: int = 40) -> dict:
+    """Agent-frames/s through the view and from the raw files (medians of per-frame times)."""
+    from ncore_convert.sources.opencood import load_yaml
+    from ncore_convert.sources.pcd import read_pcd
+    from ncore_convert.views.opencood import OpenCoodScenario
+
+    view = OpenCoodScenario.open(next(out.glob("*/scenario.json")))
+    scenario_dir = root / "test" / view.manifest.scenario
+    pairs = [(a, k) for a in view.agent_ids for k in view.keys(a)]
+    pairs = pairs[:: max(1, len(pairs) // sample)][:sample]
+    view_s, raw_s = [], []
+    for _ in range(repeat):
+        for agent_id, key in pairs:
+            started = time.perf_counter()
+            view.lidar_points(agent_id, key), view.params(agent_id, key), view.images(agent_id, key)
+            view_s.append(time.perf_counter() - started)
+            started = time.perf_counter()
+            read_pcd(UPath(scenario_dir / agent_id / f"{key}.pcd"))
+            load_yaml(UPath(scenario_dir / agent_id / f"{key}.yaml"))
+            for png in sorted((scenario_dir / agent_id).glob(f"{key}_camera*.png")):
+                png.read_bytes()
+            raw_s.append(time.perf_counter() - started)
+    return {"view": 1 / statistics.median(view_s), "raw": 1 / statistics.median(raw_s), "frames": len(pairs)}
+
+
 def main() -> None:
     args = bench_parser(__doc__, repeat=3).parse_args()
     work = work_dir(args)
@@ -124,6 +154,10 @@ def main() -> None:
         print(f"  conversion, {workers} worker(s): {seconds:.1f} s, {frames / seconds:.1f} agent-frames/s,"
               f" {points / seconds / 1e6:.2f} M points/s ({frames} lidar frames, {points} points,"
               f" {4 * frames} images)", flush=True)  # fmt: skip
+    rates = readback_rates(root, work / "opencood-out", args.repeat)
+    print(f"  reading back {rates['frames']} agent-frames (points, YAML, 4 PNGs each): OpenCOOD view"
+          f" {rates['view']:.1f} frames/s, raw files {rates['raw']:.1f} frames/s,"
+          f" ratio {rates['view'] / rates['raw']:.2f}", flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.feather as feather
 import pytest
 from conftest import AV2_SAMPLE_LOG, REPO
@@ -88,7 +89,7 @@ def _rows(table: pa.Table, rows) -> pa.Table:
 
 
 def _without_sensor(path: Path, sensor: str) -> Path:
-    return _edit_table(path, lambda t: t.filter(pa.compute.not_equal(t["sensor_name"], sensor)))
+    return _edit_table(path, lambda t: t.filter(pc.not_equal(t["sensor_name"], sensor)))
 
 
 def _cast(path: Path, column: str, to: pa.DataType) -> Path:
@@ -103,15 +104,15 @@ def _sensor_end_ns(log: Path) -> int:
 
 
 def _poses_until(log: Path, end_ns: int) -> Path:
-    return _edit_table(_poses(log), lambda t: t.filter(pa.compute.less_equal(t["timestamp_ns"], end_ns)))
+    return _edit_table(_poses(log), lambda t: t.filter(pc.less_equal(t["timestamp_ns"], end_ns)))
 
 
 def _pose_gap(log: Path) -> Path:
     """No pose from the first sweep until 100 ms after the third (about 300 ms)."""
     first, _, third = (int(p.stem) for p in _sweeps(log)[:3])
     third += 100_000_000
-    keep = lambda t: pa.compute.invert(  # noqa: E731
-        pa.compute.and_(pa.compute.greater(t["timestamp_ns"], first), pa.compute.less(t["timestamp_ns"], third))
+    keep = lambda t: pc.invert(  # noqa: E731
+        pc.and_(pc.greater(t["timestamp_ns"], first), pc.less(t["timestamp_ns"], third))
     )
     return _edit_table(_poses(log), lambda t: t.filter(keep(t)))
 

@@ -1,24 +1,34 @@
-"""Issue 29, first part: a converted cooperative scenario read back as OpenCOOD reads its raw files
-(``views.opencood``), against the raw files themselves: the lidar points as OpenCOOD's PCD reader
-returns them, and each frame's ``lidar_pose``, on synthetic V2XSet (CAVs and infrastructure, both
-layouts) and on the five real OPV2V frames."""
+"""Issue 29: a converted cooperative scenario read back as OpenCOOD reads its raw files
+(``views.opencood``) and written back in OpenCOOD's layout (``export-opencood``), against the raw
+files themselves: the lidar points as OpenCOOD's PCD reader returns them, each frame's YAML and
+``lidar_pose``, the PNGs, ``data_protocol.yaml``, a noise setting's poses and delays, on synthetic
+OPV2V and V2XSet (CAVs and infrastructure, both layouts) and on the five real OPV2V frames."""
 
 from __future__ import annotations
 
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import find_opv2v_sample
+from conftest import BIN, find_opv2v_sample
+from ncore.data.v4 import PosesComponent
 from upath import UPath
 
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+from ncore_convert.sources.noise_config import make_setting
 from ncore_convert.sources.opencood import load_yaml
 from ncore_convert.sources.pcd import read_pcd
 from ncore_convert.synth import opencood as synth
 from ncore_convert.transforms.carla import carla_pose_matrix
+from ncore_convert.validate.readback import open_sequence
 from ncore_convert.views.opencood import OpenCoodScenario
+from ncore_convert.views.opencood_export import export_opencood
+
+#: A noise setting as a user writes OpenCOOD's wild_setting: 0.2 m / 0.2 deg GPS error, 250 ms delay.
+NOISE = make_setting({"name": "wild", "seed": 25, "async": True, "async_overhead": 250, "loc_err": True,
+                      "xyz_std": 0.2, "ryp_std": 0.2})  # fmt: skip
 
 
 def opencood_pcd(path: Path) -> np.ndarray:
@@ -45,16 +55,22 @@ def assert_same_pose(got: np.ndarray, yaml_pose: list[float]) -> None:
                                atol=1e-6)  # fmt: skip
 
 
-@pytest.fixture(scope="module")
-def v2xset(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("view-v2xset")
-    (truth,) = synth.write_dataset(UPath(tmp / "src"), synth.SynthConfig(dataset="v2xset", frames=3, seed=5))
+def convert(tmp: Path, dataset: str, layouts=("agents",), frames: int = 3, seed: int = 5):
+    """A synthetic scenario with ``NOISE`` stored, converted in each of ``layouts``: (truth, {layout: scenario.json})."""
+    config = synth.SynthConfig(dataset=dataset, frames=frames, seed=seed)
+    (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
     outs = {}
-    for layout in ("agents", "scenario"):
+    for layout in layouts:
         out = tmp / layout / truth.scenario
-        convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario, OpenCoodOptions("v2xset", "test", layout))
+        options = OpenCoodOptions(dataset, "test", layout, noise=(NOISE,))
+        convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario, options)
         outs[layout] = out / "scenario.json"
     return truth, outs
+
+
+@pytest.fixture(scope="module")
+def v2xset(tmp_path_factory):
+    return convert(tmp_path_factory.mktemp("view-v2xset"), "v2xset", ("agents", "scenario"), frames=6)
 
 
 @pytest.mark.parametrize("layout", ["agents", "scenario"])
@@ -79,13 +95,13 @@ def test_unknown_agents_keys_and_settings_are_named(v2xset):
         view.lidar_points("999", truth.keys[0])
     with pytest.raises(KeyError, match="has no lidar frame '000001'"):
         view.lidar_points(view.ego_agent_id, "000001")
-    with pytest.raises(ValueError, match="no noise setting 'gps' \\(stored: none\\)"):
+    with pytest.raises(ValueError, match="no noise setting 'gps' \\(stored: wild\\)"):
         OpenCoodScenario.open(manifests["agents"], poses="gps")
 
 
 def test_the_real_opv2v_frames_read_back_as_the_pcd_reader_reads_them(tmp_path):
     """The five real frames put in a synthetic agent's place (their keys 000070-000078): every point
-    back in file order, to float32 precision."""
+    back in file order, to float32 precision, through the view and through the export."""
     config = synth.SynthConfig(dataset="opv2v", frames=5, seed=7, cavs=1, first_key=70, key_step=2)
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     (agent_id,) = truth.agents
@@ -100,3 +116,100 @@ def test_the_real_opv2v_frames_read_back_as_the_pcd_reader_reads_them(tmp_path):
         raw = opencood_pcd(path)
         assert len(raw) > 50_000 and np.all(np.linalg.norm(raw[:, :3], axis=1) > 0)
         assert_same_points(view.lidar_points(agent_id, path.stem), raw)
+    exported = export_opencood(out / "scenario.json", UPath(tmp_path / "export"))[0]
+    for name in _same_tree_but_pcds(Path(truth.scenario_dir), Path(exported)):
+        raw_points, back = opencood_pcd(Path(truth.scenario_dir) / name), opencood_pcd(Path(exported) / name)
+        assert_same_points(back.astype(np.float32), raw_points)
+        np.testing.assert_array_equal(np.round(back[:, 3] * 255), np.round(raw_points[:, 3] * 255))
+
+
+def _same_tree_but_pcds(raw_dir: Path, exported_dir: Path) -> list[str]:
+    """The files of both trees are the same, and every non-PCD file byte-identical; returns the PCDs."""
+    names = sorted(str(p.relative_to(raw_dir)) for p in raw_dir.rglob("*") if p.is_file())
+    assert names == sorted(str(p.relative_to(exported_dir)) for p in exported_dir.rglob("*") if p.is_file())
+    for name in names:
+        if not name.endswith(".pcd"):
+            assert (raw_dir / name).read_bytes() == (exported_dir / name).read_bytes(), name
+    return [n for n in names if n.endswith(".pcd")]
+
+
+@pytest.mark.parametrize("dataset", ["opv2v", "v2xset"])
+def test_raw_to_ncore_to_raw_is_exact(tmp_path, dataset, v2xset):
+    """export-opencood (the command) gives the raw scenario back: the same files, the YAMLs, PNGs and
+    data_protocol.yaml byte for byte, every point equal to float32 precision in file order with its
+    intensity byte."""
+    truth, manifests = v2xset if dataset == "v2xset" else convert(tmp_path / "conv", dataset)
+    result = subprocess.run([str(BIN / "ncore-convert"), "export-opencood", str(manifests["agents"]), "--out",
+                             str(tmp_path / "export")], capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    exported = tmp_path / "export" / truth.scenario
+    assert f"wrote {exported}: {len(truth.agents)} agents" in result.stdout
+    raw = Path(truth.scenario_dir)
+    for name in _same_tree_but_pcds(raw, exported):
+        raw_points, back = opencood_pcd(raw / name), opencood_pcd(exported / name)
+        assert_same_points(back.astype(np.float32), raw_points)
+        np.testing.assert_array_equal(np.round(back[:, 3] * 255), np.round(raw_points[:, 3] * 255))
+    assert not list((tmp_path / "export").glob(".*"))  # no partial folder left
+
+
+def test_a_noise_setting_gives_its_poses_and_delays(tmp_path, v2xset):
+    """With ``poses=`` a stored setting: ``lidar_pose`` is the true pose plus the stored error
+    (``pose_noise``, x y z roll yaw pitch) for every agent and frame, the rest of the YAML is the
+    raw one, the delayed key is the stored one, and the export bakes those poses in."""
+    truth, manifests = v2xset
+    view = OpenCoodScenario.open(manifests["agents"], poses="wild")
+    true_view = OpenCoodScenario.open(manifests["agents"])
+    perturbed = delayed = 0
+    for agent_id in view.agent_ids:
+        opened = open_sequence(manifests["agents"].parent / agent_id / f"{truth.scenario}_agent{agent_id}.json")
+        data = opened.reader.open_component_readers(PosesComponent.Reader)["wild"]
+        error = data.get_generic_data("pose_noise")
+        for i, key in enumerate(truth.keys):
+            raw = load_yaml(UPath(Path(truth.scenario_dir) / agent_id / f"{key}.yaml"))
+            params = view.params(agent_id, key)
+            assert {k: v for k, v in params.items() if k != "lidar_pose"} == {
+                k: v for k, v in raw.items() if k != "lidar_pose"}  # fmt: skip
+            assert_same_pose(np.array(params["lidar_pose"]), list(np.array(raw["lidar_pose"]) + error[i]))
+            perturbed += bool(np.any(error[i]))
+            source = data.get_generic_data("delay_source_keys")[i]
+            assert view.delayed_key(agent_id, truth.keys[i]) == (None if source < 0 else f"{source:06d}")
+            assert true_view.delayed_key(agent_id, key) == key
+            delayed += view.delayed_key(agent_id, key) not in (key, None)
+    assert perturbed >= len(truth.keys) and delayed >= len(truth.keys)  # the setting did something
+    folder = export_opencood(manifests["agents"], UPath(tmp_path / "noisy"), poses="wild")[0]
+    for agent_id in view.agent_ids:
+        for key in truth.keys:
+            written = load_yaml(UPath(Path(folder) / agent_id / f"{key}.yaml"))
+            assert written == view.params(agent_id, key)
+
+
+def opencood_early_fusion(scenario_dir: Path, agents: list[str], key: str, comm_range_m: float = 70.0) -> np.ndarray:
+    """OpenCOOD's early fusion restated on the raw files (no delay): each agent in OpenCOOD's order
+    within ``comm_range_m`` of the ego, its PCD points moved by ``x1_to_x2(agent lidar_pose, ego
+    lidar_pose) = inv(x_to_world(ego)) @ x_to_world(agent)``; [N,4]."""
+    order = sorted(agents)
+    order = order[1:] + order[:1] if int(order[0]) < 0 else order
+    poses = {a: np.array(load_yaml(UPath(scenario_dir / a / f"{key}.yaml"))["lidar_pose"]) for a in order}
+    ego = poses[order[0]]
+    parts = []
+    for agent in order:
+        if np.hypot(*(poses[agent][:2] - ego[:2])) > comm_range_m:
+            continue
+        T = np.linalg.inv(carla_pose_matrix(ego)) @ carla_pose_matrix(poses[agent])
+        points = opencood_pcd(scenario_dir / agent / f"{key}.pcd")
+        xyz = np.c_[points[:, :3], np.ones(len(points))] @ T.T
+        parts.append(np.c_[xyz[:, :3], points[:, 3]])
+    return np.concatenate(parts)
+
+
+@pytest.mark.parametrize("layout", ["agents", "scenario"])
+def test_the_early_fusion_cloud_equals_opencoods_from_the_raw_files(v2xset, layout):
+    truth, manifests = v2xset
+    view = OpenCoodScenario.open(manifests[layout])
+    for key in truth.keys[::2]:
+        expected = opencood_early_fusion(Path(truth.scenario_dir), list(truth.agents), key)
+        got = view.cooperative_points(key)
+        assert got.shape == expected.shape and len(got) > 10_000
+        assert np.abs(got[:, :3] - expected[:, :3]).max() < 1e-3  # 1 mm
+        np.testing.assert_allclose(got[:, 3], expected[:, 3], rtol=1e-6)
+

@@ -569,6 +569,27 @@ def preview_command(path, out_dir, frame):
         click.echo(f"wrote {png}")
 
 
+@cli.command("export-opencood")
+@click.argument("scenario", type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True,
+              help="Folder to write <scenario>/ into (OpenCOOD's layout).")  # fmt: skip
+@click.option("--poses", default=None, show_default="the ground truth",
+              help="A stored noise setting whose lidar_pose the YAMLs get (then switch OpenCOOD's own"
+              " wild_setting off, or the noise is applied twice).")  # fmt: skip
+def export_opencood_command(scenario, out_dir, poses):
+    """Write a converted OPV2V / V2XSet scenario back in OpenCOOD's layout (SCENARIO: its scenario.json):
+    <key>.yaml, <key>.pcd and <key>_camera<k>.png per agent, and data_protocol.yaml."""
+    from ncore_convert.views.opencood_export import export_opencood
+
+    if UPath(scenario).name != MANIFEST:
+        raise click.UsageError(f"{scenario}: expected a {MANIFEST} (a converted OPV2V or V2XSet scenario)")
+    try:
+        folder, counts = export_opencood(UPath(scenario), UPath(out_dir), poses)
+    except ValueError as err:
+        raise click.UsageError(str(err)) from None
+    click.echo(f"wrote {counts.line(folder)}")
+
+
 @cli.command("evaluate-lidar-model")
 @click.argument("sequence", type=click.Path(exists=True, dir_okay=False))
 @click.option("--lidar-id", "lidar_ids", multiple=True, show_default="every lidar", help="Evaluate only this lidar.")

@@ -81,6 +81,11 @@ SKIPPED_FRAMES = "skipped_frames"
 POINTS_NOT_STORED = "points_not_stored"
 #: OpenCOOD lidar frame metadata: the frame's CARLA frame counter (its OpenCOOD key, as an int)
 CARLA_FRAME = "carla_frame"
+#: OpenCOOD lidar frame metadata: the agent-frame's ``<key>.yaml`` text as it is (the OpenCOOD view
+#: and export read it back)
+OPENCOOD_YAML = "opencood_yaml"
+#: OpenCOOD sequence metadata: the scenario's ``data_protocol.yaml`` text as it is
+OPENCOOD_PROTOCOL = "opencood_data_protocol"
 
 # --- component instances ---
 #: The instance name every component is written under, and the one ``SequenceLoaderV4`` opens by default.

@@ -54,7 +54,20 @@ _Loader.add_implicit_resolver(
 
 def load_yaml(path: UPath) -> dict:
     """Parse a YAML mapping safely; SourceError naming the file if it is unreadable or not a mapping."""
-    raw = read_bytes(UPath(path))
+    return parse_yaml(read_bytes(UPath(path)), path)
+
+
+def read_text(path: UPath) -> str:
+    """A file's UTF-8 text (what OpenCOOD's YAML files are); SourceError naming it otherwise."""
+    try:
+        return read_bytes(UPath(path)).decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise SourceError(path, f"not UTF-8 text ({err.reason} at byte {err.start})") from None
+
+
+def parse_yaml(raw: bytes | str, path: object) -> dict:
+    """Parse YAML text as OpenCOOD does (safely; ``1e-06`` is a float); SourceError naming ``path``
+    if it is not valid YAML or not a mapping."""
     try:
         data = yaml.load(raw, Loader=_Loader)  # noqa: S506 - _Loader is a SafeLoader
     except yaml.YAMLError as err:
@@ -132,6 +145,7 @@ class Protocol:
     fixed_delta_seconds: float
     cav_lidar: dict
     rsu_lidars: tuple[dict, ...] = ()
+    text: str = ""  #: the file's text as it is (stored for the OpenCOOD export)
 
     def lidar_of(self, agent_id: str) -> dict:
         """The lidar block of an agent: its infrastructure unit's (negative ids), else the CAVs'."""
@@ -144,7 +158,8 @@ class Protocol:
 def read_protocol(scenario_dir: UPath) -> Protocol:
     """Read ``data_protocol.yaml`` (SourceError naming it without a plausible tick)."""
     path = scenario_dir / "data_protocol.yaml"
-    protocol = load_yaml(path)
+    text = read_text(path)
+    protocol = parse_yaml(text, path)
     try:
         dt = float(protocol["world"]["fixed_delta_seconds"])
     except (KeyError, TypeError, ValueError):
@@ -163,7 +178,7 @@ def read_protocol(scenario_dir: UPath) -> Protocol:
     cavs, rsus = scenario.get("single_cav_list"), scenario.get("rsu_list")
     cav = cavs[0] if isinstance(cavs, list) and cavs else {}
     rsus = rsus if isinstance(rsus, list) else []
-    return Protocol(dt, lidar_block(cav), tuple(lidar_block(unit) for unit in rsus))
+    return Protocol(dt, lidar_block(cav), tuple(lidar_block(unit) for unit in rsus), text)
 
 
 @dataclass(frozen=True)
@@ -243,9 +258,13 @@ def _vehicles(path: UPath, table: object) -> Vehicles:
     )  # fmt: skip
 
 
+def yaml_path(agent_dir: UPath, key: str) -> UPath:
+    return agent_dir / f"{key}.yaml"
+
+
 def read_agent_frame(agent_dir: UPath, key: str) -> AgentFrame:
     """Read ``<agent_dir>/<key>.yaml`` (SourceError naming the file on a missing key or bad value)."""
-    path = agent_dir / f"{key}.yaml"
+    path = yaml_path(agent_dir, key)
     data = load_yaml(path)
     cords, intrinsic = {}, {}
     for index in range(len(CAMERAS)):

@@ -1,6 +1,6 @@
 """Point Cloud Data (PCD v0.7) files as written by Open3D (OPV2V, V2XSet); no open3d dependency.
 
-Reads ``DATA ascii`` and ``DATA binary`` files whose fields are scalars (COUNT 1), into one float32
+Writes them too (:func:`write_pcd_ascii`: the layout OPV2V's files have). Reads ``DATA ascii`` and ``DATA binary`` files whose fields are scalars (COUNT 1), into one float32
 column per field, vectorised (no per-line Python). ``DATA binary_compressed`` is refused with a
 clear error. Open3D stores a colour as a packed float ``rgb`` field (bytes b, g, r, 0); OPV2V puts
 the lidar intensity in the red channel, so :func:`intensity_from_rgb` recovers it as R / 255.
@@ -8,6 +8,7 @@ the lidar intensity in the red channel, so :func:`intensity_from_rgb` recovers i
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,3 +139,22 @@ def red_from_rgb(rgb: np.ndarray) -> np.ndarray:
 def intensity_from_rgb(rgb: np.ndarray) -> np.ndarray:
     """Intensity in [0, 1] from Open3D's packed float ``rgb`` (red channel / 255), float32 [N]."""
     return red_from_rgb(rgb).astype(np.float32) / np.float32(255.0)
+
+
+#: The header of an OPV2V lidar file (Open3D's ASCII PCD: x, y, z and the packed colour).
+PCD_HEADER = (
+    "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\n"
+    "COUNT 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n"
+)
+
+
+def write_pcd_ascii(path: UPath, xyz: np.ndarray, red_u8: np.ndarray) -> None:
+    """An Open3D-style ASCII PCD: float32 x y z [N,3] and the packed float ``rgb`` (bytes b, g, r,
+    0) with ``red_u8`` [N] in red, as OPV2V stores the lidar intensity. Every float32 is written with
+    enough digits to be read back exactly."""
+    rgb = (red_u8.astype(np.uint32) << 16).view(np.float32)
+    table = np.column_stack([xyz.astype(np.float32), rgb]).astype(np.float64)
+    body = io.BytesIO()
+    np.savetxt(body, table, fmt="%.10g")
+    UPath(path).write_bytes(PCD_HEADER.format(n=len(xyz)).encode() + body.getvalue())
+

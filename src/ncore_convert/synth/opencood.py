@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.sources import opencood as src
+from ncore_convert.sources.pcd import write_pcd_ascii
 from ncore_convert.synth.scene import BUILDING_RGB, Box, Scene, cast_rays, own_colour, render, surface_rgb
 
 WIDTH, HEIGHT, FOV_DEG = 800, 600, 100.0
@@ -48,12 +49,6 @@ RENDER_STEP = 2  #: cameras are ray-cast at half their resolution, each ray's co
 T_UE4_OPENCV = np.array([[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 RENDER_RANGE_M = 300.0
 CAV_CLEARANCE_M = 7.0  #: along the lane, no other vehicle's centre comes nearer a CAV's than this
-PCD_HEADER = (
-    "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\n"
-    "COUNT 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n"
-)
-
-
 def carla_rotation(angles_deg: np.ndarray) -> np.ndarray:
     """CARLA rotation matrices of (roll, yaw, pitch) degrees [...,3]: Rz(yaw)·Ry(-pitch)·Rx(-roll)."""
     a = np.asarray(angles_deg, dtype=np.float64)
@@ -81,15 +76,6 @@ def project_ue4(T_cam_world: np.ndarray, xyz_world: np.ndarray) -> tuple[np.ndar
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.stack([WIDTH / 2 + FOCAL_PX * p[:, 1] / p[:, 0], HEIGHT / 2 - FOCAL_PX * p[:, 2] / p[:, 0]], axis=1)
     return uv, p[:, 0] > 0.5
-
-
-def write_pcd_ascii(path: UPath, xyz: np.ndarray, red_u8: np.ndarray) -> None:
-    """An Open3D-style ASCII PCD: float32 x y z and the packed float ``rgb`` (bytes b, g, r, 0)."""
-    rgb = (red_u8.astype(np.uint32) << 16).view(np.float32)
-    table = np.column_stack([xyz.astype(np.float32), rgb]).astype(np.float64)
-    body = io.BytesIO()
-    np.savetxt(body, table, fmt="%.10g")
-    UPath(path).write_bytes(PCD_HEADER.format(n=len(xyz)).encode() + body.getvalue())
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,14 @@ and degrees):
   intensity in the agent's lidar frame, in the PCD's point order (points at zero range were not
   stored by the converter and are not returned);
 - :meth:`OpenCoodScenario.lidar_pose`: the YAML's ``lidar_pose``, from the sequence's pose graph
-  (the ground truth, or the poses instance of a stored noise setting: OpenCOOD's ``loc_err``).
+  (the ground truth, or the poses instance of a stored noise setting: OpenCOOD's ``loc_err``);
+- :meth:`OpenCoodScenario.params`: the frame's whole YAML (the converter stores its text with the
+  lidar frame), with that ``lidar_pose`` under a noise setting;
+- :meth:`OpenCoodScenario.images`: the camera PNGs as they were;
+- :meth:`OpenCoodScenario.delayed_key`: the frame OpenCOOD's ``async`` reads for an agent at an
+  ego frame, from the noise setting's stored delays;
+- :attr:`OpenCoodScenario.protocol_text`: ``data_protocol.yaml`` as it was;
+- :meth:`OpenCoodScenario.cooperative_points`: the ego-frame cloud of OpenCOOD's early fusion.
 
 It reads NCore only (through ``validate.readback``) and imports nothing of the converters.
 """
@@ -22,8 +29,17 @@ from functools import cached_property
 import numpy as np
 from upath import UPath
 
-from ncore_convert.contract import CARLA_FRAME, DEFAULT_INSTANCE, ManifestAgent, ScenarioManifest
-from ncore_convert.sources.opencood import LIDAR
+from ncore.data.v4 import PosesComponent
+
+from ncore_convert.contract import (
+    CARLA_FRAME,
+    DEFAULT_INSTANCE,
+    OPENCOOD_PROTOCOL,
+    OPENCOOD_YAML,
+    ManifestAgent,
+    ScenarioManifest,
+)
+from ncore_convert.sources.opencood import CAMERAS, LIDAR, opencood_order, parse_yaml
 from ncore_convert.transforms import carla
 from ncore_convert.validate.readback import OpenSequence, open_sequence, read_manifest, sensor_poses
 
@@ -66,7 +82,7 @@ class OpenCoodScenario:
     def lidar_points(self, agent_id: str, key: str) -> np.ndarray:
         """The frame's points as OpenCOOD's PCD reader returns them: float32 [N,4], x, y, z in the
         agent's CARLA (left-handed) lidar frame in metres, and intensity in [0, 1]."""
-        lidar = self._sequence(agent_id).loader.get_lidar_sensor(self._name(agent_id, LIDAR))
+        lidar = self._lidar(agent_id)
         frame = self._frame(agent_id, key)
         direction = lidar.get_frame_ray_bundle_direction(frame).astype(np.float64)
         distance_m = lidar.get_frame_ray_bundle_return_distance_m(frame).astype(np.float64)
@@ -83,7 +99,87 @@ class OpenCoodScenario:
         T_lidar_world_global = sensor_poses(opened.loader, lidar_id, "world_global", t_us)[0]
         return carla.carla_pose_from_matrix(carla.mirror_transform(T_lidar_world_global))
 
+    def params(self, agent_id: str, key: str) -> dict:
+        """The frame's YAML as OpenCOOD loads it (a dict; ``vehicles`` keyed by actor id), with
+        ``lidar_pose`` the noise setting's (:meth:`lidar_pose`) when the view has one."""
+        params = parse_yaml(self.stored_yaml_text(agent_id, key), f"{self.manifest_path} agent {agent_id} frame {key}")
+        if self.poses is not None:
+            params["lidar_pose"] = [float(v) for v in self.lidar_pose(agent_id, key)]
+        return params
+
+    def stored_yaml_text(self, agent_id: str, key: str) -> str:
+        """The frame's ``<key>.yaml`` as the converter read it."""
+        return self._lidar(agent_id).get_frame_generic_meta_data(self._frame(agent_id, key))[OPENCOOD_YAML]
+
+    def images(self, agent_id: str, key: str) -> dict[int, bytes]:
+        """The frame's camera PNGs by OpenCOOD camera index (``<key>_camera<index>.png``), as stored."""
+        opened = self._sequence(agent_id)
+        t_us = self._lidar(agent_id).frames_timestamps_us[self._frame(agent_id, key), 1]
+        out = {}
+        for index, camera in enumerate(CAMERAS):
+            name = self._name(agent_id, camera)
+            if name not in opened.loader.camera_ids:
+                continue
+            sensor = opened.loader.get_camera_sensor(name)
+            frames = np.flatnonzero(sensor.frames_timestamps_us[:, 1] == t_us)
+            if len(frames):
+                out[index] = sensor.get_frame_data(int(frames[0])).get_encoded_image_data()
+        return out
+
+    def delayed_key(self, agent_id: str, ego_key: str) -> str | None:
+        """The agent's key that OpenCOOD's ``async`` reads at the ego's frame ``ego_key`` under this
+        view's noise setting (``ego_key`` itself without one; None where the setting has no data
+        from the agent for that frame)."""
+        if self.poses is None:
+            return ego_key
+        instance = next(n.poses_instance for n in self.manifest.noise_settings if n.name == self.poses)
+        data = self._sequence(agent_id).reader.open_component_readers(PosesComponent.Reader)[instance]
+        prefix = self.manifest.prefix_of(self._agent(agent_id)) or ""
+        ego_times_us = data.get_generic_data(f"{prefix}delay_ego_timestamps_us")
+        ego_lidar = self._lidar(self.ego_agent_id)
+        t_us = ego_lidar.frames_timestamps_us[self._frame(self.ego_agent_id, ego_key), 1]
+        where = np.flatnonzero(ego_times_us == t_us)
+        if not len(where):
+            raise KeyError(f"{self.manifest_path}: noise setting {self.poses!r} has no delay at ego frame {ego_key}")
+        source = int(data.get_generic_data(f"{prefix}delay_source_keys")[where[0]])
+        return None if source < 0 else f"{source:06d}"
+
+    def cooperative_points(self, ego_key: str, comm_range_m: float = 70.0) -> np.ndarray:
+        """The ego frame ``ego_key``'s cooperative cloud as OpenCOOD's early fusion builds it: every
+        agent within ``comm_range_m`` of the ego (horizontal distance of the ``lidar_pose``s) with
+        its points (the delayed frame under a noise setting) moved into the ego's CARLA lidar frame by
+        ``inv(T(ego lidar_pose)) · T(agent lidar_pose)``, the ego first, then OpenCOOD's order;
+        float32 [N,4] (x, y, z m; intensity)."""
+        ego_pose = self.lidar_pose(self.ego_agent_id, ego_key)
+        T_world_ego = np.linalg.inv(carla.carla_pose_matrix(ego_pose))
+        parts = []
+        for agent_id in self.opencood_order:
+            key = self.delayed_key(agent_id, ego_key)
+            if key is None or key not in self._lidar_keys(agent_id):
+                continue
+            pose = self.params(agent_id, key)["lidar_pose"]
+            if np.hypot(pose[0] - ego_pose[0], pose[1] - ego_pose[1]) > comm_range_m:
+                continue
+            points = self.lidar_points(agent_id, key)
+            T = T_world_ego @ carla.carla_pose_matrix(np.asarray(pose, dtype=np.float64))
+            xyz = points[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+            parts.append(np.concatenate([xyz, points[:, 3:4]], axis=1).astype(np.float32))
+        return np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.float32)
+
+    @property
+    def opencood_order(self) -> list[str]:
+        """The written agents in the order OpenCOOD loads them (its ego first)."""
+        return opencood_order(self.agent_ids)
+
+    @property
+    def protocol_text(self) -> str:
+        """The scenario's ``data_protocol.yaml``, as it was."""
+        return self._sequence(self.ego_agent_id).loader.generic_meta_data[OPENCOOD_PROTOCOL]
+
     # -- where an agent's data is
+
+    def _lidar(self, agent_id: str):
+        return self._sequence(agent_id).loader.get_lidar_sensor(self._name(agent_id, LIDAR))
 
     def _agent(self, agent_id: str) -> ManifestAgent:
         for agent in self.manifest.agents:
@@ -106,7 +202,7 @@ class OpenCoodScenario:
     def _lidar_keys(self, agent_id: str) -> dict[str, int]:
         """key -> frame index of the agent's lidar."""
         if agent_id not in self._keys:
-            lidar = self._sequence(agent_id).loader.get_lidar_sensor(self._name(agent_id, LIDAR))
+            lidar = self._lidar(agent_id)
             self._keys[agent_id] = {
                 f"{int(lidar.get_frame_generic_meta_data(i)[CARLA_FRAME]):06d}": i for i in range(lidar.frames_count)
             }

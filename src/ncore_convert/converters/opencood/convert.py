@@ -86,6 +86,7 @@ def _generic_meta(plan: ScenarioPlan, agent_ids: list[str], world_global_meta: d
         contract.SCENARIO: plan.scenario,
         contract.AGENTS: {a: {"kind": plan.agents[a].kind, "opencood_ego": a == plan.ego} for a in agent_ids},
         "carla_fixed_delta_seconds": plan.fixed_delta_seconds,
+        contract.OPENCOOD_PROTOCOL: plan.protocol_text,
         "time_base": "t_us = CARLA frame key * fixed_delta_seconds * 1e6 (frame keys are CARLA frame counters)",
         contract.WORLD_GLOBAL: world_global_meta,
         "noise_settings": {s.name: s.as_dict() for s in plan.options.noise},
@@ -207,6 +208,7 @@ def _write_sensors(
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
                 xyz_carla, intensity_u8 = src.read_points(agent.agent_dir, key)
+                yaml_text = src.read_text(src.yaml_path(agent.agent_dir, key))
             except SourceError as err:
                 counts.warnings.append(f"{err}; lidar frame skipped")
                 skipped[key] = err.cause
@@ -226,7 +228,8 @@ def _write_sensors(
             elements = None if agent.lidar_model is None else assign_elements(agent.lidar_model, rays.direction)
             lidar.store_frame(
                 rays,
-                {contract.CARLA_FRAME: int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite},
+                {contract.CARLA_FRAME: int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite,
+                 contract.OPENCOOD_YAML: yaml_text},
                 model_element=elements,
                 generic_data=generic,
             )

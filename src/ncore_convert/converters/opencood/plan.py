@@ -140,6 +140,7 @@ class ScenarioPlan:
     agents: dict[str, AgentPlan]
     boxes: dict[str, Boxes]  #: frame key -> merged labels
     lidar_specs: dict[str, dict]  #: agent id -> its data_protocol.yaml lidar block
+    protocol_text: str  #: data_protocol.yaml as it is
     warnings: list[str]
     noise: dict[str, dict[str, AgentNoise]]  #: setting name -> agent id -> perturbations
     window_us: tuple[int, int] | None = None  #: the clip window (inclusive µs), None for the whole scenario
@@ -345,6 +346,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
         agents=agents,
         boxes=merge_boxes(frames, warnings),
         lidar_specs={a: protocol.lidar_of(a) for a in agents},
+        protocol_text=protocol.text,
         warnings=warnings,
         noise=noise,
     )
