@@ -141,6 +141,18 @@ def loader_constructors(trees: dict[str, ast.Module]) -> set[str]:
     return out
 
 
+def torch_importers(trees: dict[str, ast.Module]) -> set[str]:
+    """Modules that import torch (at any level)."""
+    out = set()
+    for name, tree in trees.items():
+        for node in ast.walk(tree):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            names += [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            if any(n == "torch" or n.startswith("torch.") for n in names):
+                out.add(name)
+    return out
+
+
 #: av2's ``x_SE3_y`` names (maps y to x); past the AV2 reader every transform is ``T_a_b`` (a -> b).
 AV2_TRANSFORM_NAME = re.compile(r"^[A-Za-z]+_SE3_[A-Za-z]+")
 
@@ -191,6 +203,13 @@ def test_av2_transform_names_stay_in_the_av2_reader(project):
     assert set(av2_transform_names(trees)) == {"ncore_convert.sources.argoverse2"}
 
 
+def test_the_conversion_never_imports_torch(project):
+    """Only the preview (NCore's camera models run on torch) and the opt-in ``Dataset`` adapter
+    import torch."""
+    _, trees = project
+    assert torch_importers(trees) == {"ncore_convert.preview", "ncore_convert.views.opencood_torch"}
+
+
 def test_the_checks_find_known_violations(tmp_path):
     """Negative control: a package with a function-level cycle, a TYPE_CHECKING cycle, an upward
     import, a view importing a converter and a converter a view, a stray writer use, a stray loader
@@ -213,7 +232,7 @@ def test_the_checks_find_known_violations(tmp_path):
         "validate/check.py": "from ncore_convert.converters.a import x\nloader = SequenceLoaderV4(reader)\n",
         "views/__init__.py": "",
         "views/look.py": "from ncore_convert.validate import check\nfrom ncore_convert.converters import b\n",
-        "converters/c.py": "def g():\n    from ncore_convert.views import look\n",
+        "converters/c.py": "def g():\n    from ncore_convert.views import look\n    import torch.nn\n",
     }
     for rel, text in files.items():
         (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -232,3 +251,4 @@ def test_the_checks_find_known_violations(tmp_path):
     assert ncore_writer_users(trees) == {"ncore_convert.converters.b"}
     assert loader_constructors(trees) == {"ncore_convert.validate.check"}
     assert av2_transform_names(trees) == {"ncore_convert.transforms.geo": {"city_SE3_ego"}}
+    assert torch_importers(trees) == {"ncore_convert.converters.c"}

@@ -213,3 +213,26 @@ def test_the_early_fusion_cloud_equals_opencoods_from_the_raw_files(v2xset, layo
         assert np.abs(got[:, :3] - expected[:, :3]).max() < 1e-3  # 1 mm
         np.testing.assert_allclose(got[:, 3], expected[:, 3], rtol=1e-6)
 
+
+
+def test_base_data_and_the_torch_adapter_follow_opencoods_delays(v2xset):
+    """Per ego frame: every agent in OpenCOOD's order, the ego undelayed, the others at their stored
+    delayed key with ``time_delay`` frames behind and that frame's points and YAML; the torch
+    ``Dataset`` gives the same items."""
+    from ncore_convert.views.opencood_torch import OpenCoodBaseDataset
+
+    truth, manifests = v2xset
+    view = OpenCoodScenario.open(manifests["agents"], poses="wild")
+    dataset = OpenCoodBaseDataset(view)
+    assert len(dataset) == len(truth.keys)
+    late = dataset[len(dataset) - 1]
+    assert list(late) == view.opencood_order and late[view.ego_agent_id]["ego"]
+    for agent_id, item in late.items():
+        key = view.delayed_key(agent_id, truth.keys[-1])
+        assert item["time_delay"] == truth.keys.index(truth.keys[-1]) - truth.keys.index(key)
+        assert item["time_delay"] == (0 if item["ego"] else 2)  # 250 ms: 2 frames of 100 ms
+        np.testing.assert_array_equal(item["lidar_np"], view.lidar_points(agent_id, key))
+        raw_pngs = sorted((Path(truth.scenario_dir) / agent_id).glob(f"{key}_camera*.png"))
+        assert item["params"] == view.params(agent_id, key) and len(raw_pngs) == 4
+        assert {f"{key}_camera{k}.png": png for k, png in item["camera_png"].items()} == {
+            p.name: p.read_bytes() for p in raw_pngs}  # fmt: skip

@@ -16,6 +16,8 @@ and degrees):
 - :meth:`OpenCoodScenario.delayed_key`: the frame OpenCOOD's ``async`` reads for an agent at an
   ego frame, from the noise setting's stored delays;
 - :attr:`OpenCoodScenario.protocol_text`: ``data_protocol.yaml`` as it was;
+- :meth:`OpenCoodScenario.base_data`: all of that per agent at an ego frame, as OpenCOOD's base
+  dataset builds it (``views.opencood_torch`` wraps it as a torch ``Dataset``);
 - :meth:`OpenCoodScenario.cooperative_points`: the ego-frame cloud of OpenCOOD's early fusion.
 
 It reads NCore only (through ``validate.readback``) and imports nothing of the converters.
@@ -144,6 +146,27 @@ class OpenCoodScenario:
         source = int(data.get_generic_data(f"{prefix}delay_source_keys")[where[0]])
         return None if source < 0 else f"{source:06d}"
 
+    def base_data(self, ego_key: str) -> dict[str, dict]:
+        """What OpenCOOD's ``BaseDataset.retrieve_base_data`` builds at the ego's frame ``ego_key``,
+        per agent in OpenCOOD's order: ``ego`` (bool), ``time_delay`` (frames behind, from the
+        setting's delays), ``params`` (the delayed frame's YAML, :meth:`params`), ``lidar_np``
+        (:meth:`lidar_points` of that frame) and ``camera_png`` (its PNGs by camera index). Agents
+        with no frame to send at ``ego_key`` are left out."""
+        ego_keys = self.keys(self.ego_agent_id)
+        out = {}
+        for agent_id in self.opencood_order:
+            key = self.delayed_key(agent_id, ego_key)
+            if key is None or key not in self._lidar_keys(agent_id):
+                continue
+            out[agent_id] = {
+                "ego": agent_id == self.ego_agent_id,
+                "time_delay": ego_keys.index(ego_key) - ego_keys.index(key) if key in ego_keys else 0,
+                "params": self.params(agent_id, key),
+                "lidar_np": self.lidar_points(agent_id, key),
+                "camera_png": self.images(agent_id, key),
+            }
+        return out
+
     def cooperative_points(self, ego_key: str, comm_range_m: float = 70.0) -> np.ndarray:
         """The ego frame ``ego_key``'s cooperative cloud as OpenCOOD's early fusion builds it: every
         agent within ``comm_range_m`` of the ego (horizontal distance of the ``lidar_pose``s) with
@@ -153,15 +176,12 @@ class OpenCoodScenario:
         ego_pose = self.lidar_pose(self.ego_agent_id, ego_key)
         T_world_ego = np.linalg.inv(carla.carla_pose_matrix(ego_pose))
         parts = []
-        for agent_id in self.opencood_order:
-            key = self.delayed_key(agent_id, ego_key)
-            if key is None or key not in self._lidar_keys(agent_id):
-                continue
-            pose = self.params(agent_id, key)["lidar_pose"]
+        for agent in self.base_data(ego_key).values():
+            pose = np.asarray(agent["params"]["lidar_pose"], dtype=np.float64)
             if np.hypot(pose[0] - ego_pose[0], pose[1] - ego_pose[1]) > comm_range_m:
                 continue
-            points = self.lidar_points(agent_id, key)
-            T = T_world_ego @ carla.carla_pose_matrix(np.asarray(pose, dtype=np.float64))
+            points = agent["lidar_np"]
+            T = T_world_ego @ carla.carla_pose_matrix(pose)
             xyz = points[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
             parts.append(np.concatenate([xyz, points[:, 3:4]], axis=1).astype(np.float32))
         return np.concatenate(parts) if parts else np.zeros((0, 4), dtype=np.float32)
