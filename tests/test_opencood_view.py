@@ -236,3 +236,14 @@ def test_base_data_and_the_torch_adapter_follow_opencoods_delays(v2xset):
         assert item["params"] == view.params(agent_id, key) and len(raw_pngs) == 4
         assert {f"{key}_camera{k}.png": png for k, png in item["camera_png"].items()} == {
             p.name: p.read_bytes() for p in raw_pngs}  # fmt: skip
+
+
+def test_export_usage_errors_are_one_line_and_write_nothing(tmp_path, v2xset):
+    truth, manifests = v2xset
+    sequence = next(Path(manifests["agents"]).parent.glob("*/*.json"))
+    for args, message in (([str(sequence)], "expected a scenario.json"),
+                          ([str(manifests["agents"]), "--poses", "nope"], "no noise setting 'nope' (stored: wild)")):  # fmt: skip
+        result = subprocess.run([str(BIN / "ncore-convert"), "export-opencood", *args, "--out", str(tmp_path / "x")],
+                                capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert result.returncode == 2 and message in result.stderr, result.stderr
+        assert "Traceback" not in result.stderr and not (tmp_path / "x").exists()

@@ -54,6 +54,7 @@ class OpenCoodScenario:
     poses: str | None = None
     _sequences: dict[str, OpenSequence] = field(default_factory=dict, repr=False)
     _keys: dict[str, dict[str, int]] = field(default_factory=dict, repr=False)  #: agent -> key -> lidar frame
+    _lidars: dict[str, object] = field(default_factory=dict, repr=False)  #: agent -> its lidar sensor (opened once)
 
     @classmethod
     def open(cls, manifest_path: UPath | str, poses: str | None = None) -> OpenCoodScenario:
@@ -97,7 +98,7 @@ class OpenCoodScenario:
         (x, y, z m; roll, yaw, pitch deg), under this view's poses."""
         opened = self._sequence(agent_id)
         lidar_id = self._name(agent_id, LIDAR)
-        t_us = opened.loader.get_lidar_sensor(lidar_id).frames_timestamps_us[self._frame(agent_id, key), 1:2]
+        t_us = self._lidar(agent_id).frames_timestamps_us[self._frame(agent_id, key), 1:2]
         T_lidar_world_global = sensor_poses(opened.loader, lidar_id, "world_global", t_us)[0]
         return carla.carla_pose_from_matrix(carla.mirror_transform(T_lidar_world_global))
 
@@ -199,7 +200,9 @@ class OpenCoodScenario:
     # -- where an agent's data is
 
     def _lidar(self, agent_id: str):
-        return self._sequence(agent_id).loader.get_lidar_sensor(self._name(agent_id, LIDAR))
+        if agent_id not in self._lidars:  # opening one decodes its model parameters (about 1 ms)
+            self._lidars[agent_id] = self._sequence(agent_id).loader.get_lidar_sensor(self._name(agent_id, LIDAR))
+        return self._lidars[agent_id]
 
     def _agent(self, agent_id: str) -> ManifestAgent:
         for agent in self.manifest.agents:
