@@ -133,13 +133,13 @@ def _same_tree_but_pcds(raw_dir: Path, exported_dir: Path) -> list[str]:
     return [n for n in names if n.endswith(".pcd")]
 
 
-@pytest.mark.parametrize("dataset", ["opv2v", "v2xset"])
-def test_raw_to_ncore_to_raw_is_exact(tmp_path, dataset, v2xset):
+@pytest.mark.parametrize("dataset, layout", [("opv2v", "agents"), ("v2xset", "agents"), ("v2xset", "scenario")])
+def test_raw_to_ncore_to_raw_is_exact(tmp_path, dataset, layout, v2xset):
     """export-opencood (the command) gives the raw scenario back: the same files, the YAMLs, PNGs and
     data_protocol.yaml byte for byte, every point equal to float32 precision in file order with its
     intensity byte."""
     truth, manifests = v2xset if dataset == "v2xset" else convert(tmp_path / "conv", dataset)
-    result = subprocess.run([str(BIN / "ncore-convert"), "export-opencood", str(manifests["agents"]), "--out",
+    result = subprocess.run([str(BIN / "ncore-convert"), "export-opencood", str(manifests[layout]), "--out",
                              str(tmp_path / "export")], capture_output=True, text=True, timeout=300)  # fmt: skip
     assert result.returncode == 0, result.stderr
     exported = tmp_path / "export" / truth.scenario
