@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 #: is left with one at the end. A stale list costs balance, never a test.
 SLOW_FIRST = ("test_validate", "test_ego_masks", "test_consumers", "test_determinism", "test_bad_input",
               "test_dynamic_tracks", "test_resume", "test_ray", "test_fuzz_readers", "test_presets",
-              "test_point_colours")  # fmt: skip
+              "test_point_colours", "test_opencood_view")  # fmt: skip
 #: Tests whose cases each build their own data and are slow: each case goes to whichever worker is
 #: free, instead of staying with its file.
 OWN_SCOPE = ("tests/test_ego_masks.py::test_realistic_bodies[",)
