@@ -247,3 +247,16 @@ def test_export_usage_errors_are_one_line_and_write_nothing(tmp_path, v2xset):
                                 capture_output=True, text=True, timeout=120)  # fmt: skip
         assert result.returncode == 2 and message in result.stderr, result.stderr
         assert "Traceback" not in result.stderr and not (tmp_path / "x").exists()
+
+
+def test_the_export_shows_progress_only_when_asked(tmp_path, v2xset):
+    """No cursor escapes without a terminal; with the group's --progress a bar counts the agent-frames."""
+    truth, manifests = v2xset
+    runs = {}
+    for flag in ("--no-progress", "--progress"):
+        runs[flag] = subprocess.run([str(BIN / "ncore-convert"), flag, "export-opencood", str(manifests["agents"]),
+                                     "--out", str(tmp_path / flag)], capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert runs[flag].returncode == 0, runs[flag].stderr
+    assert "\r" not in runs["--no-progress"].stderr and "agent-frames" not in runs["--no-progress"].stderr
+    frames = len(truth.agents) * len(truth.keys)
+    assert "agent-frames: 100%" in runs["--progress"].stderr and f"{frames}/{frames}" in runs["--progress"].stderr

@@ -576,17 +576,24 @@ def preview_command(path, out_dir, frame):
 @click.option("--poses", default=None, show_default="the ground truth",
               help="A stored noise setting whose lidar_pose the YAMLs get (then switch OpenCOOD's own"
               " wild_setting off, or the noise is applied twice).")  # fmt: skip
-def export_opencood_command(scenario, out_dir, poses):
+@click.pass_obj
+def export_opencood_command(obj: GroupOptions, scenario, out_dir, poses):
     """Write a converted OPV2V / V2XSet scenario back in OpenCOOD's layout (SCENARIO: its scenario.json):
-    <key>.yaml, <key>.pcd and <key>_camera<k>.png per agent, and data_protocol.yaml."""
+    <key>.yaml, <key>.pcd and <key>_camera<k>.png per agent, and data_protocol.yaml. A bar counts the
+    agent-frames (with the group's --progress)."""
+    from tqdm import tqdm
+
+    from ncore_convert.validate.readback import read_manifest
     from ncore_convert.views.opencood_export import export_opencood
 
     if UPath(scenario).name != MANIFEST:
         raise click.UsageError(f"{scenario}: expected a {MANIFEST} (a converted OPV2V or V2XSet scenario)")
-    try:
-        folder, counts = export_opencood(UPath(scenario), UPath(out_dir), poses)
-    except ValueError as err:
-        raise click.UsageError(str(err)) from None
+    total = sum(a.frames or 0 for a in read_manifest(UPath(scenario)).agents if a.written)  # the bar's length
+    with tqdm(total=total, desc="agent-frames", unit="frame", disable=not obj.progress, dynamic_ncols=True) as bar:
+        try:
+            folder, counts = export_opencood(UPath(scenario), UPath(out_dir), poses, progress=bar.update)
+        except ValueError as err:
+            raise click.UsageError(str(err)) from None
     click.echo(f"wrote {counts.line(folder)}")
 
 
