@@ -1,7 +1,8 @@
 """Point Cloud Data (PCD v0.7) files as written by Open3D (OPV2V, V2XSet); no open3d dependency.
 
-Writes them too (:func:`write_pcd_ascii`: the layout OPV2V's files have). Reads ``DATA ascii`` and ``DATA binary`` files whose fields are scalars (COUNT 1), into one float32
-column per field, vectorised (no per-line Python). ``DATA binary_compressed`` is refused with a
+Reads ``DATA ascii`` and ``DATA binary`` files whose fields are scalars (COUNT 1), into one float32
+column per field, vectorised (no per-line Python), and writes the ASCII layout OPV2V's files have
+(:func:`write_pcd_ascii`). ``DATA binary_compressed`` is refused with a
 clear error. Open3D stores a colour as a packed float ``rgb`` field (bytes b, g, r, 0); OPV2V puts
 the lidar intensity in the red channel, so :func:`intensity_from_rgb` recovers it as R / 255.
 """

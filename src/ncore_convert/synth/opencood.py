@@ -49,6 +49,8 @@ RENDER_STEP = 2  #: cameras are ray-cast at half their resolution, each ray's co
 T_UE4_OPENCV = np.array([[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 RENDER_RANGE_M = 300.0
 CAV_CLEARANCE_M = 7.0  #: along the lane, no other vehicle's centre comes nearer a CAV's than this
+
+
 def carla_rotation(angles_deg: np.ndarray) -> np.ndarray:
     """CARLA rotation matrices of (roll, yaw, pitch) degrees [...,3]: Rz(yaw)·Ry(-pitch)·Rx(-roll)."""
     a = np.asarray(angles_deg, dtype=np.float64)

@@ -29,9 +29,8 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-from upath import UPath
-
 from ncore.data.v4 import PosesComponent
+from upath import UPath
 
 from ncore_convert.contract import (
     CARLA_FRAME,
@@ -45,6 +44,7 @@ from ncore_convert.sources.opencood import CAMERAS, LIDAR, opencood_order, parse
 from ncore_convert.transforms import carla
 from ncore_convert.validate.readback import OpenSequence, open_sequence, read_manifest, sensor_poses
 
+
 @dataclass
 class OpenCoodScenario:
     """The converted scenario of ``manifest_path`` (its ``scenario.json``), read with the poses of
@@ -55,18 +55,29 @@ class OpenCoodScenario:
     _sequences: dict[str, OpenSequence] = field(default_factory=dict, repr=False)
     _keys: dict[str, dict[str, int]] = field(default_factory=dict, repr=False)  #: agent -> key -> lidar frame
     _lidars: dict[str, object] = field(default_factory=dict, repr=False)  #: agent -> its lidar sensor (opened once)
+    #: agent -> the setting's (ego frame times us [T], delayed source keys [T]), read once
+    _delays: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     @classmethod
     def open(cls, manifest_path: UPath | str, poses: str | None = None) -> OpenCoodScenario:
         scenario = cls(UPath(manifest_path), poses)
-        if poses is not None and poses not in {n.name for n in scenario.manifest.noise_settings}:
-            known = ", ".join(n.name for n in scenario.manifest.noise_settings) or "none"
-            raise ValueError(f"{manifest_path}: no noise setting {poses!r} (stored: {known})")
+        scenario._poses_instance  # noqa: B018 - an unknown setting is an error now, not at the first read
         return scenario
 
     @cached_property
     def manifest(self) -> ScenarioManifest:
         return read_manifest(self.manifest_path)
+
+    @cached_property
+    def _poses_instance(self) -> str:
+        """The poses component instance the view reads (ValueError naming the stored settings)."""
+        if self.poses is None:
+            return DEFAULT_INSTANCE
+        for setting in self.manifest.noise_settings:
+            if setting.name == self.poses:
+                return setting.poses_instance
+        known = ", ".join(n.name for n in self.manifest.noise_settings) or "none"
+        raise ValueError(f"{self.manifest_path}: no noise setting {self.poses!r} (stored: {known})")
 
     @property
     def ego_agent_id(self) -> str:
@@ -135,16 +146,17 @@ class OpenCoodScenario:
         from the agent for that frame)."""
         if self.poses is None:
             return ego_key
-        instance = next(n.poses_instance for n in self.manifest.noise_settings if n.name == self.poses)
-        data = self._sequence(agent_id).reader.open_component_readers(PosesComponent.Reader)[instance]
-        prefix = self.manifest.prefix_of(self._agent(agent_id)) or ""
-        ego_times_us = data.get_generic_data(f"{prefix}delay_ego_timestamps_us")
-        ego_lidar = self._lidar(self.ego_agent_id)
-        t_us = ego_lidar.frames_timestamps_us[self._frame(self.ego_agent_id, ego_key), 1]
+        if agent_id not in self._delays:
+            data = self._sequence(agent_id).reader.open_component_readers(PosesComponent.Reader)[self._poses_instance]
+            prefix = self.manifest.prefix_of(self._agent(agent_id)) or ""
+            self._delays[agent_id] = (data.get_generic_data(f"{prefix}delay_ego_timestamps_us"),
+                                      data.get_generic_data(f"{prefix}delay_source_keys"))  # fmt: skip
+        ego_times_us, source_keys = self._delays[agent_id]
+        t_us = self._lidar(self.ego_agent_id).frames_timestamps_us[self._frame(self.ego_agent_id, ego_key), 1]
         where = np.flatnonzero(ego_times_us == t_us)
         if not len(where):
             raise KeyError(f"{self.manifest_path}: noise setting {self.poses!r} has no delay at ego frame {ego_key}")
-        source = int(data.get_generic_data(f"{prefix}delay_source_keys")[where[0]])
+        source = int(source_keys[where[0]])
         return None if source < 0 else f"{source:06d}"
 
     def base_data(self, ego_key: str) -> dict[str, dict]:
@@ -154,19 +166,21 @@ class OpenCoodScenario:
         (:meth:`lidar_points` of that frame) and ``camera_png`` (its PNGs by camera index). Agents
         with no frame to send at ``ego_key`` are left out."""
         ego_keys = self.keys(self.ego_agent_id)
-        out = {}
-        for agent_id in self.opencood_order:
-            key = self.delayed_key(agent_id, ego_key)
-            if key is None or key not in self._lidar_keys(agent_id):
-                continue
-            out[agent_id] = {
+        return {
+            agent_id: {
                 "ego": agent_id == self.ego_agent_id,
                 "time_delay": ego_keys.index(ego_key) - ego_keys.index(key) if key in ego_keys else 0,
                 "params": self.params(agent_id, key),
                 "lidar_np": self.lidar_points(agent_id, key),
                 "camera_png": self.images(agent_id, key),
             }
-        return out
+            for agent_id, key in self._sent_frames(ego_key)
+        }
+
+    def _sent_frames(self, ego_key: str) -> list[tuple[str, str]]:
+        """(agent, the key it sends at ``ego_key``) in OpenCOOD's order, for the agents that send one."""
+        pairs = [(agent_id, self.delayed_key(agent_id, ego_key)) for agent_id in self.opencood_order]
+        return [(agent_id, key) for agent_id, key in pairs if key is not None and key in self._lidar_keys(agent_id)]
 
     def cooperative_points(self, ego_key: str, comm_range_m: float = 70.0) -> np.ndarray:
         """The ego frame ``ego_key``'s cooperative cloud as OpenCOOD's early fusion builds it: every
@@ -177,11 +191,11 @@ class OpenCoodScenario:
         ego_pose = self.lidar_pose(self.ego_agent_id, ego_key)
         T_world_ego = np.linalg.inv(carla.carla_pose_matrix(ego_pose))
         parts = []
-        for agent in self.base_data(ego_key).values():
-            pose = np.asarray(agent["params"]["lidar_pose"], dtype=np.float64)
+        for agent_id, key in self._sent_frames(ego_key):  # base_data without the PNGs
+            pose = np.asarray(self.params(agent_id, key)["lidar_pose"], dtype=np.float64)
             if np.hypot(pose[0] - ego_pose[0], pose[1] - ego_pose[1]) > comm_range_m:
                 continue
-            points = agent["lidar_np"]
+            points = self.lidar_points(agent_id, key)
             T = T_world_ego @ carla.carla_pose_matrix(pose)
             xyz = points[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
             parts.append(np.concatenate([xyz, points[:, 3:4]], axis=1).astype(np.float32))
@@ -216,10 +230,7 @@ class OpenCoodScenario:
     def _sequence(self, agent_id: str) -> OpenSequence:
         path = self.manifest.sequence_of(self._agent(agent_id))
         if path not in self._sequences:
-            instance = DEFAULT_INSTANCE
-            if self.poses is not None:
-                instance = next(n.poses_instance for n in self.manifest.noise_settings if n.name == self.poses)
-            self._sequences[path] = open_sequence(self.manifest_path.parent / path, instance)
+            self._sequences[path] = open_sequence(self.manifest_path.parent / path, self._poses_instance)
         return self._sequences[path]
 
     def _lidar_keys(self, agent_id: str) -> dict[str, int]:
