@@ -85,7 +85,9 @@ def test_points_poses_and_ego_equal_the_raw_files(v2xset, layout):
         assert view.keys(agent_id) == truth.keys
         for key in truth.keys:
             assert_same_points(view.lidar_points(agent_id, key), opencood_pcd(agent_dir / f"{key}.pcd"))
-            assert_same_pose(view.lidar_pose(agent_id, key), load_yaml(UPath(agent_dir / f"{key}.yaml"))["lidar_pose"])
+            raw_yaml = load_yaml(UPath(agent_dir / f"{key}.yaml"))
+            assert_same_pose(view.lidar_pose(agent_id, key), raw_yaml["lidar_pose"])
+            assert view.params(agent_id, key) == raw_yaml  # the whole YAML, as OpenCOOD loads it
 
 
 def test_unknown_agents_keys_and_settings_are_named(v2xset):
