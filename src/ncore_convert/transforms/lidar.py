@@ -132,6 +132,66 @@ def beam_elevation_spread_rad(xyz_sensor_m: np.ndarray, beam: np.ndarray, n_beam
     return float(np.median(np.sqrt(var)))
 
 
+#: How far (float32 steps of the distance) :func:`exact_rays` moves a ray's distance off the nearest
+#: float32 of its range to make direction x distance reproduce the source point: 8 steps change the
+#: direction's length by at most 8 * 2**-23 (1e-6), far inside NCore's unit-norm check (|d|^2 within 1e-4).
+EXACT_DISTANCE_STEPS = 8
+
+
+def _directions_for(xyz_m: np.ndarray, bits: np.ndarray, distance_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For float32 distances [M], the float32 direction components [M,3] whose correctly rounded
+    product with the distance is the source point (``bits``: the float32 point's bits, uint32 [M,3];
+    ``xyz_m``: the same values, float64), and which components have one ([M,3] bool). Only the
+    float32 nearest the quotient and its two neighbours can round to the point."""
+    r = distance_m.astype(np.float64)[:, None]
+    nearest = (xyz_m / r).astype(np.float32)
+    best, ok = nearest.copy(), np.zeros(nearest.shape, dtype=bool)
+    for candidate in (nearest, np.nextafter(nearest, np.float32(np.inf)), np.nextafter(nearest, np.float32(-np.inf))):
+        # a float32 x float32 product is exact in float64, so one rounding to float32: IEEE float32 multiplication
+        hit = ~ok & ((candidate.astype(np.float64) * r).astype(np.float32).view(np.uint32) == bits)
+        best[hit] = candidate[hit]
+        ok |= hit
+    return best, ok
+
+
+def exact_rays(xyz_sensor_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Float32 unit directions and distances whose float32 product is each source point, bit for bit.
+
+    NCore stores a point as a float32 direction and a float32 distance; a reader gets the point back
+    as ``direction * distance`` (float32 multiplication, or float64 then rounded to float32: the same
+    bits). The nearest float32 of ``x / |x|`` times the nearest float32 of ``|x|`` misses the source
+    float32 by one unit in the last place for about half the points. Here each distance is moved by
+    up to :data:`EXACT_DISTANCE_STEPS` float32 steps from the nearest to ``|x|`` and each direction
+    component chosen among the three float32 next to ``x / distance`` so that every product rounds to
+    the source value (the direction stays unit to 1e-6). Some points have no such pair that close to
+    unit length: when a component's float32 spacing is coarser than the point's, the products step
+    over the point's rounding interval; those keep the nearest pair and are listed.
+
+    Args:
+        xyz_sensor_m: finite points [N,3], float32, metres, none at the origin.
+
+    Returns:
+        direction float32 [N,3], distance_m float32 [N], and the indices [K] of the points whose
+        product is not their source bits (within one unit in the last place).
+    """
+    xyz_m = xyz_sensor_m.astype(np.float64)
+    bits = np.ascontiguousarray(xyz_sensor_m, dtype=np.float32).view(np.uint32)
+    nearest_m = np.sqrt(np.einsum("ij,ij->i", xyz_m, xyz_m)).astype(np.float32)
+    direction, ok = _directions_for(xyz_m, bits, nearest_m)
+    distance_m = nearest_m.copy()
+    todo = np.flatnonzero(~ok.all(axis=1))
+    steps = [sign * k for k in range(1, EXACT_DISTANCE_STEPS + 1) for sign in (1, -1)]
+    for step in steps:  # a few % of the points reach here, fewer each step
+        if not len(todo):
+            break
+        moved_m = (nearest_m[todo].view(np.int32) + np.int32(step)).view(np.float32)  # positive floats: +1 ulp
+        candidate, ok = _directions_for(xyz_m[todo], bits[todo], moved_m)
+        done = ok.all(axis=1)
+        direction[todo[done]], distance_m[todo[done]] = candidate[done], moved_m[done]
+        todo = todo[~done]
+    return direction, distance_m, todo
+
+
 @dataclass(frozen=True)
 class RayBundle:
     """Raw per-point-time rays of one lidar frame, ready for NCore.
@@ -145,6 +205,8 @@ class RayBundle:
         source_index: index of each ray in the source point array, int64 [N].
         n_zero_range: source points not stored because their range is below ``MIN_RANGE_M``.
         n_non_finite: source points not stored because a coordinate is NaN or infinite.
+        inexact: with ``exact``, the rays [K] whose float32 ``direction * distance`` is not the source
+            float32 point (:func:`exact_rays`); None without.
     """
 
     direction: np.ndarray
@@ -155,6 +217,7 @@ class RayBundle:
     source_index: np.ndarray
     n_zero_range: int
     n_non_finite: int
+    inexact: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.distance_m)
@@ -165,41 +228,54 @@ def ray_bundle(
     point_times_ns: np.ndarray,
     intensity_u8: np.ndarray,
     frame_start_us: int,
+    exact: bool = False,
 ) -> RayBundle:
     """Turn sensor-frame points at their own times into a ray bundle.
 
     Args:
-        xyz_sensor_m: float64 [N,3] points in the sensor frame at their own times.
+        xyz_sensor_m: [N,3] points in the sensor frame at their own times, metres: float64, or
+            float32 with ``exact``.
         point_times_ns: int64 [N] absolute point times (ns).
         intensity_u8: uint8 [N] raw intensity (0..255).
         frame_start_us: frame start (µs); the frame spans [min(start, first ray), last ray].
+        exact: the points are the source's own float32 values (a point cloud file in the sensor
+            frame): store each ray so that ``direction * distance`` gives them back bit for bit
+            (:func:`exact_rays`).
 
     Points with a non-finite coordinate or a range below ``MIN_RANGE_M`` have no direction and are
     counted in ``n_non_finite`` / ``n_zero_range`` instead of stored.
     """
-    x, y, z = xyz_sensor_m[:, 0], xyz_sensor_m[:, 1], xyz_sensor_m[:, 2]
+    x, y, z = (xyz_sensor_m[:, k].astype(np.float64) for k in range(3))
     distance = np.sqrt(x * x + y * y + z * z)
     finite = np.isfinite(distance)
     keep = finite & (distance >= MIN_RANGE_M)
     index = np.flatnonzero(keep)
     take = slice(None) if len(index) == len(keep) else index  # usually every point is kept: no gathers
-    dist = distance[take]
-    inv = 1.0 / dist
-    direction = np.empty((len(index), 3), dtype=np.float32)
-    for k, c in enumerate((x, y, z)):
-        direction[:, k] = c[take] * inv
+    inexact = None
+    if exact:
+        if xyz_sensor_m.dtype != np.float32:
+            raise TypeError("exact rays need the source's float32 points")
+        direction, dist, inexact = exact_rays(xyz_sensor_m[take])
+    else:
+        dist = distance[take]
+        inv = 1.0 / dist
+        direction = np.empty((len(index), 3), dtype=np.float32)
+        for k, c in enumerate((x, y, z)):
+            direction[:, k] = c[take] * inv
+        dist = dist.astype(np.float32)
     timestamp_us = floor_us(point_times_ns[take]).astype(np.uint64)
     start = frame_start_us if len(index) == 0 else min(frame_start_us, int(timestamp_us.min()))
     end = start if len(index) == 0 else int(timestamp_us.max())
     return RayBundle(
         direction=direction,
-        distance_m=dist.astype(np.float32),
+        distance_m=dist,
         timestamp_us=timestamp_us,
         intensity=(intensity_u8[take].astype(np.float32) / np.float32(255.0)),
         frame_timestamps_us=np.array([start, end], dtype=np.uint64),
         source_index=index,
         n_zero_range=int(np.count_nonzero(finite & ~keep)),
         n_non_finite=int(np.count_nonzero(~finite)),
+        inexact=inexact,
     )
 
 

@@ -37,6 +37,8 @@ from ncore_convert.contract import (
     DEFAULT_INSTANCE,
     OPENCOOD_PROTOCOL,
     OPENCOOD_YAML,
+    SOURCE_XYZ,
+    SOURCE_XYZ_INDEX,
     ManifestAgent,
     ScenarioManifest,
 )
@@ -98,11 +100,15 @@ class OpenCoodScenario:
         agent's CARLA (left-handed) lidar frame in metres, and intensity in [0, 1]."""
         lidar = self._lidar(agent_id)
         frame = self._frame(agent_id, key)
-        direction = lidar.get_frame_ray_bundle_direction(frame).astype(np.float64)
-        distance_m = lidar.get_frame_ray_bundle_return_distance_m(frame).astype(np.float64)
-        xyz_carla = carla.points_right_handed(direction * distance_m[:, None])
-        intensity = lidar.get_frame_ray_bundle_return_intensity(frame)
-        return np.concatenate([xyz_carla, intensity[:, None]], axis=1).astype(np.float32)
+        direction = lidar.get_frame_ray_bundle_direction(frame)
+        distance_m = lidar.get_frame_ray_bundle_return_distance_m(frame)
+        xyz = direction * distance_m[:, None]  # float32 x float32: the converter chose both so this is the source
+        if SOURCE_XYZ_INDEX in (names := lidar.get_frame_generic_data_names(frame)) and SOURCE_XYZ in names:
+            xyz[lidar.get_frame_generic_data(frame, SOURCE_XYZ_INDEX)] = lidar.get_frame_generic_data(frame, SOURCE_XYZ)
+        out = np.empty((len(xyz), 4), dtype=np.float32)
+        out[:, :3] = carla.points_right_handed(xyz)
+        out[:, 3] = lidar.get_frame_ray_bundle_return_intensity(frame)
+        return out
 
     def lidar_pose(self, agent_id: str, key: str) -> np.ndarray:
         """The YAML's ``lidar_pose`` of the frame: the lidar's CARLA world pose, float64 [6]

@@ -214,12 +214,14 @@ def _write_sensors(
                 skipped[key] = err.cause
                 progress(1)
                 continue
-            xyz = carla.points_right_handed(xyz_carla.astype(np.float64))
-            rays = ray_bundle(xyz, np.full(len(xyz), int(t_us) * NS_PER_US, dtype=np.int64), intensity_u8, int(t_us))
+            xyz = carla.points_right_handed(xyz_carla)  # float32: the mirror is exact
+            times_ns = np.full(len(xyz), int(t_us) * NS_PER_US, dtype=np.int64)
+            rays = ray_bundle(xyz, times_ns, intensity_u8, int(t_us), exact=True)
             T_lidar_world_global = agent.T_rig_world_global[frame] @ T_lidar_rig
-            xyz_world_global = transform_points(T_lidar_world_global, xyz[rays.source_index])
+            xyz_world_global = transform_points(T_lidar_world_global, xyz[rays.source_index].astype(np.float64))
             flags = dynamic_flags(xyz_world_global, rays.timestamp_us, plan.dynamic_boxes)
-            generic = {contract.DYNAMIC_FLAG: flags}
+            generic = {contract.DYNAMIC_FLAG: flags, contract.SOURCE_XYZ_INDEX: rays.inexact.astype(np.uint32),
+                       contract.SOURCE_XYZ: xyz[rays.source_index[rays.inexact]]}  # fmt: skip
             if plan.options.lidar_rgb and agent.camera_ids:
                 frames = _colour_frames(plan, agent, frame, key, int(t_us))
                 generic[contract.LIDAR_RGB], coloured = point_colours(xyz_world_global, rays.timestamp_us, flags == 1,
