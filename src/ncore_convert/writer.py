@@ -263,12 +263,15 @@ class SequenceWriter:
         *,
         rig_frame: str = "rig",
         instance: str = DEFAULT_INSTANCE,
+        covers_sequence: bool = True,
     ) -> None:
         """Store ``rig->world`` (dynamic, float32) in one poses instance and ``world->world_global``
         (static, float64) in every instance.
 
         Args:
-            timestamps_us: int [N], strictly increasing, within the sequence interval.
+            timestamps_us: int [N >= 2], strictly increasing, within the sequence interval; from its
+                start to its end unless ``covers_sequence`` is False (a rig that is not there all
+                along, e.g. an agent of a cooperative scenario with fewer frames than the others).
             T_rig_world: [N,4,4], stored as float32.
             T_world_world_global: [4,4], stored as float64; None when another call stores it
                 (several rigs in one sequence, or a further poses instance).
@@ -277,7 +280,8 @@ class SequenceWriter:
         """
         self._require_base()
         self._poses[instance].store_dynamic_pose(
-            rig_frame, "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64)
+            rig_frame, "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64),
+            require_sequence_time_coverage=covers_sequence,
         )
         if T_world_world_global is not None:
             for poses in self._poses.values():

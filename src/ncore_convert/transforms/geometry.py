@@ -232,6 +232,34 @@ def _constant_velocity_pose(T_prev: np.ndarray, T_last: np.ndarray, dt_us: int, 
     return out
 
 
+#: A one-sample trajectory's second pose comes this long after the first: NCore's time quantum (µs).
+ONE_TICK_STEP_US = 1
+
+
+def one_tick_trajectory(timestamp_us: int, T_rig_world: np.ndarray, speed_mps: float) -> tuple[np.ndarray, np.ndarray]:
+    """The two-pose trajectory NCore needs for a rig measured at a single instant.
+
+    NCore interpolates dynamic poses, so it stores at least two. The measured pose is kept at
+    ``timestamp_us``; a second one follows :data:`ONE_TICK_STEP_US` later, moved by the measured
+    speed along the rig's x axis (forward), so no sample lies between them and a velocity derived
+    from the two is the measured one (zero for a parked vehicle or infrastructure, and where the
+    speed is unknown, NaN).
+
+    Args:
+        timestamp_us: the instant, µs.
+        T_rig_world: rig -> world at that instant [4,4].
+        speed_mps: forward speed, m/s.
+
+    Returns:
+        timestamps_us int64 [2] and T_rig_world [2,4,4].
+    """
+    step_m = 0.0 if not np.isfinite(speed_mps) else float(speed_mps) * ONE_TICK_STEP_US * 1e-6
+    after = T_rig_world.copy()
+    after[:3, 3] += T_rig_world[:3, 0] * step_m
+    times = np.array([timestamp_us, timestamp_us + ONE_TICK_STEP_US], dtype=np.int64)
+    return times, np.stack([T_rig_world, after])
+
+
 def euler_xyz_from_rotation(R: np.ndarray) -> np.ndarray:
     """Extrinsic x-y-z Euler angles (NCore BBox3 ``rot``, R = Rz Ry Rx) of rotation matrices [N,3,3] -> [N,3]."""
     return Rotation.from_matrix(R).as_euler("xyz")

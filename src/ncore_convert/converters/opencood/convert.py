@@ -133,17 +133,21 @@ def _write_base(
     names: Names,
     T_world_dataset_global: np.ndarray,
     world_global_edge: np.ndarray | None,
+    interval_us: tuple[int, int],
 ) -> None:
     """The agent's trajectory (and ``world_global_edge``, world -> world_global, unless None), its
     perturbed trajectory and delays in each noise setting's poses instance, and its camera models
-    and sensor extrinsics. ``T_world_dataset_global``: world -> the right-handed CARLA map frame."""
+    and sensor extrinsics. ``T_world_dataset_global``: world -> the right-handed CARLA map frame;
+    ``interval_us``: the sequence's inclusive interval (a trajectory that does not span it is an
+    agent with fewer frames than the others)."""
     T_world_global_world = invert_se3(T_world_dataset_global)
-    T_rig_world = T_world_global_world @ agent.T_rig_world_global
-    writer.store_trajectory(agent.timestamps_us, T_rig_world, world_global_edge, rig_frame=names.rig)
+    times_us, T_rig_world = agent.pose_samples(T_world_global_world @ agent.T_rig_world_global)
+    covers = (int(times_us[0]), int(times_us[-1])) == interval_us
+    writer.store_trajectory(times_us, T_rig_world, world_global_edge, rig_frame=names.rig, covers_sequence=covers)
     for name, per_agent in plan.noise.items():
         noisy = per_agent[agent.agent_id]
-        T_rig_world = T_world_global_world @ noisy.T_rig_world_global
-        writer.store_trajectory(agent.timestamps_us, T_rig_world, None, rig_frame=names.rig, instance=name)
+        times_us, T_rig_world = agent.pose_samples(T_world_global_world @ noisy.T_rig_world_global)
+        writer.store_trajectory(times_us, T_rig_world, None, rig_frame=names.rig, instance=name, covers_sequence=covers)
         writer.store_pose_data(name, noisy.arrays(agent.timestamps_us, names.prefix))
     for sensor in agent.lidar_ids + agent.camera_ids:
         writer.store_extrinsic(names.sensor(sensor), agent.T_sensor_rig[sensor], rig_frame=names.rig)
@@ -276,10 +280,12 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
     world_global_edge, world_global_meta = consumer.world_global(
         T_world_dataset_global, plan.options.world_global_mode, DATASET_GLOBAL
     )
+    pose_times = [a.pose_samples(a.T_rig_world_global)[0] for a in agents]
+    interval_us = (min(int(t[0]) for t in pose_times), max(int(t[-1]) for t in pose_times))
     writer = SequenceWriter(
         output_dir=out_dir,
         sequence_id=sequence_id,
-        interval_us=(min(int(a.timestamps_us[0]) for a in agents), max(int(a.timestamps_us[-1]) for a in agents)),
+        interval_us=interval_us,
         generic_meta_data=_generic_meta(plan, agent_ids, world_global_meta),
         camera_ids=[names[a.agent_id].sensor(c) for a in agents for c in a.camera_ids],
         lidar_ids=[names[a.agent_id].sensor(s) for a in agents for s in a.lidar_ids],
@@ -290,7 +296,7 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
     )
     for i, agent in enumerate(agents):
         edge = world_global_edge if i == 0 else None  # one static edge per sequence
-        _write_base(writer, plan, agent, names[agent.agent_id], T_world_dataset_global, edge)
+        _write_base(writer, plan, agent, names[agent.agent_id], T_world_dataset_global, edge, interval_us)
     cuboids = _cuboids(plan, reference, names[reference.agent_id])
     writer.store_cuboids(cuboids, plan.cuboid_labels.label_source, plan.cuboid_labels.meta)
     counts.cuboids = len(cuboids)

@@ -29,7 +29,7 @@ from ncore_convert.sources.files import require_folder
 from ncore_convert.transforms import carla, carla_lidar, labels
 from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.dynamic import DynamicBoxes, TrackObservations
-from ncore_convert.transforms.geometry import invert_se3, rigid_mean
+from ncore_convert.transforms.geometry import invert_se3, one_tick_trajectory, rigid_mean
 from ncore_convert.transforms.lidar import MIN_RANGE_M
 from ncore_convert.transforms.lidar_model import SpinningLidarModel
 from ncore_convert.transforms.noise import NoiseSetting
@@ -104,6 +104,7 @@ class AgentPlan:
     cameras: dict[str, consumer.CameraSpec] = field(default_factory=dict)
     lidar_model: SpinningLidarModel | None = None  #: the CARLA lidar's structured model (None: raw rays only)
     lidar_model_meta: dict = field(default_factory=dict)  #: how it was derived, or why there is none
+    speed_mps: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: the YAMLs' ego_speed [N], m/s (NaN: none)
 
     @property
     def kind(self) -> str:
@@ -116,6 +117,15 @@ class AgentPlan:
     @property
     def n_frames(self) -> int:
         return len(self.keys) * (len(self.lidar_ids) + len(self.camera_ids))
+
+    def pose_samples(self, T_rig_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The trajectory to store from per-frame rig poses ``T_rig_x`` [N,4,4]: (timestamps_us
+        int64 [M], poses [M,4,4]); a one-tick agent's single pose is followed 1 µs later by its
+        extrapolation at the tick's ego_speed (``transforms.geometry.one_tick_trajectory``, as NCore
+        needs two poses)."""
+        if len(self.keys) > 1:
+            return self.timestamps_us, T_rig_x
+        return one_tick_trajectory(int(self.timestamps_us[0]), T_rig_x[0], float(self.speed_mps[0]))
 
 
 @dataclass(frozen=True)
@@ -241,6 +251,7 @@ def plan_agent(
         mounts=mounts,
         skipped_keys=dict(skipped_keys or {}),
         cameras=cameras,
+        speed_mps=np.array([f.ego_speed_kmh / 3.6 for f in frames]),
     )
 
 
@@ -311,12 +322,12 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
             )
         skipped_keys[agent] = {}
         agent_frames = _read_frames(scenario_dir / agent, keys[agent], warnings, skipped_keys[agent])
-        if len(agent_frames) < 2:
-            warnings.append(f"{scenario_dir / agent}: fewer than 2 readable frames; agent not written")
+        if not agent_frames:
+            warnings.append(f"{scenario_dir / agent}: no readable frame; agent not written")
             continue
         frames[agent] = agent_frames
     if not frames:
-        raise SourceError(scenario_dir, "no agent has 2 or more readable frames")
+        raise SourceError(scenario_dir, "no agent has a readable frame")
     agents = {a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a]) for a, f in frames.items()}
     agents = {a: _with_lidar_model(agent, protocol, options, scenario, warnings) for a, agent in agents.items()}
     ego = src.opencood_ego(folders)
@@ -439,21 +450,21 @@ def _clipped(plan: ScenarioPlan, window_us: tuple[int, int], scenario_dir: UPath
 
     for agent_id, agent in plan.agents.items():
         keep = in_window(agent.timestamps_us, window_us)
-        if keep.sum() < 2:
-            warnings.append(f"{scenario_dir / agent_id}: fewer than 2 frames in the clip window; agent not written")
+        if not keep.any():
+            warnings.append(f"{scenario_dir / agent_id}: no frame in the clip window; agent not written")
             continue
         rows = np.flatnonzero(keep)
         kept_keys = [agent.keys[i] for i in rows]
         agents[agent_id] = replace(
             agent, keys=kept_keys, timestamps_us=agent.timestamps_us[rows],
             lidar_pose_carla=agent.lidar_pose_carla[rows], T_rig_world_global=agent.T_rig_world_global[rows],
-            skipped_keys={k: v for k, v in agent.skipped_keys.items() if inside(k)},
+            speed_mps=agent.speed_mps[rows], skipped_keys={k: v for k, v in agent.skipped_keys.items() if inside(k)},
         )  # fmt: skip
     if not agents:
         duration_s = (max(int(a.timestamps_us[-1]) for a in plan.agents.values())
                       - min(int(a.timestamps_us[0]) for a in plan.agents.values())) / 1e6  # fmt: skip
         raise UsageError(
-            f"{scenario_dir}: the clip window holds fewer than 2 frames of every agent (the scenario lasts"
+            f"{scenario_dir}: the clip window holds no frame of any agent (the scenario lasts"
             f" {duration_s:.3f} s)"
         )
     ego_keep = in_window(src.key_timestamps_us(plan.ego_keys, plan.fixed_delta_seconds), window_us)

@@ -1,0 +1,109 @@
+"""Issue 38: cooperative scenarios as real files come: a single tick (OpenCOOD's and OpenCDA's own
+sample data, snapshots cut to one frame), and scenarios where some agents have one tick and others
+many. Every agent with a readable frame is written; its pose is the tick's, followed 1 µs later by
+the ego_speed extrapolation NCore's two-pose minimum needs; everything round-trips exactly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_opencood_view import NOISE, _same_tree_but_pcds, assert_same_points, opencood_pcd
+from upath import UPath
+
+from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+from ncore_convert.sources.opencood import load_yaml
+from ncore_convert.synth import opencood as synth
+from ncore_convert.transforms import carla
+from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.validate.readback import open_sequence
+from ncore_convert.validate.report import summarise
+from ncore_convert.validate.tree import validate_tree
+from ncore_convert.views.opencood import OpenCoodScenario
+from ncore_convert.views.opencood_export import export_opencood
+
+
+def convert_both_layouts(tmp: Path, truth, noise=()) -> dict[str, Path]:
+    outs = {}
+    for layout in ("agents", "scenario"):
+        out = tmp / layout / truth.scenario
+        summary = convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario,
+                                   OpenCoodOptions("v2xset", "test", layout, noise=noise))  # fmt: skip
+        assert summary.agents and not [w for w in summary.warnings if "not written" in w], summary.warnings
+        outs[layout] = out
+    return outs
+
+
+def assert_valid_and_exact(tmp: Path, truth, outs: dict[str, Path]) -> None:
+    """Every sequence opens, passes ``validate --source``; the export is the raw scenario, every
+    non-PCD file byte for byte and every point bit for bit."""
+    for layout, out in outs.items():
+        reports = validate_tree(UPath(out), UPath(tmp / "src"))
+        assert reports and summarise(reports)["ok"], summarise(reports)["failed"]
+        exported = Path(export_opencood(UPath(out / "scenario.json"), UPath(tmp / f"export-{layout}"))[0])
+        for name in _same_tree_but_pcds(Path(truth.scenario_dir), exported):
+            raw, back = opencood_pcd(Path(truth.scenario_dir) / name), opencood_pcd(exported / name)
+            assert_same_points(back.astype(np.float32), raw)
+
+
+@pytest.fixture(scope="module")
+def one_tick(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("one-tick")
+    config = synth.SynthConfig(dataset="v2xset", frames=1, seed=11, lidar_columns=256)
+    (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
+    return tmp, truth, convert_both_layouts(tmp, truth, noise=(NOISE,))
+
+
+def test_a_one_tick_scenario_converts_validates_and_round_trips(one_tick):
+    tmp, truth, outs = one_tick
+    assert len(truth.keys) == 1 and any(int(a) < 0 for a in truth.agents)
+    assert_valid_and_exact(tmp, truth, outs)
+
+
+def test_the_one_tick_pose_rule(one_tick):
+    """The tick's pose at the tick, and 1 µs later moved by ego_speed along the rig's forward axis
+    (a CAV: 8 m/s gives 8 µm; infrastructure: held); the lidar frame spans [t, t]."""
+    tmp, truth, outs = one_tick
+    (key,) = truth.keys
+    for agent_id in truth.agents:
+        loader = open_sequence(UPath(outs["agents"] / agent_id / f"{truth.scenario}_agent{agent_id}.json")).loader
+        lidar = loader.get_lidar_sensor("lidar_top")
+        t_us = int(lidar.frames_timestamps_us[0, 1])
+        assert lidar.frames_count == 1 and int(lidar.frames_timestamps_us[0, 0]) == t_us
+        T = loader.pose_graph.evaluate_poses("rig", "world_global", np.array([t_us, t_us + 1], dtype=np.uint64))
+        step_rig = (invert_se3(T[0]) @ T[1])[:3, 3]
+        speed_mps = load_yaml(UPath(Path(truth.scenario_dir) / agent_id / f"{key}.yaml"))["ego_speed"] / 3.6
+        np.testing.assert_allclose(step_rig, [speed_mps * 1e-6, 0.0, 0.0], atol=2e-6)
+        T_lidar = loader.pose_graph.evaluate_poses("lidar_top", "world_global", np.array([t_us], dtype=np.uint64))[0]
+        pose = carla.carla_pose_from_matrix(carla.mirror_transform(T_lidar))
+        np.testing.assert_allclose(pose[:3], truth.agents[agent_id].lidar_pose[key][:3], atol=1e-3)
+
+
+def test_noise_settings_on_one_tick(one_tick):
+    """The noise setting's poses instance and delays exist for the one tick (no delay is possible)."""
+    _, truth, outs = one_tick
+    view = OpenCoodScenario.open(outs["agents"] / "scenario.json", poses="wild")
+    (key,) = truth.keys
+    for agent_id in view.agent_ids:
+        assert view.delayed_key(agent_id, key) == key
+        assert np.all(np.isfinite(view.lidar_pose(agent_id, key)))
+
+
+def test_agents_with_one_tick_beside_agents_with_many(tmp_path):
+    """A CAV with a single tick in a 4-tick scenario: written in both layouts, nothing dropped, its
+    sequence (or rig) spans its tick only, and the scenario round-trips."""
+    config = synth.SynthConfig(dataset="v2xset", frames=4, seed=12, lidar_columns=256)
+    (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
+    short = next(a for a in truth.agents if int(a) > 0)
+    for key in truth.keys[:1] + truth.keys[2:]:
+        for path in (Path(truth.scenario_dir) / short).glob(f"{key}*"):
+            path.unlink()
+    outs = convert_both_layouts(tmp_path, truth)
+    view = OpenCoodScenario.open(outs["scenario"] / "scenario.json")
+    assert sorted(view.agent_ids) == sorted(truth.agents)
+    full = next(a for a in truth.agents if a != short)
+    assert view.keys(short) == [truth.keys[1]] and view.keys(full) == truth.keys
+    raw = opencood_pcd(Path(truth.scenario_dir) / short / f"{truth.keys[1]}.pcd")
+    assert_same_points(view.lidar_points(short, truth.keys[1]), raw)
+    assert_valid_and_exact(tmp_path, truth, outs)
