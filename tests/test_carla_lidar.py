@@ -4,12 +4,10 @@ sweep, fractional points per channel, range noise, drop-off) with the protocol w
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from conftest import component_meta, find_opv2v_sample, open_sequence
 from ncore.data.v4 import LidarSensorComponent
 from ncore.impl.data.types import RowOffsetStructuredSpinningLidarModelParameters
@@ -17,7 +15,7 @@ from upath import UPath
 
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.evaluate import evaluate_lidar_model
-from ncore_convert.sources.pcd import read_pcd
+from ncore_convert.sources.pcd import read_pcd, red_from_rgb, write_pcd
 from ncore_convert.synth import opencood as synth
 from ncore_convert.transforms import carla, carla_lidar
 from ncore_convert.transforms.lidar_model import angle_between_rad
@@ -92,28 +90,77 @@ def test_synthetic_model_error_and_elements(v2xset):
         assert checks["lidar lidar_top: model elements within the model"].ok
 
 
-def test_data_that_disagree_with_the_protocol_fall_back_with_a_warning(v2xset, tmp_path):
-    truth, _, _, src_root = v2xset
-    protocol_path = Path(src_root) / "test" / truth.scenario / "data_protocol.yaml"
-    protocol = yaml.safe_load(protocol_path.read_text())
-    for cav in protocol["scenario"]["single_cav_list"]:
-        cav["sensing"]["perception"]["lidar"]["channels"] = 32  # the data have 64
-    root = tmp_path / "src"
-    (root / "test").mkdir(parents=True)
-    shutil.copytree(protocol_path.parent, root / "test" / truth.scenario)
-    (root / "test" / truth.scenario / "data_protocol.yaml").write_text(yaml.safe_dump(protocol))
+#: Protocols that disagree with the simulated lidar (32 lasers 2 to -25 deg, 300 columns), as a real
+#: V2XSet scenario's did (64 channels dumped by another run), and a scenario with no protocol at all.
+MISMATCHES = {
+    "channels": {"protocol_lidar": (("channels", 64),)},  # and so its columns (pps / 64) too
+    "fov": {"protocol_lidar": (("lower_fov", -30.0), ("upper_fov", 10.0))},
+    "columns": {"protocol_lidar": (("points_per_second", 2_000_000),)},
+    "no protocol": {"protocol": False},
+}
+
+
+@pytest.mark.parametrize("case", list(MISMATCHES))
+def test_a_protocol_that_disagrees_or_is_missing_gives_a_model_from_the_points(tmp_path, case):
+    """The lidar's own geometry (lasers, FOV, columns, phase) measured from its points: every ray
+    has a model element, the far-range model error is <= 0.01 deg, the lasers are where CARLA put
+    them, and the metadata and the warning say the model came from the points and what the protocol said."""
+    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=43, lidar_channels=32, lidar_columns=300,
+                               lidar_noise_stddev=0.02, lidar_dropoff_rate=0.1, **MISMATCHES[case])  # fmt: skip
+    (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     out = tmp_path / "out"
-    summary = convert_scenario(UPath(root), UPath(out), truth.scenario, OpenCoodOptions("v2xset", "test"))
-    cavs = [a for a in truth.agents if int(a) > 0]
-    warned = [w for w in summary.warnings if "no lidar model (the lidar data disagree with data_protocol.yaml" in w]
-    assert len(warned) == len(cavs) and all(truth.scenario in w and "ring residual" in w for w in warned)
+    summary = convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario,
+                               OpenCoodOptions("opv2v", "test", camera_ids=()))  # fmt: skip
     for agent_id in truth.agents:
+        (warning,) = [w for w in summary.warnings if f"/{agent_id}: scenario" in w]
+        assert "lidar model from the points: 32 lasers +2.000 to -25.000 deg, 300 columns" in warning
+        assert ("no lidar block" if case == "no protocol" else "disagree with data_protocol.yaml") in warning
         loader = open_sequence(out / agent_id, f"{truth.scenario}_agent{agent_id}")
-        has_model = isinstance(loader.get_lidar_sensor("lidar_top").model_parameters,
-                               RowOffsetStructuredSpinningLidarModelParameters)  # fmt: skip
-        assert has_model == (int(agent_id) < 0)  # the RSU's block still matches its data
-    none = convert_scenario(UPath(root), UPath(tmp_path / "none"), truth.scenario,
+        params = loader.get_lidar_sensor("lidar_top").model_parameters
+        assert (params.n_rows, params.n_columns) == (32, 300)
+        np.testing.assert_allclose(np.degrees(params.row_elevations_rad), np.linspace(2.0, -25.0, 32), atol=1e-3)
+        report = evaluate_lidar_model(loader, "lidar_top")
+        assert report.far_points > 1000 and report.far_mean_deg <= 0.01, report.far_mean_deg
+        sensor = loader.get_lidar_sensor("lidar_top")
+        for i in range(sensor.frames_count):
+            elements = sensor.get_frame_ray_bundle_model_element(i)
+            assert elements is not None and len(elements) == sensor.get_frame_ray_bundle_count(i)
+        meta = component_meta(loader, LidarSensorComponent, "lidar_top")["lidar_model"]
+        assert meta["model_source"] == "points" and meta["rings_with_returns"] <= 32
+        said = None if case == "no protocol" else {k: v for k, v in config.protocol_lidar}
+        assert (meta["protocol_said"] is None) if said is None else all(meta["protocol_said"][k] == v
+                                                                        for k, v in said.items())  # fmt: skip
+
+
+def test_points_off_any_carla_grid_give_no_model_and_say_why(tmp_path):
+    """Directions jittered by 0.2 deg (not CARLA's grid): no model is measured either; raw rays, a
+    warning, and the metadata says why."""
+    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=44, cavs=2, lidar_columns=200, protocol=False)
+    (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
+    rng = np.random.default_rng(0)
+    for pcd in Path(truth.scenario_dir).glob("*/*.pcd"):
+        data = read_pcd(UPath(pcd))
+        xyz = np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float64)
+        r = np.linalg.norm(xyz, axis=1, keepdims=True)
+        jittered = xyz / r + rng.normal(0, np.radians(0.2), xyz.shape)
+        xyz = jittered / np.linalg.norm(jittered, axis=1, keepdims=True) * r
+        write_pcd(UPath(pcd), xyz, red_from_rgb(data["rgb"]))
+    summary = convert_scenario(UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.scenario,
+                               OpenCoodOptions("opv2v", "test", camera_ids=()))  # fmt: skip
+    for agent_id in truth.agents:
+        (warning,) = [w for w in summary.warnings if f"/{agent_id}: scenario" in w]
+        assert "no lidar model" in warning and "raw rays only" in warning
+        loader = open_sequence(tmp_path / "out" / agent_id, f"{truth.scenario}_agent{agent_id}")
+        assert loader.get_lidar_sensor("lidar_top").get_frame_ray_bundle_model_element(0) is None
+        meta = component_meta(loader, LidarSensorComponent, "lidar_top")
+        assert meta["lidar_model_source"] == "none" and "points" in meta["lidar_model_fallback"]
+
+
+def test_the_option_none_writes_raw_rays(v2xset, tmp_path):
+    truth, _, _, src_root = v2xset
+    none = convert_scenario(UPath(src_root), UPath(tmp_path / "none"), truth.scenario,
                             OpenCoodOptions("v2xset", "test", lidar_model_source="none"))  # fmt: skip
-    assert not [w for w in none.warnings if "no lidar model" in w]
-    loader = open_sequence(tmp_path / "none" / cavs[0], f"{truth.scenario}_agent{cavs[0]}")
+    assert not [w for w in none.warnings if "lidar model" in w]
+    cav = next(a for a in truth.agents if int(a) > 0)
+    loader = open_sequence(tmp_path / "none" / cav, f"{truth.scenario}_agent{cav}")
     assert loader.get_lidar_sensor("lidar_top").get_frame_ray_bundle_model_element(0) is None

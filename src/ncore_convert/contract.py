@@ -89,7 +89,9 @@ CARLA_FRAME = "carla_frame"
 #: OpenCOOD lidar frame metadata: the agent-frame's ``<key>.yaml`` text as it is (the OpenCOOD view
 #: and export read it back)
 OPENCOOD_YAML = "opencood_yaml"
-#: OpenCOOD sequence metadata: the scenario's ``data_protocol.yaml`` text as it is
+#: OpenCOOD lidar frame metadata: the PCD's layout, e.g. ``"x y z rgb ascii"`` (the export writes it back so)
+PCD_LAYOUT = "pcd_layout"
+#: OpenCOOD sequence metadata: the scenario's ``data_protocol.yaml`` text as it is (None: it had none)
 OPENCOOD_PROTOCOL = "opencood_data_protocol"
 
 # --- component instances ---

@@ -19,7 +19,7 @@ from upath import UPath
 
 from ncore_convert.errors import SourceError
 from ncore_convert.sources.files import PNG_SIGNATURE, list_folders, png_defect, read_bytes
-from ncore_convert.sources.pcd import read_pcd, red_from_rgb
+from ncore_convert.sources.pcd import read_pcd_with_header, red_from_rgb
 
 SPLITS = {
     "opv2v": ("train", "validate", "test", "test_culvercity"),
@@ -145,7 +145,7 @@ class Protocol:
     fixed_delta_seconds: float
     cav_lidar: dict
     rsu_lidars: tuple[dict, ...] = ()
-    text: str = ""  #: the file's text as it is (stored for the OpenCOOD export)
+    text: str | None = None  #: the file's text as it is (stored for the OpenCOOD export); None: no file
 
     def lidar_of(self, agent_id: str) -> dict:
         """The lidar block of an agent: its infrastructure unit's (negative ids), else the CAVs'."""
@@ -155,9 +155,21 @@ class Protocol:
         return self.cav_lidar
 
 
+#: The CARLA tick of OPV2V and V2XSet (OpenCDA's ``world.fixed_delta_seconds``), used when a scenario
+#: has no ``data_protocol.yaml``: OpenCOOD's 10 Hz frames are every second tick, keys step by 2.
+DEFAULT_TICK_S = 0.05
+
+
+def protocol_path(scenario_dir: UPath) -> UPath:
+    return UPath(scenario_dir) / "data_protocol.yaml"
+
+
 def read_protocol(scenario_dir: UPath) -> Protocol:
-    """Read ``data_protocol.yaml`` (SourceError naming it without a plausible tick)."""
-    path = scenario_dir / "data_protocol.yaml"
+    """Read ``data_protocol.yaml`` (SourceError naming it without a plausible tick); a scenario without
+    one gets :data:`DEFAULT_TICK_S` and no lidar blocks (``text`` None)."""
+    path = protocol_path(scenario_dir)
+    if not path.exists():
+        return Protocol(DEFAULT_TICK_S, {})
     text = read_text(path)
     protocol = parse_yaml(text, path)
     try:
@@ -310,20 +322,46 @@ def decode_png_rgb(data: bytes) -> np.ndarray:
         return np.asarray(image.convert("RGB"))
 
 
-def read_points(agent_dir: UPath, key: str) -> tuple[np.ndarray, np.ndarray]:
-    """A sweep in the CARLA lidar frame (left-handed: x forward, y right, z up).
+#: The fourth field of the lidar PCDs OpenCDA writes: Open3D's packed colour with the intensity in
+#: red (OPV2V, V2XSet), or the intensity as a float.
+PCD_INTENSITY_FIELDS = ("rgb", "intensity")
 
-    Returns:
-        xyz_m float32 [N,3] and intensity_u8 [N]: the red channel of the packed ``rgb`` field,
-        where OpenCDA stores the lidar intensity (intensity = value / 255).
+
+@dataclass(frozen=True)
+class Sweep:
+    """A lidar frame as its PCD holds it, in the CARLA lidar frame (left-handed: x forward, y right, z up).
+
+    Attributes:
+        xyz_m: float32 [N,3], file order; intensity: float32 [N] in [0, 1] (``rgb``: red / 255);
+        field: the PCD's intensity field (``rgb`` or ``intensity``); binary: ``DATA binary``.
     """
+
+    xyz_m: np.ndarray
+    intensity: np.ndarray
+    field: str
+    binary: bool
+
+    @property
+    def layout(self) -> str:
+        """E.g. ``"x y z rgb ascii"``: what the OpenCOOD export writes back."""
+        return f"x y z {self.field} {'binary' if self.binary else 'ascii'}"
+
+
+def read_points(agent_dir: UPath, key: str) -> Sweep:
+    """``<key>.pcd``: x, y, z and the intensity (SourceError naming the file if it lacks them)."""
     path = pcd_path(agent_dir, key)
-    columns = read_pcd(path)
-    missing = [f for f in ("x", "y", "z", "rgb") if f not in columns]
-    if missing:
-        raise SourceError(path, f"PCD lacks field(s) {', '.join(missing)}")
+    header, columns = read_pcd_with_header(path)
+    missing = [f for f in ("x", "y", "z") if f not in columns]
+    field = next((f for f in PCD_INTENSITY_FIELDS if f in columns), None)
+    if missing or field is None:
+        lacks = missing + ([] if field else ["rgb or intensity"])
+        raise SourceError(path, f"PCD lacks field(s) {', '.join(lacks)}")
     xyz = np.stack([columns["x"], columns["y"], columns["z"]], axis=1).astype(np.float32, copy=False)
-    return xyz, red_from_rgb(columns["rgb"])
+    if field == "rgb":
+        intensity = red_from_rgb(columns["rgb"]).astype(np.float32) / np.float32(255.0)
+    else:
+        intensity = columns["intensity"].astype(np.float32, copy=False)
+    return Sweep(xyz, intensity, field, header.data == "binary")
 
 
 def read_png_size(path: UPath) -> tuple[int, int] | None:

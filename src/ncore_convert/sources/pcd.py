@@ -2,7 +2,7 @@
 
 Reads ``DATA ascii`` and ``DATA binary`` files whose fields are scalars (COUNT 1), into one float32
 column per field, vectorised (no per-line Python), and writes the ASCII layout OPV2V's files have
-(:func:`write_pcd_ascii`). ``DATA binary_compressed`` is refused with a
+(:func:`write_pcd`). ``DATA binary_compressed`` is refused with a
 clear error. Open3D stores a colour as a packed float ``rgb`` field (bytes b, g, r, 0); OPV2V puts
 the lidar intensity in the red channel, so :func:`intensity_from_rgb` recovers it as R / 255.
 """
@@ -89,6 +89,11 @@ def read_pcd(path: UPath) -> dict[str, np.ndarray]:
 
     Raises SourceError naming the file on a bad header, a short body or unsupported encodings.
     """
+    return read_pcd_with_header(path)[1]
+
+
+def read_pcd_with_header(path: UPath) -> tuple[PcdHeader, dict[str, np.ndarray]]:
+    """:func:`read_pcd` and the file's header."""
     raw = read_bytes(UPath(path))
     lines, offset = _header_lines(path, raw)
     header = _parse_header(path, lines)
@@ -98,8 +103,8 @@ def read_pcd(path: UPath) -> dict[str, np.ndarray]:
         if len(body) < header.points * record.itemsize:
             raise SourceError(path, f"PCD body holds {len(body) // record.itemsize} of {header.points} points")
         table = np.frombuffer(body, dtype=record, count=header.points)
-        return {name: table[f"f{i}"].copy() for i, name in enumerate(header.fields)}
-    return _parse_ascii(path, header, body)
+        return header, {name: table[f"f{i}"].copy() for i, name in enumerate(header.fields)}
+    return header, _parse_ascii(path, header, body)
 
 
 def _parse_ascii(path: UPath, header: PcdHeader, body: bytes) -> dict[str, np.ndarray]:
@@ -142,20 +147,31 @@ def intensity_from_rgb(rgb: np.ndarray) -> np.ndarray:
     return red_from_rgb(rgb).astype(np.float32) / np.float32(255.0)
 
 
-#: The header of an OPV2V lidar file (Open3D's ASCII PCD: x, y, z and the packed colour).
+#: The header of an OPV2V lidar file (Open3D's PCD: x, y, z and the packed colour, or a float intensity).
 PCD_HEADER = (
-    "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\n"
-    "COUNT 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n"
+    "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z {fourth}\nSIZE 4 4 4 4\nTYPE F F F F\n"
+    "COUNT 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n"
 )
 
 
-def write_pcd_ascii(path: UPath, xyz: np.ndarray, red_u8: np.ndarray) -> None:
-    """An Open3D-style ASCII PCD: float32 x y z [N,3] and the packed float ``rgb`` (bytes b, g, r,
-    0) with ``red_u8`` [N] in red, as OPV2V stores the lidar intensity. Every float32 is written with
-    enough digits to be read back exactly."""
-    rgb = (red_u8.astype(np.uint32) << 16).view(np.float32)
-    table = np.column_stack([xyz.astype(np.float32), rgb]).astype(np.float64)
-    body = io.BytesIO()
-    np.savetxt(body, table, fmt="%.10g")
-    UPath(path).write_bytes(PCD_HEADER.format(n=len(xyz)).encode() + body.getvalue())
+def rgb_from_red(red_u8: np.ndarray) -> np.ndarray:
+    """Open3D's packed float ``rgb`` (bytes b, g, r, 0) with ``red_u8`` [N] in red, float32 [N]."""
+    return (red_u8.astype(np.uint32) << 16).view(np.float32)
 
+
+def write_pcd(path: UPath, xyz: np.ndarray, intensity: np.ndarray, fourth: str = "rgb", binary: bool = False) -> None:
+    """A PCD as OpenCDA / Open3D write lidar frames: float32 x y z [N,3] and a fourth float32 field,
+    ``rgb`` (the packed colour with ``intensity`` as uint8 [N] in red, as OPV2V stores it) or
+    ``intensity`` (float [N] as given), in ``DATA ascii`` (every float32 with enough digits to be
+    read back exactly) or ``DATA binary`` (little-endian records)."""
+    if fourth not in ("rgb", "intensity"):
+        raise ValueError(f"unknown PCD field {fourth!r}")
+    last = rgb_from_red(intensity) if fourth == "rgb" else np.asarray(intensity, dtype=np.float32)
+    table = np.column_stack([np.asarray(xyz, dtype=np.float32), last])
+    header = PCD_HEADER.format(n=len(xyz), fourth=fourth, data="binary" if binary else "ascii").encode()
+    if binary:
+        UPath(path).write_bytes(header + table.astype("<f4").tobytes())
+        return
+    body = io.BytesIO()
+    np.savetxt(body, table.astype(np.float64), fmt="%.10g")
+    UPath(path).write_bytes(header + body.getvalue())

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.pcd import write_pcd_ascii
+from ncore_convert.sources.pcd import write_pcd
 from ncore_convert.synth.scene import BUILDING_RGB, Box, Scene, cast_rays, own_colour, render, surface_rgb
 
 WIDTH, HEIGHT, FOV_DEG = 800, 600, 100.0
@@ -95,6 +95,15 @@ class SynthConfig:
     lidar_noise_stddev: float = 0.0  #: CARLA's noise_stddev: range noise along each ray, m
     lidar_dropoff_rate: float = 0.0  #: CARLA's dropoff_general_rate: share of points dropped at random
     keep_truth: bool = False
+    lidar_channels: int = LIDAR_CHANNELS  #: the CAVs' simulated lasers (a real V2XSet scenario: 32)
+    #: keys of the CAVs' protocol lidar block written over what was simulated (a protocol dumped by
+    #: another run, as real V2XSet has): e.g. (("channels", 64),); the data keep the simulated lidar
+    protocol_lidar: tuple[tuple[str, float], ...] = ()
+    protocol: bool = True  #: write data_protocol.yaml (False: a scenario without one)
+    #: share of the points moved onto a 0.1 m grid in x (where one float32 step moves a point across a voxel edge)
+    grid_share: float = 0.0
+    pcd_fields: str = "rgb"  #: the PCD's fourth field: "rgb" (Open3D's packed colour) or "intensity" (float)
+    pcd_binary: bool = False  #: DATA binary instead of ascii
 
     @property
     def n_infrastructure(self) -> int:
@@ -246,7 +255,7 @@ def _protocol(config: SynthConfig, cav_spawns: list[list[float]], rsu_spawns: li
     def sensing(lidar: dict) -> dict:
         return {"perception": {"camera_num": 4, "lidar": lidar}, "localization": {"gnss": {"noise_alt_stddev": 0.005}}}
 
-    cav = sensing(lidar_block(config, LIDAR_CHANNELS, UPPER_FOV_DEG, LOWER_FOV_DEG))
+    cav = sensing(lidar_block(config, config.lidar_channels, UPPER_FOV_DEG, LOWER_FOV_DEG))
     protocol = {
         "world": {"client_port": 2000, "fixed_delta_seconds": config.fixed_delta_seconds, "seed": config.seed,
                   "sync_mode": True, "weather": {"sun_altitude_angle": 15, "cloudiness": 0, "fog_density": 0}},
@@ -306,7 +315,11 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
     tick0 = config.first_key * config.fixed_delta_seconds
     cav_spawns = [_floats(_actor_pose(road, c, 0.0, False)) for c in cavs]
     rsu_spawns = [_floats([*p[:2], RSU_LIDAR_HEIGHT_M, 0, 0, 0]) for p in rsu_positions]
-    (scenario_dir / "data_protocol.yaml").write_bytes(_yaml(_protocol(config, cav_spawns, rsu_spawns)))
+    written = _protocol(config, cav_spawns, rsu_spawns)
+    for cav in written["scenario"]["single_cav_list"]:
+        cav["sensing"]["perception"]["lidar"] = {**cav["sensing"]["perception"]["lidar"], **dict(config.protocol_lidar)}
+    if config.protocol:
+        (scenario_dir / "data_protocol.yaml").write_bytes(_yaml(written))
 
     for key in keys:
         t_s = int(key) * config.fixed_delta_seconds - tick0
@@ -345,10 +358,13 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             if config.lidar_noise_stddev:  # range noise moves points along their rays
                 rng_m = rng_m + rng.normal(0.0, config.lidar_noise_stddev, len(rng_m))
             xyz = (rays_lidar[hit] * rng_m[hit, None]).astype(np.float32)
+            if config.grid_share:  # a few points exactly on round coordinates (x = k * 0.1 m as float32)
+                on_grid = rng.random(len(xyz)) < config.grid_share
+                xyz[on_grid, 0] = (np.round(xyz[on_grid, 0].astype(np.float64) * 10.0) / 10.0).astype(np.float32)
             intensity = intensity[hit]
             lookup = np.array(box_actor + [-2] * len(pillar_boxes) + [-3] * len(buildings) + [-1], dtype=np.int64)
             hit_actor = lookup[index[hit]]  # index -1 (ground) takes the last entry
-            write_pcd_ascii(scenario_dir / agent_id / f"{key}.pcd", xyz, intensity)
+            write_pcd(scenario_dir / agent_id / f"{key}.pcd", xyz, intensity, config.pcd_fields, config.pcd_binary)
             # labels: vehicles hit by >= 1 ray within range, except the agent itself (OpenCDA)
             seen = set(hit_actor[hit_actor >= 0].tolist())
             vehicles = {}

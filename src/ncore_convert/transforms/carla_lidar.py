@@ -153,3 +153,103 @@ def assign_elements(lidar_model: SpinningLidarModel, direction: np.ndarray) -> n
     """Each ray's (row, column) in the model, uint16 [N,2]: nearest laser, nearest azimuth."""
     row, _ = nearest_rows(direction, lidar_model.row_elevations_rad)
     return lidar_model.assign_elements(direction, row)
+
+
+#: Elevations further apart than this (degrees) belong to different lasers: a CARLA laser's returns
+#: lie within ~0.003 deg of its elevation (float32 points), adjacent lasers are >= 0.1 deg apart.
+RING_GAP_DEG = 0.03
+#: Azimuths closer than this (rad, 0.006 deg) are the same column seen in different frames.
+SAME_AZIMUTH_RAD = 1e-4
+#: A laser needs this many returns over the frames to count as a ring (fewer: stray returns).
+MIN_RING_POINTS = 8
+
+
+@dataclass(frozen=True)
+class PointsFit:
+    """A CARLA lidar's geometry measured from its returns alone.
+
+    Attributes:
+        spec: the lidar as a protocol would declare it (``points_per_second`` restated from the columns).
+        fov_source: ``"protocol"`` when the protocol's upper and lower FOV are where the measured rings
+            say (the channel count then fills the FOV, rings without returns included), else ``"points"``
+            (the highest and lowest ring seen).
+        rings_seen: lasers with returns; ring_step_deg: the measured spacing of the lasers.
+        ring_grid_residual_deg: largest distance of a ring's median elevation from the uniform grid.
+        fit: the returns against the derived spec (residuals, phase).
+    """
+
+    spec: CarlaLidarSpec
+    fov_source: str
+    rings_seen: int
+    ring_step_deg: float
+    ring_grid_residual_deg: float
+    fit: DataFit
+
+
+def _rings_deg(elevation_deg: np.ndarray) -> np.ndarray:
+    """Median elevation (degrees) of each cluster of elevations [N] (a laser), ascending."""
+    order = np.sort(elevation_deg)
+    cuts = np.flatnonzero(np.diff(order) > RING_GAP_DEG) + 1
+    clusters = np.split(order, cuts)
+    return np.array([np.median(c) for c in clusters if len(c) >= MIN_RING_POINTS])
+
+
+def _column_count(azimuth_rad: np.ndarray, rows: np.ndarray) -> int:
+    """Azimuths per laser and revolution: 2 pi over the median step between a laser's neighbouring
+    returns (drop-off and empty sky leave gaps of several steps, but most neighbours are one apart;
+    the same azimuth in several frames differs by float32 rounding, ~1e-6 rad, and is not a step)."""
+    order = np.lexsort((azimuth_rad, rows))
+    same_row = rows[order][1:] == rows[order][:-1]
+    steps = np.diff(azimuth_rad[order])[same_row]
+    steps = steps[steps > SAME_AZIMUTH_RAD]
+    if not len(steps):
+        raise ValueError("no laser has two returns at different azimuths")
+    return int(round(2.0 * np.pi / float(np.median(steps))))
+
+
+def fit_from_points(frames: list[np.ndarray], fixed_delta_seconds: float, protocol: CarlaLidarSpec | None) -> PointsFit:
+    """Derive a CARLA ray-cast lidar (lasers, their FOV, azimuths per revolution, phase) from unit
+    rays of a few frames (right-handed lidar frame, [N,3] each), assuming one revolution per tick.
+
+    The lasers are the clusters of elevation; CARLA spaces them uniformly, so a line through the
+    clusters' medians gives the step and the top laser. Azimuths per revolution come from the step
+    between a laser's neighbouring returns, refined to the count (within 3) whose grid fits the
+    azimuths best. ``protocol`` (possibly wrong) only supplies the FOV when its limits lie on the
+    measured grid. ValueError, saying what does not fit, when the returns are not CARLA's grid.
+    """
+    direction = np.concatenate(frames).astype(np.float64)
+    if len(direction) < MIN_RING_POINTS * 2:
+        raise ValueError(f"too few returns ({len(direction)}) to measure the lidar")
+    elevation_deg = np.degrees(np.arcsin(np.clip(direction[:, 2], -1.0, 1.0)))
+    rings = _rings_deg(elevation_deg)[::-1]  # top laser first, as CARLA numbers them
+    if len(rings) < 2:
+        raise ValueError(f"{len(rings)} ring(s) of returns: not a multi-laser spinning lidar")
+    gaps = -np.diff(rings)
+    step0 = float(gaps.min())
+    index = np.round((rings[0] - rings) / step0).astype(np.int64)
+    if np.any(np.diff(index) < 1):
+        raise ValueError("the rings of returns are not uniformly spaced")
+    slope, top = np.polyfit(index.astype(np.float64), rings, 1)
+    step = -float(slope)
+    grid_residual = float(np.abs(rings - (top - step * index)).max())
+    if grid_residual > 0.25 * step:
+        raise ValueError(f"the rings of returns are not uniformly spaced (off the grid by {grid_residual:.3f} deg)")
+    upper, lower, fov_source = float(top), float(top - step * index[-1]), "points"
+    if protocol is not None:
+        above = (protocol.upper_fov_deg - top) / step  # whole lasers above the top ring seen
+        below = (lower - protocol.lower_fov_deg) / step
+        if min(above, below) > -0.1 and max(abs(above - round(above)), abs(below - round(below))) < 0.1:
+            upper, lower, fov_source = protocol.upper_fov_deg, protocol.lower_fov_deg, "protocol"
+    channels = int(round((upper - lower) / step)) + 1
+    azimuth = np.arctan2(direction[:, 1], direction[:, 0])
+    row, _ = nearest_rows(direction, np.radians(np.linspace(upper, lower, channels)))
+    n0 = _column_count(azimuth, row)
+
+    def spec_with(n: int) -> CarlaLidarSpec:
+        rate = 1.0 / fixed_delta_seconds
+        return CarlaLidarSpec(channels, upper, lower, rate, n * channels * rate, fixed_delta_seconds)
+
+    candidates = [spec_with(n) for n in range(max(n0 - 3, 2), n0 + 4)]
+    fits = [fit_to_data(frames, s) for s in candidates]
+    best = int(np.argmin([f.column_residual for f in fits]))
+    return PointsFit(candidates[best], fov_source, len(rings), step, grid_residual, fits[best])

@@ -226,7 +226,7 @@ class RayBundle:
 def ray_bundle(
     xyz_sensor_m: np.ndarray,
     point_times_ns: np.ndarray,
-    intensity_u8: np.ndarray,
+    intensity: np.ndarray,
     frame_start_us: int,
     exact: bool = False,
 ) -> RayBundle:
@@ -236,7 +236,7 @@ def ray_bundle(
         xyz_sensor_m: [N,3] points in the sensor frame at their own times, metres: float64, or
             float32 with ``exact``.
         point_times_ns: int64 [N] absolute point times (ns).
-        intensity_u8: uint8 [N] raw intensity (0..255).
+        intensity: uint8 [N] raw intensity (0..255, stored / 255), or float [N] already in [0, 1].
         frame_start_us: frame start (µs); the frame spans [min(start, first ray), last ray].
         exact: the points are the source's own float32 values (a point cloud file in the sensor
             frame): store each ray so that ``direction * distance`` gives them back bit for bit
@@ -270,7 +270,9 @@ def ray_bundle(
         direction=direction,
         distance_m=dist,
         timestamp_us=timestamp_us,
-        intensity=(intensity_u8[take].astype(np.float32) / np.float32(255.0)),
+        intensity=(intensity[take].astype(np.float32) / np.float32(255.0))
+        if intensity.dtype == np.uint8
+        else intensity[take].astype(np.float32),
         frame_timestamps_us=np.array([start, end], dtype=np.uint64),
         source_index=index,
         n_zero_range=int(np.count_nonzero(finite & ~keep)),

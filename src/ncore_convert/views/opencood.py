@@ -37,6 +37,7 @@ from ncore_convert.contract import (
     DEFAULT_INSTANCE,
     OPENCOOD_PROTOCOL,
     OPENCOOD_YAML,
+    PCD_LAYOUT,
     SOURCE_XYZ,
     SOURCE_XYZ_INDEX,
     ManifestAgent,
@@ -127,6 +128,12 @@ class OpenCoodScenario:
             params["lidar_pose"] = [float(v) for v in self.lidar_pose(agent_id, key)]
         return params
 
+    def pcd_layout(self, agent_id: str, key: str) -> str:
+        """The frame's PCD layout as the converter read it, e.g. ``"x y z rgb ascii"`` (conversions
+        before it was stored: OPV2V's own, that one)."""
+        meta = self._lidar(agent_id).get_frame_generic_meta_data(self._frame(agent_id, key))
+        return meta.get(PCD_LAYOUT, "x y z rgb ascii")
+
     def stored_yaml_text(self, agent_id: str, key: str) -> str:
         """The frame's ``<key>.yaml`` as the converter read it."""
         return self._lidar(agent_id).get_frame_generic_meta_data(self._frame(agent_id, key))[OPENCOOD_YAML]
@@ -213,9 +220,9 @@ class OpenCoodScenario:
         return opencood_order(self.agent_ids)
 
     @property
-    def protocol_text(self) -> str:
-        """The scenario's ``data_protocol.yaml``, as it was."""
-        return self._sequence(self.ego_agent_id).loader.generic_meta_data[OPENCOOD_PROTOCOL]
+    def protocol_text(self) -> str | None:
+        """The scenario's ``data_protocol.yaml``, as it was (None: the scenario had none)."""
+        return self._sequence(self.agent_ids[0]).loader.generic_meta_data[OPENCOOD_PROTOCOL]
 
     # -- where an agent's data is
 

@@ -22,7 +22,7 @@ import numpy as np
 import yaml
 from upath import UPath
 
-from ncore_convert.sources.pcd import write_pcd_ascii
+from ncore_convert.sources.pcd import write_pcd
 from ncore_convert.storage import publish, remove_tree
 from ncore_convert.views.opencood import OpenCoodScenario
 
@@ -50,7 +50,8 @@ def export_opencood(
     work = UPath(out_dir) / f".{view.manifest.scenario}.partial"
     remove_tree(work)
     work.mkdir(parents=True)
-    (work / "data_protocol.yaml").write_text(view.protocol_text)
+    if view.protocol_text is not None:  # a scenario without one gets none back
+        (work / "data_protocol.yaml").write_text(view.protocol_text)
     counts = ExportCounts()
     for agent_id in view.agent_ids:
         agent_dir = work / agent_id
@@ -58,8 +59,12 @@ def export_opencood(
         counts.agents += 1
         for key in view.keys(agent_id):
             points = view.lidar_points(agent_id, key)
-            red_u8 = np.round(points[:, 3].astype(np.float64) * 255.0).astype(np.uint8)
-            write_pcd_ascii(agent_dir / f"{key}.pcd", points[:, :3], red_u8)
+            _, _, _, field, data = view.pcd_layout(agent_id, key).split()
+            if field == "rgb":  # the intensity back to the red byte it came from
+                intensity = np.round(points[:, 3].astype(np.float64) * 255.0).astype(np.uint8)
+            else:
+                intensity = points[:, 3]
+            write_pcd(agent_dir / f"{key}.pcd", points[:, :3], intensity, field, binary=data == "binary")
             (agent_dir / f"{key}.yaml").write_text(_yaml_text(view, agent_id, key))
             for index, png in view.images(agent_id, key).items():
                 (agent_dir / f"{key}_camera{index}.png").write_bytes(png)

@@ -211,16 +211,16 @@ def _write_sensors(
         skipped = dict(agent.skipped_keys)
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
-                xyz_carla, intensity_u8 = src.read_points(agent.agent_dir, key)
+                sweep = src.read_points(agent.agent_dir, key)
                 yaml_text = src.read_text(src.yaml_path(agent.agent_dir, key))
             except SourceError as err:
                 counts.warnings.append(f"{err}; lidar frame skipped")
                 skipped[key] = err.cause
                 progress(1)
                 continue
-            xyz = carla.points_right_handed(xyz_carla)  # float32: the mirror is exact
+            xyz = carla.points_right_handed(sweep.xyz_m)  # float32: the mirror is exact
             times_ns = np.full(len(xyz), int(t_us) * NS_PER_US, dtype=np.int64)
-            rays = ray_bundle(xyz, times_ns, intensity_u8, int(t_us), exact=True)
+            rays = ray_bundle(xyz, times_ns, sweep.intensity, int(t_us), exact=True)
             T_lidar_world_global = agent.T_rig_world_global[frame] @ T_lidar_rig
             xyz_world_global = transform_points(T_lidar_world_global, xyz[rays.source_index].astype(np.float64))
             flags = dynamic_flags(xyz_world_global, rays.timestamp_us, plan.dynamic_boxes)
@@ -235,7 +235,7 @@ def _write_sensors(
             lidar.store_frame(
                 rays,
                 {contract.CARLA_FRAME: int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite,
-                 contract.OPENCOOD_YAML: yaml_text},
+                 contract.OPENCOOD_YAML: yaml_text, contract.PCD_LAYOUT: sweep.layout},
                 model_element=elements,
                 generic_data=generic,
             )
