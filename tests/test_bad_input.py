@@ -195,6 +195,19 @@ def _pcd_nan(path: Path) -> Path:
     return path
 
 
+def _pcd_intensity_255(scenario: Path) -> Path:
+    """A PCD with a float ``intensity`` field on a 0-255 scale (CARLA's is 0-1)."""
+    path = _frame(scenario, ".pcd")
+    lines = path.read_text().splitlines(keepends=True)
+    row = next(i for i, line in enumerate(lines) if line.startswith("DATA")) + 1
+    for i, line in enumerate(lines):
+        lines[i] = line.replace("FIELDS x y z rgb", "FIELDS x y z intensity")
+        if i >= row:
+            lines[i] = " ".join(line.split()[:3] + ["255"]) + "\n"
+    path.write_text("".join(lines))
+    return path
+
+
 def _agent_missing(scenario: Path) -> Path:
     folder = _agents(scenario)[1]
     key = sorted(p.stem for p in folder.glob("*.yaml"))[2]
@@ -323,7 +336,12 @@ CASES: dict[str, Case] = {
     "unreadable-pcd": Case(
         "opv2v", lambda s: _frame(s, ".pcd"), "warn", "unreadable (Permission denied); lidar frame skipped"
     ),
-    "missing-protocol": Case("opv2v", lambda s: _remove(s / "data_protocol.yaml"), "fail", "file not found"),
+    "missing-protocol": Case(
+        "opv2v", lambda s: _remove(s / "data_protocol.yaml"), "warn", "not found; CARLA tick 0.05 s assumed"
+    ),
+    "pcd-intensity-out-of-range": Case(
+        "opv2v", _pcd_intensity_255, "warn", "PCD intensity 255.0 outside [0, 1] (CARLA's ray-cast intensity)"
+    ),
     "empty-scenario-folder": Case("opv2v", _empty, "fail", "empty scenario folder"),
 }
 UNREADABLE = {"unreadable-file", "unreadable-pcd"}

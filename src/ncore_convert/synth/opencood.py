@@ -364,7 +364,8 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             intensity = intensity[hit]
             lookup = np.array(box_actor + [-2] * len(pillar_boxes) + [-3] * len(buildings) + [-1], dtype=np.int64)
             hit_actor = lookup[index[hit]]  # index -1 (ground) takes the last entry
-            write_pcd(scenario_dir / agent_id / f"{key}.pcd", xyz, intensity, config.pcd_fields, config.pcd_binary)
+            stored = intensity if config.pcd_fields == "rgb" else intensity.astype(np.float32) / np.float32(255.0)
+            write_pcd(scenario_dir / agent_id / f"{key}.pcd", xyz, stored, config.pcd_fields, config.pcd_binary)
             # labels: vehicles hit by >= 1 ray within range, except the agent itself (OpenCDA)
             seen = set(hit_actor[hit_actor >= 0].tolist())
             vehicles = {}
