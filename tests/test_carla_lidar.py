@@ -53,6 +53,29 @@ def test_real_opv2v_frames_fit_the_protocol_model():
     assert worst_row <= 0.02, worst_row
 
 
+@pytest.mark.parametrize("protocol", [None, {**README_PROTOCOL, "channels": 32}])
+def test_the_real_frames_give_their_model_from_the_points(protocol):
+    """Without a protocol, or with one that says 32 channels: 64 lasers from +2 to -25 deg and 1016
+    columns, measured from the real points alone, and within 0.01 deg of every far ray."""
+    frames, distances = [], []
+    for path in sorted(find_opv2v_sample().glob("*.pcd")):
+        data = read_pcd(UPath(path))
+        xyz = carla.points_right_handed(np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float64))
+        distances.append(np.linalg.norm(xyz, axis=1))
+        frames.append(xyz / distances[-1][:, None])
+    spec = None if protocol is None else carla_lidar.CarlaLidarSpec.from_protocol(protocol, 0.05)
+    measured = carla_lidar.fit_from_points(frames[::2], 0.05, spec)  # 3 frames, as the converter reads
+    assert (measured.spec.channels, measured.spec.points_per_channel) == (64, 1016)
+    assert measured.fov_source == ("points" if protocol is None else "protocol")
+    assert abs(measured.spec.upper_fov_deg - 2.0) < 1e-4 and abs(measured.spec.lower_fov_deg + 25.0) < 1e-4
+    model = carla_lidar.model(measured.spec, measured.fit.phase_rad)
+    for direction, distance in zip(frames, distances, strict=True):
+        far = distance > 20.0
+        elements = carla_lidar.assign_elements(model, direction[far].astype(np.float32))
+        error = np.degrees(angle_between_rad(model.element_directions(elements), direction[far]))
+        assert error.max() <= 0.01 and error.mean() <= 0.001, (error.max(), error.mean())
+
+
 @pytest.fixture(scope="module")
 def v2xset(tmp_path_factory):
     """A V2XSet scenario with CARLA-like range noise and drop-off, converted with the default model."""
