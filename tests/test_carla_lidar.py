@@ -26,6 +26,18 @@ README_PROTOCOL = {"channels": 64, "upper_fov": 2, "lower_fov": -25, "range": 12
                    "points_per_second": 1300000, "noise_stddev": 0.02, "dropoff_general_rate": 0.1}  # fmt: skip
 
 
+def assert_every_ray_modelled(loader, params, far_mean_deg: float) -> None:
+    """Every ray of every frame has a model element inside the model, and far rays (> 20 m) are
+    within ``far_mean_deg`` of their element on average."""
+    report = evaluate_lidar_model(loader, "lidar_top")
+    assert report.far_points > 1000 and report.far_mean_deg <= far_mean_deg, report.far_mean_deg
+    sensor = loader.get_lidar_sensor("lidar_top")
+    for i in range(sensor.frames_count):
+        elements = sensor.get_frame_ray_bundle_model_element(i)
+        assert elements is not None and len(elements) == sensor.get_frame_ray_bundle_count(i)
+        assert elements[:, 0].max() < params.n_rows and elements[:, 1].max() < params.n_columns
+
+
 def test_real_opv2v_frames_fit_the_protocol_model():
     spec = carla_lidar.CarlaLidarSpec.from_protocol(README_PROTOCOL, 0.05)
     assert spec.points_per_channel == 1016  # 1,300,000 / 20 / 64 = 1015.6, rounded as CARLA does
@@ -97,13 +109,7 @@ def test_synthetic_model_error_and_elements(v2xset):
         assert isinstance(params, RowOffsetStructuredSpinningLidarModelParameters)
         infra = int(agent_id) < 0
         assert (params.n_rows, params.n_columns) == ((32 if infra else 64), 256)  # the RSU's own block
-        report = evaluate_lidar_model(loader, "lidar_top")
-        assert report.far_points > 1000 and report.far_mean_deg <= 0.005, report.far_mean_deg
-        sensor = loader.get_lidar_sensor("lidar_top")
-        for i in range(sensor.frames_count):
-            elements = sensor.get_frame_ray_bundle_model_element(i)
-            assert elements is not None and len(elements) == sensor.get_frame_ray_bundle_count(i)
-            assert elements[:, 0].max() < params.n_rows and elements[:, 1].max() < params.n_columns
+        assert_every_ray_modelled(loader, params, far_mean_deg=0.005)
         meta = component_meta(loader, LidarSensorComponent, "lidar_top")
         assert meta["lidar_model"]["protocol_block"] == ("rsu_list" if infra else "single_cav_list")
         checks = {
@@ -142,12 +148,7 @@ def test_a_protocol_that_disagrees_or_is_missing_gives_a_model_from_the_points(t
         params = loader.get_lidar_sensor("lidar_top").model_parameters
         assert (params.n_rows, params.n_columns) == (32, 300)
         np.testing.assert_allclose(np.degrees(params.row_elevations_rad), np.linspace(2.0, -25.0, 32), atol=1e-3)
-        report = evaluate_lidar_model(loader, "lidar_top")
-        assert report.far_points > 1000 and report.far_mean_deg <= 0.01, report.far_mean_deg
-        sensor = loader.get_lidar_sensor("lidar_top")
-        for i in range(sensor.frames_count):
-            elements = sensor.get_frame_ray_bundle_model_element(i)
-            assert elements is not None and len(elements) == sensor.get_frame_ray_bundle_count(i)
+        assert_every_ray_modelled(loader, params, far_mean_deg=0.01)
         meta = component_meta(loader, LidarSensorComponent, "lidar_top")["lidar_model"]
         assert meta["model_source"] == "points" and meta["rings_with_returns"] <= 32
         said = None if case == "no protocol" else {k: v for k, v in config.protocol_lidar}

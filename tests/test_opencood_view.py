@@ -216,7 +216,6 @@ def test_the_early_fusion_cloud_equals_opencoods_from_the_raw_files(v2xset, layo
         np.testing.assert_allclose(got[:, 3], expected[:, 3], rtol=1e-6)
 
 
-
 def test_base_data_and_the_torch_adapter_follow_opencoods_delays(v2xset):
     """Per ego frame: every agent in OpenCOOD's order, the ego undelayed, the others at their stored
     delayed key with ``time_delay`` frames behind and that frame's points and YAML; the torch
