@@ -6,7 +6,9 @@
 2. PCD parse rate, in points per second, of ``ncore_convert.sources.pcd.read_pcd`` against
    ``numpy.loadtxt`` on the same ASCII files, interleaved in the same run.
 3. Per real OPV2V frame (``../shared/data/opv2v-lidar-sample``, ~56k points): the PCD parse beside
-   the lidar model's element assignment (nearest laser, nearest azimuth column), and their ratio.
+   the lidar model's element assignment (nearest laser, nearest azimuth column), and their ratio;
+   the rays as the nearest float32 direction and distance beside the bit-exact ones
+   (``transforms.lidar.exact_rays``), and the model measured from 3 frames' points (issue 38).
 
 4. Reading back (issue 29): agent-frames per second through the OpenCOOD view of the converted
    scenario (``views.opencood``: the lidar points, the frame's YAML and its camera PNGs) beside
@@ -81,33 +83,51 @@ def pcd_rates(root: Path, repeat: int) -> dict:
 
 
 def model_cost(repeat: int) -> None:
-    """PCD parse vs model-element assignment on the real OPV2V frames, medians over frames and runs."""
+    """Per real OPV2V frame, medians over frames and runs, side by side: the PCD parse, the rays as
+    the nearest float32 direction and distance, the bit-exact rays (issue 38), the model-element
+    assignment; and per agent, measuring the model from 3 frames' points (issue 38)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from conftest import find_opv2v_sample
     from test_carla_lidar import README_PROTOCOL
 
     from ncore_convert.sources.pcd import read_pcd
     from ncore_convert.transforms import carla, carla_lidar
+    from ncore_convert.transforms.lidar import exact_rays
 
     spec = carla_lidar.CarlaLidarSpec.from_protocol(README_PROTOCOL, 0.05)
     model = carla_lidar.model(spec, np.pi)
-    parse_s, assign_s, points = [], [], []
+    seconds: dict[str, list[float]] = {"parse": [], "nearest": [], "exact": [], "elements": [], "fit": []}
+    points, inexact = [], []
     for _ in range(repeat):
+        frames = []
         for path in sorted(find_opv2v_sample().glob("*.pcd")):
             started = time.perf_counter()
             data = read_pcd(UPath(path))
             parsed = time.perf_counter()
-            xyz = carla.points_right_handed(np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float64))
-            direction = (xyz / np.linalg.norm(xyz, axis=1, keepdims=True)).astype(np.float32)
-            ready = time.perf_counter()
+            xyz32 = carla.points_right_handed(np.stack([data["x"], data["y"], data["z"]], axis=1))
+            xyz = xyz32.astype(np.float64)
+            distance = np.linalg.norm(xyz, axis=1, keepdims=True)
+            direction = (xyz / distance).astype(np.float32)
+            nearest = time.perf_counter()
+            _, _, left = exact_rays(xyz32)
+            exact = time.perf_counter()
             carla_lidar.assign_elements(model, direction)
             done = time.perf_counter()
-            parse_s.append(parsed - started)
-            assign_s.append(done - ready)
+            for name, s in (("parse", parsed - started), ("nearest", nearest - parsed), ("exact", exact - nearest),
+                            ("elements", done - exact)):  # fmt: skip
+                seconds[name].append(s)
             points.append(len(xyz))
-    parse_ms, assign_ms = statistics.median(parse_s) * 1e3, statistics.median(assign_s) * 1e3
-    print(f"  real OPV2V frame ({int(np.median(points))} points): PCD parse {parse_ms:.1f} ms, model elements"
-          f" {assign_ms:.1f} ms, ratio {assign_ms / parse_ms:.3f}", flush=True)  # fmt: skip
+            inexact.append(len(left))
+            frames.append(direction.astype(np.float64))
+        started = time.perf_counter()
+        carla_lidar.fit_from_points(frames[::2], 0.05, None)
+        seconds["fit"].append(time.perf_counter() - started)
+    ms = {name: statistics.median(s) * 1e3 for name, s in seconds.items()}
+    print(f"  real OPV2V frame ({int(np.median(points))} points): PCD parse {ms['parse']:.1f} ms, model elements"
+          f" {ms['elements']:.1f} ms, ratio {ms['elements'] / ms['parse']:.3f}", flush=True)  # fmt: skip
+    print(f"  rays: nearest float32 direction and distance {ms['nearest']:.1f} ms, bit-exact {ms['exact']:.1f} ms"
+          f" (ratio {ms['exact'] / ms['nearest']:.1f}; {sum(inexact) / sum(points):.3%} of points stored beside"
+          f" the rays); the model from 3 frames' points {ms['fit']:.0f} ms per agent", flush=True)  # fmt: skip
 
 
 def readback_rates(root: Path, out: Path, repeat: int, sample: int = 40) -> dict:

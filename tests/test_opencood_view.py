@@ -19,7 +19,7 @@ from upath import UPath
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.sources.noise_config import make_setting
 from ncore_convert.sources.opencood import load_yaml
-from ncore_convert.sources.pcd import read_pcd
+from ncore_convert.sources.pcd import read_pcd, write_pcd
 from ncore_convert.synth import opencood as synth
 from ncore_convert.transforms.carla import carla_pose_matrix
 from ncore_convert.validate.readback import open_sequence
@@ -285,3 +285,29 @@ def test_pcd_layouts_round_trip_as_they_came(tmp_path, fields, binary):
         x = raw["x"].astype(np.float64)
         on_grid += int(np.sum(raw["x"] == (np.round(x * 10) / 10).astype(np.float32)))
     assert on_grid > 100  # the grid points are there, and came back
+
+
+def test_points_that_are_not_rays_come_back_in_place(tmp_path):
+    """Points at zero range and with a NaN coordinate have no direction, so they are not rays; the
+    frame keeps them aside and the view and the export put them back where the file had them."""
+    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=10, cavs=2, lidar_columns=256)
+    (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
+    agent_id = sorted(truth.agents)[0]
+    path = UPath(Path(truth.scenario_dir) / agent_id / f"{truth.keys[0]}.pcd")
+    data = read_pcd(path)
+    xyz = np.stack([data["x"], data["y"], data["z"]], axis=1)
+    red = (data["rgb"].view(np.uint32) >> 16).astype(np.uint8)
+    odd = np.array([[0.0, 0.0, 0.0], [0.0, -0.0, 0.0], [np.nan, 1.0, 2.0], [3.0, np.nan, 1.0]], dtype=np.float32)
+    at = [0, 7, 100, len(xyz)]
+    write_pcd(path, np.insert(xyz, at, odd, axis=0), np.insert(red, at, [1, 2, 3, 4]))
+    out = tmp_path / "out" / truth.scenario
+    summary = convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario, OpenCoodOptions("opv2v", "test"))
+    assert any("4 lidar points at zero range or with non-finite coordinates not stored as rays" in w
+               for w in summary.warnings)  # fmt: skip
+    raw = opencood_pcd(Path(path)).astype(np.float32)
+    view = OpenCoodScenario.open(out / "scenario.json")
+    got = view.lidar_points(agent_id, truth.keys[0])
+    np.testing.assert_array_equal(got.view(np.uint32), raw.view(np.uint32))  # NaNs and signed zeros too
+    exported = Path(export_opencood(UPath(out / "scenario.json"), UPath(tmp_path / "export"))[0])
+    back = opencood_pcd(exported / agent_id / f"{truth.keys[0]}.pcd").astype(np.float32)
+    np.testing.assert_array_equal(back.view(np.uint32), raw.view(np.uint32))

@@ -512,8 +512,8 @@ def v2xset_v4(obj: GroupOptions, split, scenarios, **options):
               help="Also write every check of every sequence to this JSON file.")  # fmt: skip
 @off_flag("--details", help="Print every check with its detail, not only the failed ones.")
 def validate_command(path, source_root, json_file, details):
-    """Check converted sequences and cooperative scenarios (PATH: a <sequence_id>.json, or an output
-    folder to search).
+    """Check converted sequences and cooperative scenarios (PATH: a <sequence_id>.json, a scenario.json
+    (its folder), or an output folder to search).
 
     Prints a table (one row per sequence or scenario.json), each failed check, and exits 1 if any
     check failed.

@@ -73,11 +73,17 @@ EGO_MASK_MAX_FRACTION = 0.5
 # --- per-frame lidar generic data ---
 DYNAMIC_FLAG = "dynamic_flag"  #: int8 [N]: 1 = the point lies in a dynamic track's box grown by 0.5 m
 LIDAR_RGB = "rgb"  #: uint8 [N,3]: the point's colour from the cameras (3DGRUT's ``lidar_color_generic_data_name``)
-#: uint32 [K]: the rays whose float32 ``direction * distance`` is not the source file's float32 point
+#: uint32 [K], present when K > 0: the rays whose float32 ``direction * distance`` is not the source file's point
 #: (OpenCOOD: the few with no unit direction and distance that multiply to it; transforms.lidar.exact_rays)
 SOURCE_XYZ_INDEX = "source_xyz_index"
 #: float32 [K,3]: those rays' points as the source file has them, in the (right-handed) sensor frame, metres
 SOURCE_XYZ = "source_xyz"
+#: OpenCOOD, present when K > 0: the source points that are not rays (zero range, a non-finite
+#: coordinate): their positions in the file (uint32 [K]), x, y, z as the file has them (float32 [K,3],
+#: right-handed sensor frame) and intensities (float32 [K]), so that the file's every point comes back
+UNSTORED_INDEX = "unstored_points_index"
+UNSTORED_XYZ = "unstored_points_xyz"
+UNSTORED_INTENSITY = "unstored_points_intensity"
 
 # --- keys of sensor metadata ---
 #: sensor metadata: frame key -> why the source frame was not written (unreadable YAML, PCD or image)

@@ -142,15 +142,19 @@ def _directions_for(xyz_m: np.ndarray, bits: np.ndarray, distance_m: np.ndarray)
     """For float32 distances [M], the float32 direction components [M,3] whose correctly rounded
     product with the distance is the source point (``bits``: the float32 point's bits, uint32 [M,3];
     ``xyz_m``: the same values, float64), and which components have one ([M,3] bool). Only the
-    float32 nearest the quotient and its two neighbours can round to the point."""
+    float32 nearest the quotient and its two neighbours can round to the point; the neighbours are
+    tried only where the nearest misses."""
     r = distance_m.astype(np.float64)[:, None]
-    nearest = (xyz_m / r).astype(np.float32)
-    best, ok = nearest.copy(), np.zeros(nearest.shape, dtype=bool)
-    for candidate in (nearest, np.nextafter(nearest, np.float32(np.inf)), np.nextafter(nearest, np.float32(-np.inf))):
-        # a float32 x float32 product is exact in float64, so one rounding to float32: IEEE float32 multiplication
-        hit = ~ok & ((candidate.astype(np.float64) * r).astype(np.float32).view(np.uint32) == bits)
-        best[hit] = candidate[hit]
-        ok |= hit
+    best = (xyz_m / r).astype(np.float32)
+    # a float32 x float32 product is exact in float64, so one rounding to float32: IEEE float32 multiplication
+    ok = (best.astype(np.float64) * r).astype(np.float32).view(np.uint32) == bits
+    rows, cols = np.nonzero(~ok)
+    nearest, r_miss, bits_miss = best[rows, cols], r[rows, 0], bits[rows, cols]
+    for towards in (np.float32(np.inf), np.float32(-np.inf)):
+        candidate = np.nextafter(nearest, towards)
+        hit = (candidate.astype(np.float64) * r_miss).astype(np.float32).view(np.uint32) == bits_miss
+        best[rows[hit], cols[hit]] = candidate[hit]
+        ok[rows[hit], cols[hit]] = True
     return best, ok
 
 

@@ -40,6 +40,9 @@ from ncore_convert.contract import (
     PCD_LAYOUT,
     SOURCE_XYZ,
     SOURCE_XYZ_INDEX,
+    UNSTORED_INDEX,
+    UNSTORED_INTENSITY,
+    UNSTORED_XYZ,
     ManifestAgent,
     ScenarioManifest,
 )
@@ -104,12 +107,17 @@ class OpenCoodScenario:
         direction = lidar.get_frame_ray_bundle_direction(frame)
         distance_m = lidar.get_frame_ray_bundle_return_distance_m(frame)
         xyz = direction * distance_m[:, None]  # float32 x float32: the converter chose both so this is the source
-        if SOURCE_XYZ_INDEX in (names := lidar.get_frame_generic_data_names(frame)) and SOURCE_XYZ in names:
+        names = set(lidar.get_frame_generic_data_names(frame))
+        if SOURCE_XYZ_INDEX in names:  # the few rays with no exact direction and distance
             xyz[lidar.get_frame_generic_data(frame, SOURCE_XYZ_INDEX)] = lidar.get_frame_generic_data(frame, SOURCE_XYZ)
-        out = np.empty((len(xyz), 4), dtype=np.float32)
-        out[:, :3] = carla.points_right_handed(xyz)
-        out[:, 3] = lidar.get_frame_ray_bundle_return_intensity(frame)
-        return out
+        points = np.concatenate([xyz, lidar.get_frame_ray_bundle_return_intensity(frame)[:, None]], axis=1)
+        if UNSTORED_INDEX in names:  # the points that are not rays, back at their places in the file
+            where = lidar.get_frame_generic_data(frame, UNSTORED_INDEX).astype(np.int64)
+            intensity = lidar.get_frame_generic_data(frame, UNSTORED_INTENSITY)[:, None]
+            unstored = np.concatenate([lidar.get_frame_generic_data(frame, UNSTORED_XYZ), intensity], axis=1)
+            points = np.insert(points, where - np.arange(len(where)), unstored, axis=0)
+        points[:, :3] = carla.points_right_handed(points[:, :3])
+        return points.astype(np.float32, copy=False)
 
     def lidar_pose(self, agent_id: str, key: str) -> np.ndarray:
         """The YAML's ``lidar_pose`` of the frame: the lidar's CARLA world pose, float64 [6]

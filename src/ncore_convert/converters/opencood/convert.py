@@ -30,7 +30,7 @@ from ncore_convert.transforms import carla
 from ncore_convert.transforms.carla_lidar import assign_elements
 from ncore_convert.transforms.dynamic import dynamic_flags
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3, transform_points
-from ncore_convert.transforms.lidar import ray_bundle
+from ncore_convert.transforms.lidar import RayBundle, ray_bundle
 from ncore_convert.transforms.point_colours import FILL_RGB, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 from ncore_convert.writer import Cuboids, SequenceWriter, write_scenario_manifest, write_sequence_meta
@@ -195,6 +195,22 @@ def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t
     return out
 
 
+def _source_points(xyz: np.ndarray, intensity: np.ndarray, rays: RayBundle) -> dict[str, np.ndarray]:
+    """What the rays alone do not give back of a PCD (float32 points [N,3], right-handed, and their
+    intensities [N]): the source points of the few inexact rays, and the points that are not rays
+    (zero range, non-finite), each only when there are some."""
+    out = {}
+    if len(rays.inexact):
+        out[contract.SOURCE_XYZ_INDEX] = rays.inexact.astype(np.uint32)
+        out[contract.SOURCE_XYZ] = xyz[rays.source_index[rays.inexact]]
+    if len(rays.source_index) < len(xyz):
+        unstored = np.setdiff1d(np.arange(len(xyz)), rays.source_index)
+        out[contract.UNSTORED_INDEX] = unstored.astype(np.uint32)
+        out[contract.UNSTORED_XYZ] = xyz[unstored]
+        out[contract.UNSTORED_INTENSITY] = intensity[unstored]
+    return out
+
+
 def _write_sensors(
     writer: SequenceWriter, plan: ScenarioPlan, agent: AgentPlan, names: Names, counts: Counts, progress: Progress
 ) -> None:
@@ -224,8 +240,7 @@ def _write_sensors(
             T_lidar_world_global = agent.T_rig_world_global[frame] @ T_lidar_rig
             xyz_world_global = transform_points(T_lidar_world_global, xyz[rays.source_index].astype(np.float64))
             flags = dynamic_flags(xyz_world_global, rays.timestamp_us, plan.dynamic_boxes)
-            generic = {contract.DYNAMIC_FLAG: flags, contract.SOURCE_XYZ_INDEX: rays.inexact.astype(np.uint32),
-                       contract.SOURCE_XYZ: xyz[rays.source_index[rays.inexact]]}  # fmt: skip
+            generic = {contract.DYNAMIC_FLAG: flags, **_source_points(xyz, sweep.intensity, rays)}
             if plan.options.lidar_rgb and agent.camera_ids:
                 frames = _colour_frames(plan, agent, frame, key, int(t_us))
                 generic[contract.LIDAR_RGB], coloured = point_colours(xyz_world_global, rays.timestamp_us, flags == 1,
@@ -249,6 +264,7 @@ def _write_sensors(
         if not_stored:
             counts.warnings.append(
                 f"{agent.agent_dir}: {not_stored} lidar points at zero range or with non-finite coordinates not stored"
+                " as rays (kept in their frames' generic data for the OpenCOOD read-back)"
             )
     for cam in agent.camera_ids:
         index = agent.camera_index[cam]
