@@ -707,7 +707,8 @@ def _synth_opencood(dataset: str):
                   help="Dataset root: writes <out>/<split>/<scenario>/<agent_id>/...")  # fmt: skip
     @click.option("--split", type=click.Choice(OPENCOOD_SPLITS[dataset]), default="test", help="Split folder.")
     @click.option("--scenarios", type=click.IntRange(min=1), default=1, help="Number of scenarios.")
-    @click.option("--frames", type=click.IntRange(min=1), default=10, help="Frames per scenario (10 per second; 1: a one-tick scenario).")
+    @click.option("--frames", type=click.IntRange(min=1), default=10,
+                  help="Frames per scenario (10 per second; 1: a one-tick scenario).")  # fmt: skip
     @click.option("--cavs", type=click.IntRange(min=2), default=2, help="Connected vehicles per scenario.")
     @click.option("--infrastructure", type=click.IntRange(min=0), default=1 if dataset == "v2xset" else 0,
                   help="Infrastructure units per scenario.")  # fmt: skip

@@ -26,9 +26,10 @@ def validate_tree(
     path: UPath, source_root: UPath | None = None, relative_to: UPath | None = None, run_jobs: RunJobs | None = None
 ) -> list[Report]:
     """Validate a sequence meta, or every sequence and cooperative scenario (``scenario.json``:
-    co-registration of its agents) below a folder (a ``scenario.json`` stands for its folder). Reports name their file relative to
-    ``relative_to`` when given. With ``run_jobs`` (the converter's idle worker pool), each
-    sequence's cuboid observations are decoded in a worker while the other checks run here."""
+    co-registration of its agents) below a folder (a ``scenario.json`` stands for its folder).
+    Reports name their file relative to ``relative_to`` when given. With ``run_jobs`` (the
+    converter's idle worker pool), each sequence's cuboid observations are decoded in a worker
+    while the other checks run here."""
     path = UPath(path)
     if path.name == MANIFEST:  # a cooperative scenario's manifest: the scenario's folder
         path = path.parent
