@@ -15,14 +15,18 @@
    reading the raw files the way the converter does (``read_pcd``, the safe YAML loader, the PNG
    bytes), interleaved frame by frame over a sample of agent-frames.
 
+5. With --baseline-src OTHER/src: the whole 2-worker conversion of another checkout (e.g. the commit
+   before a change, ``git worktree add /tmp/base <rev>``) interleaved with this one's, and the ratio.
+
 Figures are medians over --repeat runs.
 
-    python bench/bench_opencood.py [--work /tmp/ncore-bench] [--repeat 3]
+    python bench/bench_opencood.py [--work /tmp/ncore-bench] [--repeat 3] [--baseline-src /tmp/base/src]
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import statistics
@@ -48,13 +52,15 @@ def synth(work: Path) -> Path:
     return root
 
 
-def convert(root: Path, out: Path, workers: int) -> dict:
+def convert(root: Path, out: Path, workers: int, src: str | None = None) -> dict:
+    """One whole ``opv2v-v4`` command; ``src``: run another checkout's ``src`` folder instead (on PYTHONPATH)."""
     shutil.rmtree(out, ignore_errors=True)
     cli = Path(sys.executable).parent / "ncore-convert"
+    env = {**os.environ, "PYTHONPATH": src} if src else None
     started = time.perf_counter()
     run = subprocess.run([str(cli), "--no-progress", "--no-validate", "--workers", str(workers),
                           "--root-dir", str(root), "--output-dir", str(out), "opv2v-v4", "--split", "test"],
-                         check=True, capture_output=True, text=True)  # fmt: skip
+                         check=True, capture_output=True, text=True, env=env)  # fmt: skip
     seconds = time.perf_counter() - started
     points = int(re.search(r"lidar frames, (\d+) points", run.stdout).group(1))
     scenario = next(p for p in out.iterdir() if p.is_dir())
@@ -155,11 +161,26 @@ def readback_rates(root: Path, out: Path, repeat: int, sample: int = 40) -> dict
     return {"view": 1 / statistics.median(view_s), "raw": 1 / statistics.median(raw_s), "frames": len(pairs)}
 
 
+def compare(root: Path, out: Path, baseline_src: str, repeat: int) -> None:
+    """This checkout's conversion (2 workers) interleaved with another checkout's, medians of ``repeat``."""
+    times: dict[str, list[float]] = {"baseline": [], "this": []}
+    for _ in range(repeat):
+        times["baseline"].append(convert(root, out, 2, baseline_src)["s"])
+        times["this"].append(convert(root, out, 2)["s"])
+    base, this = statistics.median(times["baseline"]), statistics.median(times["this"])
+    print(f"  conversion, 2 workers, interleaved: baseline ({baseline_src}) {base:.1f} s, this checkout {this:.1f} s,"
+          f" ratio {this / base:.3f}", flush=True)  # fmt: skip
+
+
 def main() -> None:
-    args = bench_parser(__doc__, repeat=3).parse_args()
+    parser = bench_parser(__doc__, repeat=3)
+    parser.add_argument("--baseline-src", help="another checkout's src folder: its conversion, interleaved with ours")
+    args = parser.parse_args()
     work = work_dir(args)
     model_cost(args.repeat)
     root = synth(work)
+    if args.baseline_src:
+        compare(root, work / "opencood-out", args.baseline_src, args.repeat)
     size_mb = sum(p.stat().st_size for p in root.rglob("*") if p.is_file()) / 1e6
     print(f"OPV2V scenario: {FRAMES} frames x {CAVS} CAVs, {size_mb:.0f} MB; medians of {args.repeat}", flush=True)
     rates = pcd_rates(root, args.repeat)

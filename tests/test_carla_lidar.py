@@ -135,7 +135,8 @@ def test_a_protocol_that_disagrees_or_is_missing_gives_a_model_from_the_points(t
     has a model element, the far-range model error is <= 0.01 deg, the lasers are where CARLA put
     them, and the metadata and the warning say the model came from the points and what the protocol said."""
     config = synth.SynthConfig(dataset="opv2v", frames=2, seed=43, lidar_channels=32, lidar_columns=300,
-                               lidar_noise_stddev=0.02, lidar_dropoff_rate=0.1, **MISMATCHES[case])  # fmt: skip
+                               lidar_noise_stddev=0.02, lidar_dropoff_rate=0.1, cameras=False,
+                               **MISMATCHES[case])  # fmt: skip
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     out = tmp_path / "out"
     summary = convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario,
@@ -159,7 +160,7 @@ def test_a_protocol_that_disagrees_or_is_missing_gives_a_model_from_the_points(t
 def test_points_off_any_carla_grid_give_no_model_and_say_why(tmp_path):
     """Directions jittered by 0.2 deg (not CARLA's grid): no model is measured either; raw rays, a
     warning, and the metadata says why."""
-    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=44, cavs=2, lidar_columns=200, protocol=False)
+    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=44, lidar_columns=200, protocol=False, cameras=False)
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     rng = np.random.default_rng(0)
     for pcd in Path(truth.scenario_dir).glob("*/*.pcd"):

@@ -9,10 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import component_meta
+from ncore.data.v4 import LidarSensorComponent
 from test_opencood_view import NOISE, _same_tree_but_pcds, assert_same_points, opencood_pcd
 from upath import UPath
 
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+from ncore_convert.evaluate import evaluate_lidar_model
 from ncore_convert.sources.opencood import load_yaml
 from ncore_convert.synth import opencood as synth
 from ncore_convert.transforms import carla
@@ -50,8 +53,12 @@ def assert_valid_and_exact(tmp: Path, truth, outs: dict[str, Path]) -> None:
 
 @pytest.fixture(scope="module")
 def one_tick(tmp_path_factory):
+    """The shape of a real V2XSet scenario that failed before issue 38: one tick, three CAVs and an
+    RSU, CAV lidars on 32 rings of 1,563 columns with CARLA's range noise and drop-off, and a
+    data_protocol.yaml from another run that says 64 channels."""
     tmp = tmp_path_factory.mktemp("one-tick")
-    config = synth.SynthConfig(dataset="v2xset", frames=1, seed=11, lidar_columns=256)
+    lidar = {"lidar_channels": 32, "lidar_columns": 1563, "lidar_noise_stddev": 0.02, "lidar_dropoff_rate": 0.1}
+    config = synth.SynthConfig(dataset="v2xset", frames=1, seed=11, cavs=3, protocol_lidar=(("channels", 64),), **lidar)
     (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
     return tmp, truth, convert_both_layouts(tmp, truth, noise=(NOISE,))
 
@@ -81,6 +88,20 @@ def test_the_one_tick_pose_rule(one_tick):
         np.testing.assert_allclose(pose[:3], truth.agents[agent_id].lidar_pose[key][:3], atol=1e-3)
 
 
+def test_the_cav_lidars_get_their_model_from_the_points(one_tick):
+    """The protocol's 64 channels do not fit: 32 lasers x 1,563 columns measured from one tick's
+    points, within 0.01 deg of every far ray; the RSU's own protocol block fits and is used."""
+    _, truth, outs = one_tick
+    for agent_id in truth.agents:
+        loader = open_sequence(UPath(outs["agents"] / agent_id / f"{truth.scenario}_agent{agent_id}.json")).loader
+        params = loader.get_lidar_sensor("lidar_top").model_parameters
+        assert (params.n_rows, params.n_columns) == (32, 1563)  # the RSU's block: 32 channels too
+        report = evaluate_lidar_model(loader, "lidar_top")
+        assert report.far_points > 1000 and report.far_mean_deg <= 0.01
+        meta = component_meta(loader, LidarSensorComponent, "lidar_top")["lidar_model"]
+        assert meta["model_source"] == ("protocol" if int(agent_id) < 0 else "points")
+
+
 def test_noise_settings_on_one_tick(one_tick):
     """The noise setting's poses instance and delays exist for the one tick (no delay is possible)."""
     _, truth, outs = one_tick
@@ -91,10 +112,10 @@ def test_noise_settings_on_one_tick(one_tick):
         assert np.all(np.isfinite(view.lidar_pose(agent_id, key)))
 
 
-def test_agents_with_one_tick_beside_agents_with_many(tmp_path):
-    """A CAV with a single tick in a 4-tick scenario: written in both layouts, nothing dropped, its
+def test_an_agent_with_one_tick_beside_agents_with_more(tmp_path):
+    """A CAV with a single tick in a 3-tick scenario: written in both layouts, nothing dropped, its
     sequence (or rig) spans its tick only, and the scenario round-trips."""
-    config = synth.SynthConfig(dataset="v2xset", frames=4, seed=12, lidar_columns=256)
+    config = synth.SynthConfig(dataset="v2xset", frames=3, seed=12, lidar_columns=256)
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     short = next(a for a in truth.agents if int(a) > 0)
     for key in truth.keys[:1] + truth.keys[2:]:

@@ -19,7 +19,7 @@ from upath import UPath
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.sources.noise_config import make_setting
 from ncore_convert.sources.opencood import load_yaml
-from ncore_convert.sources.pcd import read_pcd, write_pcd
+from ncore_convert.sources.pcd import read_pcd, red_from_rgb, write_pcd
 from ncore_convert.synth import opencood as synth
 from ncore_convert.transforms.carla import carla_pose_matrix
 from ncore_convert.validate.readback import open_sequence
@@ -263,51 +263,48 @@ def test_the_export_shows_progress_only_when_asked(tmp_path, v2xset):
     assert "agent-frames: 100%" in runs["--progress"].stderr and f"{frames}/{frames}" in runs["--progress"].stderr
 
 
-@pytest.mark.parametrize("fields, binary", [("intensity", True), ("rgb", True), ("intensity", False)])
-def test_pcd_layouts_round_trip_as_they_came(tmp_path, fields, binary):
-    """OpenCDA's other lidar layouts (a float ``intensity`` field instead of the packed ``rgb``,
-    ``DATA binary``), with points on a 0.1 m grid in x: the export writes each PCD back in its own
-    layout, every point and intensity bit for bit (binary files byte for byte)."""
-    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=9, cavs=2, lidar_columns=256, grid_share=0.01,
-                               pcd_fields=fields, pcd_binary=binary)  # fmt: skip
-    (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
-    out = tmp_path / "out" / truth.scenario
-    convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario, OpenCoodOptions("opv2v", "test"))
-    exported = Path(export_opencood(UPath(out / "scenario.json"), UPath(tmp_path / "export"))[0])
-    on_grid = 0
-    for name in _same_tree_but_pcds(Path(truth.scenario_dir), exported):
-        raw, back = read_pcd(UPath(Path(truth.scenario_dir) / name)), read_pcd(UPath(exported / name))
-        assert list(back) == ["x", "y", "z", fields]
-        for field in raw:
-            np.testing.assert_array_equal(back[field].view(np.uint32), raw[field].view(np.uint32))
-        if binary:
-            assert (exported / name).read_bytes() == (Path(truth.scenario_dir) / name).read_bytes()
-        x = raw["x"].astype(np.float64)
-        on_grid += int(np.sum(raw["x"] == (np.round(x * 10) / 10).astype(np.float32)))
-    assert on_grid > 100  # the grid points are there, and came back
+#: OpenCDA's lidar layouts: the PCD's fourth field and DATA binary
+LAYOUTS = (("rgb", False), ("intensity", True), ("rgb", True), ("intensity", False))
 
 
-def test_points_that_are_not_rays_come_back_in_place(tmp_path):
-    """Points at zero range and with a NaN coordinate have no direction, so they are not rays; the
-    frame keeps them aside and the view and the export put them back where the file had them."""
-    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=10, cavs=2, lidar_columns=256)
+def test_pcd_layouts_and_points_that_are_not_rays_round_trip_as_they_came(tmp_path):
+    """One scenario whose frames come in each of OpenCDA's layouts (a float ``intensity`` field
+    instead of the packed ``rgb``, ``DATA binary``), with 1 % of the points on a 0.1 m grid in x,
+    and points at zero range, -0.0 and NaN coordinates (no direction, so not rays) in one frame: the
+    export writes each PCD back in its own layout, every point in place and bit for bit (NaNs and
+    signed zeros too), binary files byte for byte."""
+    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=9, cavs=2, lidar_columns=256, grid_share=0.01)
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
-    agent_id = sorted(truth.agents)[0]
-    path = UPath(Path(truth.scenario_dir) / agent_id / f"{truth.keys[0]}.pcd")
-    data = read_pcd(path)
-    xyz = np.stack([data["x"], data["y"], data["z"]], axis=1)
-    red = (data["rgb"].view(np.uint32) >> 16).astype(np.uint8)
+    pcds = sorted(Path(truth.scenario_dir).glob("*/*.pcd"))
+    assert len(pcds) == len(LAYOUTS)
     odd = np.array([[0.0, 0.0, 0.0], [0.0, -0.0, 0.0], [np.nan, 1.0, 2.0], [3.0, np.nan, 1.0]], dtype=np.float32)
-    at = [0, 7, 100, len(xyz)]
-    write_pcd(path, np.insert(xyz, at, odd, axis=0), np.insert(red, at, [1, 2, 3, 4]))
+    for n, (path, (field, binary)) in enumerate(zip(pcds, LAYOUTS, strict=True)):
+        data = read_pcd(UPath(path))
+        xyz, red = np.stack([data["x"], data["y"], data["z"]], axis=1), red_from_rgb(data["rgb"])
+        if n == 0:
+            at = [0, 7, 100, len(xyz)]
+            xyz, red = np.insert(xyz, at, odd, axis=0), np.insert(red, at, [1, 2, 3, 4])
+        intensity = red if field == "rgb" else red.astype(np.float32) / np.float32(255.0)
+        write_pcd(UPath(path), xyz, intensity, field, binary)
     out = tmp_path / "out" / truth.scenario
     summary = convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario, OpenCoodOptions("opv2v", "test"))
     assert any("4 lidar points at zero range or with non-finite coordinates not stored as rays" in w
                for w in summary.warnings)  # fmt: skip
-    raw = opencood_pcd(Path(path)).astype(np.float32)
-    view = OpenCoodScenario.open(out / "scenario.json")
-    got = view.lidar_points(agent_id, truth.keys[0])
-    np.testing.assert_array_equal(got.view(np.uint32), raw.view(np.uint32))  # NaNs and signed zeros too
     exported = Path(export_opencood(UPath(out / "scenario.json"), UPath(tmp_path / "export"))[0])
-    back = opencood_pcd(exported / agent_id / f"{truth.keys[0]}.pcd").astype(np.float32)
-    np.testing.assert_array_equal(back.view(np.uint32), raw.view(np.uint32))
+    assert _same_tree_but_pcds(Path(truth.scenario_dir), exported) == [str(p.relative_to(truth.scenario_dir))
+                                                                        for p in pcds]  # fmt: skip
+    on_grid = 0
+    for path, (field, binary) in zip(pcds, LAYOUTS, strict=True):
+        raw, back = read_pcd(UPath(path)), read_pcd(UPath(exported / path.relative_to(truth.scenario_dir)))
+        assert list(back) == ["x", "y", "z", field]
+        for name in raw:
+            np.testing.assert_array_equal(back[name].view(np.uint32), raw[name].view(np.uint32))
+        if binary:
+            assert (exported / path.relative_to(truth.scenario_dir)).read_bytes() == path.read_bytes()
+        x = raw["x"].astype(np.float64)
+        on_grid += int(np.sum(raw["x"] == (np.round(x * 10) / 10).astype(np.float32)))
+    assert on_grid > 100  # the grid points are there, and came back
+    agent_id, key = pcds[0].parent.name, pcds[0].stem
+    raw = opencood_pcd(pcds[0]).astype(np.float32)
+    got = OpenCoodScenario.open(out / "scenario.json").lidar_points(agent_id, key)
+    np.testing.assert_array_equal(got.view(np.uint32), raw.view(np.uint32))  # the view too

@@ -104,6 +104,7 @@ class SynthConfig:
     grid_share: float = 0.0
     pcd_fields: str = "rgb"  #: the PCD's fourth field: "rgb" (Open3D's packed colour) or "intensity" (float)
     pcd_binary: bool = False  #: DATA binary instead of ascii
+    cameras: bool = True  #: False: lidar and YAML only (no PNGs, no camera entries), for lidar-only tests
 
     @property
     def n_infrastructure(self) -> int:
@@ -383,7 +384,7 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             if not infra:
                 frame["plan_trajectory"] = [[*_floats(road.at(s, 0.0)[0][:2]), 28.8] for s in (10.0, 20.0)]
             markers: dict[int, dict[int, tuple[float, float]]] = {}
-            for index_cam, (mx, my, mz, yaw) in enumerate(CAMERA_MOUNTS):
+            for index_cam, (mx, my, mz, yaw) in enumerate(CAMERA_MOUNTS if config.cameras else ()):
                 T_cam_world = T_base_world @ carla_pose_matrix(np.array([mx, my, mz, 0.0, yaw, pitch]))
                 uv, front = project_ue4(T_cam_world, truth.pillars_m)
                 png, shows = _render_png(scene, box_rgb, T_cam_world)
