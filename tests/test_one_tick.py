@@ -27,12 +27,12 @@ from ncore_convert.views.opencood import OpenCoodScenario
 from ncore_convert.views.opencood_export import export_opencood
 
 
-def convert_both_layouts(tmp: Path, truth, noise=()) -> dict[str, Path]:
+def convert_both_layouts(tmp: Path, truth, dataset: str = "v2xset", noise=()) -> dict[str, Path]:
     outs = {}
     for layout in ("agents", "scenario"):
         out = tmp / layout / truth.scenario
         summary = convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario,
-                                   OpenCoodOptions("v2xset", "test", layout, noise=noise))  # fmt: skip
+                                   OpenCoodOptions(dataset, "test", layout, noise=noise))  # fmt: skip
         assert summary.agents and not [w for w in summary.warnings if "not written" in w], summary.warnings
         outs[layout] = out
     return outs
@@ -113,15 +113,15 @@ def test_noise_settings_on_one_tick(one_tick):
 
 
 def test_an_agent_with_one_tick_beside_agents_with_more(tmp_path):
-    """A CAV with a single tick in a 3-tick scenario: written in both layouts, nothing dropped, its
+    """An OPV2V CAV with a single tick beside a 3-tick one: written in both layouts, nothing dropped, its
     sequence (or rig) spans its tick only, and the scenario round-trips."""
-    config = synth.SynthConfig(dataset="v2xset", frames=3, seed=12, lidar_columns=256)
+    config = synth.SynthConfig(dataset="opv2v", frames=3, seed=12, lidar_columns=256)
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     short = next(a for a in truth.agents if int(a) > 0)
     for key in truth.keys[:1] + truth.keys[2:]:
         for path in (Path(truth.scenario_dir) / short).glob(f"{key}*"):
             path.unlink()
-    outs = convert_both_layouts(tmp_path, truth)
+    outs = convert_both_layouts(tmp_path, truth, "opv2v")
     view = OpenCoodScenario.open(outs["scenario"] / "scenario.json")
     assert sorted(view.agent_ids) == sorted(truth.agents)
     full = next(a for a in truth.agents if a != short)
