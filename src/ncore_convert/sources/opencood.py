@@ -361,8 +361,9 @@ def read_points(agent_dir: UPath, key: str) -> Sweep:
         intensity = red_from_rgb(columns["rgb"]).astype(np.float32) / np.float32(255.0)
     else:
         intensity = columns["intensity"].astype(np.float32, copy=False)
-        if not np.all((intensity >= 0.0) & (intensity <= 1.0)):  # CARLA's are in [0, 1]; NaN fails too
-            bad = intensity[~((intensity >= 0.0) & (intensity <= 1.0))][0]
+        outside = ~((intensity >= 0.0) & (intensity <= 1.0))  # CARLA's are in [0, 1]; NaN is outside too
+        if outside.any():
+            bad = intensity[outside][0]
             raise SourceError(path, f"PCD intensity {bad} outside [0, 1] (CARLA's ray-cast intensity)")
     return Sweep(xyz, intensity, field, header.data == "binary")
 

@@ -142,7 +142,7 @@ def _write_base(
     agent with fewer frames than the others)."""
     T_world_global_world = invert_se3(T_world_dataset_global)
     times_us, T_rig_world = agent.pose_samples(T_world_global_world @ agent.T_rig_world_global)
-    covers = (int(times_us[0]), int(times_us[-1])) == interval_us
+    covers = agent.pose_span_us == interval_us
     writer.store_trajectory(times_us, T_rig_world, world_global_edge, rig_frame=names.rig, covers_sequence=covers)
     for name, per_agent in plan.noise.items():
         noisy = per_agent[agent.agent_id]
@@ -296,8 +296,7 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
     world_global_edge, world_global_meta = consumer.world_global(
         T_world_dataset_global, plan.options.world_global_mode, DATASET_GLOBAL
     )
-    pose_times = [a.pose_samples(a.T_rig_world_global)[0] for a in agents]
-    interval_us = (min(int(t[0]) for t in pose_times), max(int(t[-1]) for t in pose_times))
+    interval_us = (min(a.pose_span_us[0] for a in agents), max(a.pose_span_us[1] for a in agents))
     writer = SequenceWriter(
         output_dir=out_dir,
         sequence_id=sequence_id,

@@ -29,7 +29,7 @@ from ncore_convert.sources.files import require_folder
 from ncore_convert.transforms import carla, carla_lidar, labels
 from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.dynamic import DynamicBoxes, TrackObservations
-from ncore_convert.transforms.geometry import invert_se3, one_tick_trajectory, rigid_mean
+from ncore_convert.transforms.geometry import ONE_TICK_STEP_US, invert_se3, one_tick_trajectory, rigid_mean
 from ncore_convert.transforms.lidar import MIN_RANGE_M
 from ncore_convert.transforms.lidar_model import SpinningLidarModel
 from ncore_convert.transforms.noise import NoiseSetting
@@ -126,6 +126,12 @@ class AgentPlan:
         if len(self.keys) > 1:
             return self.timestamps_us, T_rig_x
         return one_tick_trajectory(int(self.timestamps_us[0]), T_rig_x[0], float(self.speed_mps[0]))
+
+    @property
+    def pose_span_us(self) -> tuple[int, int]:
+        """First and last time of :meth:`pose_samples` (µs): a one-tick agent's poses end 1 µs after its tick."""
+        end_us = int(self.timestamps_us[-1]) + (ONE_TICK_STEP_US if len(self.keys) == 1 else 0)
+        return int(self.timestamps_us[0]), end_us
 
 
 @dataclass(frozen=True)
