@@ -23,7 +23,7 @@ install: $(STAMP)
 
 demo: $(STAMP)
 	rm -rf $(DEMO)
-	$(VENV)/bin/ncore-convert synth argoverse2 --out $(DEMO)/source/val --seconds 2 --seed 0
+	$(VENV)/bin/ncore-convert synth argoverse2 --out $(DEMO)/source/val --seconds 2 --seed 0 --pictures 32
 	$(VENV)/bin/ncore-convert --root-dir $(DEMO)/source --output-dir $(DEMO)/out argoverse2-v4 --split val
 	@echo "demo output: $(DEMO)/out"
 

@@ -16,7 +16,8 @@ from upath import UPath
 #: Run-report fields that may differ between runs of the same conversion (docs/damaged-input.md, "Determinism").
 RUN_DEPENDENT = {("seconds",), ("finished",), ("validation", "seconds")}
 
-AV2_SYNTH = ["argoverse2", "--seconds", "0.4", "--seed", "8", "--camera-fps", "20"]  # enough images for ego masks
+#: enough distinct images for ego masks (two halves of at least 8 each)
+AV2_SYNTH = ["argoverse2", "--seconds", "0.8", "--seed", "8", "--camera-fps", "20", "--pictures", "32"]
 V2XSET_SYNTH = ["v2xset", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "8"]
 V2XSET_NOISE = ["--loc-err", "--xyz-std", "1", "--ryp-std", "2", "--async", "--async-overhead", "100"]
 #: case -> (synth arguments, split folder, dataset command, its arguments); the "consumer" cases set

@@ -1,9 +1,11 @@
-"""Ego-vehicle camera masks (issues 20, 25) against the synthetic generator's exact masks, read as the
-consumers read them: ``get_camera_sensor(id).get_mask_images()["ego"]`` through ``SequenceLoaderV4``.
+"""Ego-vehicle camera masks (issues 20, 25, 39) against the synthetic generator's exact masks, read as
+the consumers read them: ``get_camera_sensor(id).get_mask_images()["ego"]`` through ``SequenceLoaderV4``.
 
 Two generator bodies: ``easy`` (still paint) and ``realistic`` (reflections, lighting, markings,
-glare, camouflaged silhouette). Issue 25's target holds on both: IoU >= 0.95 on every
-body-seeing camera of AV2 and TbV over 3 seeds, and no mask on any other camera."""
+glare, camouflaged silhouette), under exposure changes of tens of grey levels. A mask is written
+only when the log's two halves, estimated alone, agree on it (issue 39): a body camera gets a mask
+with IoU >= 0.95 or none and a warning, never a wrong one; no other camera gets one. The rates over
+many seeds are the sweep benchmark's (``bench/bench_ego_sweep.py``)."""
 
 from __future__ import annotations
 
@@ -45,14 +47,16 @@ def _camera_meta(loader, camera_id: str) -> dict:
 
 @pytest.fixture(scope="module")
 def av2(tmp_path_factory) -> Converted:
-    config = SynthConfig(seconds=1.5, seed=31, camera_fps=10, ego_body="easy")
+    config = SynthConfig(seconds=1.5, seed=31, camera_fps=20, pictures=32, ego_body="easy")
     return synth_and_convert(tmp_path_factory.mktemp("ego-av2"), config)
 
 
 @pytest.fixture(scope="module")
 def tbv(tmp_path_factory) -> Converted:
     tmp = tmp_path_factory.mktemp("ego-tbv")
-    truth = write_log(UPath(tmp / "src"), SynthConfig(seconds=1.5, seed=32, camera_fps=10, tbv=True, ego_body="easy"))
+    truth = write_log(
+        UPath(tmp / "src"), SynthConfig(seconds=1.5, seed=32, camera_fps=20, pictures=32, tbv=True, ego_body="easy")
+    )
     summary = convert_log(UPath(tmp / "src"), UPath(tmp / "out"), truth.log_id, Argoverse2Options(split=None))
     return Converted(truth, summary, tmp / "out", open_sequence(tmp / "out", truth.log_id))
 
@@ -69,13 +73,14 @@ def test_estimated_masks_match_the_true_body(dataset, av2, tbv):
         assert mask.shape == truth.shape and set(np.unique(mask)) <= {0, 255}
         assert _iou(mask > 0, truth) >= 0.95, (camera_id, _iou(mask > 0, truth))
         meta = _camera_meta(run.loader, camera_id)["ego_mask"]
-        assert meta["method"] == "estimate" and meta["decision"] == "mask" and meta["samples"] == 16
+        assert meta["method"] == "estimate" and meta["decision"] == "mask" and meta["samples"] == 32
+        assert meta["split_iou"] >= ego_mask.SPLIT_MIN_IOU and meta["split_columns"] >= ego_mask.SPLIT_MIN_COLUMNS
         evidence = meta["silhouette_edge"] + ego_mask.FOLD_WEIGHT / ego_mask.EDGE_WEIGHT * meta["silhouette_fold"]
         assert meta["must_see"] is True and evidence >= ego_mask.MIN_EDGE - 0.002  # figures rounded to 3 places
         assert meta["covered_fraction"] == pytest.approx(truth.mean(), abs=0.01)
-    for camera_id in set(run.loader.camera_ids) - set(masks):
+    for camera_id in set(run.loader.camera_ids) - set(masks):  # not estimated: the calibration rules the body out
         meta = _camera_meta(run.loader, camera_id)["ego_mask"]
-        assert meta["decision"] == "not seen" and meta["must_see"] is False
+        assert meta["decision"] == "not seen" and meta["must_see"] is False and meta["samples"] == 0
     assert not [w for w in run.summary.warnings if "ego masks" in w]
     assert validate_sequence(UPath(run.seq_dir / f"{run.truth.log_id}.json")).ok
 
@@ -84,17 +89,32 @@ def test_a_parked_log_falls_back_to_no_masks_with_a_warning(tmp_path):
     run = synth_and_convert(tmp_path, SynthConfig(seconds=1.0, seed=33, camera_fps=10, parked_fraction=1.0))
     assert _masks(run.loader) == {}
     warning = [w for w in run.summary.warnings if "ego masks not estimated (too little motion)" in w]
-    assert len(warning) == 1 and all(cam in warning[0] for cam in run.loader.camera_ids)
+    assert len(warning) == 1 and all(cam in warning[0] for cam in EGO_CAMERAS)
+    assert "ring_side_left" not in warning[0]  # the calibration rules the body out there: nothing to estimate
     meta = _camera_meta(run.loader, "ring_front_center")["ego_mask"]
     assert meta["decision"] == "too little motion" and meta["world_std"] < 4.0
 
 
-def test_a_half_parked_log_still_finds_the_body(tmp_path):
-    config = SynthConfig(seconds=1.5, seed=34, camera_fps=10, parked_fraction=0.5, ego_body="easy")
+def _right_or_declined(run: Converted, masks: dict[str, np.ndarray]) -> list[str]:
+    """Every body camera has a right mask (IoU >= 0.95) or none and a warning naming it; no other
+    camera has one. The declined cameras."""
+    assert set(masks) <= set(run.truth.ego_masks)
+    for camera_id, mask in masks.items():
+        assert _iou(mask > 0, run.truth.ego_masks[camera_id]) >= 0.95, camera_id
+    declined = sorted(set(run.truth.ego_masks) - set(masks))
+    warned = " ".join(w for w in run.summary.warnings if "ego masks not estimated" in w)
+    assert all(camera_id in warned for camera_id in declined), (declined, warned)
+    return declined
+
+
+def test_a_half_parked_log_finds_the_body_or_declines(tmp_path):
+    """The parked half's repeated views are dropped; the moving half's images alone give right masks
+    or none (too few distinct images for two halves, or halves that disagree), never wrong ones."""
+    config = SynthConfig(seconds=1.5, seed=34, camera_fps=20, pictures=32, parked_fraction=0.5, ego_body="easy")
     run = synth_and_convert(tmp_path, config)
     masks = _masks(run.loader)
-    assert set(masks) == set(EGO_CAMERAS)
-    assert min(_iou(m > 0, run.truth.ego_masks[c]) for c, m in masks.items()) >= 0.95
+    _right_or_declined(run, masks)
+    assert masks, "no camera got a mask"
 
 
 class _Camera:
@@ -176,11 +196,11 @@ def test_the_estimators_fallbacks_on_synthetic_frames():
     does a world that moves everywhere (finding the body is tested on the generator's logs)."""
     rng = np.random.default_rng(5)
     prior = _prior(slice(16, None))
-    frames = rng.uniform(0, 255, (12, 40, 60)).astype(np.float32)  # the world moves everywhere
+    frames = rng.uniform(0, 255, (20, 40, 60)).astype(np.float32)  # the world moves everywhere
     band = frames.copy()
     band[:, 30:] = 90.0
     assert ego_mask.estimate(band[:5], prior).decision == "too few images"
-    still = np.repeat(frames[:1], 12, axis=0)
+    still = np.repeat(frames[:1], 20, axis=0)
     assert ego_mask.estimate(still, prior).decision == "too little motion"
     half = frames.copy()
     half[:, 8:] = 90.0  # everything from row 8 down stands still: 80 % of the image
@@ -226,22 +246,55 @@ def test_a_body_seeing_camera_without_a_mask_is_a_warning(tmp_path, av2):
     assert "ring_rear_left" in warning and "must see the ego body" in warning, warning
     loader = open_sequence(tmp_path / "out", truth.log_id)
     meta = _camera_meta(loader, "ring_rear_left")["ego_mask"]
-    assert meta["must_see"] is True and meta["decision"] in ("not seen", "no persistent silhouette")
+    assert meta["must_see"] is True and meta["decision"] in ("not seen", "no persistent silhouette", "halves disagree")
     assert "ring_rear_left" not in _masks(loader) and "ring_rear_right" in _masks(loader)
 
 
 @pytest.mark.parametrize("tbv, seed", [(tbv, seed) for tbv in (False, True) for seed in (41, 42, 43)])
 def test_realistic_bodies(tmp_path, tbv, seed):
-    """The realistic body (the default), 3 seeds per dataset: every body-seeing camera gets a mask
-    with IoU >= 0.95 against the generator's true body (false-positive pixels above the silhouette
-    count against it), no other camera gets one, and no camera warns. (Each seed is its own case, so
-    the six logs spread over the workers: ``OWN_SCOPE`` in conftest.py.)"""
-    truth = write_log(UPath(tmp_path / "src" / "val"), SynthConfig(seconds=1.5, seed=seed, camera_fps=10, tbv=tbv))
+    """The realistic body (the default), 3 seeds per dataset: every body camera gets a mask with
+    IoU >= 0.95 against the generator's true body (false-positive pixels above the silhouette count
+    against it) or no mask and a warning naming it, never a wrong one; each log gets masks; no
+    other camera gets one. (Each seed is its own case, so the six logs spread over the workers:
+    ``OWN_SCOPE`` in conftest.py.)"""
+    truth = write_log(UPath(tmp_path / "src" / "val"),
+                      SynthConfig(seconds=1.5, seed=seed, camera_fps=20, pictures=32, tbv=tbv))  # fmt: skip
     root = tmp_path / "src" if not tbv else tmp_path / "src" / "val"
     options = Argoverse2Options(split=None if tbv else "val", lidar_ids=())
     summary = convert_log(UPath(root), UPath(tmp_path / "out"), truth.log_id, options)
-    assert not [w for w in summary.warnings if "ego masks" in w]
     masks = _masks(open_sequence(tmp_path / "out", truth.log_id))
-    assert set(masks) == set(truth.ego_masks)
-    ious = [_iou(masks[c] > 0, truth.ego_masks[c]) for c in masks]
-    assert min(ious) >= 0.95, ious
+    _right_or_declined(Converted(truth, summary, tmp_path / "out", None), masks)
+    assert masks, "no camera got a mask"
+
+
+def test_the_log_that_fooled_the_single_estimate(tmp_path):
+    """TbV seed 48 as the sweep of 2026-11-25 made it (10 fps, 16 pictures): the estimate from all its
+    frames puts ring_front_center's silhouette far up into the world (IoU 0.61 then, 0.64 on today's
+    generator). Now the camera gets a right mask or, as its two halves disagree, none and a warning
+    with the measured agreement; every mask written is right."""
+    truth = write_log(UPath(tmp_path / "src"), SynthConfig(seconds=1.5, seed=48, camera_fps=10, tbv=True))
+    summary = convert_log(UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.log_id,
+                          Argoverse2Options(split=None, lidar_ids=()))  # fmt: skip
+    loader = open_sequence(tmp_path / "out", truth.log_id)
+    masks = _masks(loader)
+    declined = _right_or_declined(Converted(truth, summary, tmp_path / "out", loader), masks)
+    if "ring_front_center" in declined:
+        meta = _camera_meta(loader, "ring_front_center")["ego_mask"]
+        assert meta["decision"] == "halves disagree", meta
+        assert meta["split_iou"] < ego_mask.SPLIT_MIN_IOU or meta["split_columns"] < ego_mask.SPLIT_MIN_COLUMNS
+        (warning,) = [w for w in summary.warnings if "(halves disagree)" in w]
+        assert f"ring_front_center (split IoU {meta['split_iou']:.2f}" in warning, warning
+
+
+def _outline(top: list[int], height: int = 10) -> ego_mask._Outline:
+    top_rows = np.array(top)
+    return ego_mask._Outline(top_rows, np.arange(height)[:, None] >= top_rows[None, :], {})
+
+
+def test_split_agreement_counts_overlap_and_columns():
+    """Two halves' silhouettes on a 10-row crop of a 200-row image (tolerance 2 rows): the IoU of
+    the bodies below them, and the share of the columns either claims whose rows are within 2."""
+    first, second = _outline([6, 6, 6, 6, 10]), _outline([6, 8, 9, 10, 10])  # column 4: neither claims it
+    iou, columns = ego_mask.split_agreement(first, second, 200)
+    assert iou == pytest.approx((4 + 2 + 1 + 0) / (4 + 4 + 4 + 4))
+    assert columns == pytest.approx(2 / 4)  # columns 0 and 1 agree; 2 is 3 rows off; 3 is claimed by one

@@ -637,9 +637,17 @@ def synth_camera_options(f):
                      help="The pictures: a few textured pictures per camera, cycled (cheap); or each picture ray-cast"
                      " from the scene the lidar sees at its own time, flat-shaded (one world: lidar colours can be"
                      " checked against it; ~0.3 s per picture).")(f)
-    f = click.option("--ego-body", type=click.Choice(["realistic", "easy"]), default="realistic", show_default=True,
-                     help="The ego body in the cameras that see it: glossy paint with reflections, lighting changes,"
-                     " markings, glare and camouflaged silhouette stretches; or still paint under ±5 % light.")(f)
+    f = click.option("--ego-body", type=click.Choice(["realistic", "easy", "glossy"]), default="realistic",
+                     show_default=True, help="The ego body in the cameras that see it: glossy paint with reflections,"
+                     " lighting changes, markings, glare and camouflaged silhouette stretches; still paint under ±5 %"
+                     " light; or the realistic body with strong reflections (75-95 % of the scene's contrast).")(f)
+    f = click.option("--light", type=click.Choice(["day", "night"]), default="day", show_default=True,
+                     help="Daylight, or a night scene: a dark world lit by moving lamps, which the paint mirrors.")(f)
+    f = click.option("--shadows/--no-shadows", default=False, show_default=True,
+                     help="Moving soft-edged shadows across the pictures, the body included.")(f)
+    f = click.option("--pictures", type=click.IntRange(min=1), default=16, show_default=True,
+                     help="Distinct pictures per camera that its images cycle through (the ego-mask estimator samples"
+                     " 32 images per camera).")(f)
     return click.option(
         "--parked-fraction", type=click.FloatRange(0.0, 1.0), default=0.0,
         help="The first part of the log (a fraction) in which the cameras' world stands still, as if parked"
@@ -661,13 +669,13 @@ def synth_camera_options(f):
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )
 @synth_camera_options
-def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, parked_fraction, ego_body, world):
+def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, **camera_options):
     """A synthetic Argoverse 2 Sensor log: real schemas, two simulated VLP-32C units, cameras (with the
     ego body in five of them), cuboids."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     config = SynthConfig(seconds=seconds, seed=seed, swap_lidar_halves=swap_lidar_halves, camera_fps=camera_fps,
-                         parked_fraction=parked_fraction, ego_body=ego_body, world=world)  # fmt: skip
+                         **camera_options)  # fmt: skip
     truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
@@ -687,13 +695,12 @@ def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, park
     "--camera-fps", type=click.FloatRange(min=0.0), default=20.0, help="Images per second per camera (0: none)."
 )
 @synth_camera_options
-def synth_tbv(out_dir, seconds, seed, camera_fps, parked_fraction, ego_body, world):
+def synth_tbv(out_dir, seconds, seed, camera_fps, **camera_options):
     """A synthetic TbV log: flat layout, no offset_ns, 7 ring cameras (6 at half resolution; the ego body
     in three), no annotations."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    config = SynthConfig(seconds=seconds, seed=seed, camera_fps=camera_fps, tbv=True, parked_fraction=parked_fraction,
-                         ego_body=ego_body, world=world)  # fmt: skip
+    config = SynthConfig(seconds=seconds, seed=seed, camera_fps=camera_fps, tbv=True, **camera_options)
     truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"

@@ -79,8 +79,21 @@ class SynthConfig:
     #: car parked): every image there is the same picture but for the body's lighting
     parked_fraction: float = 0.0
     #: how the ego body is rendered: ``realistic`` (reflections, lighting, markings, glare,
-    #: camouflaged silhouette) or ``easy`` (still paint under ±5 % light); see ``synth.ego``
+    #: camouflaged silhouette), ``easy`` (still paint under ±5 % light) or ``glossy`` (realistic,
+    #: with strong reflections); see ``synth.ego``
     ego_body: str = "realistic"
+    #: the cameras' light: ``day``, or ``night`` (a dark world lit by moving lamps); see ``synth.ego``
+    light: str = "day"
+    #: moving shadows across the pictures (body included); see ``synth.ego``
+    shadows: bool = False
+    #: distinct pictures per camera that its images cycle through (the ego-mask tests and sweep use
+    #: 32, as many as the estimator samples)
+    pictures: int = N_PICTURES
+    #: write the images of these cameras only (None: all; every camera is calibrated either way)
+    image_cameras: tuple[str, ...] | None = None
+    #: write the lidar sweeps and annotations (False: cameras, poses and calibration only, as the
+    #: ego-mask sweep benchmark needs)
+    sweeps: bool = True
     #: the cameras' pictures: ``pattern`` (a few textured pictures per camera, cycled: cheap) or
     #: ``render`` (each picture ray-cast from the scene the lidar sees at its own time, flat-shaded,
     #: the ego body painted flat: one world, ~0.2 s per picture)
@@ -359,7 +372,8 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     )
 
     write_map(log_dir, log_id, scene, config.seconds, rng)
-    _write_sweeps(truth, sweep_ns, config)
+    if config.sweeps:
+        _write_sweeps(truth, sweep_ns, config)
     if config.camera_fps > 0:
         _write_images(truth, cam_ns, cams, rng, config)
     return truth
@@ -448,14 +462,16 @@ def _write_images(
     """Every camera's images: a few pictures per camera (``synth.ego.pictures``: the world changing,
     the ego body where the camera sees it) cycled in order, each made unique by a JPEG comment; in
     the parked part of the log (``config.parked_fraction``) always the first picture."""
+    if config.image_cameras is not None:
+        cam_ns = {cam: stamps for cam, stamps in cam_ns.items() if cam in config.image_cameras}
     if config.world == "render":
         _write_rendered_images(truth, cam_ns, cams, config)
         return
     parked_all = config.parked_fraction >= 1.0
     parked_until_ns = truth.t0_ns + int(config.parked_fraction * config.seconds * 1e9)
     step = max(1, int(round(20.0 / config.camera_fps)))
-    # as many pictures as a camera shows (at most N_PICTURES); cameras without the body share them per size
-    count = {cam: min(N_PICTURES, len(stamps[::step])) for cam, stamps in cam_ns.items()}
+    # as many pictures as a camera shows (at most config.pictures); cameras without the body share them per size
+    count = {cam: min(config.pictures, len(stamps[::step])) for cam, stamps in cam_ns.items()}
     shared_count: dict[tuple[int, int], int] = {}
     for cam in cam_ns:
         if cam not in truth.ego_masks:
@@ -465,11 +481,13 @@ def _write_images(
     for cam, stamps in cam_ns.items():
         _, width, height = cams[cam]
         if cam in truth.ego_masks:
-            variants = ego_pictures(rng, width, height, truth.ego_masks[cam], parked_all, config.ego_body, count[cam])
+            variants = ego_pictures(rng, width, height, truth.ego_masks[cam], parked_all, config.ego_body, count[cam],
+                                    config.light, config.shadows)  # fmt: skip
         else:
             if (width, height) not in shared:
                 shared[(width, height)] = ego_pictures(rng, width, height, None, parked_all,
-                                                       count=shared_count[(width, height)])  # fmt: skip
+                                                       count=shared_count[(width, height)], light=config.light,
+                                                       shadows=config.shadows)  # fmt: skip
             variants = shared[(width, height)]
         for i, ts in enumerate(stamps[::step]):
             path = av2.image_path(truth.log_dir, cam, int(ts))

@@ -8,15 +8,24 @@ projected with each camera's own calibration; the true mask is every pixel below
 outline, so it follows the mounting exactly.
 
 Pictures: the world is a road-like gradient with large random blobs that change from picture to
-picture (the world moving past) under a camera exposure that changes a little. Two bodies:
+picture (the world moving past). The light changes as in real logs, by tens of grey levels: the
+camera's exposure varies by ±25 % between pictures. With ``shadows``, in 40 % of them a soft-edged
+shadow (a building's, a tree's) also darkens part of the picture, body included, by 35-60 %.
+Three bodies:
 
-- ``easy``: the paint keeps its texture and only its lighting changes (±5 %).
+- ``easy``: the paint keeps its texture and only its lighting changes (±5 %, and the shadows).
 - ``realistic`` (what real glossy paint does): the paint carries panel shading, a painted logo and
   text; each picture lights it differently (±40 % and a colour cast, with a shade ramp across it);
   it mirrors the moving scene (flipped about the silhouette and compressed, as on a convex panel,
   with 40-80 % of the scene's contrast, strongest at grazing angles near the silhouette); some
   pictures have saturated glare patches; and along stretches of the silhouette the paint takes the
   colour of the world just behind it, so the outline nearly vanishes there.
+- ``glossy``: the realistic body with strong reflections: it mirrors 75-95 % of the moving scene's
+  contrast, so its pixels change nearly as much as the world's.
+
+``light="night"``: the world at a fifth of its daylight level with the same sensor noise, lit by
+street lamps and headlights (saturated spots that move from picture to picture), which the paint
+mirrors; the paint's own light drops with the world's.
 """
 
 from __future__ import annotations
@@ -32,16 +41,22 @@ import pyarrow as pa
 
 #: The cameras that see the ego body.
 EGO_CAMERAS = ("ring_front_center", "ring_rear_left", "ring_rear_right", "stereo_front_left", "stereo_front_right")
-#: Body renderings: today's easy body, and one with what real paint does.
-BODIES = ("realistic", "easy")
-#: Pictures per camera that the frames cycle through at random (each a different "world").
+#: Body renderings: still paint, what real paint does, and real paint with strong reflections.
+BODIES = ("realistic", "easy", "glossy")
+#: Scene light: daylight, or a night scene lit by lamps.
+LIGHTS = ("day", "night")
+#: Pictures per camera that the frames cycle through (each a different "world"), by default.
 N_PICTURES = 16
 #: Paint brightness varies by this factor between pictures: the easy body, and the realistic one.
 LIGHTING = {"easy": (0.95, 1.05), "realistic": (0.6, 1.4)}
-#: Share of the scene's contrast that the realistic paint mirrors (attenuated by 20-60 %).
-REFLECTION = (0.4, 0.8)
-#: Camera exposure changes between pictures (the whole image).
-EXPOSURE = (0.9, 1.1)
+#: Share of the scene's contrast that the paint mirrors: the realistic body, and the glossy one.
+REFLECTION = {"realistic": (0.4, 0.8), "glossy": (0.75, 0.95)}
+#: Camera exposure changes between pictures (the whole image): tens of grey levels, as in real logs.
+EXPOSURE = (0.75, 1.25)
+#: Share of pictures with a soft-edged shadow across them, and how much it darkens (body included).
+SHADOW_SHARE, SHADOW_DEPTH = 0.4, (0.35, 0.6)
+#: A night scene: the world's light level relative to daylight, and the lamps in each picture.
+NIGHT_GAIN, NIGHT_LAMPS = 0.2, (3, 7)
 
 
 def body_outline_m(camera: str) -> np.ndarray:
@@ -101,7 +116,7 @@ class _RealisticBody:
     """What stays fixed on a realistic body (its paint, markings, the silhouette's geometry) and
     what each picture changes (light, colour cast, reflections, glare, camouflaged stretches)."""
 
-    def __init__(self, rng: np.random.Generator, mask: np.ndarray) -> None:
+    def __init__(self, rng: np.random.Generator, mask: np.ndarray, body: str = "realistic") -> None:
         height, width = mask.shape
         self.rng = rng
         self.top = np.where(mask.any(axis=0), mask.argmax(axis=0), height).astype(np.float32)  # silhouette row
@@ -126,7 +141,8 @@ class _RealisticBody:
             draw.line(gap, fill=160, width=3)
         ink = np.asarray(markings, dtype=np.float32) / 255.0
         self.paint = np.clip(base + shading - 0.7 * base * ink + 60 * ink * (base < 100), 5, 250)
-        self.reflect = (REFLECTION[0] + (REFLECTION[1] - REFLECTION[0]) * np.exp(-3 * self.depth)).astype(np.float32)
+        lo, hi = REFLECTION[body]
+        self.reflect = (lo + (hi - lo) * np.exp(-3 * self.depth)).astype(np.float32)
         self.compress = rng.uniform(1.5, 3.0)  # a convex panel minifies its mirror image
         # Stretches of the silhouette whose paint takes the colour of the world behind it.
         self.camouflage = np.zeros(width, dtype=np.float32)
@@ -138,8 +154,9 @@ class _RealisticBody:
         self.band = (np.clip(1.0 - self.depth / 0.25, 0, 1) * self.camouflage[None, :])[self.r0 :]
         self.paint, self.reflect = self.paint[self.r0 :], self.reflect[self.r0 :]
 
-    def render(self, world: np.ndarray) -> np.ndarray:
-        """The body's rows (``r0`` and below) of one picture over ``world`` (grey, float32 [H,W])."""
+    def render(self, world: np.ndarray, light_gain: float = 1.0) -> np.ndarray:
+        """The body's rows (``r0`` and below) of one picture over ``world`` (grey, float32 [H,W]),
+        the paint lit at ``light_gain`` times daylight."""
         height, width = world.shape
         rng = self.rng
         rows = np.arange(self.r0, height, dtype=np.float32)[:, None]
@@ -148,7 +165,8 @@ class _RealisticBody:
         ramp_dir = rng.uniform(0, 2 * np.pi)
         u = np.linspace(-1, 1, width, dtype=np.float32)[None, :]
         v = np.linspace(-1, 1, height, dtype=np.float32)[self.r0 :, None]
-        light = rng.uniform(*LIGHTING["realistic"]) * (1 + 0.15 * (np.cos(ramp_dir) * u + np.sin(ramp_dir) * v))
+        ramp = 1 + 0.15 * (np.cos(ramp_dir) * u + np.sin(ramp_dir) * v)
+        light = light_gain * rng.uniform(*LIGHTING["realistic"]) * ramp
         behind = np.take_along_axis(world, np.clip(self.top - 3, 0, height - 1).astype(np.int64)[None, :], axis=0)
         lit = self.paint * light * (1 - self.band) + behind * self.band  # the silhouette matches the world here
         grey = (1 - self.reflect) * lit + self.reflect * mirrored
@@ -165,18 +183,43 @@ class _RealisticBody:
         return grey
 
 
+def _shadow(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+    """A soft-edged shadow across a picture: the light's factor per pixel (1 in the sun), float32
+    [H,W]; its edge at a random angle and place, blurred over 3-8 % of the width."""
+    angle = rng.uniform(0, 2 * np.pi)
+    x = np.arange(width, dtype=np.float32)[None, :] - rng.uniform(0, width)
+    y = np.arange(height, dtype=np.float32)[:, None] - rng.uniform(0, height)
+    soft = rng.uniform(0.03, 0.08) * width
+    inside = np.clip((np.float32(np.cos(angle)) * x + np.float32(np.sin(angle)) * y) / soft + 0.5, 0, 1)
+    return 1 - np.float32(rng.uniform(*SHADOW_DEPTH)) * inside
+
+
+def _lamps(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+    """Street lamps and headlights in a night picture: saturating spots in the upper 60 % of the
+    picture, added grey levels, float32 [H,W]."""
+    spots = PIL.Image.new("L", (width, height), 0)
+    draw = PIL.ImageDraw.Draw(spots)
+    for _ in range(int(rng.integers(*NIGHT_LAMPS))):
+        x, y, r = rng.uniform(0, width), rng.uniform(0, 0.6 * height), rng.uniform(0.005, 0.02) * width
+        draw.ellipse([x - r, y - r, x + r, y + r], fill=255)
+    return 1.5 * np.asarray(spots.filter(PIL.ImageFilter.GaussianBlur(4)), dtype=np.float32)
+
+
 def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray | None, parked: bool,
-             body: str = "realistic", count: int = N_PICTURES) -> list[bytes]:  # fmt: skip
+             body: str = "realistic", count: int = N_PICTURES, light: str = "day",
+             shadows: bool = False) -> list[bytes]:  # fmt: skip
     """``count`` JPEGs of one camera (~0.45 MB each at AV2 resolutions): a different world in each
     (the same one when ``parked``), the body (``mask``, or none) rendered as ``body`` (one of
-    ``BODIES``). The first ``k`` pictures do not depend on ``count``."""
+    ``BODIES``) in ``light`` (one of ``LIGHTS``), with moving ``shadows`` or not. The first ``k``
+    pictures do not depend on ``count``."""
     v = np.linspace(0, 1, height, dtype=np.float32)[:, None]
     road = np.where(v < 0.45, 150 + 80 * v, 90 - 40 * (v - 0.45))
     world_seed = int(rng.integers(2**62))
-    realistic = _RealisticBody(rng, mask) if mask is not None and body == "realistic" else None
+    realistic = _RealisticBody(rng, mask, body) if mask is not None and body != "easy" else None
     if mask is not None and realistic is None:
         paint = 70 + 25 * _smooth_field(rng, width, height, 64) + 40 * np.clip(1.2 - v, 0, 1)
     cast = np.array([0, 5, 12], dtype=np.float32)  # a blue cast, growing down the picture
+    night = NIGHT_GAIN if light == "night" else 1.0
     out = []
     for _ in range(count):
         world_rng = np.random.default_rng(world_seed) if parked else rng  # parked: the same world each time
@@ -186,14 +229,21 @@ def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray
         grey += 20 * _smooth_field(world_rng, width, height, 9)  # the world's blobs
         noise = rng.standard_normal((height, width), dtype=np.float32)
         grey += road
-        grey *= rng.uniform(*EXPOSURE)
+        grey *= rng.uniform(*EXPOSURE) * night
+        if light == "night":
+            grey += _lamps(world_rng, width, height)
+        shade = _shadow(rng, width, height) if shadows and rng.random() < SHADOW_SHARE else None
         grey += 5 * noise
         if realistic is not None:
             r0 = realistic.r0
             gains = rng.uniform(0.9, 1.1, 3).astype(np.float32)  # the body's colour cast
-            rendered = realistic.render(grey) + 2 * noise[r0:]
+            rendered = realistic.render(grey, night) + 2 * noise[r0:]
         elif mask is not None:
-            grey = np.where(mask, paint * rng.uniform(*LIGHTING["easy"]) + 2 * noise, grey)
+            grey = np.where(mask, night * paint * rng.uniform(*LIGHTING["easy"]) + 2 * noise, grey)
+        if shade is not None:  # the shadow falls on the world and the body alike
+            grey *= shade
+            if realistic is not None:
+                rendered *= shade[r0:]
         planes = []
         for c in range(3):  # channel by channel, as contiguous planes that PIL interleaves
             if realistic is not None:

@@ -49,7 +49,14 @@ decoded at reduced resolution:
    its silhouette is persistent: the mean edge strength plus ``FOLD_WEIGHT / EDGE_WEIGHT`` x the
    mean fold score along it reaches ``MIN_EDGE``. Otherwise no mask, with the reason; for a camera
    that must see the body, a warning (the caller's).
-9. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
+9. **Split-log agreement** (:func:`split_agreement`): the first and second halves of the frames
+   (disjoint stretches of road, each estimated alone, steps 3-7) must give the same body: an IoU of
+   at least ``SPLIT_MIN_IOU`` and silhouettes within ``SPLIT_ROW_TOLERANCE`` of the image height
+   in at least ``SPLIT_MIN_COLUMNS`` of the columns. The body stays where it is in every frame; a
+   piece of world that looked fixed (a textureless stretch, a shadow, a reflection that matched)
+   does so in one stretch of road, not in both. A cue that misleads the whole log in the same way
+   is not caught by this; on our generator that did not happen with 32 frames.
+10. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
 """
 
 from __future__ import annotations
@@ -63,7 +70,10 @@ from scipy import ndimage
 MIN_WORLD_STD = 4.0  #: grey levels: below this, the world did not move enough to tell the body from it
 MIN_FRACTION = 0.005  #: of the image: a smaller region is not a car body
 MAX_FRACTION = 0.30  #: of the image: a larger "body" is the scene standing still
-MIN_SAMPLES = 6  #: fewer sampled images than this cannot tell fixed from moving
+MIN_SAMPLES = 16  #: fewer (distinct) sampled images than this cannot tell fixed from moving in two halves
+SPLIT_MIN_IOU = 0.9  #: the two halves' bodies must overlap this much (IoU) ...
+SPLIT_MIN_COLUMNS = 0.9  #: ... and their silhouettes agree in this share of the columns ...
+SPLIT_ROW_TOLERANCE = 0.01  #: ... to within this share of the image height
 LOWER_BODY_FRACTION = 2 / 3  #: hood and trunk lid sit at about two thirds of a car's roof height
 MUST_SEE_BORDER = 0.45  #: share of the bottom border on the lower body that makes a camera see the body
 LOG_OFFSET = 16.0  #: grey levels added before the log, so that dark noise does not dominate
@@ -139,13 +149,15 @@ class EgoMaskEstimate:
         mask: ego pixels at the reduced resolution, bool [h,w]; None when no mask is written.
         decision: ``"mask"``, ``"not seen"`` (no body), or a fallback: ``"too few images"``,
             ``"too little motion"``, ``"too few distinct images"``, ``"implausible coverage"``,
-            ``"no persistent silhouette"``.
+            ``"no persistent silhouette"``, ``"halves disagree"``.
         covered_fraction: the share of the image the mask covers (0 without one).
         world_std: the median temporal standard deviation outside the reach (grey levels).
         edge: mean persistent-edge strength along the silhouette (0..1).
         fold: mean mirror-fold score along the silhouette, over ``FOLD_FLOOR`` (:func:`mirror_folds`).
         change_ratio: the world's change energy above the silhouette over the body's below it.
         structure: the median fixed structure (:func:`_fixed_structure`) below the silhouette.
+        split_iou, split_columns: the agreement of the log's two halves (:func:`split_agreement`);
+            0 when the estimate stopped before it.
     """
 
     mask: np.ndarray | None
@@ -156,6 +168,8 @@ class EgoMaskEstimate:
     fold: float = 0.0
     change_ratio: float = 0.0
     structure: float = 0.0
+    split_iou: float = 0.0
+    split_columns: float = 0.0
 
 
 def _rays_hit_box(origin: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -194,22 +208,51 @@ def _log_frames(frames: np.ndarray) -> np.ndarray:
     return np.log(frames + LOG_OFFSET) - np.log(LOG_OFFSET + 128.0)
 
 
-def persistent_edges(log_frames: np.ndarray) -> np.ndarray:
-    """Per pixel, how consistently the frames' gradients keep one orientation (0..1), float32 [h,w].
+@dataclass(frozen=True)
+class Cues:
+    """What a set of frames says about each pixel, as sums over the frames, so that the cues of two
+    disjoint sets add up to those of both (:meth:`__add__`); all at the reduced resolution.
 
-    Args:
-        log_frames: log grey levels, float32 [N,h,w].
+    Attributes:
+        frames: how many frames were summed.
+        orientation: sum of the log-image gradients with doubled angles, complex64 [h,w].
+        gradient_energy: sum of their magnitudes, float32 [h,w].
+        folds: sums over frames of the mirrored row-difference products and of the two sides'
+            energies (:func:`mirror_folds`), float32 [3,h,w].
+        change: each frame's fine-change energy (:func:`change_energy`), float32 [N,h,w].
     """
+
+    frames: int
+    orientation: np.ndarray
+    gradient_energy: np.ndarray
+    folds: np.ndarray
+    change: np.ndarray
+
+    def __add__(self, other: Cues) -> Cues:
+        return Cues(self.frames + other.frames, self.orientation + other.orientation,
+                    self.gradient_energy + other.gradient_energy, self.folds + other.folds,
+                    np.concatenate([self.change, other.change]))  # fmt: skip
+
+
+def cues(frames: np.ndarray) -> Cues:
+    """The :class:`Cues` of greyscale frames, float32 [N,h,w] (grey levels)."""
+    log_frames = _log_frames(frames)
     gx, gy = _sobel(log_frames)
     z = (gx + 1j * gy) ** 2  # doubled angle: a contrast whose sign flips keeps its orientation
-    energy = np.abs(z)
-    total = ndimage.gaussian_filter(energy.sum(axis=0), 1.0)
-    summed = z.sum(axis=0)
+    return Cues(len(frames), z.sum(axis=0).astype(np.complex64), np.abs(z).sum(axis=0).astype(np.float32),
+                _fold_sums(log_frames), _change_frames(frames))  # fmt: skip
+
+
+def persistent_edges(c: Cues) -> np.ndarray:
+    """Per pixel, how consistently the frames' gradients keep one orientation (0..1), float32 [h,w]."""
+    total = ndimage.gaussian_filter(c.gradient_energy, 1.0)
+    summed = c.orientation
     consistent = ndimage.gaussian_filter(summed.real, 1.0) ** 2 + ndimage.gaussian_filter(summed.imag, 1.0) ** 2
     coherence = np.sqrt(consistent) / (total + 1e-12)
-    floor = 1.0 / np.sqrt(len(log_frames))  # random orientations average to about this
-    noise = np.median(energy.mean(axis=0))  # a pixel this weak is flat: its orientation is noise
-    significant = 1.0 - np.exp(-energy.mean(axis=0) / (0.5 * noise + 1e-12))
+    floor = 1.0 / np.sqrt(c.frames)  # random orientations average to about this
+    mean_energy = c.gradient_energy / c.frames
+    noise = np.median(mean_energy)  # a pixel this weak is flat: its orientation is noise
+    significant = 1.0 - np.exp(-mean_energy / (0.5 * noise + 1e-12))
     return (np.clip((coherence - floor) / (1.0 - floor), 0.0, 1.0) * significant).astype(np.float32)
 
 
@@ -222,21 +265,9 @@ def _sobel(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return across_rows[:, :, 2:] - across_rows[:, :, :-2], across_cols[:, 2:] - across_cols[:, :-2]
 
 
-def mirror_folds(log_frames: np.ndarray) -> np.ndarray:
-    """Per pixel taken as the first body row of its column, how consistently the frames' vertical
-    log-gradients reverse across a line 1.5 rows above it (-1..1; ~0 on the world),
-    float32 [h,w].
-
-    Glossy paint at a grazing angle is a mirror: right under the silhouette it shows the world just
-    above it, flipped. Each frame's column profile then folds at the silhouette: the row
-    differences below it are those above it, reversed in sign (and compressed). The world moves
-    through, but the fold stays at the same rows, even where the mirror leaves no edge at all. The
-    score is the anticorrelation, over frames and ``FOLD_SIGMA_PX`` along the row, of the row
-    differences mirrored about the fold line (``FOLD_PAIRS`` of them).
-
-    Args:
-        log_frames: log grey levels, float32 [N,h,w].
-    """
+def _fold_sums(log_frames: np.ndarray) -> np.ndarray:
+    """For :func:`mirror_folds`: per first body row, the sums over frames of the mirrored row
+    differences' products and of each side's energy, float32 [3,h,w]."""
     diff = np.diff(log_frames, axis=1)  # [N,h-1,w]: row y+1 minus row y
     h = log_frames.shape[1]
     sums = np.zeros((3, h, log_frames.shape[2]), dtype=np.float32)  # product, energy above, energy below
@@ -248,27 +279,45 @@ def mirror_folds(log_frames: np.ndarray) -> np.ndarray:
         sums[0, rows] += (above * below).sum(axis=0)
         sums[1, rows] += (above * above).sum(axis=0)
         sums[2, rows] += (below * below).sum(axis=0)
-    sums = ndimage.gaussian_filter1d(sums, FOLD_SIGMA_PX, axis=2)
+    return sums
+
+
+def mirror_folds(c: Cues) -> np.ndarray:
+    """Per pixel taken as the first body row of its column, how consistently the frames' vertical
+    log-gradients reverse across a line 1.5 rows above it (-1..1; ~0 on the world),
+    float32 [h,w].
+
+    Glossy paint at a grazing angle is a mirror: right under the silhouette it shows the world just
+    above it, flipped. Each frame's column profile then folds at the silhouette: the row
+    differences below it are those above it, reversed in sign (and compressed). The world moves
+    through, but the fold stays at the same rows, even where the mirror leaves no edge at all. The
+    score is the anticorrelation, over frames and ``FOLD_SIGMA_PX`` along the row, of the row
+    differences mirrored about the fold line (``FOLD_PAIRS`` of them).
+    """
+    sums = ndimage.gaussian_filter1d(c.folds, FOLD_SIGMA_PX, axis=2)
     return (-sums[0] / np.sqrt(sums[1] * sums[2] + 1e-12)).astype(np.float32)
 
 
-def change_energy(frames: np.ndarray) -> np.ndarray:
-    """Per pixel, how much fine structure changes between frames once each frame's smooth
-    brightness change (lighting, shade, exposure) is divided out, grey levels, float32 [h,w].
-
-    Linear grey levels, not logs: a reflection adds the scene scaled by the paint's reflectance,
-    so on a dark glossy body it is small in grey levels although large relative to the paint.
-
-    Args:
-        frames: grey levels, float32 [N,h,w].
-    """
+def _change_frames(frames: np.ndarray) -> np.ndarray:
+    """Each frame's fine-change energy (:func:`change_energy`), float32 [N,h,w]: its fine
+    structure's departure from the frames' median once its smooth brightness change is divided out."""
     median = _over_frames(frames, 0.5)
     smooth = {"sigma": (0, LIGHT_SIGMA_PX, LIGHT_SIGMA_PX), "truncate": SMOOTH_TRUNCATE}
     lit = ndimage.gaussian_filter(median, LIGHT_SIGMA_PX, truncate=SMOOTH_TRUNCATE) + 1.0
     change = frames - ndimage.gaussian_filter(frames, **smooth) / lit * median
     fine = change - ndimage.gaussian_filter(change, **smooth)
-    energy = ndimage.gaussian_filter(fine**2, (0, 2.5, 2.5), truncate=SMOOTH_TRUNCATE)
-    return np.sqrt(_over_frames(energy, 0.75)).astype(np.float32)
+    return ndimage.gaussian_filter(fine**2, (0, 2.5, 2.5), truncate=SMOOTH_TRUNCATE).astype(np.float32)
+
+
+def change_energy(c: Cues) -> np.ndarray:
+    """Per pixel, how much fine structure changes between frames once each frame's smooth
+    brightness change (lighting, shade, exposure) is divided out, grey levels, float32 [h,w]: the
+    75 % quantile over frames, so glare in a few frames does not count.
+
+    Linear grey levels, not logs: a reflection adds the scene scaled by the paint's reflectance,
+    so on a dark glossy body it is small in grey levels although large relative to the paint.
+    """
+    return np.sqrt(_over_frames(c.change, 0.75)).astype(np.float32)
 
 
 def _over_frames(values: np.ndarray, q: float) -> np.ndarray:
@@ -312,11 +361,60 @@ def silhouette(cost_body: np.ndarray, bonus: np.ndarray, reach: np.ndarray, jump
     return path
 
 
+@dataclass(frozen=True)
+class _Outline:
+    """One set of cues' silhouette: per column of the crop, the first body row (``h``: none), int
+    [w], the body below it, bool [h,w], and the figures the decision reads."""
+
+    top: np.ndarray
+    body: np.ndarray
+    figures: dict
+
+
+def _outline(c: Cues, reach: np.ndarray) -> _Outline:
+    """The silhouette (:func:`silhouette`) that cues ``c`` of the crop give inside ``reach`` [h,w]."""
+    edge = persistent_edges(c)
+    change = change_energy(c)
+    cost = np.clip(np.log(np.maximum(change, 1e-3) / _world_reference(change, reach)), -COST_CLIP, COST_CLIP)
+    structure = _fixed_structure(edge, reach)
+    cost -= STRUCTURE_WEIGHT * structure  # < 0: changes less, keeps more structure, than the world
+    fold = np.clip(mirror_folds(c) - FOLD_FLOOR, 0.0, None)
+    bonus = EDGE_WEIGHT * edge + FOLD_WEIGHT * fold
+    top = silhouette(cost, bonus, reach, jump_cost=JUMP_COST)
+    # A silhouette is smooth: a dip narrower than DIP_FRACTION of the image (where the paint
+    # matched the world behind it, so neither cue saw the outline) is filled from its sides.
+    top = ndimage.grey_opening(top, size=max(3, int(DIP_FRACTION * len(top))), mode="nearest")
+    h = reach.shape[0]
+    on = top < h
+    edge_on, fold_on = (float(np.mean(cue[top[on], np.flatnonzero(on)])) if on.any() else 0.0 for cue in (edge, fold))
+    below = np.arange(h)[:, None] >= top[None, :]
+    fixed = float(np.median(structure[below])) if below.any() else 0.0
+    body = ndimage.binary_opening(below, structure=np.ones((3, 3))) & reach
+    return _Outline(top, body, {"edge": edge_on, "fold": fold_on, "change_ratio": _change_ratio(change, top),
+                                "structure": fixed})  # fmt: skip
+
+
+def split_agreement(first: _Outline, second: _Outline, height_px: int) -> tuple[float, float]:
+    """How two independent estimates of one body agree: the IoU of their bodies, and the share of
+    the columns either claims whose first body rows lie within ``SPLIT_ROW_TOLERANCE`` of the
+    image height (``height_px``) of each other (a column one claims and the other not disagrees)."""
+    union = (first.body | second.body).sum()
+    iou = float((first.body & second.body).sum() / union) if union else 0.0
+    h = first.body.shape[0]
+    claimed = (first.top < h) | (second.top < h)
+    close = np.abs(first.top - second.top) <= max(1.0, SPLIT_ROW_TOLERANCE * height_px)
+    columns = float(close[claimed].mean()) if claimed.any() else 0.0
+    return iou, columns
+
+
 def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
-    """Estimate the ego pixels from greyscale frames sampled across a log.
+    """Estimate the ego pixels from greyscale frames sampled across a log (in time order).
+
+    The estimate from all the frames is kept only when the two halves of the log, estimated
+    alone, agree on it (:func:`split_agreement`): the body is the same in both, the world is not.
 
     Args:
-        frames: float32 [N,h,w], grey levels 0..255, at reduced resolution.
+        frames: float32 [N,h,w], grey levels 0..255, at reduced resolution, in time order.
         prior: the camera's :func:`body_prior` at that resolution.
     """
     if len(frames) < MIN_SAMPLES:
@@ -339,42 +437,29 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     world_std = float(np.median(samples.std(axis=0)))
     if world_std >= MIN_WORLD_STD and len(kept) < MIN_SAMPLES:
         return EgoMaskEstimate(None, "too few distinct images", world_std=world_std)
-    frames = frames[kept]
     if world_std < MIN_WORLD_STD:
         return EgoMaskEstimate(None, "too little motion", world_std=world_std)
     # Only the reach and a band above it (the world's reference) matter from here on.
     r0 = max(0, int(np.flatnonzero(prior.reach.any(axis=1))[0]) - 2 * REFERENCE_BAND_PX)
-    crop, reach = frames[:, r0:], prior.reach[r0:]
-    log_crop = _log_frames(crop)
-    edge = persistent_edges(log_crop)
-    change = change_energy(crop)
-    cost = np.clip(np.log(np.maximum(change, 1e-3) / _world_reference(change, reach)), -COST_CLIP, COST_CLIP)
-    structure = _fixed_structure(edge, reach)
-    cost -= STRUCTURE_WEIGHT * structure  # < 0: changes less, keeps more structure, than the world
-    fold = np.clip(mirror_folds(log_crop) - FOLD_FLOOR, 0.0, None)
-    bonus = EDGE_WEIGHT * edge + FOLD_WEIGHT * fold
-    top = silhouette(cost, bonus, reach, jump_cost=JUMP_COST)
-    # A silhouette is smooth: a dip narrower than DIP_FRACTION of the image (where the paint
-    # matched the world behind it, so neither cue saw the outline) is filled from its sides.
-    top = ndimage.grey_opening(top, size=max(3, int(DIP_FRACTION * len(top))), mode="nearest")
-    h_crop = crop.shape[1]
-    on = top < h_crop
-    edge_on, fold_on = (float(np.mean(cue[top[on], np.flatnonzero(on)])) if on.any() else 0.0 for cue in (edge, fold))
-    ratio = _change_ratio(change, top)
-    below = np.arange(h_crop)[:, None] >= top[None, :]  # the body, in the crop
-    fixed = float(np.median(structure[below])) if below.any() else 0.0
-    mask = np.vstack([np.zeros((r0, below.shape[1]), dtype=bool), below])
-    mask = ndimage.binary_opening(mask, structure=np.ones((3, 3))) & prior.reach
+    crop, reach = frames[kept, r0:], prior.reach[r0:]
+    half = len(kept) // 2  # the log's first and second halves: disjoint stretches of road
+    first, second = cues(crop[:half]), cues(crop[half:])
+    outline = _outline(first + second, reach)
+    mask = np.vstack([np.zeros((r0, reach.shape[1]), dtype=bool), outline.body])
     covered = float(mask.mean())
-    figures = {"covered_fraction": covered, "world_std": world_std, "edge": edge_on, "fold": fold_on,
-               "change_ratio": ratio, "structure": fixed}  # fmt: skip
+    figures = {"covered_fraction": covered, "world_std": world_std, **outline.figures}
+    ratio, fixed = figures["change_ratio"], figures["structure"]
     # A body may change more than the world (reflections): only a lower change is evidence.
     if covered < MIN_FRACTION or max(ratio - 1.0, 0.0) / (CHANGE_RATIO_UNIT - 1.0) + fixed / STRUCTURE_UNIT < 1.0:
         return EgoMaskEstimate(None, "not seen", **figures)
     if covered > MAX_FRACTION:
         return EgoMaskEstimate(None, "implausible coverage", **figures)
-    if edge_on + FOLD_WEIGHT / EDGE_WEIGHT * fold_on < MIN_EDGE:  # the silhouette's evidence, in edge units
+    if figures["edge"] + FOLD_WEIGHT / EDGE_WEIGHT * figures["fold"] < MIN_EDGE:  # the silhouette's evidence
         return EgoMaskEstimate(None, "no persistent silhouette", **figures)
+    iou, columns = split_agreement(_outline(first, reach), _outline(second, reach), frames.shape[1])
+    figures.update(split_iou=iou, split_columns=columns)
+    if iou < SPLIT_MIN_IOU or columns < SPLIT_MIN_COLUMNS:
+        return EgoMaskEstimate(None, "halves disagree", **figures)
     return EgoMaskEstimate(mask, "mask", **figures)
 
 

@@ -22,8 +22,9 @@ from ncore_convert.sources.masks import read_mask_folder
 from ncore_convert.transforms import ego_mask
 from ncore_convert.transforms.sampling import spread_indices
 
-#: Images decoded per camera, spread evenly over the log (or clip window).
-SAMPLES = 16
+#: Images decoded per camera that must see the body, spread evenly over the log (or clip window):
+#: two halves of 16, each enough for an estimate of its own (the split-log agreement).
+SAMPLES = 32
 #: Images are decoded at a power-of-two reduction that brings their longer side to about this.
 REDUCED_SIDE_PX = 512
 
@@ -52,18 +53,31 @@ def reduction(intr: av2.CameraIntrinsics) -> int:
     return 2 ** max(0, int(math.log2(max(intr.width_px, intr.height_px) / REDUCED_SIDE_PX)))
 
 
+def _prior(shape: tuple[int, int], intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray,
+           box: ego_mask.EgoBox) -> ego_mask.BodyPrior:  # fmt: skip
+    """The camera's body prior at a reduced size (h, w) of its images."""
+    sx, sy = shape[1] / intr.width_px, shape[0] / intr.height_px
+    centre_px = ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy)
+    return ego_mask.body_prior(shape, (intr.fx_px * sx, intr.fy_px * sy), centre_px, T_camera_ego, box)
+
+
 def _estimate(
     log_dir: UPath, camera: str, stamps_ns: np.ndarray, intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray,
     box: ego_mask.EgoBox,
 ) -> EgoMask:  # fmt: skip
+    scale = reduction(intr)
+    prior = _prior((-(-intr.height_px // scale), -(-intr.width_px // scale)), intr, T_camera_ego, box)
+    if not prior.must_see:  # by the calibration, no body along the bottom border: nothing to estimate
+        return EgoMask({"method": "estimate", "decision": "not seen", "must_see": False, "samples": 0,
+                        "lower_body_border_fraction": round(prior.lower_border, 3),
+                        "ego_box_m": [box.length_m, box.width_m, box.height_m],
+                        "rule": f"not estimated: rays along less than {ego_mask.MUST_SEE_BORDER:.0%} of the bottom"
+                        " border hit the nominal ego box's lower body"})  # fmt: skip
     picks = spread_indices(len(stamps_ns), SAMPLES)
-    frames = np.stack([av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), reduction(intr)) for i in picks])
+    frames = np.stack([av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), scale) for i in picks])
     h, w = frames.shape[1:]
-    sx, sy = w / intr.width_px, h / intr.height_px
-    prior = ego_mask.body_prior(
-        (h, w), (intr.fx_px * sx, intr.fy_px * sy), ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy),
-        T_camera_ego, box,
-    )  # fmt: skip
+    if (h, w) != prior.reach.shape:
+        prior = _prior((h, w), intr, T_camera_ego, box)
     result = ego_mask.estimate(frames, prior)
     meta = {
         "method": "estimate",
@@ -79,16 +93,26 @@ def _estimate(
         "change_ratio": round(result.change_ratio, 3),
         "structure": round(result.structure, 3),
         "world_std": round(result.world_std, 3),
+        "split_iou": round(result.split_iou, 3),
+        "split_columns": round(result.split_columns, 3),
         "ego_box_m": [box.length_m, box.width_m, box.height_m],
         "rule": "below the silhouette that best follows persistent edges and mirror folds, with the world changing more and"
         " keeping less fixed structure above it, inside the nominal ego box's reach, attached to the bottom"
         f" border; no mask when the world moved less than {ego_mask.MIN_WORLD_STD} grey levels, the region"
         f" is not distinct from the world (max(change ratio - 1, 0) / {ego_mask.CHANGE_RATIO_UNIT - 1:.2f} + structure /"
         f" {ego_mask.STRUCTURE_UNIT} < 1), the silhouette is not persistent (edge + {ego_mask.FOLD_WEIGHT / ego_mask.EDGE_WEIGHT:.2f}"
-        f" x fold < {ego_mask.MIN_EDGE}) or the"
-        f" mask would cover more than {ego_mask.MAX_FRACTION:.0%} of the image",
+        f" x fold < {ego_mask.MIN_EDGE}), the"
+        f" mask would cover more than {ego_mask.MAX_FRACTION:.0%} of the image, or the log's first and second"
+        f" halves, estimated alone, disagree (split IoU < {ego_mask.SPLIT_MIN_IOU} or silhouettes within"
+        f" {ego_mask.SPLIT_ROW_TOLERANCE:.0%} of the height in < {ego_mask.SPLIT_MIN_COLUMNS:.0%} of the columns)",
     }
     return EgoMask(meta, reduced=result.mask)
+
+
+def _agreement(camera: str, meta: dict) -> str:
+    """A camera named with its split-log agreement, for a warning."""
+    iou, columns = meta["split_iou"], meta["split_columns"]
+    return f"{camera} (split IoU {iou:.2f}, silhouette agreeing in {columns:.0%} of columns)"
 
 
 def plan_ego_masks(
@@ -125,6 +149,7 @@ def plan_ego_masks(
     for decision, cams in fallbacks.items():
         seen = [cam for cam in cams if masks[cam].meta["must_see"]]
         note = f" ({', '.join(seen)} must see the ego body by the calibration and the ego box)" if seen else ""
+        named = [_agreement(cam, masks[cam].meta) if decision == "halves disagree" else cam for cam in cams]
         warnings.append(f"{log_dir / 'sensors' / 'cameras'}: ego masks not estimated ({decision}) for"
-                        f" {', '.join(cams)}; no ego mask written{note}")  # fmt: skip
+                        f" {', '.join(named)}; no ego mask written{note}")  # fmt: skip
     return masks
