@@ -86,7 +86,7 @@ def test_estimated_masks_match_the_true_body(dataset, av2, tbv):
 
 
 def test_a_parked_log_falls_back_to_no_masks_with_a_warning(tmp_path):
-    run = synth_and_convert(tmp_path, SynthConfig(seconds=1.0, seed=33, camera_fps=10, parked_fraction=1.0))
+    run = synth_and_convert(tmp_path, SynthConfig(seconds=1.0, seed=33, camera_fps=20, parked_fraction=1.0))
     assert _masks(run.loader) == {}
     warning = [w for w in run.summary.warnings if "ego masks not estimated (too little motion)" in w]
     assert len(warning) == 1 and all(cam in warning[0] for cam in EGO_CAMERAS)

@@ -61,6 +61,7 @@ decoded at reduced resolution:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -407,7 +408,7 @@ def split_agreement(first: _Outline, second: _Outline, height_px: int) -> tuple[
     return iou, columns
 
 
-def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
+def estimate(frames: np.ndarray, prior: BodyPrior, map_: Callable = map) -> EgoMaskEstimate:
     """Estimate the ego pixels from greyscale frames sampled across a log (in time order).
 
     The estimate from all the frames is kept only when the two halves of the log, estimated
@@ -416,6 +417,8 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     Args:
         frames: float32 [N,h,w], grey levels 0..255, at reduced resolution, in time order.
         prior: the camera's :func:`body_prior` at that resolution.
+        map_: how the two halves are worked on (``Executor.map`` for both at once); the result
+            does not depend on it.
     """
     if len(frames) < MIN_SAMPLES:
         return EgoMaskEstimate(None, "too few images")
@@ -443,7 +446,7 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
     r0 = max(0, int(np.flatnonzero(prior.reach.any(axis=1))[0]) - 2 * REFERENCE_BAND_PX)
     crop, reach = frames[kept, r0:], prior.reach[r0:]
     half = len(kept) // 2  # the log's first and second halves: disjoint stretches of road
-    first, second = cues(crop[:half]), cues(crop[half:])
+    first, second = map_(cues, (crop[:half], crop[half:]))
     outline = _outline(first + second, reach)
     mask = np.vstack([np.zeros((r0, reach.shape[1]), dtype=bool), outline.body])
     covered = float(mask.mean())
@@ -456,7 +459,7 @@ def estimate(frames: np.ndarray, prior: BodyPrior) -> EgoMaskEstimate:
         return EgoMaskEstimate(None, "implausible coverage", **figures)
     if figures["edge"] + FOLD_WEIGHT / EDGE_WEIGHT * figures["fold"] < MIN_EDGE:  # the silhouette's evidence
         return EgoMaskEstimate(None, "no persistent silhouette", **figures)
-    iou, columns = split_agreement(_outline(first, reach), _outline(second, reach), frames.shape[1])
+    iou, columns = split_agreement(*map_(_outline, (first, second), (reach, reach)), frames.shape[1])
     figures.update(split_iou=iou, split_columns=columns)
     if iou < SPLIT_MIN_IOU or columns < SPLIT_MIN_COLUMNS:
         return EgoMaskEstimate(None, "halves disagree", **figures)

@@ -63,8 +63,10 @@ def _prior(shape: tuple[int, int], intr: av2.CameraIntrinsics, T_camera_ego: np.
 
 def _estimate(
     log_dir: UPath, camera: str, stamps_ns: np.ndarray, intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray,
-    box: ego_mask.EgoBox,
+    box: ego_mask.EgoBox, pool: ThreadPoolExecutor | None = None,
 ) -> EgoMask:  # fmt: skip
+    """One camera's estimate; ``pool`` (optional) decodes its images and works on its halves in
+    parallel threads (the result does not depend on it)."""
     scale = reduction(intr)
     prior = _prior((-(-intr.height_px // scale), -(-intr.width_px // scale)), intr, T_camera_ego, box)
     if not prior.must_see:  # by the calibration, no body along the bottom border: nothing to estimate
@@ -74,11 +76,12 @@ def _estimate(
                         "rule": f"not estimated: rays along less than {ego_mask.MUST_SEE_BORDER:.0%} of the bottom"
                         " border hit the nominal ego box's lower body"})  # fmt: skip
     picks = spread_indices(len(stamps_ns), SAMPLES)
-    frames = np.stack([av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), scale) for i in picks])
+    map_ = pool.map if pool is not None else map
+    frames = np.stack(list(map_(lambda i: av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), scale), picks)))
     h, w = frames.shape[1:]
     if (h, w) != prior.reach.shape:
         prior = _prior((h, w), intr, T_camera_ego, box)
-    result = ego_mask.estimate(frames, prior)
+    result = ego_mask.estimate(frames, prior, map_)
     meta = {
         "method": "estimate",
         "decision": result.decision,
@@ -138,9 +141,10 @@ def plan_ego_masks(
             else EgoMask({"method": "user", "decision": "no file: no mask"})
             for cam in cameras
         }
-    with ThreadPoolExecutor(max_workers=min(len(cameras), os.cpu_count() or 1) or 1) as pool:  # decoding frees the GIL
-        futures = {cam: pool.submit(_estimate, log_dir, cam, *inputs, box) for cam, inputs in cameras.items()}
-        masks = {cam: future.result() for cam, future in futures.items()}
+    # One camera after another, each one's image decoding and halves in parallel threads (decoding
+    # and numpy's array work free the GIL): no thread idles while another camera finishes.
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        masks = {cam: _estimate(log_dir, cam, *inputs, box, pool) for cam, inputs in cameras.items()}
     fallbacks: dict[str, list[str]] = {}
     for cam, mask in masks.items():
         decision = mask.meta["decision"]
