@@ -16,7 +16,7 @@ from upath import UPath
 #: Run-report fields that may differ between runs of the same conversion (docs/damaged-input.md, "Determinism").
 RUN_DEPENDENT = {("seconds",), ("finished",), ("validation", "seconds")}
 
-#: enough distinct images for ego masks (two halves of at least 8 each)
+#: enough distinct images for ego masks (two halves of at least 12 each)
 #: (seed 8 at 0.6 s or longer fails the points-in-box validation on one box, 51 points against
 #: the source's 49: a generator/validator disagreement not yet understood)
 AV2_SYNTH = ["argoverse2", "--seconds", "0.8", "--seed", "9", "--camera-fps", "20", "--pictures", "32"]

@@ -21,6 +21,7 @@ from ncore.data.v4 import CameraSensorComponent
 from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+from ncore_convert.converters.argoverse2 import masks as ego_mask_planning
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.synth.ego import EGO_CAMERAS
 from ncore_convert.transforms import ego_mask
@@ -73,7 +74,9 @@ def test_estimated_masks_match_the_true_body(dataset, av2, tbv):
         assert mask.shape == truth.shape and set(np.unique(mask)) <= {0, 255}
         assert _iou(mask > 0, truth) >= 0.95, (camera_id, _iou(mask > 0, truth))
         meta = _camera_meta(run.loader, camera_id)["ego_mask"]
-        assert meta["method"] == "estimate" and meta["decision"] == "mask" and meta["samples"] == 32
+        assert meta["method"] == "estimate" and meta["decision"] == "mask"
+        # 40 images cycling 32 pictures: 32 spread samples show 28 distinct views, so 8 more are read
+        assert meta["samples"] == 40 and meta["distinct_samples"] == 32, meta
         assert meta["split_iou"] >= ego_mask.SPLIT_MIN_IOU and meta["split_columns"] >= ego_mask.SPLIT_MIN_COLUMNS
         evidence = meta["silhouette_edge"] + ego_mask.FOLD_WEIGHT / ego_mask.EDGE_WEIGHT * meta["silhouette_fold"]
         assert meta["must_see"] is True and evidence >= ego_mask.MIN_EDGE - 0.002  # figures rounded to 3 places
@@ -107,14 +110,20 @@ def _right_or_declined(run: Converted, masks: dict[str, np.ndarray]) -> list[str
     return declined
 
 
-def test_a_half_parked_log_finds_the_body_or_declines(tmp_path):
-    """The parked half's repeated views are dropped; the moving half's images alone give right masks
-    or none (too few distinct images for two halves, or halves that disagree), never wrong ones."""
-    config = SynthConfig(seconds=1.5, seed=34, camera_fps=20, pictures=32, parked_fraction=0.5, ego_body="easy")
-    run = synth_and_convert(tmp_path, config)
+def test_a_half_parked_log_looks_between_its_samples(tmp_path):
+    """Parked for the first half of a 3 s log: half of the 32 evenly spread samples repeat one
+    view, so the images between them are read too (the first pass alone would leave 17 distinct
+    views, too few for two halves of 12). The moving half then gives right masks or none with a
+    warning, never wrong ones."""
+    config = SynthConfig(seconds=3.0, seed=34, camera_fps=20, pictures=32, parked_fraction=0.5, ego_body="easy",
+                         sweeps=False, image_cameras=EGO_CAMERAS)  # fmt: skip
+    run = synth_and_convert(tmp_path, config, Argoverse2Options(split="val", camera_ids=EGO_CAMERAS, lidar_ids=()))
     masks = _masks(run.loader)
     _right_or_declined(run, masks)
     assert masks, "no camera got a mask"
+    for camera_id in masks:
+        meta = _camera_meta(run.loader, camera_id)["ego_mask"]
+        assert meta["samples"] > ego_mask_planning.SAMPLES and meta["distinct_samples"] >= ego_mask.MIN_SAMPLES, meta
 
 
 class _Camera:
@@ -196,11 +205,13 @@ def test_the_estimators_fallbacks_on_synthetic_frames():
     does a world that moves everywhere (finding the body is tested on the generator's logs)."""
     rng = np.random.default_rng(5)
     prior = _prior(slice(16, None))
-    frames = rng.uniform(0, 255, (20, 40, 60)).astype(np.float32)  # the world moves everywhere
+    frames = rng.uniform(0, 255, (30, 40, 60)).astype(np.float32)  # the world moves everywhere
     band = frames.copy()
     band[:, 30:] = 90.0
-    assert ego_mask.estimate(band[:5], prior).decision == "too few images"
-    still = np.repeat(frames[:1], 20, axis=0)
+    assert ego_mask.estimate(band[: ego_mask.MIN_SAMPLES - 1], prior).decision == "too few images"
+    repeated = np.concatenate([band[:20], band[:10]])  # 30 images, 20 distinct views
+    assert ego_mask.estimate(repeated, prior).decision == "too few distinct images"
+    still = np.repeat(frames[:1], 30, axis=0)
     assert ego_mask.estimate(still, prior).decision == "too little motion"
     half = frames.copy()
     half[:, 8:] = 90.0  # everything from row 8 down stands still: 80 % of the image
@@ -269,21 +280,21 @@ def test_realistic_bodies(tmp_path, tbv, seed):
 
 def test_the_log_that_fooled_the_single_estimate(tmp_path):
     """TbV seed 48 as the sweep of 2026-11-25 made it (10 fps, 16 pictures): the estimate from all its
-    frames puts ring_front_center's silhouette far up into the world (IoU 0.61 then, 0.64 on today's
-    generator). Now the camera gets a right mask or, as its two halves disagree, none and a warning
-    with the measured agreement; every mask written is right."""
+    20 images put ring_front_center's silhouette far up into the world (IoU 0.61 then, 0.64 on the
+    generator of issue 39). Now 20 images cannot make two halves of 12 distinct views: no camera gets
+    a mask, and the warning names every body camera with the reason, also in its metadata."""
     truth = write_log(UPath(tmp_path / "src"), SynthConfig(seconds=1.5, seed=48, camera_fps=10, tbv=True))
     summary = convert_log(UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.log_id,
                           Argoverse2Options(split=None, lidar_ids=()))  # fmt: skip
     loader = open_sequence(tmp_path / "out", truth.log_id)
-    masks = _masks(loader)
-    declined = _right_or_declined(Converted(truth, summary, tmp_path / "out", loader), masks)
-    if "ring_front_center" in declined:
-        meta = _camera_meta(loader, "ring_front_center")["ego_mask"]
-        assert meta["decision"] == "halves disagree", meta
-        assert meta["split_iou"] < ego_mask.SPLIT_MIN_IOU or meta["split_columns"] < ego_mask.SPLIT_MIN_COLUMNS
-        (warning,) = [w for w in summary.warnings if "(halves disagree)" in w]
-        assert f"ring_front_center (split IoU {meta['split_iou']:.2f}" in warning, warning
+    assert _masks(loader) == {}
+    declined = _right_or_declined(Converted(truth, summary, tmp_path / "out", loader), {})
+    assert "ring_front_center" in declined
+    for camera_id in declined:
+        meta = _camera_meta(loader, camera_id)["ego_mask"]
+        assert meta["decision"] == "too few images" and meta["samples"] == 20 < ego_mask.MIN_SAMPLES, meta
+    (warning,) = [w for w in summary.warnings if "(too few images)" in w]
+    assert all(camera_id in warning for camera_id in declined), warning
 
 
 def _outline(top: list[int], height: int = 10) -> ego_mask._Outline:

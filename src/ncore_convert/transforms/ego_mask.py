@@ -12,9 +12,10 @@ decoded at reduced resolution:
    on rays that hit the box (``reach``); a camera whose rays hit the box's lower body (up to
    ``LOWER_BODY_FRACTION`` of its height: hood and trunk level) along at least
    ``MUST_SEE_BORDER`` of its bottom border must see the body.
-2. **Motion**: repeated views (a stopped car) are dropped; the world must have moved (median temporal standard deviation outside the reach of
-   at least ``MIN_WORLD_STD`` grey levels, once each frame's exposure is divided out); else (parked,
-   a static scene) no mask and a warning.
+2. **Motion**: repeated views (a stopped car, :func:`distinct_views`) are dropped, and at least
+   ``MIN_SAMPLES`` distinct ones must remain; the world must have moved (median temporal standard
+   deviation outside the reach of at least ``MIN_WORLD_STD`` grey levels, once each frame's
+   exposure is divided out); else (parked, a static scene) no mask and a warning.
 3. **Persistent edges**: the gradient of the log image (a brightness change multiplies an image,
    so it leaves log gradients alone) keeps its orientation across frames at the silhouette and at
    painted markings, while the world's edges move through: per pixel, the coherence of the
@@ -54,14 +55,14 @@ decoded at reduced resolution:
    at least ``SPLIT_MIN_IOU`` and silhouettes within ``SPLIT_ROW_TOLERANCE`` of the image height
    in at least ``SPLIT_MIN_COLUMNS`` of the columns. The body stays where it is in every frame; a
    piece of world that looked fixed (a textureless stretch, a shadow, a reflection that matched)
-   does so in one stretch of road, not in both. A cue that misleads the whole log in the same way
-   is not caught by this; on our generator that did not happen with 32 frames.
+   does so in one stretch of road, not in both. Each half needs ``MIN_SAMPLES / 2`` distinct
+   frames: with fewer (9 and 10 in a half-parked log of the sweep) a chance persistence can fool
+   both halves alike. A cue that misleads the whole log in the same way is not caught by this.
 10. The mask is upsampled to the camera's resolution (bilinear, then a threshold at one half).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,7 +72,7 @@ from scipy import ndimage
 MIN_WORLD_STD = 4.0  #: grey levels: below this, the world did not move enough to tell the body from it
 MIN_FRACTION = 0.005  #: of the image: a smaller region is not a car body
 MAX_FRACTION = 0.30  #: of the image: a larger "body" is the scene standing still
-MIN_SAMPLES = 16  #: fewer (distinct) sampled images than this cannot tell fixed from moving in two halves
+MIN_SAMPLES = 24  #: fewer (distinct) sampled images than this leave a half too few (12) to tell fixed from moving
 SPLIT_MIN_IOU = 0.9  #: the two halves' bodies must overlap this much (IoU) ...
 SPLIT_MIN_COLUMNS = 0.9  #: ... and their silhouettes agree in this share of the columns ...
 SPLIT_ROW_TOLERANCE = 0.01  #: ... to within this share of the image height
@@ -239,9 +240,11 @@ def cues(frames: np.ndarray) -> Cues:
     """The :class:`Cues` of greyscale frames, float32 [N,h,w] (grey levels)."""
     log_frames = _log_frames(frames)
     gx, gy = _sobel(log_frames)
-    z = (gx + 1j * gy) ** 2  # doubled angle: a contrast whose sign flips keeps its orientation
-    return Cues(len(frames), z.sum(axis=0).astype(np.complex64), np.abs(z).sum(axis=0).astype(np.float32),
-                _fold_sums(log_frames), _change_frames(frames))  # fmt: skip
+    xx, yy, xy = (np.einsum("nyx,nyx->yx", a, b) for a, b in ((gx, gx), (gy, gy), (gx, gy)))
+    # The sum of (gx + i gy)^2, the doubled angle (a contrast whose sign flips keeps its
+    # orientation), and of its magnitude.
+    return Cues(len(frames), (xx - yy + 2j * xy).astype(np.complex64), xx + yy, _fold_sums(log_frames),
+                _change_frames(frames))  # fmt: skip
 
 
 def persistent_edges(c: Cues) -> np.ndarray:
@@ -261,8 +264,12 @@ def _sobel(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The Sobel gradients (d/dx, d/dy) of images [N,h,w], as ``scipy.ndimage.sobel`` gives them
     (mirrored borders), by slicing: the filter's 3x3 taps on a padded copy."""
     p = np.pad(images, ((0, 0), (1, 1), (1, 1)), mode="symmetric")
-    across_rows = p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:]  # [N,h,w+2]
-    across_cols = p[:, :, :-2] + 2 * p[:, :, 1:-1] + p[:, :, 2:]  # [N,h+2,w]
+    across_rows = p[:, 1:-1] * 2  # [N,h,w+2]
+    across_rows += p[:, :-2]
+    across_rows += p[:, 2:]
+    across_cols = p[:, :, 1:-1] * 2  # [N,h+2,w]
+    across_cols += p[:, :, :-2]
+    across_cols += p[:, :, 2:]
     return across_rows[:, :, 2:] - across_rows[:, :, :-2], across_cols[:, 2:] - across_cols[:, :-2]
 
 
@@ -270,16 +277,16 @@ def _fold_sums(log_frames: np.ndarray) -> np.ndarray:
     """For :func:`mirror_folds`: per first body row, the sums over frames of the mirrored row
     differences' products and of each side's energy, float32 [3,h,w]."""
     diff = np.diff(log_frames, axis=1)  # [N,h-1,w]: row y+1 minus row y
+    energy = np.einsum("nyx,nyx->yx", diff, diff)  # [h-1,w]: each row difference's, over the frames
     h = log_frames.shape[1]
     sums = np.zeros((3, h, log_frames.shape[2]), dtype=np.float32)  # product, energy above, energy below
     for j in range(FOLD_PAIRS):
         # For first body row t: the difference j rows above the fold line (diff[t-3-j]) against
         # its mirror j rows below it (diff[t-1+j]); the line sits 1.5 rows above t.
-        above, below = diff[:, : h - 3 - 2 * j], diff[:, 2 + 2 * j :]
         rows = slice(3 + j, h - j)
-        sums[0, rows] += (above * below).sum(axis=0)
-        sums[1, rows] += (above * above).sum(axis=0)
-        sums[2, rows] += (below * below).sum(axis=0)
+        sums[0, rows] += np.einsum("nyx,nyx->yx", diff[:, : h - 3 - 2 * j], diff[:, 2 + 2 * j :])
+        sums[1, rows] += energy[: h - 3 - 2 * j]
+        sums[2, rows] += energy[2 + 2 * j :]
     return sums
 
 
@@ -300,25 +307,40 @@ def mirror_folds(c: Cues) -> np.ndarray:
 
 
 def _change_frames(frames: np.ndarray) -> np.ndarray:
-    """Each frame's fine-change energy (:func:`change_energy`), float32 [N,h,w]: its fine
+    """Each frame's fine-change energy (:func:`change_energy`) at half the resolution (2x2 bins: a
+    regional cue, smoothed over more than that), float32 [N,ceil(h/2),ceil(w/2)]: its fine
     structure's departure from the frames' median once its smooth brightness change is divided out."""
+    frames = _binned(frames)
     median = _over_frames(frames, 0.5)
-    smooth = {"sigma": (0, LIGHT_SIGMA_PX, LIGHT_SIGMA_PX), "truncate": SMOOTH_TRUNCATE}
-    lit = ndimage.gaussian_filter(median, LIGHT_SIGMA_PX, truncate=SMOOTH_TRUNCATE) + 1.0
+    sigma = LIGHT_SIGMA_PX / 2
+    smooth = {"sigma": (0, sigma, sigma), "truncate": SMOOTH_TRUNCATE}
+    lit = ndimage.gaussian_filter(median, sigma, truncate=SMOOTH_TRUNCATE) + 1.0
     change = frames - ndimage.gaussian_filter(frames, **smooth) / lit * median
     fine = change - ndimage.gaussian_filter(change, **smooth)
-    return ndimage.gaussian_filter(fine**2, (0, 2.5, 2.5), truncate=SMOOTH_TRUNCATE).astype(np.float32)
+    return ndimage.gaussian_filter(fine**2, (0, 1.25, 1.25), truncate=SMOOTH_TRUNCATE).astype(np.float32)
+
+
+def _binned(frames: np.ndarray) -> np.ndarray:
+    """Frames [N,h,w] averaged over 2x2 pixel bins (an odd last row or column repeated),
+    float32 [N,ceil(h/2),ceil(w/2)]."""
+    h, w = frames.shape[1:]
+    p = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
+    return (p[:, 0::2, 0::2] + p[:, 1::2, 0::2] + p[:, 0::2, 1::2] + p[:, 1::2, 1::2]) * np.float32(0.25)
 
 
 def change_energy(c: Cues) -> np.ndarray:
     """Per pixel, how much fine structure changes between frames once each frame's smooth
     brightness change (lighting, shade, exposure) is divided out, grey levels, float32 [h,w]: the
-    75 % quantile over frames, so glare in a few frames does not count.
+    75 % quantile over frames, so glare in a few frames does not count; computed on 2x2 bins and
+    brought back to the full grid bilinearly.
 
     Linear grey levels, not logs: a reflection adds the scene scaled by the paint's reflectance,
     so on a dark glossy body it is small in grey levels although large relative to the paint.
     """
-    return np.sqrt(_over_frames(c.change, 0.75)).astype(np.float32)
+    binned = np.sqrt(_over_frames(c.change, 0.75))
+    h, w = c.gradient_energy.shape
+    full = ndimage.zoom(binned, (2, 2), order=1, mode="nearest", grid_mode=True)[:h, :w]
+    return full.astype(np.float32)
 
 
 def _over_frames(values: np.ndarray, q: float) -> np.ndarray:
@@ -348,13 +370,18 @@ def silhouette(cost_body: np.ndarray, bonus: np.ndarray, reach: np.ndarray, jump
     allowed[:-1] &= np.flip(np.logical_and.accumulate(np.flip(reach, 0), axis=0), 0)  # reach from c down
     data = np.where(allowed, claimed - earned, np.inf)
     rows = np.arange(h + 1, dtype=np.float64)
+    slope = jump_cost * rows
     total = np.empty((w, h + 1))
     total[0] = data[:, 0]
-    for x in range(1, w):
+    down, up = np.empty(h + 1), np.empty(h + 1)
+    for x in range(1, w):  # the L1 distance transform of the previous column, in two sweeps
         prev = total[x - 1]
-        down = np.minimum.accumulate(prev - jump_cost * rows) + jump_cost * rows
-        up = np.minimum.accumulate((prev + jump_cost * rows)[::-1])[::-1] - jump_cost * rows
-        total[x] = data[:, x] + np.minimum(down, up)
+        np.minimum.accumulate(np.subtract(prev, slope, out=down), out=down)
+        down += slope
+        np.minimum.accumulate(np.add(prev, slope, out=up)[::-1], out=up[::-1])
+        up -= slope
+        np.minimum(down, up, out=total[x])
+        total[x] += data[:, x]
     path = np.empty(w, dtype=np.int64)
     path[-1] = int(np.argmin(total[-1]))
     for x in range(w - 1, 0, -1):
@@ -408,7 +435,36 @@ def split_agreement(first: _Outline, second: _Outline, height_px: int) -> tuple[
     return iou, columns
 
 
-def estimate(frames: np.ndarray, prior: BodyPrior, map_: Callable = map) -> EgoMaskEstimate:
+def world_samples(frames: np.ndarray, prior: BodyPrior) -> np.ndarray:
+    """The world's grey levels in each frame, with each frame's exposure divided out: an even
+    stride of the pixels outside the prior's reach (a median needs no more), float [N,K].
+
+    Args:
+        frames: float32 [N,h,w] grey levels at the prior's resolution.
+    """
+    world = ~prior.reach if (~prior.reach).any() else np.ones_like(prior.reach)
+    picked = np.flatnonzero(world.ravel())[:: max(1, int(world.sum()) // WORLD_SAMPLE_PIXELS)]
+    samples = frames.reshape(len(frames), -1)[:, picked]  # [N, <= 2 x WORLD_SAMPLE_PIXELS]
+    levels = np.median(samples, axis=1)  # each frame's exposure: not motion
+    return samples * (np.median(levels) / np.maximum(levels, 1.0))[:, None]
+
+
+def distinct_views(samples: np.ndarray) -> list[int]:
+    """The frames whose world (:func:`world_samples`, [N,K]) differs from that of every earlier
+    kept frame by a median of at least ``MIN_WORLD_STD`` grey levels, in order (the first always).
+
+    A stopped car gives the same view again: such repeats carry no evidence and would make the
+    world look fixed.
+    """
+    compared = samples[:, :: max(1, samples.shape[1] // REPEAT_PIXELS)]
+    kept = [0]
+    for i in range(1, len(samples)):
+        if np.median(np.abs(compared[i] - compared[kept]), axis=1).min() >= MIN_WORLD_STD:
+            kept.append(i)
+    return kept
+
+
+def estimate(frames: np.ndarray, prior: BodyPrior, require_agreement: bool = True) -> EgoMaskEstimate:
     """Estimate the ego pixels from greyscale frames sampled across a log (in time order).
 
     The estimate from all the frames is kept only when the two halves of the log, estimated
@@ -417,26 +473,15 @@ def estimate(frames: np.ndarray, prior: BodyPrior, map_: Callable = map) -> EgoM
     Args:
         frames: float32 [N,h,w], grey levels 0..255, at reduced resolution, in time order.
         prior: the camera's :func:`body_prior` at that resolution.
-        map_: how the two halves are worked on (``Executor.map`` for both at once); the result
-            does not depend on it.
+        require_agreement: False only to measure what the agreement test prevents (the sweep):
+            the mask from all the frames is kept whatever the halves say.
     """
     if len(frames) < MIN_SAMPLES:
         return EgoMaskEstimate(None, "too few images")
     if not prior.reach.any():
         return EgoMaskEstimate(None, "not seen")
-    world = ~prior.reach if (~prior.reach).any() else np.ones_like(prior.reach)
-    # The world's statistics come from an even stride of its pixels (a median needs no more).
-    picked = np.flatnonzero(world.ravel())[:: max(1, int(world.sum()) // WORLD_SAMPLE_PIXELS)]
-    samples = frames.reshape(len(frames), -1)[:, picked]  # [N, <= 2 x WORLD_SAMPLE_PIXELS]
-    levels = np.median(samples, axis=1)  # each frame's exposure: not motion
-    samples = samples * (np.median(levels) / np.maximum(levels, 1.0))[:, None]
-    # A stopped car gives the same view again: such repeats carry no evidence and would make the
-    # world look fixed, so only frames whose world differs from every kept one count.
-    compared = samples[:, :: max(1, samples.shape[1] // REPEAT_PIXELS)]
-    kept = [0]
-    for i in range(1, len(frames)):
-        if np.median(np.abs(compared[i] - compared[kept]), axis=1).min() >= MIN_WORLD_STD:
-            kept.append(i)
+    samples = world_samples(frames, prior)
+    kept = distinct_views(samples)
     world_std = float(np.median(samples.std(axis=0)))
     if world_std >= MIN_WORLD_STD and len(kept) < MIN_SAMPLES:
         return EgoMaskEstimate(None, "too few distinct images", world_std=world_std)
@@ -446,7 +491,7 @@ def estimate(frames: np.ndarray, prior: BodyPrior, map_: Callable = map) -> EgoM
     r0 = max(0, int(np.flatnonzero(prior.reach.any(axis=1))[0]) - 2 * REFERENCE_BAND_PX)
     crop, reach = frames[kept, r0:], prior.reach[r0:]
     half = len(kept) // 2  # the log's first and second halves: disjoint stretches of road
-    first, second = map_(cues, (crop[:half], crop[half:]))
+    first, second = cues(crop[:half]), cues(crop[half:])
     outline = _outline(first + second, reach)
     mask = np.vstack([np.zeros((r0, reach.shape[1]), dtype=bool), outline.body])
     covered = float(mask.mean())
@@ -459,9 +504,9 @@ def estimate(frames: np.ndarray, prior: BodyPrior, map_: Callable = map) -> EgoM
         return EgoMaskEstimate(None, "implausible coverage", **figures)
     if figures["edge"] + FOLD_WEIGHT / EDGE_WEIGHT * figures["fold"] < MIN_EDGE:  # the silhouette's evidence
         return EgoMaskEstimate(None, "no persistent silhouette", **figures)
-    iou, columns = split_agreement(*map_(_outline, (first, second), (reach, reach)), frames.shape[1])
+    iou, columns = split_agreement(_outline(first, reach), _outline(second, reach), frames.shape[1])
     figures.update(split_iou=iou, split_columns=columns)
-    if iou < SPLIT_MIN_IOU or columns < SPLIT_MIN_COLUMNS:
+    if require_agreement and (iou < SPLIT_MIN_IOU or columns < SPLIT_MIN_COLUMNS):
         return EgoMaskEstimate(None, "halves disagree", **figures)
     return EgoMaskEstimate(mask, "mask", **figures)
 

@@ -346,7 +346,7 @@ def convert_log(
     """
     started = time.perf_counter()
     progress = progress or Progress()
-    plan = plan_log(root_dir, log_id, options)
+    plan = plan_log(root_dir, log_id, options, pool.run if pool else None)
     progress.total(plan.n_frames)
     parts = log_jobs(plan)
     output_dir.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -17,6 +18,7 @@ import numpy as np
 import PIL.Image
 from upath import UPath
 
+from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.masks import read_mask_folder
 from ncore_convert.transforms import ego_mask
@@ -48,6 +50,21 @@ class EgoMask:
         return PIL.Image.fromarray(ego_mask.upsample(self.reduced, width, height).astype(np.uint8) * 255, mode="L")
 
 
+#: The estimate's rule, for each camera's metadata.
+_RULE = (
+    "below the silhouette that best follows persistent edges and mirror folds, with the world changing more and"
+    " keeping less fixed structure above it, inside the nominal ego box's reach, attached to the bottom border;"
+    f" no mask with fewer than {ego_mask.MIN_SAMPLES} distinct views among the sampled images (more are read"
+    f" when views repeat), when the world moved less than {ego_mask.MIN_WORLD_STD} grey levels, the region is"
+    f" not distinct from the world (max(change ratio - 1, 0) / {ego_mask.CHANGE_RATIO_UNIT - 1:.2f} + structure"
+    f" / {ego_mask.STRUCTURE_UNIT} < 1), the silhouette is not persistent (edge +"
+    f" {ego_mask.FOLD_WEIGHT / ego_mask.EDGE_WEIGHT:.2f} x fold < {ego_mask.MIN_EDGE}), the mask would cover more"
+    f" than {ego_mask.MAX_FRACTION:.0%} of the image, or the log's first and second halves, estimated alone,"
+    f" disagree (split IoU < {ego_mask.SPLIT_MIN_IOU} or silhouettes within {ego_mask.SPLIT_ROW_TOLERANCE:.0%} of"
+    f" the height in < {ego_mask.SPLIT_MIN_COLUMNS:.0%} of the columns)"
+)
+
+
 def reduction(intr: av2.CameraIntrinsics) -> int:
     """The power-of-two decode reduction of a camera (2048 px -> 4, TbV's 1024 px -> 2)."""
     return 2 ** max(0, int(math.log2(max(intr.width_px, intr.height_px) / REDUCED_SIDE_PX)))
@@ -63,10 +80,10 @@ def _prior(shape: tuple[int, int], intr: av2.CameraIntrinsics, T_camera_ego: np.
 
 def _estimate(
     log_dir: UPath, camera: str, stamps_ns: np.ndarray, intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray,
-    box: ego_mask.EgoBox, pool: ThreadPoolExecutor | None = None,
+    box: ego_mask.EgoBox, require_agreement: bool = True,
 ) -> EgoMask:  # fmt: skip
-    """One camera's estimate; ``pool`` (optional) decodes its images and works on its halves in
-    parallel threads (the result does not depend on it)."""
+    """One camera's estimate; ``require_agreement``: as in ``ego_mask.estimate`` (False only to
+    measure the agreement test)."""
     scale = reduction(intr)
     prior = _prior((-(-intr.height_px // scale), -(-intr.width_px // scale)), intr, T_camera_ego, box)
     if not prior.must_see:  # by the calibration, no body along the bottom border: nothing to estimate
@@ -75,18 +92,33 @@ def _estimate(
                         "ego_box_m": [box.length_m, box.width_m, box.height_m],
                         "rule": f"not estimated: rays along less than {ego_mask.MUST_SEE_BORDER:.0%} of the bottom"
                         " border hit the nominal ego box's lower body"})  # fmt: skip
+
+    def decoded(indices: np.ndarray) -> np.ndarray:
+        return np.stack([av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), scale) for i in indices])
+
     picks = spread_indices(len(stamps_ns), SAMPLES)
-    map_ = pool.map if pool is not None else map
-    frames = np.stack(list(map_(lambda i: av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), scale), picks)))
+    frames = decoded(picks)
     h, w = frames.shape[1:]
     if (h, w) != prior.reach.shape:
         prior = _prior((h, w), intr, T_camera_ego, box)
-    result = ego_mask.estimate(frames, prior, map_)
+    distinct = ego_mask.distinct_views(ego_mask.world_samples(frames, prior))
+    if len(distinct) < len(picks) < len(stamps_ns):
+        # The car stopped (repeated views carry no evidence): look between the samples too, once,
+        # and keep at most SAMPLES of the distinct views, spread over them, in time order.
+        more = np.setdiff1d(np.arange(len(stamps_ns)), picks)
+        more = more[spread_indices(len(more), SAMPLES)]
+        order = np.argsort(np.concatenate([picks, more]))
+        picks, frames = np.concatenate([picks, more])[order], np.concatenate([frames, decoded(more)])[order]
+        distinct = ego_mask.distinct_views(ego_mask.world_samples(frames, prior))
+        distinct = [distinct[i] for i in spread_indices(len(distinct), SAMPLES)]
+        frames = frames[distinct]
+    result = ego_mask.estimate(frames, prior, require_agreement)
     meta = {
         "method": "estimate",
         "decision": result.decision,
         "must_see": prior.must_see,
         "samples": len(picks),
+        "distinct_samples": len(distinct),
         "reduced_size_px": [w, h],
         "reach_fraction": round(float(prior.reach.mean()), 5),
         "lower_body_border_fraction": round(prior.lower_border, 3),
@@ -99,17 +131,14 @@ def _estimate(
         "split_iou": round(result.split_iou, 3),
         "split_columns": round(result.split_columns, 3),
         "ego_box_m": [box.length_m, box.width_m, box.height_m],
-        "rule": "below the silhouette that best follows persistent edges and mirror folds, with the world changing more and"
-        " keeping less fixed structure above it, inside the nominal ego box's reach, attached to the bottom"
-        f" border; no mask when the world moved less than {ego_mask.MIN_WORLD_STD} grey levels, the region"
-        f" is not distinct from the world (max(change ratio - 1, 0) / {ego_mask.CHANGE_RATIO_UNIT - 1:.2f} + structure /"
-        f" {ego_mask.STRUCTURE_UNIT} < 1), the silhouette is not persistent (edge + {ego_mask.FOLD_WEIGHT / ego_mask.EDGE_WEIGHT:.2f}"
-        f" x fold < {ego_mask.MIN_EDGE}), the"
-        f" mask would cover more than {ego_mask.MAX_FRACTION:.0%} of the image, or the log's first and second"
-        f" halves, estimated alone, disagree (split IoU < {ego_mask.SPLIT_MIN_IOU} or silhouettes within"
-        f" {ego_mask.SPLIT_ROW_TOLERANCE:.0%} of the height in < {ego_mask.SPLIT_MIN_COLUMNS:.0%} of the columns)",
+        "rule": _RULE,
     }
     return EgoMask(meta, reduced=result.mask)
+
+
+def _estimate_job(*args, progress=None) -> EgoMask:
+    """:func:`_estimate` as a ``JobPool`` job (which passes a progress callback: no frames written here)."""
+    return _estimate(*args)
 
 
 def _agreement(camera: str, meta: dict) -> str:
@@ -120,7 +149,7 @@ def _agreement(camera: str, meta: dict) -> str:
 
 def plan_ego_masks(
     log_dir: UPath, option: str, cameras: dict[str, tuple[np.ndarray, av2.CameraIntrinsics, np.ndarray]],
-    warnings: list[str], box: ego_mask.EgoBox,
+    warnings: list[str], box: ego_mask.EgoBox, run_jobs: Callable[[list[Job]], list] | None = None,
 ) -> dict[str, EgoMask]:  # fmt: skip
     """Every camera's ego mask under ``--ego-masks`` ``option`` (``estimate``, ``none`` or a folder).
 
@@ -129,6 +158,9 @@ def plan_ego_masks(
         warnings: fallbacks are reported here, one line per kind of fallback; a camera that must
             see the body (``ego_mask.BodyPrior.must_see``) but gets no mask is always one.
         box: the nominal ego vehicle of the prior.
+        run_jobs: runs the per-camera estimates (``JobPool.run``: the conversion's worker processes,
+            idle while a log is planned); None: threads in this process. The result does not
+            depend on it.
     """
     if option == "none":
         return {cam: EgoMask({"method": "none"}) for cam in cameras}
@@ -141,10 +173,13 @@ def plan_ego_masks(
             else EgoMask({"method": "user", "decision": "no file: no mask"})
             for cam in cameras
         }
-    # One camera after another, each one's image decoding and halves in parallel threads (decoding
-    # and numpy's array work free the GIL): no thread idles while another camera finishes.
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        masks = {cam: _estimate(log_dir, cam, *inputs, box, pool) for cam, inputs in cameras.items()}
+    jobs = [(_estimate_job, (log_dir, cam, *inputs, box)) for cam, inputs in cameras.items()]
+    if run_jobs is None:  # threads: JPEG decoding and most array work free the GIL
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            estimated = list(pool.map(lambda job: job[0](*job[1]), jobs))
+    else:
+        estimated = run_jobs(jobs)
+    masks = dict(zip(cameras, estimated, strict=True))
     fallbacks: dict[str, list[str]] = {}
     for cam, mask in masks.items():
         decision = mask.meta["decision"]

@@ -9,6 +9,7 @@ float64 edge ``T_world_world_global``, the first ego pose in the city; ``--world
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -21,6 +22,7 @@ from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerT
 from ncore_convert.converters.argoverse2.masks import EgoMask, plan_ego_masks
 from ncore_convert.converters.common import ConsumerOptions, select_sensors
 from ncore_convert.errors import SourceError, UsageError
+from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.files import require_folder
 from ncore_convert.transforms import labels, lidar_timing
@@ -244,8 +246,11 @@ class LogPlan:
         return len(self.sweep_timestamps_ns) + sum(len(self.inputs.image_timestamps_ns[c]) for c in self.camera_ids)
 
 
-def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPlan:
-    """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split)."""
+def plan_log(
+    root_dir: UPath, log_id: str, options: Argoverse2Options, run_jobs: Callable[[list[Job]], list] | None = None
+) -> LogPlan:
+    """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split);
+    ``run_jobs`` runs the ego-mask estimates (``plan_ego_masks``)."""
     warnings: list[str] = []
     log_dir = options.log_dir(root_dir, log_id)
     require_folder(log_dir, "log directory")
@@ -307,7 +312,8 @@ def plan_log(root_dir: UPath, log_id: str, options: Argoverse2Options) -> LogPla
     cameras = {cam: consumer.camera_spec(_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids}
     camera_inputs = {cam: (inputs.image_timestamps_ns[cam], inputs.intrinsics[cam], inputs.T_sensor_ego[cam])
                      for cam in camera_ids}  # fmt: skip
-    ego_masks = plan_ego_masks(log_dir, options.ego_masks, camera_inputs, warnings, EgoBox(*options.ego_box_m))
+    box = EgoBox(*options.ego_box_m)
+    ego_masks = plan_ego_masks(log_dir, options.ego_masks, camera_inputs, warnings, box, run_jobs)
     return LogPlan(
         inputs=inputs,
         options=options,
