@@ -265,13 +265,15 @@ def test_a_body_seeing_camera_without_a_mask_is_a_warning(tmp_path, av2):
 def test_realistic_bodies(tmp_path, tbv, seed):
     """The realistic body (the default), 3 seeds per dataset: every body camera gets a mask with
     IoU >= 0.95 against the generator's true body (false-positive pixels above the silhouette count
-    against it) or no mask and a warning naming it, never a wrong one; each log gets masks; no
-    other camera gets one. (Each seed is its own case, so the six logs spread over the workers:
-    ``OWN_SCOPE`` in conftest.py.)"""
-    truth = write_log(UPath(tmp_path / "src" / "val"),
-                      SynthConfig(seconds=1.5, seed=seed, camera_fps=20, pictures=32, tbv=tbv))  # fmt: skip
+    against it) or no mask and a warning naming it, never a wrong one; each log gets masks. Only the
+    body cameras have images and are converted, and there is no lidar (the cameras without a body:
+    the easy-body test above, and the sweep). (Each seed is its own case, so the six logs spread
+    over the workers: ``OWN_SCOPE`` in conftest.py.)"""
+    config = SynthConfig(seconds=1.5, seed=seed, camera_fps=20, pictures=32, tbv=tbv, sweeps=False,
+                         image_cameras=EGO_CAMERAS)  # fmt: skip
+    truth = write_log(UPath(tmp_path / "src" / "val"), config)
     root = tmp_path / "src" if not tbv else tmp_path / "src" / "val"
-    options = Argoverse2Options(split=None if tbv else "val", lidar_ids=())
+    options = Argoverse2Options(split=None if tbv else "val", lidar_ids=(), camera_ids=tuple(truth.ego_masks))
     summary = convert_log(UPath(root), UPath(tmp_path / "out"), truth.log_id, options)
     masks = _masks(open_sequence(tmp_path / "out", truth.log_id))
     _right_or_declined(Converted(truth, summary, tmp_path / "out", None), masks)
