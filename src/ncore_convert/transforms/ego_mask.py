@@ -64,6 +64,7 @@ decoded at reduced resolution:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import PIL.Image
@@ -435,6 +436,19 @@ def split_agreement(first: _Outline, second: _Outline, height_px: int) -> tuple[
     return iou, columns
 
 
+class Views(NamedTuple):
+    """What the frames of a log show of the world (:func:`views`)."""
+
+    samples: np.ndarray  #: the world's exposure-normalised grey levels (:func:`world_samples`), [N,K]
+    distinct: list[int]  #: the frames that are not repeated views (:func:`distinct_views`)
+
+
+def views(frames: np.ndarray, prior: BodyPrior) -> Views:
+    """The :class:`Views` of frames float32 [N,h,w] (grey levels at the prior's resolution)."""
+    samples = world_samples(frames, prior)
+    return Views(samples, distinct_views(samples))
+
+
 def world_samples(frames: np.ndarray, prior: BodyPrior) -> np.ndarray:
     """The world's grey levels in each frame, with each frame's exposure divided out: an even
     stride of the pixels outside the prior's reach (a median needs no more), float [N,K].
@@ -464,7 +478,9 @@ def distinct_views(samples: np.ndarray) -> list[int]:
     return kept
 
 
-def estimate(frames: np.ndarray, prior: BodyPrior, require_agreement: bool = True) -> EgoMaskEstimate:
+def estimate(
+    frames: np.ndarray, prior: BodyPrior, require_agreement: bool = True, seen: Views | None = None
+) -> EgoMaskEstimate:
     """Estimate the ego pixels from greyscale frames sampled across a log (in time order).
 
     The estimate from all the frames is kept only when the two halves of the log, estimated
@@ -475,13 +491,13 @@ def estimate(frames: np.ndarray, prior: BodyPrior, require_agreement: bool = Tru
         prior: the camera's :func:`body_prior` at that resolution.
         require_agreement: False only to measure what the agreement test prevents (the sweep):
             the mask from all the frames is kept whatever the halves say.
+        seen: the frames' :func:`views`, when the caller has them already.
     """
     if len(frames) < MIN_SAMPLES:
         return EgoMaskEstimate(None, "too few images")
     if not prior.reach.any():
         return EgoMaskEstimate(None, "not seen")
-    samples = world_samples(frames, prior)
-    kept = distinct_views(samples)
+    samples, kept = seen or views(frames, prior)
     world_std = float(np.median(samples.std(axis=0)))
     if world_std >= MIN_WORLD_STD and len(kept) < MIN_SAMPLES:
         return EgoMaskEstimate(None, "too few distinct images", world_std=world_std)

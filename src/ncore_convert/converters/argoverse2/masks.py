@@ -101,24 +101,25 @@ def _estimate(
     h, w = frames.shape[1:]
     if (h, w) != prior.reach.shape:
         prior = _prior((h, w), intr, T_camera_ego, box)
-    distinct = ego_mask.distinct_views(ego_mask.world_samples(frames, prior))
-    if len(distinct) < len(picks) < len(stamps_ns):
+    seen = ego_mask.views(frames, prior)
+    if len(seen.distinct) < len(picks) < len(stamps_ns):
         # The car stopped (repeated views carry no evidence): look between the samples too, once,
         # and keep at most SAMPLES of the distinct views, spread over them, in time order.
         more = np.setdiff1d(np.arange(len(stamps_ns)), picks)
         more = more[spread_indices(len(more), SAMPLES)]
         order = np.argsort(np.concatenate([picks, more]))
         picks, frames = np.concatenate([picks, more])[order], np.concatenate([frames, decoded(more)])[order]
-        distinct = ego_mask.distinct_views(ego_mask.world_samples(frames, prior))
-        distinct = [distinct[i] for i in spread_indices(len(distinct), SAMPLES)]
-        frames = frames[distinct]
-    result = ego_mask.estimate(frames, prior, require_agreement)
+        seen = ego_mask.views(frames, prior)
+        if len(seen.distinct) > SAMPLES:
+            frames = frames[[seen.distinct[i] for i in spread_indices(len(seen.distinct), SAMPLES)]]
+            seen = ego_mask.views(frames, prior)
+    result = ego_mask.estimate(frames, prior, require_agreement, seen)
     meta = {
         "method": "estimate",
         "decision": result.decision,
         "must_see": prior.must_see,
         "samples": len(picks),
-        "distinct_samples": len(distinct),
+        "distinct_samples": len(seen.distinct),
         "reduced_size_px": [w, h],
         "reach_fraction": round(float(prior.reach.mean()), 5),
         "lower_body_border_fraction": round(prior.lower_border, 3),
