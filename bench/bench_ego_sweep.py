@@ -35,6 +35,7 @@ sweep then takes minutes, not the better part of two hours).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shutil
@@ -65,25 +66,37 @@ class Case:
     config: dict
 
 
-def _log(case: Case, folder: str):
-    """Synthesise the case's log into ``folder`` (or find it there from an earlier run, as the
-    generator is deterministic per seed and config): its directory and the true ego pixels."""
-    from upath import UPath
-
-    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+def config(case: Case):
+    """The case's ``SynthConfig``."""
+    from ncore_convert.synth.argoverse2 import SynthConfig
     from ncore_convert.synth.ego import EGO_CAMERAS
 
-    config = SynthConfig(**{"seconds": 1.5, "seed": case.seed, "camera_fps": 20, "pictures": 32, "tbv": case.tbv,
-                            "sweeps": False, "image_cameras": EGO_CAMERAS, **case.config})  # fmt: skip
-    home = UPath(folder) / f"{case.group.replace(' ', '_')}_{'TbV' if case.tbv else 'AV2'}_{case.seed}"
+    return SynthConfig(**{"seconds": 1.5, "seed": case.seed, "camera_fps": 20, "pictures": 32, "tbv": case.tbv,
+                          "sweeps": False, "image_cameras": EGO_CAMERAS, **case.config})  # fmt: skip
+
+
+def log_folder(case: Case) -> str:
+    """The folder name of the case's log under ``--keep``: another config is another log."""
+    digest = hashlib.sha1(repr(config(case)).encode()).hexdigest()[:10]
+    return f"{case.group.replace(' ', '_')}_{'TbV' if case.tbv else 'AV2'}_{case.seed}_{digest}"
+
+
+def _log(case: Case, folder: str):
+    """Synthesise the case's log into ``folder`` (or find it there from an earlier run, as the
+    generator is deterministic per seed and config): its directory, config and true ego pixels."""
+    from upath import UPath
+
+    from ncore_convert.synth.argoverse2 import write_log
+
+    home = UPath(folder) / log_folder(case)
     done = home / "truth.npz"
     if not done.exists():  # written last: a log without it is incomplete and made again
         shutil.rmtree(home, ignore_errors=True)
-        truth = write_log(home, config)
+        truth = write_log(home, config(case))
         np.savez_compressed(done, log_id=truth.log_id, **{f"mask_{cam}": m for cam, m in truth.ego_masks.items()})
     with np.load(done) as stored:
         masks = {key.removeprefix("mask_"): stored[key] for key in stored.files if key.startswith("mask_")}
-        return home / str(stored["log_id"]), config, masks
+        return home / str(stored["log_id"]), config(case), masks
 
 
 def _run(case: Case, keep: str | None = None) -> list[dict]:
@@ -94,10 +107,10 @@ def _run(case: Case, keep: str | None = None) -> list[dict]:
     from ncore_convert.transforms.ego_mask import EgoBox
 
     with tempfile.TemporaryDirectory() as tmp:
-        log_dir, config, true_masks = _log(case, keep or tmp)
+        log_dir, synth_config, true_masks = _log(case, keep or tmp)
         intrinsics, extrinsics = av2.read_intrinsics(log_dir), av2.read_sensor_extrinsics(log_dir)
         cameras = {cam: (av2.list_image_timestamps_ns(log_dir, cam), intrinsics[cam], extrinsics[cam])
-                   for cam in config.cameras}  # fmt: skip
+                   for cam in synth_config.cameras}  # fmt: skip
         started = time.perf_counter()
         masks = planning.plan_ego_masks(log_dir, "estimate", cameras, [], EgoBox())
         seconds = time.perf_counter() - started
@@ -134,10 +147,10 @@ def cases(seeds: int, hard_seeds: int, first_seed: int) -> list[Case]:
         for tbv in (False, True):
             for body in ("realistic", "easy"):
                 out.append(Case(f"main {body}", tbv, seed, {"ego_body": body}))
-    for name, config in HARD_CASES.items():
+    for name, fields in HARD_CASES.items():
         for seed in range(first_seed, first_seed + hard_seeds):
             for tbv in (False, True):
-                out.append(Case(name, tbv, seed, config))
+                out.append(Case(name, tbv, seed, fields))
     return out
 
 
@@ -200,7 +213,7 @@ def main() -> None:
     parser.add_argument(
         "--keep",
         help="keep the synthesised logs in this folder and reuse them on later runs (about"
-        " 25 MB a log; delete it when the generator changes)",
+        " 25 MB a log, named by its config; delete it when the generator changes)",
     )
     args = parser.parse_args()
     todo = cases(args.seeds, args.hard_seeds, args.first_seed)
