@@ -75,9 +75,10 @@ def config(case: Case):
                           "sweeps": False, "image_cameras": EGO_CAMERAS, **case.config})  # fmt: skip
 
 
-def log_folder(case: Case) -> str:
-    """The folder name of the case's log under ``--keep``: another config is another log."""
-    digest = hashlib.sha1(repr(config(case)).encode()).hexdigest()[:10]
+def log_folder(case: Case, synth_config) -> str:
+    """The folder name of the case's log (``synth_config``: its ``config``) under ``--keep``:
+    another config is another log."""
+    digest = hashlib.sha1(repr(synth_config).encode()).hexdigest()[:10]
     return f"{case.group.replace(' ', '_')}_{'TbV' if case.tbv else 'AV2'}_{case.seed}_{digest}"
 
 
@@ -88,15 +89,16 @@ def _log(case: Case, folder: str):
 
     from ncore_convert.synth.argoverse2 import write_log
 
-    home = UPath(folder) / log_folder(case)
+    synth_config = config(case)
+    home = UPath(folder) / log_folder(case, synth_config)
     done = home / "truth.npz"
     if not done.exists():  # written last: a log without it is incomplete and made again
         shutil.rmtree(home, ignore_errors=True)
-        truth = write_log(home, config(case))
+        truth = write_log(home, synth_config)
         np.savez_compressed(done, log_id=truth.log_id, **{f"mask_{cam}": m for cam, m in truth.ego_masks.items()})
     with np.load(done) as stored:
         masks = {key.removeprefix("mask_"): stored[key] for key in stored.files if key.startswith("mask_")}
-        return home / str(stored["log_id"]), config(case), masks
+        return home / str(stored["log_id"]), synth_config, masks
 
 
 def _run(case: Case, keep: str | None = None) -> list[dict]:

@@ -299,9 +299,9 @@ def test_the_log_that_fooled_the_single_estimate(tmp_path):
     assert all(camera_id in warning for camera_id in declined), warning
 
 
-def _outline(top: list[int], height: int = 10) -> ego_mask._Outline:
+def _outline(top: list[int], height: int = 10) -> ego_mask.Outline:
     top_rows = np.array(top)
-    return ego_mask._Outline(top_rows, np.arange(height)[:, None] >= top_rows[None, :], {})
+    return ego_mask.Outline(top_rows, np.arange(height)[:, None] >= top_rows[None, :], {})
 
 
 def test_split_agreement_counts_overlap_and_columns():

@@ -391,7 +391,7 @@ def silhouette(cost_body: np.ndarray, bonus: np.ndarray, reach: np.ndarray, jump
 
 
 @dataclass(frozen=True)
-class _Outline:
+class Outline:
     """One set of cues' silhouette: per column of the crop, the first body row (``h``: none), int
     [w], the body below it, bool [h,w], and the figures the decision reads."""
 
@@ -400,7 +400,7 @@ class _Outline:
     figures: dict
 
 
-def _outline(c: Cues, reach: np.ndarray) -> _Outline:
+def _outline(c: Cues, reach: np.ndarray) -> Outline:
     """The silhouette (:func:`silhouette`) that cues ``c`` of the crop give inside ``reach`` [h,w]."""
     edge = persistent_edges(c)
     change = change_energy(c)
@@ -419,11 +419,11 @@ def _outline(c: Cues, reach: np.ndarray) -> _Outline:
     below = np.arange(h)[:, None] >= top[None, :]
     fixed = float(np.median(structure[below])) if below.any() else 0.0
     body = ndimage.binary_opening(below, structure=np.ones((3, 3))) & reach
-    return _Outline(top, body, {"edge": edge_on, "fold": fold_on, "change_ratio": _change_ratio(change, top),
+    return Outline(top, body, {"edge": edge_on, "fold": fold_on, "change_ratio": _change_ratio(change, top),
                                 "structure": fixed})  # fmt: skip
 
 
-def split_agreement(first: _Outline, second: _Outline, height_px: int) -> tuple[float, float]:
+def split_agreement(first: Outline, second: Outline, height_px: int) -> tuple[float, float]:
     """How two independent estimates of one body agree: the IoU of their bodies, and the share of
     the columns either claims whose first body rows lie within ``SPLIT_ROW_TOLERANCE`` of the
     image height (``height_px``) of each other (a column one claims and the other not disagrees)."""
