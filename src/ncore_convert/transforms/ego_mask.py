@@ -208,7 +208,12 @@ def body_prior(
 
 
 def _log_frames(frames: np.ndarray) -> np.ndarray:
-    return np.log(frames + LOG_OFFSET) - np.log(LOG_OFFSET + 128.0)
+    """Log grey levels of frames float32 [N,h,w], 0 at mid-grey, float32 [N,h,w] (the gradients and
+    fold sums that follow stay in float32)."""
+    logs = frames + np.float32(LOG_OFFSET)
+    np.log(logs, out=logs)
+    logs -= np.float32(np.log(LOG_OFFSET + 128.0))
+    return logs
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ float64 edge ``T_world_world_global``, the first ego pose in the city; ``--world
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -250,7 +251,7 @@ def plan_log(
     root_dir: UPath, log_id: str, options: Argoverse2Options, run_jobs: Callable[[list[Job]], list] | None = None
 ) -> LogPlan:
     """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split);
-    ``run_jobs`` runs the ego-mask estimates (``plan_ego_masks``)."""
+    ``run_jobs`` runs the ego-mask estimates (``plan_ego_masks``), in the background of the rest."""
     warnings: list[str] = []
     log_dir = options.log_dir(root_dir, log_id)
     require_folder(log_dir, "log directory")
@@ -278,6 +279,25 @@ def plan_log(
         inputs = _clipped(inputs, window_us)
         camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings, " in the clip window")
 
+    camera_inputs = {cam: (inputs.image_timestamps_ns[cam], inputs.intrinsics[cam], inputs.T_sensor_ego[cam])
+                     for cam in camera_ids}  # fmt: skip
+    mask_warnings: list[str] = []
+    # The ego-mask estimates need only the cameras: they run (on run_jobs) while the rest is planned
+    # here, and are collected last, so their warnings come last as before.
+    with ThreadPoolExecutor(1) as background:
+        masks = background.submit(plan_ego_masks, log_dir, options.ego_masks, camera_inputs, mask_warnings,
+                                  EgoBox(*options.ego_box_m), run_jobs)  # fmt: skip
+        plan = _plan_rest(log_dir, log_id, options, inputs, camera_ids, lidar_ids, window_us, warnings)
+        ego_masks = masks.result()
+    warnings.extend(mask_warnings)
+    return replace(plan, ego_masks=ego_masks)
+
+
+def _plan_rest(
+    log_dir: UPath, log_id: str, options: Argoverse2Options, inputs: LogInputs, camera_ids: list[str],
+    lidar_ids: list[str], window_us: tuple[int, int] | None, warnings: list[str],
+) -> LogPlan:  # fmt: skip
+    """The plan's decisions after the sensors and the window (all but the ego masks)."""
     needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids), not options.tbv)
     T_rig_world, T_world_city = ego_trajectory(inputs, needed_us, warnings, cut=window_us is not None)
     T_world_world_global, world_global_meta = consumer.world_global(
@@ -310,10 +330,6 @@ def plan_log(
     if cuboid_labels is not None:
         warnings.extend(cuboid_labels.warnings)
     cameras = {cam: consumer.camera_spec(_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids}
-    camera_inputs = {cam: (inputs.image_timestamps_ns[cam], inputs.intrinsics[cam], inputs.T_sensor_ego[cam])
-                     for cam in camera_ids}  # fmt: skip
-    box = EgoBox(*options.ego_box_m)
-    ego_masks = plan_ego_masks(log_dir, options.ego_masks, camera_inputs, warnings, box, run_jobs)
     return LogPlan(
         inputs=inputs,
         options=options,
@@ -330,7 +346,6 @@ def plan_log(
         cuboid_labels=cuboid_labels,
         dynamic_boxes=dynamic_boxes,
         solids=solids,
-        ego_masks=ego_masks,
     )
 
 
