@@ -28,6 +28,9 @@ demo: $(STAMP)
 	@echo "demo output: $(DEMO)/out"
 
 test: $(STAMP)
+	# lint and formatting first: both are part of the tests (pyproject.toml [tool.ruff])
+	$(VENV)/bin/ruff check src tests bench
+	$(VENV)/bin/ruff format --check src tests bench
 	# one worker per core; a file's tests stay on one worker (module fixtures built once), the cases
 	# of OWN_SCOPE tests go out one by one, slowest files first (tests/conftest.py)
 	$(PY) -m pytest -q -n auto --dist loadfile --no-loadscope-reorder

@@ -139,10 +139,25 @@ def convert_cli(log_dir: Path, out: Path, workers: int, model_source: str) -> fl
     shutil.rmtree(out, ignore_errors=True)
     t = time.perf_counter()
     subprocess.run(
-        [str(cli), "--root-dir", str(log_dir.parent.parent), "--output-dir", str(out), "--workers", str(workers),
-         "--no-progress", "--no-validate", "argoverse2-v4", "--split", "val", "--lidar-model-source", model_source],
-        check=True, capture_output=True,
-    )  # fmt: skip
+        [
+            str(cli),
+            "--root-dir",
+            str(log_dir.parent.parent),
+            "--output-dir",
+            str(out),
+            "--workers",
+            str(workers),
+            "--no-progress",
+            "--no-validate",
+            "argoverse2-v4",
+            "--split",
+            "val",
+            "--lidar-model-source",
+            model_source,
+        ],
+        check=True,
+        capture_output=True,
+    )
     subprocess.run(["sync"], check=True)
     return time.perf_counter() - t
 

@@ -50,8 +50,11 @@ def bench_fit(repeat: int) -> None:
             started = time.perf_counter()
             fit = fit_ftheta(pinhole)
             seconds.append(time.perf_counter() - started)
-        print(f"  {name}: {statistics.median(seconds):.3f} s; worst {fit.max_error_px:.4f} px,"
-              f" median {fit.median_error_px:.4f} px", flush=True)  # fmt: skip
+        print(
+            f"  {name}: {statistics.median(seconds):.3f} s; worst {fit.max_error_px:.4f} px,"
+            f" median {fit.median_error_px:.4f} px",
+            flush=True,
+        )
 
 
 def synth_av2(work: Path) -> tuple[Path, str]:
@@ -85,8 +88,13 @@ def speed_rule_ids(observations, classes: list[str]) -> set[str]:
         rows = np.flatnonzero(ids == track)
         rows = rows[np.argsort(observations.timestamps_us[rows])]
         t_s = (observations.timestamps_us[rows] - observations.timestamps_us[rows[0]]) * 1e-6
-        padded = np.concatenate([np.repeat(observations.centers_m[rows[:1]], 2, 0), observations.centers_m[rows],
-                                 np.repeat(observations.centers_m[rows[-1:]], 2, 0)])  # fmt: skip
+        padded = np.concatenate(
+            [
+                np.repeat(observations.centers_m[rows[:1]], 2, 0),
+                observations.centers_m[rows],
+                np.repeat(observations.centers_m[rows[-1:]], 2, 0),
+            ]
+        )
         smooth = np.median(np.lib.stride_tricks.sliding_window_view(padded, 5, axis=0), axis=-1)
         later = np.searchsorted(t_s, t_s + min(2.0, t_s[-1]) - 1e-9)
         ok = (later < len(t_s)) & (later > np.arange(len(t_s)))
@@ -110,8 +118,13 @@ def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
     plan = plan_log(UPath(root), log_id, Argoverse2Options(split="val", camera_ids=()))
     traj, annotations = plan.T_rig_world, plan.inputs.annotations
     T_box_world = traj.interpolate(traj.relative_seconds(annotations.timestamps_ns)) @ annotations.T_object_ego
-    observations = dynamic.TrackObservations(annotations.track_uuids, annotations.timestamps_ns // 1000,
-                                             T_box_world[:, :3, 3], T_box_world[:, :3, :3], annotations.dims_m)  # fmt: skip
+    observations = dynamic.TrackObservations(
+        annotations.track_uuids,
+        annotations.timestamps_ns // 1000,
+        T_box_world[:, :3, 3],
+        T_box_world[:, :3, :3],
+        annotations.dims_m,
+    )
     classes = [AV2_TO_NCORE.get(c, c) for c in annotations.categories]
     decide_s: dict[str, list[float]] = {"after": [], "before": []}
     for _ in range(repeat):
@@ -143,15 +156,23 @@ def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
                 flag_s[rule].append(time.perf_counter() - started)
     rays_ms = statistics.median(rays_s) * 1e3
     after_ms, before_ms = (statistics.median(flag_s[r]) * 1e3 for r in ("after", "before"))
-    print(f"{len(set(annotations.track_uuids))} tracks over {np.ptp(annotations.timestamps_ns) * 1e-9:.1f} s;"
-          f" dynamic: {len(tracks['after'])} (this rule), {len(tracks['before'])} (the speed rule before it)",
-          flush=True)  # fmt: skip
-    print(f"  track decision per log: this rule + static poses {statistics.median(decide_s['after']) * 1e3:.1f} ms,"
-          f" speed rule {statistics.median(decide_s['before']) * 1e3:.1f} ms", flush=True)  # fmt: skip
-    print(f"  per sweep ({int(np.median(points))} points, medians over {len(rays_s)} sweeps): read + ray bundles"
-          f" (both units) {rays_ms:.1f} ms; dynamic_flag (both units) {after_ms:.1f} ms with this rule,"
-          f" {before_ms:.1f} ms before it; ratios to the read {after_ms / rays_ms:.3f} / {before_ms / rays_ms:.3f},"
-          f" after / before {after_ms / before_ms:.3f}", flush=True)  # fmt: skip
+    print(
+        f"{len(set(annotations.track_uuids))} tracks over {np.ptp(annotations.timestamps_ns) * 1e-9:.1f} s;"
+        f" dynamic: {len(tracks['after'])} (this rule), {len(tracks['before'])} (the speed rule before it)",
+        flush=True,
+    )
+    print(
+        f"  track decision per log: this rule + static poses {statistics.median(decide_s['after']) * 1e3:.1f} ms,"
+        f" speed rule {statistics.median(decide_s['before']) * 1e3:.1f} ms",
+        flush=True,
+    )
+    print(
+        f"  per sweep ({int(np.median(points))} points, medians over {len(rays_s)} sweeps): read + ray bundles"
+        f" (both units) {rays_ms:.1f} ms; dynamic_flag (both units) {after_ms:.1f} ms with this rule,"
+        f" {before_ms:.1f} ms before it; ratios to the read {after_ms / rays_ms:.3f} / {before_ms / rays_ms:.3f},"
+        f" after / before {after_ms / before_ms:.3f}",
+        flush=True,
+    )
 
 
 def bench_conversion(root: Path, log_id: str, work: Path, repeat: int) -> None:
@@ -167,8 +188,11 @@ def bench_conversion(root: Path, log_id: str, work: Path, repeat: int) -> None:
             seconds[model].append(time.perf_counter() - started)
     shutil.rmtree(work / "consumers-out", ignore_errors=True)
     pinhole, ftheta = (statistics.median(seconds[m]) for m in ("ideal-pinhole", "ftheta"))
-    print(f"2 s AV2 log, 9 cameras, one process (medians of {repeat}): ideal-pinhole {pinhole:.2f} s,"
-          f" ftheta {ftheta:.2f} s, ratio {ftheta / pinhole:.3f}", flush=True)  # fmt: skip
+    print(
+        f"2 s AV2 log, 9 cameras, one process (medians of {repeat}): ideal-pinhole {pinhole:.2f} s,"
+        f" ftheta {ftheta:.2f} s, ratio {ftheta / pinhole:.3f}",
+        flush=True,
+    )
 
 
 def bench_lidar_rgb(root: Path, log_id: str, work: Path, repeat: int) -> None:
@@ -198,8 +222,11 @@ def bench_lidar_rgb(root: Path, log_id: str, work: Path, repeat: int) -> None:
     print(f"--lidar-rgb, 2 s AV2 log, 9 cameras at 20 fps, one process (medians of {repeat}): off {off:.2f} s", end="")
     for decoders in (1, threads):
         on = statistics.median(seconds[decoders])
-        print(f"; on, {decoders} decoder thread(s): {on:.2f} s, ratio {on / off:.3f}, colouring itself"
-              f" {statistics.median(colour_s[decoders]):.2f} s", end="")
+        print(
+            f"; on, {decoders} decoder thread(s): {on:.2f} s, ratio {on / off:.3f}, colouring itself"
+            f" {statistics.median(colour_s[decoders]):.2f} s",
+            end="",
+        )
     print(flush=True)
 
 
@@ -218,9 +245,10 @@ def bench_ego_masks(work: Path, repeat: int) -> None:
 
     root = work / "consumers-av2-15s-realistic-body-32-pictures"  # as many distinct pictures as are sampled
     log_id = cached(
-        root, "15 s AV2 log",
+        root,
+        "15 s AV2 log",
         lambda r: write_log(UPath(r / "val"), SynthConfig(seconds=15.0, seed=22, pictures=32)).log_id,
-    )  # fmt: skip
+    )
     log_dir = UPath(root / "val" / log_id)
     intrinsics, extrinsics = av2.read_intrinsics(log_dir), av2.read_sensor_extrinsics(log_dir)
     cameras = {
@@ -255,9 +283,11 @@ def bench_ego_masks(work: Path, repeat: int) -> None:
             seconds[mode].append(time.perf_counter() - started)
     shutil.rmtree(work / "consumers-out", ignore_errors=True)
     none, estimate = (statistics.median(seconds[m]) for m in ("none", "estimate"))
-    print(f"ego masks, 15 s AV2 log, 9 cameras, 32 sampled images on each of the 5 that see the body (medians"
-          f" of {repeat}): estimation alone (2 worker processes) {statistics.median(alone):.2f} s;",
-          flush=True)  # fmt: skip
+    print(
+        f"ego masks, 15 s AV2 log, 9 cameras, 32 sampled images on each of the 5 that see the body (medians"
+        f" of {repeat}): estimation alone (2 worker processes) {statistics.median(alone):.2f} s;",
+        flush=True,
+    )
     print(
         f"  whole command, 2 workers: --ego-masks none {none:.2f} s, estimate {estimate:.2f} s,"
         f" ratio {estimate / none:.3f}; estimation / conversion {statistics.median(alone) / none:.3f}",

@@ -71,8 +71,18 @@ def config(case: Case):
     from ncore_convert.synth.argoverse2 import SynthConfig
     from ncore_convert.synth.ego import EGO_CAMERAS
 
-    return SynthConfig(**{"seconds": 1.5, "seed": case.seed, "camera_fps": 20, "pictures": 32, "tbv": case.tbv,
-                          "sweeps": False, "image_cameras": EGO_CAMERAS, **case.config})  # fmt: skip
+    return SynthConfig(
+        **{
+            "seconds": 1.5,
+            "seed": case.seed,
+            "camera_fps": 20,
+            "pictures": 32,
+            "tbv": case.tbv,
+            "sweeps": False,
+            "image_cameras": EGO_CAMERAS,
+            **case.config,
+        }
+    )
 
 
 def log_folder(case: Case, synth_config) -> str:
@@ -111,22 +121,36 @@ def _run(case: Case, keep: str | None = None) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         log_dir, synth_config, true_masks = _log(case, keep or tmp)
         intrinsics, extrinsics = av2.read_intrinsics(log_dir), av2.read_sensor_extrinsics(log_dir)
-        cameras = {cam: (av2.list_image_timestamps_ns(log_dir, cam), intrinsics[cam], extrinsics[cam])
-                   for cam in synth_config.cameras}  # fmt: skip
+        cameras = {
+            cam: (av2.list_image_timestamps_ns(log_dir, cam), intrinsics[cam], extrinsics[cam])
+            for cam in synth_config.cameras
+        }
         started = time.perf_counter()
         masks = planning.plan_ego_masks(log_dir, "estimate", cameras, [], EgoBox())
         seconds = time.perf_counter() - started
         # What the agreement test prevented: the mask from all the images, had it not been asked.
-        unchecked = {cam: _without_agreement(planning, log_dir, cam, *cameras[cam])
-                     for cam, planned in masks.items() if planned.meta["decision"] == "halves disagree"}  # fmt: skip
+        unchecked = {
+            cam: _without_agreement(planning, log_dir, cam, *cameras[cam])
+            for cam, planned in masks.items()
+            if planned.meta["decision"] == "halves disagree"
+        }
     rows = []
     for cam, planned in masks.items():
         intr = intrinsics[cam]
         true = true_masks.get(cam)
-        row = {"group": case.group, "dataset": "TbV" if case.tbv else "AV2", "seed": case.seed, "camera": cam,
-               "body": true is not None, "decision": planned.meta["decision"], "iou": None, "unchecked_iou": None,
-               "split_iou": planned.meta.get("split_iou"), "split_columns": planned.meta.get("split_columns"),
-               "estimate_s": seconds}  # fmt: skip
+        row = {
+            "group": case.group,
+            "dataset": "TbV" if case.tbv else "AV2",
+            "seed": case.seed,
+            "camera": cam,
+            "body": true is not None,
+            "decision": planned.meta["decision"],
+            "iou": None,
+            "unchecked_iou": None,
+            "split_iou": planned.meta.get("split_iou"),
+            "split_columns": planned.meta.get("split_columns"),
+            "estimate_s": seconds,
+        }
         for key, mask in (("iou", planned), ("unchecked_iou", unchecked.get(cam))):
             image = mask.image(intr.width_px, intr.height_px) if mask is not None else None
             if image is not None:
@@ -160,8 +184,10 @@ def summarise(rows: list[dict]) -> None:
     groups: dict[tuple[str, str], list[dict]] = {}
     for row in rows:
         groups.setdefault((row["group"], row["dataset"]), []).append(row)
-    print(f"{'group':<20} {'set':<4} {'logs':>5} {'body cams':>9} {'right':>7} {'close':>6} {'WRONG':>6}"
-          f" {'declined':>9} {'right %':>8} {'no-body cams':>12} {'masks there':>11}")  # fmt: skip
+    print(
+        f"{'group':<20} {'set':<4} {'logs':>5} {'body cams':>9} {'right':>7} {'close':>6} {'WRONG':>6}"
+        f" {'declined':>9} {'right %':>8} {'no-body cams':>12} {'masks there':>11}"
+    )
     total = Counter()
     for (group, dataset), members in sorted(groups.items()):
         body = [r for r in members if r["body"]]
@@ -172,25 +198,38 @@ def summarise(rows: list[dict]) -> None:
         wrong = sum(r["iou"] < 0.9 for r in written)
         false_masks = sum(r["iou"] is not None for r in other)
         logs = len({r["seed"] for r in members})
-        print(f"{group:<20} {dataset:<4} {logs:>5} {len(body):>9} {right:>7} {close:>6} {wrong:>6}"
-              f" {len(body) - len(written):>9} {100 * right / max(len(body), 1):>7.1f}% {len(other):>12}"
-              f" {false_masks:>11}")  # fmt: skip
+        print(
+            f"{group:<20} {dataset:<4} {logs:>5} {len(body):>9} {right:>7} {close:>6} {wrong:>6}"
+            f" {len(body) - len(written):>9} {100 * right / max(len(body), 1):>7.1f}% {len(other):>12}"
+            f" {false_masks:>11}"
+        )
         key = "main" if group.startswith("main") else "hard"
-        total.update({f"{key} body": len(body), f"{key} right": right, f"{key} close": close,
-                      f"{key} wrong": wrong, f"{key} false": false_masks})  # fmt: skip
+        total.update(
+            {
+                f"{key} body": len(body),
+                f"{key} right": right,
+                f"{key} close": close,
+                f"{key} wrong": wrong,
+                f"{key} false": false_masks,
+            }
+        )
     for key in ("main", "hard"):
         if total[f"{key} body"]:
-            print(f"{key} cases: {total[f'{key} body']} body cameras, {total[f'{key} right']} right"
-                  f" ({100 * total[f'{key} right'] / total[f'{key} body']:.1f} %), {total[f'{key} close']} close,"
-                  f" {total[f'{key} wrong']} confident wrong; {total[f'{key} false']} masks on cameras"
-                  " without the body")  # fmt: skip
+            print(
+                f"{key} cases: {total[f'{key} body']} body cameras, {total[f'{key} right']} right"
+                f" ({100 * total[f'{key} right'] / total[f'{key} body']:.1f} %), {total[f'{key} close']} close,"
+                f" {total[f'{key} wrong']} confident wrong; {total[f'{key} false']} masks on cameras"
+                " without the body"
+            )
     declined = Counter(r["decision"] for r in rows if r["body"] and r["iou"] is None)
     print("declined body cameras by reason:", dict(declined.most_common()))
     caught = [r["unchecked_iou"] for r in rows if r["decision"] == "halves disagree" and r["body"]]
-    print(f"the split-log agreement declined {len(caught)} body cameras; without it their masks would have had"
-          f" IoU >= 0.95: {sum(i is not None and i >= 0.95 for i in caught)}, 0.9-0.95:"
-          f" {sum(i is not None and 0.9 <= i < 0.95 for i in caught)}, < 0.9 (confident wrong):"
-          f" {sum(i is not None and i < 0.9 for i in caught)}")  # fmt: skip
+    print(
+        f"the split-log agreement declined {len(caught)} body cameras; without it their masks would have had"
+        f" IoU >= 0.95: {sum(i is not None and i >= 0.95 for i in caught)}, 0.9-0.95:"
+        f" {sum(i is not None and 0.9 <= i < 0.95 for i in caught)}, < 0.9 (confident wrong):"
+        f" {sum(i is not None and i < 0.9 for i in caught)}"
+    )
     written = [r for r in rows if r["iou"] is not None and r["body"]]
     if written:
         print(
@@ -199,8 +238,10 @@ def summarise(rows: list[dict]) -> None:
         )
     wrong = [r for r in rows if r["iou"] is not None and (not r["body"] or r["iou"] < 0.9)]
     for r in wrong:
-        print(f"  confident wrong: {r['group']} {r['dataset']} seed {r['seed']} {r['camera']} IoU {r['iou']:.3f}"
-              f" (split IoU {r['split_iou']}, columns {r['split_columns']})")  # fmt: skip
+        print(
+            f"  confident wrong: {r['group']} {r['dataset']} seed {r['seed']} {r['camera']} IoU {r['iou']:.3f}"
+            f" (split IoU {r['split_iou']}, columns {r['split_columns']})"
+        )
     times = sorted({(r["group"], r["dataset"], r["seed"]): r["estimate_s"] for r in rows}.values())
     print(f"estimation per log (all cameras, threads): median {np.median(times):.2f} s")
 

@@ -36,9 +36,16 @@ COMMON = {"seed": 25, "async": True, "loc_err": True, "xyz_std": 0.2, "ryp_std":
 SETTINGS = {
     "opencood_sim": {**COMMON, "async_overhead": 100},
     "opencood_real": {**COMMON, "async_mode": "real", "async_overhead": 300},
-    "gm_drift": {**COMMON, "model": "realistic", "async_mode": "real", "async_overhead": 100,
-                 "process": "gauss_markov", "correlation_time_s": 5.0, "bias_xyz_std": 0.1},
-}  # fmt: skip
+    "gm_drift": {
+        **COMMON,
+        "model": "realistic",
+        "async_mode": "real",
+        "async_overhead": 100,
+        "process": "gauss_markov",
+        "correlation_time_s": 5.0,
+        "bias_xyz_std": 0.1,
+    },
+}
 
 
 def stand_in_agents(n_agents: int, n_frames: int) -> tuple[dict[str, AgentPlan], list[str]]:
@@ -54,10 +61,18 @@ def stand_in_agents(n_agents: int, n_frames: int) -> tuple[dict[str, AgentPlan],
         T_rig = np.tile(np.eye(4), (n_frames, 1, 1))
         T_rig[:, :3, 3] = pose[:, :3]
         agents[agent_id] = AgentPlan(
-            agent_id=agent_id, agent_dir=UPath("/nonexistent"), keys=keys, timestamps_us=key_timestamps_us(keys, 0.05),
-            lidar_pose_carla=pose, T_rig_world_global=T_rig, T_sensor_rig={src.LIDAR: np.eye(4)}, intrinsics={},
-            camera_index={}, lidar_ids=[src.LIDAR], mounts={},
-        )  # fmt: skip
+            agent_id=agent_id,
+            agent_dir=UPath("/nonexistent"),
+            keys=keys,
+            timestamps_us=key_timestamps_us(keys, 0.05),
+            lidar_pose_carla=pose,
+            T_rig_world_global=T_rig,
+            T_sensor_rig={src.LIDAR: np.eye(4)},
+            intrinsics={},
+            camera_index={},
+            lidar_ids=[src.LIDAR],
+            mounts={},
+        )
     return agents, keys
 
 
@@ -82,9 +97,25 @@ def convert(root: Path, out: Path, configs: list[Path]) -> float:
     cli = Path(sys.executable).parent / "ncore-convert"
     flags = [arg for path in configs for arg in ("--noise-config", str(path))]
     started = time.perf_counter()
-    subprocess.run([str(cli), "--no-progress", "--no-validate", "--workers", "1", "--root-dir", str(root),
-                    "--output-dir", str(out), "opv2v-v4", "--split", "test", *flags],
-                   check=True, capture_output=True)  # fmt: skip
+    subprocess.run(
+        [
+            str(cli),
+            "--no-progress",
+            "--no-validate",
+            "--workers",
+            "1",
+            "--root-dir",
+            str(root),
+            "--output-dir",
+            str(out),
+            "opv2v-v4",
+            "--split",
+            "test",
+            *flags,
+        ],
+        check=True,
+        capture_output=True,
+    )
     return time.perf_counter() - started
 
 
@@ -93,8 +124,11 @@ def main() -> None:
     work = work_dir(args)
     print(f"GPS error and delay; medians of {args.repeat}", flush=True)
     for name, seconds in model_times(args.repeat).items():
-        print(f"  plan_noise, 7 agents x 700 frames, {name}: {seconds * 1e3:.1f} ms"
-              f" ({seconds / 4900 * 1e6:.1f} us per agent-frame)", flush=True)  # fmt: skip
+        print(
+            f"  plan_noise, 7 agents x 700 frames, {name}: {seconds * 1e3:.1f} ms"
+            f" ({seconds / 4900 * 1e6:.1f} us per agent-frame)",
+            flush=True,
+        )
 
     from ncore_convert.synth.opencood import SynthConfig, write_dataset
 
@@ -111,9 +145,12 @@ def main() -> None:
             times[noise].append(convert(root, work / f"noise-out-{noise}", configs if noise else []))
     plain, noisy = statistics.median(times[False]), statistics.median(times[True])
     size = {n: sum(p.stat().st_size for p in (work / f"noise-out-{n}").rglob("*") if p.is_file()) for n in times}
-    print(f"  conversion, 60 frames x 3 CAVs, whole command: {plain:.2f} s without noise, {noisy:.2f} s with the"
-          f" three settings, ratio {noisy / plain:.3f}; output {size[False] / 1e6:.1f} MB ->"
-          f" {size[True] / 1e6:.1f} MB (+{(size[True] - size[False]) / 1e3:.0f} kB)", flush=True)  # fmt: skip
+    print(
+        f"  conversion, 60 frames x 3 CAVs, whole command: {plain:.2f} s without noise, {noisy:.2f} s with the"
+        f" three settings, ratio {noisy / plain:.3f}; output {size[False] / 1e6:.1f} MB ->"
+        f" {size[True] / 1e6:.1f} MB (+{(size[True] - size[False]) / 1e3:.0f} kB)",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

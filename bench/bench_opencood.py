@@ -58,9 +58,26 @@ def convert(root: Path, out: Path, workers: int, src: str | None = None) -> dict
     cli = Path(sys.executable).parent / "ncore-convert"
     env = {**os.environ, "PYTHONPATH": src} if src else None
     started = time.perf_counter()
-    run = subprocess.run([str(cli), "--no-progress", "--no-validate", "--workers", str(workers),
-                          "--root-dir", str(root), "--output-dir", str(out), "opv2v-v4", "--split", "test"],
-                         check=True, capture_output=True, text=True, env=env)  # fmt: skip
+    run = subprocess.run(
+        [
+            str(cli),
+            "--no-progress",
+            "--no-validate",
+            "--workers",
+            str(workers),
+            "--root-dir",
+            str(root),
+            "--output-dir",
+            str(out),
+            "opv2v-v4",
+            "--split",
+            "test",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     seconds = time.perf_counter() - started
     points = int(re.search(r"lidar frames, (\d+) points", run.stdout).group(1))
     scenario = next(p for p in out.iterdir() if p.is_dir())
@@ -119,8 +136,12 @@ def model_cost(repeat: int) -> None:
             exact = time.perf_counter()
             carla_lidar.assign_elements(model, direction)
             done = time.perf_counter()
-            for name, s in (("parse", parsed - started), ("nearest", nearest - parsed), ("exact", exact - nearest),
-                            ("elements", done - exact)):  # fmt: skip
+            for name, s in (
+                ("parse", parsed - started),
+                ("nearest", nearest - parsed),
+                ("exact", exact - nearest),
+                ("elements", done - exact),
+            ):
                 seconds[name].append(s)
             points.append(len(xyz))
             inexact.append(len(left))
@@ -129,11 +150,17 @@ def model_cost(repeat: int) -> None:
         carla_lidar.fit_from_points(frames[::2], 0.05, None)
         seconds["fit"].append(time.perf_counter() - started)
     ms = {name: statistics.median(s) * 1e3 for name, s in seconds.items()}
-    print(f"  real OPV2V frame ({int(np.median(points))} points): PCD parse {ms['parse']:.1f} ms, model elements"
-          f" {ms['elements']:.1f} ms, ratio {ms['elements'] / ms['parse']:.3f}", flush=True)  # fmt: skip
-    print(f"  rays: nearest float32 direction and distance {ms['nearest']:.1f} ms, bit-exact {ms['exact']:.1f} ms"
-          f" (ratio {ms['exact'] / ms['nearest']:.1f}; {sum(inexact) / sum(points):.3%} of points stored beside"
-          f" the rays); the model from 3 frames' points {ms['fit']:.0f} ms per agent", flush=True)  # fmt: skip
+    print(
+        f"  real OPV2V frame ({int(np.median(points))} points): PCD parse {ms['parse']:.1f} ms, model elements"
+        f" {ms['elements']:.1f} ms, ratio {ms['elements'] / ms['parse']:.3f}",
+        flush=True,
+    )
+    print(
+        f"  rays: nearest float32 direction and distance {ms['nearest']:.1f} ms, bit-exact {ms['exact']:.1f} ms"
+        f" (ratio {ms['exact'] / ms['nearest']:.1f}; {sum(inexact) / sum(points):.3%} of points stored beside"
+        f" the rays); the model from 3 frames' points {ms['fit']:.0f} ms per agent",
+        flush=True,
+    )
 
 
 def readback_rates(root: Path, out: Path, repeat: int, sample: int = 40) -> dict:
@@ -168,8 +195,11 @@ def compare(root: Path, out: Path, baseline_src: str, repeat: int) -> None:
         times["baseline"].append(convert(root, out, 2, baseline_src)["s"])
         times["this"].append(convert(root, out, 2)["s"])
     base, this = statistics.median(times["baseline"]), statistics.median(times["this"])
-    print(f"  conversion, 2 workers, interleaved: baseline ({baseline_src}) {base:.1f} s, this checkout {this:.1f} s,"
-          f" ratio {this / base:.3f}", flush=True)  # fmt: skip
+    print(
+        f"  conversion, 2 workers, interleaved: baseline ({baseline_src}) {base:.1f} s, this checkout {this:.1f} s,"
+        f" ratio {this / base:.3f}",
+        flush=True,
+    )
 
 
 def main() -> None:
@@ -185,20 +215,29 @@ def main() -> None:
     print(f"OPV2V scenario: {FRAMES} frames x {CAVS} CAVs, {size_mb:.0f} MB; medians of {args.repeat}", flush=True)
     rates = pcd_rates(root, args.repeat)
     ratio = rates["read_pcd"] / rates["numpy.loadtxt"]
-    print(f"  PCD parse ({rates['files']} files of ~{rates['points']} points): read_pcd"
-          f" {rates['read_pcd'] / 1e6:.2f} M points/s, numpy.loadtxt {rates['numpy.loadtxt'] / 1e6:.2f} M points/s,"
-          f" ratio {ratio:.1f}x", flush=True)  # fmt: skip
+    print(
+        f"  PCD parse ({rates['files']} files of ~{rates['points']} points): read_pcd"
+        f" {rates['read_pcd'] / 1e6:.2f} M points/s, numpy.loadtxt {rates['numpy.loadtxt'] / 1e6:.2f} M points/s,"
+        f" ratio {ratio:.1f}x",
+        flush=True,
+    )
     for workers in (1, 2):
         runs = [convert(root, work / "opencood-out", workers) for _ in range(args.repeat)]
         seconds = statistics.median(r["s"] for r in runs)
         frames, points = runs[0]["frames"], runs[0]["points"]
-        print(f"  conversion, {workers} worker(s): {seconds:.1f} s, {frames / seconds:.1f} agent-frames/s,"
-              f" {points / seconds / 1e6:.2f} M points/s ({frames} lidar frames, {points} points,"
-              f" {4 * frames} images)", flush=True)  # fmt: skip
+        print(
+            f"  conversion, {workers} worker(s): {seconds:.1f} s, {frames / seconds:.1f} agent-frames/s,"
+            f" {points / seconds / 1e6:.2f} M points/s ({frames} lidar frames, {points} points,"
+            f" {4 * frames} images)",
+            flush=True,
+        )
     rates = readback_rates(root, work / "opencood-out", args.repeat)
-    print(f"  reading back {rates['frames']} agent-frames (points, YAML, 4 PNGs each): OpenCOOD view"
-          f" {rates['view']:.1f} frames/s, raw files {rates['raw']:.1f} frames/s,"
-          f" ratio {rates['view'] / rates['raw']:.2f}", flush=True)  # fmt: skip
+    print(
+        f"  reading back {rates['frames']} agent-frames (points, YAML, 4 PNGs each): OpenCOOD view"
+        f" {rates['view']:.1f} frames/s, raw files {rates['raw']:.1f} frames/s,"
+        f" ratio {rates['view'] / rates['raw']:.2f}",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

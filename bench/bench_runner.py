@@ -93,10 +93,23 @@ def run_command(root: Path, out: Path, workers: int) -> float:
     cli = Path(sys.executable).parent / "ncore-convert"
     t = time.perf_counter()
     subprocess.run(
-        [str(cli), "--root-dir", str(root), "--output-dir", str(out), "--workers", str(workers), "--no-progress",
-         "--no-validate", "argoverse2-v4", "--split", "val"],
-        check=True, capture_output=True,
-    )  # fmt: skip
+        [
+            str(cli),
+            "--root-dir",
+            str(root),
+            "--output-dir",
+            str(out),
+            "--workers",
+            str(workers),
+            "--no-progress",
+            "--no-validate",
+            "argoverse2-v4",
+            "--split",
+            "val",
+        ],
+        check=True,
+        capture_output=True,
+    )
     subprocess.run(["sync"], check=True)
     return time.perf_counter() - t
 
@@ -151,10 +164,12 @@ def throughput(work: Path, logs: int, seconds: float, repeat: int) -> None:
         one.pool.run([(_ready, ())])
         two.pool.run([(_ready, ())] * 2)
         for _ in range(repeat):
-            run = {"runner_1": run_dataset(one, root, work / "runner-out")[0],
-                   "runner_2": run_dataset(two, root, work / "runner-out")[0],
-                   "command_1": run_command(root, work / "runner-out", 1),
-                   "command_2": run_command(root, work / "runner-out", 2)}  # fmt: skip
+            run = {
+                "runner_1": run_dataset(one, root, work / "runner-out")[0],
+                "runner_2": run_dataset(two, root, work / "runner-out")[0],
+                "command_1": run_command(root, work / "runner-out", 1),
+                "command_2": run_command(root, work / "runner-out", 2),
+            }
             run["runner_speedup"] = run["runner_1"] / run["runner_2"]
             run["command_speedup"] = run["command_1"] / run["command_2"]
             runs.append(run)

@@ -45,16 +45,35 @@ def timed(command: list[str], out: Path | None, env: dict | None = None) -> floa
 
 def ours(root: Path, out: Path, validate: bool) -> list[str]:
     flag = "--validate" if validate else "--no-validate"
-    return [str(CLI), "--no-progress", flag, "--root-dir", str(root), "--output-dir", str(out),
-            "argoverse2-v4", "--split", "val"]  # fmt: skip
+    return [
+        str(CLI),
+        "--no-progress",
+        flag,
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(out),
+        "argoverse2-v4",
+        "--split",
+        "val",
+    ]
 
 
 def upstream(repo: Path, root: Path, out: Path) -> tuple[list[str], dict]:
     """NCore's own AV2 converter, run from a source checkout with this interpreter."""
     main = repo / "tools" / "data_converter" / "argoverse2" / "main.py"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(repo), os.environ.get("PYTHONPATH")]))}
-    return [sys.executable, str(main), "--root-dir", str(root), "--output-dir", str(out),
-            "argoverse2-v4", "--split", "val"], env  # fmt: skip
+    return [
+        sys.executable,
+        str(main),
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(out),
+        "argoverse2-v4",
+        "--split",
+        "val",
+    ], env
 
 
 def main() -> None:
@@ -88,16 +107,22 @@ def main() -> None:
         print(f"  round {round_ + 1}: " + ", ".join(f"{k} {v:.2f} s" for k, v in times.items()), flush=True)
 
     med = {label: statistics.median(seconds) for label, seconds in rows.items()}
-    print(f"15 s AV2 log ({du_bytes(log_dir) / 1e9:.2f} GB in, {du_bytes(work / 'speed-plain') / 1e9:.2f} GB out),"
-          f" whole commands, medians of {args.repeat}:")  # fmt: skip
+    print(
+        f"15 s AV2 log ({du_bytes(log_dir) / 1e9:.2f} GB in, {du_bytes(work / 'speed-plain') / 1e9:.2f} GB out),"
+        f" whole commands, medians of {args.repeat}:"
+    )
     copy_s, plain_s = med["cp -r + sync"], med["--no-validate"]
     for label, seconds in med.items():
         print(f"  {label:<28} {seconds:7.2f} s  = {seconds / copy_s:.2f}x copy, {seconds / plain_s:.2f}x --no-validate")
     if repo is None:
-        print("  NCore's own AV2 converter    skipped: not in the nvidia-ncore wheel; pass --ncore-repo DIR"
-              " (or set NCORE_REPO) to an NVIDIA/ncore checkout")  # fmt: skip
-    print(f"issue 28: default / --no-validate = {med['default (validated)'] / plain_s:.2f} (target <= 1.15);"
-          f" --no-validate / copy = {plain_s / copy_s:.2f} (target <= 3.0)")  # fmt: skip
+        print(
+            "  NCore's own AV2 converter    skipped: not in the nvidia-ncore wheel; pass --ncore-repo DIR"
+            " (or set NCORE_REPO) to an NVIDIA/ncore checkout"
+        )
+    print(
+        f"issue 28: default / --no-validate = {med['default (validated)'] / plain_s:.2f} (target <= 1.15);"
+        f" --no-validate / copy = {plain_s / copy_s:.2f} (target <= 3.0)"
+    )
 
 
 if __name__ == "__main__":

@@ -32,8 +32,22 @@ def convert(root: Path, out: Path, command: list[str], validate: bool) -> float:
     shutil.rmtree(out, ignore_errors=True)
     started = time.perf_counter()
     flag = "--validate" if validate else "--no-validate"
-    subprocess.run([str(CLI), "--no-progress", "--workers", "1", flag, "--root-dir", str(root),
-                    "--output-dir", str(out), *command], check=True, capture_output=True)  # fmt: skip
+    subprocess.run(
+        [
+            str(CLI),
+            "--no-progress",
+            "--workers",
+            "1",
+            flag,
+            "--root-dir",
+            str(root),
+            "--output-dir",
+            str(out),
+            *command,
+        ],
+        check=True,
+        capture_output=True,
+    )
     return time.perf_counter() - started
 
 
@@ -53,8 +67,11 @@ def side_by_side(label: str, root: Path, work: Path, command: list[str], repeat:
         for validate in (False, True):
             times[validate].append(convert(root, work / f"validate-out-{validate}", command, validate))
     plain, checked = statistics.median(times[False]), statistics.median(times[True])
-    print(f"  {label}, whole command: {plain:.2f} s with --no-validate, {checked:.2f} s validated,"
-          f" ratio {checked / plain:.2f}", flush=True)  # fmt: skip
+    print(
+        f"  {label}, whole command: {plain:.2f} s with --no-validate, {checked:.2f} s validated,"
+        f" ratio {checked / plain:.2f}",
+        flush=True,
+    )
     return work / "validate-out-True"
 
 
@@ -85,8 +102,11 @@ def main() -> None:
     convert(sample, real_out, ["argoverse2-v4", "--split", "val"], validate=False)
     alone = median_seconds(args.repeat, lambda: validate_tree(UPath(real_out)))
     with_source = median_seconds(args.repeat, lambda: validate_tree(UPath(real_out), UPath(sample)))
-    print(f"  validate_tree on the real sample (2 sweeps, 11,364 cuboids): {alone:.2f} s, with --source"
-          f" {with_source:.2f} s", flush=True)  # fmt: skip
+    print(
+        f"  validate_tree on the real sample (2 sweeps, 11,364 cuboids): {alone:.2f} s, with --source"
+        f" {with_source:.2f} s",
+        flush=True,
+    )
 
     from ncore_convert.synth.opencood import SynthConfig as OpenCoodConfig
     from ncore_convert.synth.opencood import write_dataset

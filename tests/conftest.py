@@ -24,9 +24,20 @@ REPO = Path(__file__).resolve().parents[1]
 #: The slowest test files, slowest first (per-file seconds in docs/tests.md). ``make test`` hands
 #: whole files to the workers in this order, then the rest: the long ones start first, so no worker
 #: is left with one at the end. A stale list costs balance, never a test.
-SLOW_FIRST = ("test_validate", "test_ego_masks", "test_consumers", "test_determinism", "test_bad_input",
-              "test_dynamic_tracks", "test_resume", "test_ray", "test_fuzz_readers", "test_presets",
-              "test_point_colours", "test_opencood_view")  # fmt: skip
+SLOW_FIRST = (
+    "test_validate",
+    "test_ego_masks",
+    "test_consumers",
+    "test_determinism",
+    "test_bad_input",
+    "test_dynamic_tracks",
+    "test_resume",
+    "test_ray",
+    "test_fuzz_readers",
+    "test_presets",
+    "test_point_colours",
+    "test_opencood_view",
+)
 #: Tests whose cases each build their own data and are slow: each case goes to whichever worker is
 #: free, instead of staying with its file.
 OWN_SCOPE = ("tests/test_ego_masks.py::test_realistic_bodies[",)
@@ -51,6 +62,8 @@ def pytest_xdist_make_scheduler(config, log):
             return nodeid if nodeid.startswith(OWN_SCOPE) else super()._split_scope(nodeid)
 
     return FilesAndOwnScopes(config, log)
+
+
 BIN = Path(sys.executable).parent  #: the venv's scripts: ncore-convert, ray, moto_server
 AV2_SAMPLE_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 
@@ -121,8 +134,18 @@ def free_port() -> int:
 
 def av2_command(root, out, *group_options) -> list[str]:
     """The installed ``ncore-convert`` command converting ``<root>/val`` into ``out`` (for subprocesses)."""
-    return [str(BIN / "ncore-convert"), "--no-progress", "--root-dir", str(root), "--output-dir", str(out),
-            *group_options, "argoverse2-v4", "--split", "val"]  # fmt: skip
+    return [
+        str(BIN / "ncore-convert"),
+        "--no-progress",
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(out),
+        *group_options,
+        "argoverse2-v4",
+        "--split",
+        "val",
+    ]
 
 
 @dataclass

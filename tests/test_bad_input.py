@@ -378,9 +378,14 @@ def source_folder(dataset: str, root: Path, name: str) -> Path:
 #: (a window from the start to the end, so that it keeps every damaged frame).
 OPTION_SETS = {
     "default": {},
-    "consumer": {"camera_model": "ftheta", "class_names": "source", "cuboid_label_source": "autolabel",
-                 "world_global_mode": "identity", "seek_sec": 0.0},
-}  # fmt: skip
+    "consumer": {
+        "camera_model": "ftheta",
+        "class_names": "source",
+        "cuboid_label_source": "autolabel",
+        "world_global_mode": "identity",
+        "seek_sec": 0.0,
+    },
+}
 
 
 def task_for(dataset: str, root: Path, option_set: str = "default"):

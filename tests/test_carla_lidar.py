@@ -22,8 +22,16 @@ from ncore_convert.transforms.lidar_model import angle_between_rad
 from ncore_convert.validate.sequence import validate_sequence
 
 #: The example protocol of the sample's README (a real OPV2V data_protocol.yaml's CAV lidar).
-README_PROTOCOL = {"channels": 64, "upper_fov": 2, "lower_fov": -25, "range": 120, "rotation_frequency": 20,
-                   "points_per_second": 1300000, "noise_stddev": 0.02, "dropoff_general_rate": 0.1}  # fmt: skip
+README_PROTOCOL = {
+    "channels": 64,
+    "upper_fov": 2,
+    "lower_fov": -25,
+    "range": 120,
+    "rotation_frequency": 20,
+    "points_per_second": 1300000,
+    "noise_stddev": 0.02,
+    "dropoff_general_rate": 0.1,
+}
 
 
 def assert_every_ray_modelled(loader, params, far_mean_deg: float) -> None:
@@ -92,8 +100,15 @@ def test_the_real_frames_give_their_model_from_the_points(protocol):
 def v2xset(tmp_path_factory):
     """A V2XSet scenario with CARLA-like range noise and drop-off, converted with the default model."""
     tmp = tmp_path_factory.mktemp("carla-lidar")
-    config = synth.SynthConfig(dataset="v2xset", frames=4, seed=41, lidar_columns=256, lidar_noise_stddev=0.02,
-                               lidar_dropoff_rate=0.1, keep_truth=True)  # fmt: skip
+    config = synth.SynthConfig(
+        dataset="v2xset",
+        frames=4,
+        seed=41,
+        lidar_columns=256,
+        lidar_noise_stddev=0.02,
+        lidar_dropoff_rate=0.1,
+        keep_truth=True,
+    )
     (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
     out = tmp / "out" / truth.scenario
     summary = convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario, OpenCoodOptions("v2xset", "test"))
@@ -134,13 +149,22 @@ def test_a_protocol_that_disagrees_or_is_missing_gives_a_model_from_the_points(t
     """The lidar's own geometry (lasers, FOV, columns, phase) measured from its points: every ray
     has a model element, the far-range model error is <= 0.01 deg, the lasers are where CARLA put
     them, and the metadata and the warning say the model came from the points and what the protocol said."""
-    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=43, lidar_channels=32, lidar_columns=300,
-                               lidar_noise_stddev=0.02, lidar_dropoff_rate=0.1, cameras=False,
-                               **MISMATCHES[case])  # fmt: skip
+    config = synth.SynthConfig(
+        dataset="opv2v",
+        frames=2,
+        seed=43,
+        lidar_channels=32,
+        lidar_columns=300,
+        lidar_noise_stddev=0.02,
+        lidar_dropoff_rate=0.1,
+        cameras=False,
+        **MISMATCHES[case],
+    )
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     out = tmp_path / "out"
-    summary = convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario,
-                               OpenCoodOptions("opv2v", "test", camera_ids=()))  # fmt: skip
+    summary = convert_scenario(
+        UPath(tmp_path / "src"), UPath(out), truth.scenario, OpenCoodOptions("opv2v", "test", camera_ids=())
+    )
     for agent_id in truth.agents:
         (warning,) = [w for w in summary.warnings if f"/{agent_id}: scenario" in w]
         assert "lidar model from the points: 32 lasers +2.000 to -25.000 deg, 300 columns" in warning
@@ -153,8 +177,11 @@ def test_a_protocol_that_disagrees_or_is_missing_gives_a_model_from_the_points(t
         meta = component_meta(loader, LidarSensorComponent, "lidar_top")["lidar_model"]
         assert meta["model_source"] == "points" and meta["rings_with_returns"] <= 32
         said = None if case == "no protocol" else {k: v for k, v in config.protocol_lidar}
-        assert (meta["protocol_said"] is None) if said is None else all(meta["protocol_said"][k] == v
-                                                                        for k, v in said.items())  # fmt: skip
+        assert (
+            (meta["protocol_said"] is None)
+            if said is None
+            else all(meta["protocol_said"][k] == v for k, v in said.items())
+        )
 
 
 def test_points_off_any_carla_grid_give_no_model_and_say_why(tmp_path):
@@ -170,8 +197,12 @@ def test_points_off_any_carla_grid_give_no_model_and_say_why(tmp_path):
         jittered = xyz / r + rng.normal(0, np.radians(0.2), xyz.shape)
         xyz = jittered / np.linalg.norm(jittered, axis=1, keepdims=True) * r
         write_pcd(UPath(pcd), xyz, red_from_rgb(data["rgb"]))
-    summary = convert_scenario(UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.scenario,
-                               OpenCoodOptions("opv2v", "test", camera_ids=()))  # fmt: skip
+    summary = convert_scenario(
+        UPath(tmp_path / "src"),
+        UPath(tmp_path / "out"),
+        truth.scenario,
+        OpenCoodOptions("opv2v", "test", camera_ids=()),
+    )
     for agent_id in truth.agents:
         (warning,) = [w for w in summary.warnings if f"/{agent_id}: scenario" in w]
         assert "no lidar model" in warning and "raw rays only" in warning
@@ -183,8 +214,12 @@ def test_points_off_any_carla_grid_give_no_model_and_say_why(tmp_path):
 
 def test_the_option_none_writes_raw_rays(v2xset, tmp_path):
     truth, _, _, src_root = v2xset
-    none = convert_scenario(UPath(src_root), UPath(tmp_path / "none"), truth.scenario,
-                            OpenCoodOptions("v2xset", "test", lidar_model_source="none"))  # fmt: skip
+    none = convert_scenario(
+        UPath(src_root),
+        UPath(tmp_path / "none"),
+        truth.scenario,
+        OpenCoodOptions("v2xset", "test", lidar_model_source="none"),
+    )
     assert not [w for w in none.warnings if "lidar model" in w]
     cav = next(a for a in truth.agents if int(a) > 0)
     loader = open_sequence(tmp_path / "none" / cav, f"{truth.scenario}_agent{cav}")

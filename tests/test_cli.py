@@ -76,9 +76,20 @@ def test_conversion_writes_the_documented_layout(small_root, tmp_path):
 def test_store_types_and_profiles_open_with_the_default_loader(small_root, tmp_path, store_type, profile, expected):
     root, truth = small_root
     result = run(
-        "--root-dir", str(root), "--output-dir", str(tmp_path), "--lidar-id", "up_lidar",
-        "argoverse2-v4", "--split", "val", "--store-type", store_type, "--profile", profile,
-    )  # fmt: skip
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(tmp_path),
+        "--lidar-id",
+        "up_lidar",
+        "argoverse2-v4",
+        "--split",
+        "val",
+        "--store-type",
+        store_type,
+        "--profile",
+        profile,
+    )
     assert result.exit_code == 0, result.output
     names = {p.name for p in (tmp_path / truth.log_id).iterdir()}
     for suffix in expected:
@@ -90,8 +101,17 @@ def test_store_types_and_profiles_open_with_the_default_loader(small_root, tmp_p
 
 def test_no_sequence_meta_writes_no_json(small_root, tmp_path):
     root, truth = small_root
-    result = run("--root-dir", str(root), "--output-dir", str(tmp_path), "--no-lidars",
-                 "argoverse2-v4", "--split", "val", "--no-sequence-meta")  # fmt: skip
+    result = run(
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(tmp_path),
+        "--no-lidars",
+        "argoverse2-v4",
+        "--split",
+        "val",
+        "--no-sequence-meta",
+    )
     assert result.exit_code == 0, result.output
     assert not (tmp_path / truth.log_id / f"{truth.log_id}.json").exists()
 

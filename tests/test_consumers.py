@@ -224,8 +224,11 @@ def test_av2_class_names_and_label_source(av2):
 
 def test_opv2v_class_names_and_label_source(opv2v):
     agent = next(iter(opv2v.truth.agents))
-    expected = {"default": ({"car"}, LabelSource.GT_SYNTHETIC), "consumer": ({"vehicle"}, LabelSource.AUTOLABEL),
-                "external": ({"car"}, LabelSource.EXTERNAL)}  # fmt: skip
+    expected = {
+        "default": ({"car"}, LabelSource.GT_SYNTHETIC),
+        "consumer": ({"vehicle"}, LabelSource.AUTOLABEL),
+        "external": ({"car"}, LabelSource.EXTERNAL),
+    }
     for run, (classes, source) in expected.items():
         observations = list(opv2v.loader(run, agent).get_cuboid_track_observations())
         assert {o.class_id for o in observations} == classes and {o.source for o in observations} == {source}
@@ -234,12 +237,19 @@ def test_opv2v_class_names_and_label_source(opv2v):
 
 
 def test_a_category_outside_the_table_is_kept_and_reported_once():
-    observations = TrackObservations(["a", "a", "b", "c"], np.array([0, 1, 0, 0]), np.zeros((4, 3)),
-                                     np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)))  # fmt: skip
+    observations = TrackObservations(
+        ["a", "a", "b", "c"], np.array([0, 1, 0, 0]), np.zeros((4, 3)), np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3))
+    )
     labels = cuboid_labels(
-        observations, ["REGULAR_VEHICLE", "REGULAR_VEHICLE", "HOVERCRAFT", "HOVERCRAFT"], AV2_TO_NCORE,
-        "ncore", "auto", "EXTERNAL", "world", "log/annotations.feather",
-    )  # fmt: skip
+        observations,
+        ["REGULAR_VEHICLE", "REGULAR_VEHICLE", "HOVERCRAFT", "HOVERCRAFT"],
+        AV2_TO_NCORE,
+        "ncore",
+        "auto",
+        "EXTERNAL",
+        "world",
+        "log/annotations.feather",
+    )
     assert labels.class_ids == ["car", "car", "HOVERCRAFT", "HOVERCRAFT"] and labels.label_source == "EXTERNAL"
     assert labels.warnings == [
         "log/annotations.feather: categories without an NCore class name kept as they are: HOVERCRAFT"
@@ -401,8 +411,19 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 def test_av2_clip_window(tmp_path):
     root, out = tmp_path / "src", tmp_path / "clip"
     truth = write_log(UPath(root / "val"), SynthConfig(seconds=2.0, seed=7, camera_fps=5))
-    done = _cli("--root-dir", str(root), "--output-dir", str(out), "argoverse2-v4", "--split", "val",
-                "--seek-sec", "0.55", "--duration-sec", "0.6")  # fmt: skip
+    done = _cli(
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(out),
+        "argoverse2-v4",
+        "--split",
+        "val",
+        "--seek-sec",
+        "0.55",
+        "--duration-sec",
+        "0.6",
+    )
     assert done.returncode == 0, done.stdout + done.stderr
     sweeps_us = np.array([s.timestamp_ns for s in truth.sweeps]) // 1000
     images_us = np.array([t for t in _image_times_us(truth)])
@@ -431,8 +452,17 @@ def test_av2_clip_window(tmp_path):
     assert report["logs"][truth.log_id]["validation"]["ok"]  # validated against the source, window known
     source_check = validate_sequence(UPath(out / truth.log_id / f"{truth.log_id}.json"), UPath(root))
     assert source_check.ok and any(c.name == "frames and cuboids within the clip window" for c in source_check.checks)
-    outside = _cli("--root-dir", str(root), "--output-dir", str(tmp_path / "late"), "argoverse2-v4", "--split",
-                   "val", "--seek-sec", "30")  # fmt: skip
+    outside = _cli(
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(tmp_path / "late"),
+        "argoverse2-v4",
+        "--split",
+        "val",
+        "--seek-sec",
+        "30",
+    )
     last = max(sweeps_us.max(), images_us.max())
     lasts = f"the log lasts {(last - min(sweeps_us.min(), images_us.min())) / 1e6:.3f} s"
     assert outside.returncode == 2 and lasts in outside.stdout and "--seek-sec 30" in outside.stdout, outside.stdout
@@ -446,8 +476,22 @@ def _image_times_us(truth) -> list[int]:
 def test_opv2v_clip_window_cuts_frames_labels_and_noise(tmp_path):
     config = synth_opencood.SynthConfig(dataset="opv2v", frames=10, seed=8, lidar_columns=64)
     (truth,) = synth_opencood.write_dataset(UPath(tmp_path / "src"), config)
-    done = _cli("--root-dir", str(tmp_path / "src"), "--output-dir", str(tmp_path / "out"), "opv2v-v4", "--split",
-                "test", "--seek-sec", "0.2", "--duration-sec", "0.3", "--loc-err", "--xyz-std", "0.5")  # fmt: skip
+    done = _cli(
+        "--root-dir",
+        str(tmp_path / "src"),
+        "--output-dir",
+        str(tmp_path / "out"),
+        "opv2v-v4",
+        "--split",
+        "test",
+        "--seek-sec",
+        "0.2",
+        "--duration-sec",
+        "0.3",
+        "--loc-err",
+        "--xyz-std",
+        "0.5",
+    )
     assert done.returncode == 0, done.stdout + done.stderr
     ticks_us = np.array([int(k) for k in truth.keys]) * round(config.fixed_delta_seconds * 1e6)
     start, end = ticks_us[0] + 200_000, ticks_us[0] + 500_000

@@ -181,9 +181,11 @@ def test_jittering_parked_cars_are_static_and_driving_ones_dynamic_on_the_real_s
     centres, category = _city_centres(av2_sample_root / "val" / AV2_SAMPLE_LOG)
     meta = real_log.reader.open_component_readers(CuboidsComponent.Reader)["default"].generic_meta_data
     dynamic, static = meta["dynamic_tracks"], meta["static_poses"]
-    T_world_global = real_log.reader.open_component_readers(PosesComponent.Reader)["default"].get_static_pose(
-        "world", "world_global"
-    ).astype(np.float64)  # world_global is AV2's city frame (localized)
+    T_world_global = (
+        real_log.reader.open_component_readers(PosesComponent.Reader)["default"]
+        .get_static_pose("world", "world_global")
+        .astype(np.float64)
+    )  # world_global is AV2's city frame (localized)
     parked = driving = 0
     for track, c in centres.items():
         if category[track] != "REGULAR_VEHICLE":

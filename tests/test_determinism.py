@@ -27,13 +27,46 @@ V2XSET_NOISE = ["--loc-err", "--xyz-std", "1", "--ryp-std", "2", "--async", "--a
 SYNTH = {
     "argoverse2-v4": (AV2_SYNTH, "val", "argoverse2-v4", ["--split", "val"]),
     "v2xset-v4": (V2XSET_SYNTH, "", "v2xset-v4", ["--split", "test", *V2XSET_NOISE]),
-    "argoverse2-v4 consumer": (AV2_SYNTH, "val", "argoverse2-v4", [
-        "--split", "val", "--camera-model", "ftheta", "--class-names", "source", "--cuboid-label-source",
-        "autolabel", "--seek-sec", "0.1", "--duration-sec", "0.2", "--world-global-mode", "identity"]),
-    "v2xset-v4 consumer": (V2XSET_SYNTH, "", "v2xset-v4", [
-        "--split", "test", *V2XSET_NOISE, "--camera-model", "opencv-pinhole", "--seek-sec", "0.1",
-        "--duration-sec", "0.1", "--world-global-mode", "none"]),
-}  # fmt: skip
+    "argoverse2-v4 consumer": (
+        AV2_SYNTH,
+        "val",
+        "argoverse2-v4",
+        [
+            "--split",
+            "val",
+            "--camera-model",
+            "ftheta",
+            "--class-names",
+            "source",
+            "--cuboid-label-source",
+            "autolabel",
+            "--seek-sec",
+            "0.1",
+            "--duration-sec",
+            "0.2",
+            "--world-global-mode",
+            "identity",
+        ],
+    ),
+    "v2xset-v4 consumer": (
+        V2XSET_SYNTH,
+        "",
+        "v2xset-v4",
+        [
+            "--split",
+            "test",
+            *V2XSET_NOISE,
+            "--camera-model",
+            "opencv-pinhole",
+            "--seek-sec",
+            "0.1",
+            "--duration-sec",
+            "0.1",
+            "--world-global-mode",
+            "none",
+        ],
+    ),
+}
 
 
 def _files(root: Path) -> dict[str, bytes]:

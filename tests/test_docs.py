@@ -70,8 +70,21 @@ def test_the_documentation_check_can_fail():
 
 #: One docs/ file per topic (issue 18): each dataset, the lidar model, TbV timing, noise, validation
 #: and preview, scale-out, damaged input, benchmarks, limitations.
-TOPICS = ("argoverse2", "tbv", "opv2v-v2xset", "lidar-model", "tbv-timing", "noise", "validation", "scale-out",
-          "damaged-input", "benchmarks", "limitations", "consumers", "ego-masks")  # fmt: skip
+TOPICS = (
+    "argoverse2",
+    "tbv",
+    "opv2v-v2xset",
+    "lidar-model",
+    "tbv-timing",
+    "noise",
+    "validation",
+    "scale-out",
+    "damaged-input",
+    "benchmarks",
+    "limitations",
+    "consumers",
+    "ego-masks",
+)
 
 
 def test_readme_is_short_and_links_every_topic():
@@ -88,8 +101,19 @@ def _convert(tmp_path: Path, *flags: str) -> str:
     if not root.exists():
         write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=3, camera_fps=0))
     out = tmp_path / f"out{len(flags)}"
-    command = [str(BIN / "ncore-convert"), *flags, "--workers", "2", "--root-dir", str(root), "--output-dir",
-               str(out), "argoverse2-v4", "--split", "val"]  # fmt: skip
+    command = [
+        str(BIN / "ncore-convert"),
+        *flags,
+        "--workers",
+        "2",
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(out),
+        "argoverse2-v4",
+        "--split",
+        "val",
+    ]
     run = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=600)
     assert run.returncode == 0, run.stdout
     return run.stdout

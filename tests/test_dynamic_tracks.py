@@ -71,13 +71,19 @@ def test_track_decisions_on_the_generators_traffic():
                 continue
             truly = distance >= MOVES_M or pedestrian
             said = decided[track].dynamic
-            tp, fp, fn, tn = tp + (truly and said), fp + (said and not truly), fn + (truly and not said), tn + (
-                not truly and not said)  # fmt: skip
+            tp, fp, fn, tn = (
+                tp + (truly and said),
+                fp + (said and not truly),
+                fn + (truly and not said),
+                tn + (not truly and not said),
+            )
             if category[track] == "REGULAR_VEHICLE" and distance == 0.0:
                 rows = np.flatnonzero(np.asarray(observations.track_ids) == track)
                 centres = observations.centers_m[rows]
                 parked += 1
-                parked_fast += bool(len(rows) > 10 and np.linalg.norm(centres[10:] - centres[:-10], axis=1).max() > 1 / 3.6)
+                parked_fast += bool(
+                    len(rows) > 10 and np.linalg.norm(centres[10:] - centres[:-10], axis=1).max() > 1 / 3.6
+                )
             slow_movers += category[track] == "REGULAR_VEHICLE" and MOVES_M <= distance <= 6.0 + 1e-6
     assert tp / (tp + fp) >= 0.99 and tp / (tp + fn) >= 0.99, (tp, fp, fn, tn)
     assert tn >= 150 and tp >= 200 and slow_movers >= 20, (tn, tp, slow_movers)
@@ -89,7 +95,9 @@ def test_track_decisions_on_the_generators_traffic():
 def long_log(tmp_path_factory) -> Converted:
     """13 s with the slow traffic (lidar and annotations, no cameras), converted with the defaults."""
     config = SynthConfig(seconds=13.0, seed=3, camera_fps=0, keep_truth=True)
-    return synth_and_convert(Path(tmp_path_factory.mktemp("long")), config, Argoverse2Options(split="val", camera_ids=()))
+    return synth_and_convert(
+        Path(tmp_path_factory.mktemp("long")), config, Argoverse2Options(split="val", camera_ids=())
+    )
 
 
 def _by_truth(run: Converted) -> tuple[dict[str, Box], set[str]]:
@@ -98,8 +106,11 @@ def _by_truth(run: Converted) -> tuple[dict[str, Box], set[str]]:
     annotated: dict[str, list[float]] = {}
     for obs in run.loader.get_cuboid_track_observations():
         annotated.setdefault(obs.track_id, []).append((obs.timestamp_us * 1000 - run.truth.t0_ns) * 1e-9)
-    moved = {b.track_uuid: b.moved_m(min(annotated[b.track_uuid]), max(annotated[b.track_uuid]))
-             for b in run.truth.scene.boxes if b.track_uuid in annotated}  # fmt: skip
+    moved = {
+        b.track_uuid: b.moved_m(min(annotated[b.track_uuid]), max(annotated[b.track_uuid]))
+        for b in run.truth.scene.boxes
+        if b.track_uuid in annotated
+    }
     boxes = {b.track_uuid: b for b in run.truth.scene.boxes}
     truly = {t: boxes[t] for t, d in moved.items() if d >= MOVES_M or boxes[t].category == "PEDESTRIAN"}
     return truly, {t for t, d in moved.items() if 0.0 < d < MOVES_M and t not in truly}
@@ -117,9 +128,11 @@ def test_the_written_tracks_and_static_poses_on_a_long_log(long_log):
     static = meta[contract.STATIC_POSES]
     annotated = set(meta[contract.SOURCE_CLASS_BY_TRACK])
     assert static["frame"] == "world" and set(static["tracks"]) == annotated - written
-    T_world_global = long_log.reader.open_component_readers(PosesComponent.Reader)["default"].get_static_pose(
-        "world", "world_global"
-    ).astype(np.float64)  # world_global is the city frame (localized)
+    T_world_global = (
+        long_log.reader.open_component_readers(PosesComponent.Reader)["default"]
+        .get_static_pose("world", "world_global")
+        .astype(np.float64)
+    )  # world_global is the city frame (localized)
     T_city_world = invert_se3(T_world_global)
     pose_errors, observation_errors = [], []
     for box in long_log.truth.scene.boxes:
@@ -205,8 +218,9 @@ def test_dynamic_boxes_at_a_time_equal_each_tracks_own_interpolation():
         times.append(np.sort(rng.choice(np.arange(0, 3_000_000, 50_000), n, replace=False)))
         centres.append(rng.normal(0.0, 20.0, (n, 3)))
     n_all = len(ids)
-    observations = TrackObservations(ids, np.concatenate(times), np.concatenate(centres),
-                                     np.tile(np.eye(3), (n_all, 1, 1)), np.ones((n_all, 3)))  # fmt: skip
+    observations = TrackObservations(
+        ids, np.concatenate(times), np.concatenate(centres), np.tile(np.eye(3), (n_all, 1, 1)), np.ones((n_all, 3))
+    )
     boxes = dynamic.DynamicBoxes.select(observations, set(ids))
     hold_us = round(dynamic.HOLD_S * 1e6)
     for t_us in rng.integers(-400_000, 3_400_000, 60).tolist() + [0, 2_950_000]:

@@ -115,8 +115,16 @@ def test_a_half_parked_log_looks_between_its_samples(tmp_path):
     view, so the images between them are read too (the first pass alone would leave 17 distinct
     views, too few for two halves of 12). The moving half then gives right masks or none with a
     warning, never wrong ones."""
-    config = SynthConfig(seconds=3.0, seed=34, camera_fps=20, pictures=32, parked_fraction=0.5, ego_body="easy",
-                         sweeps=False, image_cameras=EGO_CAMERAS)  # fmt: skip
+    config = SynthConfig(
+        seconds=3.0,
+        seed=34,
+        camera_fps=20,
+        pictures=32,
+        parked_fraction=0.5,
+        ego_body="easy",
+        sweeps=False,
+        image_cameras=EGO_CAMERAS,
+    )
     run = synth_and_convert(tmp_path, config, Argoverse2Options(split="val", camera_ids=EGO_CAMERAS, lidar_ids=()))
     masks = _masks(run.loader)
     _right_or_declined(run, masks)
@@ -138,9 +146,13 @@ class _Camera:
 
 @pytest.mark.parametrize(
     "pixels, ok",
-    [(np.pad(np.ones((10, 40), np.uint8), ((30, 0), (0, 0))), True), (np.ones((40, 40), np.uint8), False),
-     (np.zeros((40, 40), np.uint8), False), (np.ones((20, 40), np.uint8), False)],
-)  # fmt: skip
+    [
+        (np.pad(np.ones((10, 40), np.uint8), ((30, 0), (0, 0))), True),
+        (np.ones((40, 40), np.uint8), False),
+        (np.zeros((40, 40), np.uint8), False),
+        (np.ones((20, 40), np.uint8), False),
+    ],
+)
 def test_validate_checks_the_ego_masks_size_and_coverage(pixels, ok):
     report = Report("x")
     _check_ego_mask(report, _Camera(PIL.Image.fromarray(pixels * 255), 40, 40), "camera c")
@@ -156,8 +168,19 @@ def test_no_masks_with_none(tmp_path, av2):
 
 
 def _cli(root: Path, out: Path, *args: str) -> subprocess.CompletedProcess:
-    command = [str(BIN / "ncore-convert"), "--no-progress", "--no-lidars", "--root-dir", str(root), "--output-dir",
-               str(out), "argoverse2-v4", "--split", "val", *args]  # fmt: skip
+    command = [
+        str(BIN / "ncore-convert"),
+        "--no-progress",
+        "--no-lidars",
+        "--root-dir",
+        str(root),
+        "--output-dir",
+        str(out),
+        "argoverse2-v4",
+        "--split",
+        "val",
+        *args,
+    ]
     return subprocess.run(command, capture_output=True, text=True)
 
 
@@ -232,13 +255,17 @@ def test_the_prior_on_the_real_calibration():
     must = set()
     for cam, intr in intrinsics.items():
         shape = (intr.height_px // 8, intr.width_px // 8)
-        prior = ego_mask.body_prior(shape, (intr.fx_px / 8, intr.fy_px / 8), ((intr.cx_px + 0.5) / 8,
-                                    (intr.cy_px + 0.5) / 8), extrinsics[cam], ego_mask.EgoBox())  # fmt: skip
+        prior = ego_mask.body_prior(
+            shape,
+            (intr.fx_px / 8, intr.fy_px / 8),
+            ((intr.cx_px + 0.5) / 8, (intr.cy_px + 0.5) / 8),
+            extrinsics[cam],
+            ego_mask.EgoBox(),
+        )
         assert not prior.reach[: shape[0] // 2].any(), cam  # the body is below the camera
         if prior.must_see:
             must.add(cam)
-    assert must == {"ring_front_center", "ring_rear_left", "ring_rear_right", "stereo_front_left",
-                    "stereo_front_right"}  # fmt: skip
+    assert must == {"ring_front_center", "ring_rear_left", "ring_rear_right", "stereo_front_left", "stereo_front_right"}
 
 
 def test_a_body_seeing_camera_without_a_mask_is_a_warning(tmp_path, av2):
@@ -251,8 +278,9 @@ def test_a_body_seeing_camera_without_a_mask_is_a_warning(tmp_path, av2):
     side = sorted((root / "val" / truth.log_id / "sensors" / "cameras" / "ring_side_left").glob("*.jpg"))
     for target, source in zip(rear, side * 2, strict=False):
         target.write_bytes(source.read_bytes())
-    summary = convert_log(UPath(root), UPath(tmp_path / "out"), truth.log_id,
-                          Argoverse2Options(split="val", lidar_ids=()))  # fmt: skip
+    summary = convert_log(
+        UPath(root), UPath(tmp_path / "out"), truth.log_id, Argoverse2Options(split="val", lidar_ids=())
+    )
     (warning,) = [w for w in summary.warnings if "ego masks not estimated" in w]
     assert "ring_rear_left" in warning and "must see the ego body" in warning, warning
     loader = open_sequence(tmp_path / "out", truth.log_id)
@@ -269,8 +297,9 @@ def test_realistic_bodies(tmp_path, tbv, seed):
     body cameras have images and are converted, and there is no lidar (the cameras without a body:
     the easy-body test above, and the sweep). (Each seed is its own case, so the six logs spread
     over the workers: ``OWN_SCOPE`` in conftest.py.)"""
-    config = SynthConfig(seconds=1.5, seed=seed, camera_fps=20, pictures=32, tbv=tbv, sweeps=False,
-                         image_cameras=EGO_CAMERAS)  # fmt: skip
+    config = SynthConfig(
+        seconds=1.5, seed=seed, camera_fps=20, pictures=32, tbv=tbv, sweeps=False, image_cameras=EGO_CAMERAS
+    )
     truth = write_log(UPath(tmp_path / "src" / "val"), config)
     root = tmp_path / "src" if not tbv else tmp_path / "src" / "val"
     options = Argoverse2Options(split=None if tbv else "val", lidar_ids=(), camera_ids=tuple(truth.ego_masks))
@@ -286,8 +315,9 @@ def test_the_log_that_fooled_the_single_estimate(tmp_path):
     generator of issue 39). Now 20 images cannot make two halves of 12 distinct views: no camera gets
     a mask, and the warning names every body camera with the reason, also in its metadata."""
     truth = write_log(UPath(tmp_path / "src"), SynthConfig(seconds=1.5, seed=48, camera_fps=10, tbv=True))
-    summary = convert_log(UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.log_id,
-                          Argoverse2Options(split=None, lidar_ids=()))  # fmt: skip
+    summary = convert_log(
+        UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.log_id, Argoverse2Options(split=None, lidar_ids=())
+    )
     loader = open_sequence(tmp_path / "out", truth.log_id)
     assert _masks(loader) == {}
     declined = _right_or_declined(Converted(truth, summary, tmp_path / "out", loader), {})

@@ -55,8 +55,7 @@ def test_round_grid_coordinates_and_signed_zeros():
 
 
 @settings(max_examples=60, deadline=None)
-@given(arrays(np.float32, (64, 3), elements=st.floats(-300, 300, width=32)),
-       st.sampled_from([1.0, 1e-3, 1e3]))  # fmt: skip
+@given(arrays(np.float32, (64, 3), elements=st.floats(-300, 300, width=32)), st.sampled_from([1.0, 1e-3, 1e3]))
 def test_any_float32_points(xyz, scale):
     xyz = (xyz * np.float32(scale)).astype(np.float32)
     xyz = xyz[np.linalg.norm(xyz.astype(np.float64), axis=1) >= 1e-3]

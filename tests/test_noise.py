@@ -103,13 +103,32 @@ OPENCOOD_CASES = [
     dict(seed=25, **{"async": True}, async_overhead=100, loc_err=True, xyz_std=0.2, ryp_std=0.2),
     dict(seed=0, **{"async": True}, async_overhead=250, loc_err=True, xyz_std=1.0, ryp_std=1.0),
     dict(seed=7, **{"async": True}, async_overhead=60, loc_err=False, xyz_std=0.5, ryp_std=0.5),
-    dict(seed=25, **{"async": True}, async_mode="real", async_overhead=100, backbone_delay=10, data_size=1.06,
-         transmission_speed=27, loc_err=True, xyz_std=0.2, ryp_std=0.2),
+    dict(
+        seed=25,
+        **{"async": True},
+        async_mode="real",
+        async_overhead=100,
+        backbone_delay=10,
+        data_size=1.06,
+        transmission_speed=27,
+        loc_err=True,
+        xyz_std=0.2,
+        ryp_std=0.2,
+    ),
     dict(seed=1234, **{"async": True}, async_mode="real", async_overhead=300, loc_err=False, xyz_std=0, ryp_std=0),
     dict(seed=99, **{"async": False}, async_mode="real", async_overhead=300, loc_err=False, xyz_std=0.1, ryp_std=0),
-    dict(seed=5, **{"async": True}, async_mode="real", async_overhead=200, data_size=2.0, transmission_speed=10,
-         loc_err=True, xyz_std=0.3, ryp_std=0.1),
-]  # fmt: skip
+    dict(
+        seed=5,
+        **{"async": True},
+        async_mode="real",
+        async_overhead=200,
+        data_size=2.0,
+        transmission_speed=10,
+        loc_err=True,
+        xyz_std=0.3,
+        ryp_std=0.1,
+    ),
+]
 
 
 @pytest.mark.parametrize("wild", OPENCOOD_CASES)
@@ -164,8 +183,16 @@ def lag1(x: np.ndarray) -> float:
 
 
 def realistic(**values) -> NoiseSetting:
-    base = {"name": "r", "model": "realistic", "seed": 3, "async": True, "async_overhead": 0, "loc_err": True,
-            "xyz_std": 0.0, "ryp_std": 0.0}  # fmt: skip
+    base = {
+        "name": "r",
+        "model": "realistic",
+        "seed": 3,
+        "async": True,
+        "async_overhead": 0,
+        "loc_err": True,
+        "xyz_std": 0.0,
+        "ryp_std": 0.0,
+    }
     return make_setting(base | values)
 
 
@@ -195,8 +222,12 @@ def test_white_process_is_uncorrelated_in_time_and_between_agents():
         assert abs(lag1(e[:, 0])) < bound and abs(lag1(e[:, 5])) < bound
     assert abs(np.corrcoef(streams[0][:, 0], streams[1][:, 0])[0, 1]) < bound
     # the agents' delay streams are independent too
-    d = [noise.realistic_delays_ms(realistic(async_mode="real", async_overhead=100),
-                                   noise.agent_rngs(setting, "scn", a)[1], n) for a in ("1", "2")]  # fmt: skip
+    d = [
+        noise.realistic_delays_ms(
+            realistic(async_mode="real", async_overhead=100), noise.agent_rngs(setting, "scn", a)[1], n
+        )
+        for a in ("1", "2")
+    ]
     assert abs(np.corrcoef(d[0], d[1])[0, 1]) < bound
 
 
@@ -314,11 +345,27 @@ def test_a_bad_noise_config_is_one_line_naming_the_file(tmp_path, edit, message)
 def test_flags_make_the_same_setting_as_the_file(tmp_path):
     path = tmp_path / "doc.yaml"
     path.write_text(DOC_BLOCK)
-    flags = {"noise_name": "doc", "noise_model": None, "noise_seed": 25, "async_": True, "async_mode": "sim",
-             "async_overhead": 100.0, "backbone_delay": 10.0, "data_size": 1.06, "transmission_speed": 27.0,
-             "loc_err": True, "xyz_std": 0.2, "ryp_std": 0.2, "max_cav": None, "gps_process": None,
-             "correlation_time_s": None, "bias_xyz_std": None, "bias_ryp_std": None, "gps_dof": None,
-             "perturb_ego": None}  # fmt: skip
+    flags = {
+        "noise_name": "doc",
+        "noise_model": None,
+        "noise_seed": 25,
+        "async_": True,
+        "async_mode": "sim",
+        "async_overhead": 100.0,
+        "backbone_delay": 10.0,
+        "data_size": 1.06,
+        "transmission_speed": 27.0,
+        "loc_err": True,
+        "xyz_std": 0.2,
+        "ryp_std": 0.2,
+        "max_cav": None,
+        "gps_process": None,
+        "correlation_time_s": None,
+        "bias_xyz_std": None,
+        "bias_ryp_std": None,
+        "gps_dof": None,
+        "perturb_ego": None,
+    }
     (from_flags,) = noise_settings((), flags)
     assert from_flags == read_noise_config(UPath(path))
     with pytest.raises(ValueError, match="used more than once: doc"):
@@ -332,10 +379,23 @@ CONFIG = SynthConfig(dataset="v2xset", frames=8, seed=11, cavs=3, infrastructure
 WILD = {"opencood_test": OPENCOOD_CASES[0], "opencood_real": {**OPENCOOD_CASES[6], "async_overhead": 300}}
 SETTINGS = (
     *(make_setting({"name": name, **wild}) for name, wild in WILD.items()),
-    make_setting({"name": "gm_drift", "model": "realistic", "seed": 8, "async": True, "async_mode": "real",
-                  "async_overhead": 150, "loc_err": True, "xyz_std": 0.5, "ryp_std": 0.5,
-                  "process": "gauss_markov", "correlation_time_s": 2.0, "bias_xyz_std": 0.3}),
-)  # fmt: skip
+    make_setting(
+        {
+            "name": "gm_drift",
+            "model": "realistic",
+            "seed": 8,
+            "async": True,
+            "async_mode": "real",
+            "async_overhead": 150,
+            "loc_err": True,
+            "xyz_std": 0.5,
+            "ryp_std": 0.5,
+            "process": "gauss_markov",
+            "correlation_time_s": 2.0,
+            "bias_xyz_std": 0.3,
+        }
+    ),
+)
 
 
 @dataclass

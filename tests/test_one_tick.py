@@ -31,8 +31,9 @@ def convert_both_layouts(tmp: Path, truth, dataset: str = "v2xset", noise=()) ->
     outs = {}
     for layout in ("agents", "scenario"):
         out = tmp / layout / truth.scenario
-        summary = convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario,
-                                   OpenCoodOptions(dataset, "test", layout, noise=noise))  # fmt: skip
+        summary = convert_scenario(
+            UPath(tmp / "src"), UPath(out), truth.scenario, OpenCoodOptions(dataset, "test", layout, noise=noise)
+        )
         assert summary.agents and not [w for w in summary.warnings if "not written" in w], summary.warnings
         outs[layout] = out
     return outs

@@ -31,8 +31,9 @@ from ncore_convert.synth.opencood import (
 )
 
 #: 80 ms between dumped frames: timestamps must come from the keys and data_protocol.yaml, not 100 ms
-CONFIG = SynthConfig(dataset="v2xset", frames=4, seed=3, cavs=2, lidar_columns=360, fixed_delta_seconds=0.04,
-                     keep_truth=True)  # fmt: skip
+CONFIG = SynthConfig(
+    dataset="v2xset", frames=4, seed=3, cavs=2, lidar_columns=360, fixed_delta_seconds=0.04, keep_truth=True
+)
 MIRROR = np.array([1.0, -1.0, 1.0])
 
 
@@ -211,8 +212,11 @@ def test_a_label_becomes_the_documented_world_box(agents):
     )
     center = np.array(label["location"]) + carla_rotation(np.array(label["angle"])) @ np.array(label["center"])
     loader = agents.loader(agent_id)
-    (obs,) = [o for o in loader.get_cuboid_track_observations() if o.track_id == str(label_id)
-              and o.timestamp_us == round(int(key) * CONFIG.fixed_delta_seconds * 1e6)]  # fmt: skip
+    (obs,) = [
+        o
+        for o in loader.get_cuboid_track_observations()
+        if o.track_id == str(label_id) and o.timestamp_us == round(int(key) * CONFIG.fixed_delta_seconds * 1e6)
+    ]
     T_rig_wg = loader.pose_graph.evaluate_poses("rig", "world_global", np.array(obs.timestamp_us, dtype=np.uint64))
     np.testing.assert_allclose(T_rig_wg[:3, :3] @ obs.bbox3.centroid + T_rig_wg[:3, 3], center * MIRROR, atol=2e-3)
     np.testing.assert_allclose(obs.bbox3.dim, 2 * np.array(label["extent"]), atol=1e-9)
@@ -242,8 +246,11 @@ def test_scenario_layout_holds_every_agent_and_matches_the_agent_sequences(agent
     observations = list(loader.get_cuboid_track_observations())
     assert observations and {o.reference_frame_id for o in observations} == {f"agent{ego}_rig"}
     # world is the OpenCOOD ego's first pose
-    first = loader.pose_graph.evaluate_poses(f"agent{ego}_rig", "world", np.array(loader.get_lidar_sensor(
-        f"agent{ego}_{src.LIDAR}").get_frames_timestamps_us()[0], dtype=np.uint64))  # fmt: skip
+    first = loader.pose_graph.evaluate_poses(
+        f"agent{ego}_rig",
+        "world",
+        np.array(loader.get_lidar_sensor(f"agent{ego}_{src.LIDAR}").get_frames_timestamps_us()[0], dtype=np.uint64),
+    )
     np.testing.assert_allclose(first, np.eye(4), atol=1e-6)
 
 

@@ -27,8 +27,9 @@ from ncore_convert.views.opencood import OpenCoodScenario
 from ncore_convert.views.opencood_export import export_opencood
 
 #: A noise setting as a user writes OpenCOOD's wild_setting: 0.2 m / 0.2 deg GPS error, 250 ms delay.
-NOISE = make_setting({"name": "wild", "seed": 25, "async": True, "async_overhead": 250, "loc_err": True,
-                      "xyz_std": 0.2, "ryp_std": 0.2})  # fmt: skip
+NOISE = make_setting(
+    {"name": "wild", "seed": 25, "async": True, "async_overhead": 250, "loc_err": True, "xyz_std": 0.2, "ryp_std": 0.2}
+)
 
 
 def opencood_pcd(path: Path) -> np.ndarray:
@@ -51,12 +52,14 @@ def assert_same_pose(got: np.ndarray, yaml_pose: list[float]) -> None:
     """The YAML's pose: positions within 1e-6 relative, the angles the same rotation to 1e-6 (NCore
     stores the dynamic poses in float32: ~1e-7 m and 1e-7 rad were seen in the scenario layout)."""
     np.testing.assert_allclose(got[:3], yaml_pose[:3], rtol=1e-6, atol=1e-9)
-    np.testing.assert_allclose(carla_pose_matrix(got)[:3, :3], carla_pose_matrix(np.array(yaml_pose))[:3, :3],
-                               atol=1e-6)  # fmt: skip
+    np.testing.assert_allclose(
+        carla_pose_matrix(got)[:3, :3], carla_pose_matrix(np.array(yaml_pose))[:3, :3], atol=1e-6
+    )
 
 
 def convert(tmp: Path, dataset: str, layouts=("agents",), frames: int = 3, seed: int = 5):
-    """A synthetic scenario with ``NOISE`` stored, converted in each of ``layouts``: (truth, {layout: scenario.json})."""
+    """A synthetic scenario with ``NOISE`` stored, converted in each of ``layouts``:
+    (truth, {layout: scenario.json})."""
     config = synth.SynthConfig(dataset=dataset, frames=frames, seed=seed)
     (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
     outs = {}
@@ -141,8 +144,12 @@ def test_raw_to_ncore_to_raw_is_exact(tmp_path, dataset, layout, v2xset):
     data_protocol.yaml byte for byte, every point equal to float32 precision in file order with its
     intensity byte."""
     truth, manifests = v2xset if dataset == "v2xset" else convert(tmp_path / "conv", dataset)
-    result = subprocess.run([str(BIN / "ncore-convert"), "export-opencood", str(manifests[layout]), "--out",
-                             str(tmp_path / "export")], capture_output=True, text=True, timeout=300)  # fmt: skip
+    result = subprocess.run(
+        [str(BIN / "ncore-convert"), "export-opencood", str(manifests[layout]), "--out", str(tmp_path / "export")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 0, result.stderr
     exported = tmp_path / "export" / truth.scenario
     assert f"wrote {exported}: {len(truth.agents)} agents" in result.stdout
@@ -170,7 +177,8 @@ def test_a_noise_setting_gives_its_poses_and_delays(tmp_path, v2xset):
             raw = load_yaml(UPath(Path(truth.scenario_dir) / agent_id / f"{key}.yaml"))
             params = view.params(agent_id, key)
             assert {k: v for k, v in params.items() if k != "lidar_pose"} == {
-                k: v for k, v in raw.items() if k != "lidar_pose"}  # fmt: skip
+                k: v for k, v in raw.items() if k != "lidar_pose"
+            }
             assert_same_pose(np.array(params["lidar_pose"]), list(np.array(raw["lidar_pose"]) + error[i]))
             perturbed += bool(np.any(error[i]))
             source = data.get_generic_data("delay_source_keys")[i]
@@ -236,16 +244,23 @@ def test_base_data_and_the_torch_adapter_follow_opencoods_delays(v2xset):
         raw_pngs = sorted((Path(truth.scenario_dir) / agent_id).glob(f"{key}_camera*.png"))
         assert item["params"] == view.params(agent_id, key) and len(raw_pngs) == 4
         assert {f"{key}_camera{k}.png": png for k, png in item["camera_png"].items()} == {
-            p.name: p.read_bytes() for p in raw_pngs}  # fmt: skip
+            p.name: p.read_bytes() for p in raw_pngs
+        }
 
 
 def test_export_usage_errors_are_one_line_and_write_nothing(tmp_path, v2xset):
     truth, manifests = v2xset
     sequence = next(Path(manifests["agents"]).parent.glob("*/*.json"))
-    for args, message in (([str(sequence)], "expected a scenario.json"),
-                          ([str(manifests["agents"]), "--poses", "nope"], "no noise setting 'nope' (stored: wild)")):  # fmt: skip
-        result = subprocess.run([str(BIN / "ncore-convert"), "export-opencood", *args, "--out", str(tmp_path / "x")],
-                                capture_output=True, text=True, timeout=120)  # fmt: skip
+    for args, message in (
+        ([str(sequence)], "expected a scenario.json"),
+        ([str(manifests["agents"]), "--poses", "nope"], "no noise setting 'nope' (stored: wild)"),
+    ):
+        result = subprocess.run(
+            [str(BIN / "ncore-convert"), "export-opencood", *args, "--out", str(tmp_path / "x")],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert result.returncode == 2 and message in result.stderr, result.stderr
         assert "Traceback" not in result.stderr and not (tmp_path / "x").exists()
 
@@ -255,8 +270,19 @@ def test_the_export_shows_progress_only_when_asked(tmp_path, v2xset):
     truth, manifests = v2xset
     runs = {}
     for flag in ("--no-progress", "--progress"):
-        runs[flag] = subprocess.run([str(BIN / "ncore-convert"), flag, "export-opencood", str(manifests["agents"]),
-                                     "--out", str(tmp_path / flag)], capture_output=True, text=True, timeout=300)  # fmt: skip
+        runs[flag] = subprocess.run(
+            [
+                str(BIN / "ncore-convert"),
+                flag,
+                "export-opencood",
+                str(manifests["agents"]),
+                "--out",
+                str(tmp_path / flag),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert runs[flag].returncode == 0, runs[flag].stderr
     assert "\r" not in runs["--no-progress"].stderr and "agent-frames" not in runs["--no-progress"].stderr
     frames = len(truth.agents) * len(truth.keys)
@@ -288,11 +314,13 @@ def test_pcd_layouts_and_points_that_are_not_rays_round_trip_as_they_came(tmp_pa
         write_pcd(UPath(path), xyz, intensity, field, binary)
     out = tmp_path / "out" / truth.scenario
     summary = convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario, OpenCoodOptions("opv2v", "test"))
-    assert any("4 lidar points at zero range or with non-finite coordinates not stored as rays" in w
-               for w in summary.warnings)  # fmt: skip
+    assert any(
+        "4 lidar points at zero range or with non-finite coordinates not stored as rays" in w for w in summary.warnings
+    )
     exported = Path(export_opencood(UPath(out / "scenario.json"), UPath(tmp_path / "export"))[0])
-    assert _same_tree_but_pcds(Path(truth.scenario_dir), exported) == [str(p.relative_to(truth.scenario_dir))
-                                                                        for p in pcds]  # fmt: skip
+    assert _same_tree_but_pcds(Path(truth.scenario_dir), exported) == [
+        str(p.relative_to(truth.scenario_dir)) for p in pcds
+    ]
     on_grid = 0
     for path, (field, binary) in zip(pcds, LAYOUTS, strict=True):
         raw, back = read_pcd(UPath(path)), read_pcd(UPath(exported / path.relative_to(truth.scenario_dir)))

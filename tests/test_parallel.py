@@ -56,8 +56,11 @@ def test_two_processes_write_the_same_bytes_as_one(camera_root, pool, tmp_path):
     expected_frames = len(truth.sweeps) + truth.n_images
     assert inline_frames == parallel_frames == expected_frames
     assert (inline.sweeps, inline.images, inline.cuboids, inline.points) == (
-        parallel.sweeps, parallel.images, parallel.cuboids, parallel.points,
-    )  # fmt: skip
+        parallel.sweeps,
+        parallel.images,
+        parallel.cuboids,
+        parallel.points,
+    )
     assert parallel.images == truth.n_images and parallel.cuboids == truth.n_cuboids
 
 
@@ -74,8 +77,10 @@ def test_joined_sequence_meta_equals_the_library_meta_of_all_stores(camera_root,
     }
     # stores are listed base first, then lidars, then cameras, whichever process finished first
     assert [s["path"].split(".ncore4")[1] for s in ours["component_stores"][:3]] == [
-        ".zarr.itar", "-up_lidar.zarr.itar", "-down_lidar.zarr.itar",
-    ]  # fmt: skip
+        ".zarr.itar",
+        "-up_lidar.zarr.itar",
+        "-down_lidar.zarr.itar",
+    ]
 
 
 def test_independent_parts_never_share_a_store():
@@ -105,9 +110,19 @@ def test_a_failure_inside_a_worker_names_the_file_and_leaves_nothing(camera_root
     out = tmp_path / "out"
     result = CliRunner().invoke(
         cli,
-        ["--no-progress", "--root-dir", str(tmp_path / "root"), "--output-dir", str(out), "--workers", workers,
-         "argoverse2-v4", "--split", "val"],
-    )  # fmt: skip
+        [
+            "--no-progress",
+            "--root-dir",
+            str(tmp_path / "root"),
+            "--output-dir",
+            str(out),
+            "--workers",
+            workers,
+            "argoverse2-v4",
+            "--split",
+            "val",
+        ],
+    )
     assert result.exit_code == 1, result.output
     fail = [line for line in result.output.splitlines() if line.startswith("FAIL")]
     assert len(fail) == 1 and str(bad) in fail[0] and "not a JPEG" in fail[0], result.output

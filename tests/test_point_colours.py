@@ -30,9 +30,12 @@ def _box(centre, dims, velocity=(0.0, 0.0, 0.0), category="REGULAR_VEHICLE") -> 
 
 SCENE = Scene(
     EgoMotion(1.0, 0.01, 0.0),  # unused: rays are given in the scene frame
-    [_box((30.0, 0.0, 4.0), (1.0, 40.0, 8.0), category="BUILDING"), _box((18.0, -1.0, 0.8), (4.5, 1.9, 1.6)),
-     _box((12.0, 6.0, 0.8), (4.5, 1.9, 1.6), velocity=(0.0, -10.0, 0.0))],
-)  # fmt: skip
+    [
+        _box((30.0, 0.0, 4.0), (1.0, 40.0, 8.0), category="BUILDING"),
+        _box((18.0, -1.0, 0.8), (4.5, 1.9, 1.6)),
+        _box((12.0, 6.0, 0.8), (4.5, 1.9, 1.6), velocity=(0.0, -10.0, 0.0)),
+    ],
+)
 
 
 def _surface_colour(origins: np.ndarray, directions: np.ndarray, times_s: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -58,8 +61,16 @@ def _frame(time_s: float, usable: np.ndarray | None = None) -> ColourFrame:
     T_world_camera[:3, :3] = R_CAMERA_RIG
     T_world_camera[:3, 3] = -R_CAMERA_RIG @ CAMERA_M
     image = colour.reshape(HEIGHT, WIDTH, 3)
-    return ColourFrame("cam", round(time_s * 1e6), T_world_camera, (FOCAL, FOCAL), (WIDTH / 2, HEIGHT / 2),
-                       (WIDTH, HEIGHT), lambda: image, usable)  # fmt: skip
+    return ColourFrame(
+        "cam",
+        round(time_s * 1e6),
+        T_world_camera,
+        (FOCAL, FOCAL),
+        (WIDTH / 2, HEIGHT / 2),
+        (WIDTH, HEIGHT),
+        lambda: image,
+        usable,
+    )
 
 
 def _lidar(time_s: float, spread_s: float = 0.0) -> tuple[np.ndarray, ...]:
@@ -172,8 +183,9 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
     box_rgb = np.array([COLOURS[0], COLOURS[1]], np.uint8)
     T_camera_scene = np.eye(4)
     T_camera_scene[:3, :3], T_camera_scene[:3, 3] = R_CAMERA_RIG.T, camera_m
-    image, _ = render(scene, box_rgb, T_camera_scene, (FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT), 1,
-                      ground_z_m=GROUND_Z)  # fmt: skip
+    image, _ = render(
+        scene, box_rgb, T_camera_scene, (FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT), 1, ground_z_m=GROUND_Z
+    )
     az, el = np.meshgrid(np.radians(np.arange(-40.0, 40.0, 0.2)), np.radians(np.linspace(-25.0, 5.0, 64)))
     d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
     distance, _, box = cast_rays(np.tile(lidar_m, (len(d), 1)), d, np.zeros(len(d)), scene, 200.0, GROUND_Z)
@@ -181,8 +193,14 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
     xyz = lidar_m + d[hit] * distance[hit, None]
     truth = surface_rgb(box_rgb, box[hit], xyz, np.ones(hit.sum(), bool))
     ray = xyz - camera_m
-    first, _, _ = cast_rays(np.tile(camera_m, (len(xyz), 1)), ray / np.linalg.norm(ray, axis=1)[:, None],
-                            np.zeros(len(xyz)), scene, 200.0, GROUND_Z)  # fmt: skip
+    first, _, _ = cast_rays(
+        np.tile(camera_m, (len(xyz), 1)),
+        ray / np.linalg.norm(ray, axis=1)[:, None],
+        np.zeros(len(xyz)),
+        scene,
+        200.0,
+        GROUND_Z,
+    )
     hidden_wall = (box[hit] == 0) & (first < np.linalg.norm(ray, axis=1) - 0.05)
     T_box_world = np.eye(4)
     T_box_world[:3, 3] = car.center0_m
@@ -199,8 +217,11 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
     assert coloured.sum() > 3000 and np.all(rgb[coloured] == truth[coloured], axis=1).mean() >= 0.98
     seen = first >= np.linalg.norm(ray, axis=1) - 0.05
     cam = ray @ R_CAMERA_RIG.T
-    in_picture = (cam[:, 2] > 0.3) & (np.abs(FOCAL * cam[:, 0] / np.maximum(cam[:, 2], 1e-9)) < WIDTH / 2) & (
-        np.abs(FOCAL * cam[:, 1] / np.maximum(cam[:, 2], 1e-9)) < HEIGHT / 2)  # fmt: skip
+    in_picture = (
+        (cam[:, 2] > 0.3)
+        & (np.abs(FOCAL * cam[:, 0] / np.maximum(cam[:, 2], 1e-9)) < WIDTH / 2)
+        & (np.abs(FOCAL * cam[:, 1] / np.maximum(cam[:, 2], 1e-9)) < HEIGHT / 2)
+    )
     assert coloured[seen & in_picture].mean() >= 0.9
 
 

@@ -49,8 +49,18 @@ def source(tmp_path_factory):
 def _convert(source, name: str, *flags: str):
     root, truth = source
     out = root / name
-    args = ["--no-progress", "--no-validate", "--root-dir", str(root / "src"), "--output-dir", str(out),
-            "argoverse2-v4", "--split", "val", *flags]  # fmt: skip
+    args = [
+        "--no-progress",
+        "--no-validate",
+        "--root-dir",
+        str(root / "src"),
+        "--output-dir",
+        str(out),
+        "argoverse2-v4",
+        "--split",
+        "val",
+        *flags,
+    ]
     result = CliRunner().invoke(cli, args, catch_exceptions=False)
     assert result.exit_code == 0, result.output
     report = json.loads((out / "conversion-report.json").read_text())
@@ -59,8 +69,11 @@ def _convert(source, name: str, *flags: str):
 
 def _camera_models(loader) -> set[type]:
     return {
-        type(camera_model_from_parameters(loader.get_camera_sensor(c).model_parameters, device="cpu",
-                                          dtype=torch.float32))  # fmt: skip
+        type(
+            camera_model_from_parameters(
+                loader.get_camera_sensor(c).model_parameters, device="cpu", dtype=torch.float32
+            )
+        )
         for c in loader.camera_ids
     }
 
@@ -111,7 +124,10 @@ def test_the_3dgrut_and_nurec_presets(source, preset):
     _lidar_data_as_3dgrut_reads_it(loader, with_rgb=True)
     options = _recorded(loader, report, preset)
     assert (options["camera_model"], options["world_global_mode"], options["lidar_rgb"]) == (
-        "opencv-pinhole", "identity", True)  # fmt: skip
+        "opencv-pinhole",
+        "identity",
+        True,
+    )
 
 
 def test_the_instant_nurec_preset(source):
@@ -138,8 +154,9 @@ def test_the_ncore_preset_is_the_default(source):
 
 
 def test_an_explicit_flag_overrides_the_preset(source):
-    loader, report = _convert(source, "override", "--preset", "3dgut", "--camera-model", "ideal-pinhole",
-                              "--no-lidar-rgb")  # fmt: skip
+    loader, report = _convert(
+        source, "override", "--preset", "3dgut", "--camera-model", "ideal-pinhole", "--no-lidar-rgb"
+    )
     _lidar_data_as_3dgrut_reads_it(loader, with_rgb=False)
     assert _camera_models(loader) == {IdealPinholeCameraModel}  # given explicitly, even at its default value
     np.testing.assert_array_equal(_world_global(loader), np.eye(4))  # the rest of the preset holds
@@ -157,8 +174,19 @@ def test_opv2v_lidar_rgb_carries_the_true_colours(tmp_path):
 
     config = synth_opencood.SynthConfig(dataset="opv2v", frames=3, seed=3, keep_truth=True)  # 720 columns: 0.5 deg
     (truth,) = synth_opencood.write_dataset(UPath(tmp_path / "src"), config)
-    args = ["--no-progress", "--no-validate", "--root-dir", str(tmp_path / "src"), "--output-dir", str(tmp_path / "out"),
-            "opv2v-v4", "--split", "test", "--preset", "3dgut"]  # fmt: skip
+    args = [
+        "--no-progress",
+        "--no-validate",
+        "--root-dir",
+        str(tmp_path / "src"),
+        "--output-dir",
+        str(tmp_path / "out"),
+        "opv2v-v4",
+        "--split",
+        "test",
+        "--preset",
+        "3dgut",
+    ]
     result = CliRunner().invoke(cli, args, catch_exceptions=False)
     assert result.exit_code == 0, result.output
     right = coloured_total = in_view = coloured_in_view = 0
@@ -195,8 +223,17 @@ def test_tbv_lidars_are_coloured_too(tmp_path):
     """TbV (no per-point time in the source: the reconstructed one is used; no cuboids): the 3DGRT
     preset colours both units, as 3DGRUT reads them."""
     truth = write_log(UPath(tmp_path / "src"), SynthConfig(seconds=1.0, seed=4, camera_fps=10, tbv=True))
-    args = ["--no-progress", "--no-validate", "--root-dir", str(tmp_path / "src"), "--output-dir", str(tmp_path / "out"),
-            "tbv-v4", "--preset", "3dgrt"]  # fmt: skip
+    args = [
+        "--no-progress",
+        "--no-validate",
+        "--root-dir",
+        str(tmp_path / "src"),
+        "--output-dir",
+        str(tmp_path / "out"),
+        "tbv-v4",
+        "--preset",
+        "3dgrt",
+    ]
     result = CliRunner().invoke(cli, args, catch_exceptions=False)
     assert result.exit_code == 0, result.output
     loader = open_sequence(tmp_path / "out" / truth.log_id, truth.log_id)

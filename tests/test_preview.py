@@ -121,8 +121,12 @@ def test_cooperative_preview_and_the_command(tmp_path):
     (truth,) = write_dataset(UPath(tmp_path / "src"), config)
     noise = make_setting({"name": "gps", "loc_err": True, "xyz_std": 1.0, "ryp_std": 2.0})
     out = tmp_path / "out" / truth.scenario
-    convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario,
-                     OpenCoodOptions(dataset="v2xset", split=config.split, noise=(noise,)))  # fmt: skip
+    convert_scenario(
+        UPath(tmp_path / "src"),
+        UPath(out),
+        truth.scenario,
+        OpenCoodOptions(dataset="v2xset", split=config.split, noise=(noise,)),
+    )
     png = preview_scenario(UPath(out / "scenario.json"), UPath(tmp_path / "png"))
     with Image.open(str(png)) as image:
         assert image.size[0] > 1.8 * image.size[1]  # ground truth and the noisy instance side by side

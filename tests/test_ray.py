@@ -17,9 +17,22 @@ from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 @pytest.fixture(scope="module")
 def ray_address():
     port = free_port()
-    start = [str(BIN / "ray"), "start", "--head", "--node-ip-address", "127.0.0.1", "--port", str(port),
-             "--num-cpus", "2", "--include-dashboard", "false", "--object-store-memory", str(100 * 2**20),
-             "--disable-usage-stats"]  # fmt: skip
+    start = [
+        str(BIN / "ray"),
+        "start",
+        "--head",
+        "--node-ip-address",
+        "127.0.0.1",
+        "--port",
+        str(port),
+        "--num-cpus",
+        "2",
+        "--include-dashboard",
+        "false",
+        "--object-store-memory",
+        str(100 * 2**20),
+        "--disable-usage-stats",
+    ]
     subprocess.run(start, check=True, capture_output=True, timeout=180)
     try:
         yield f"127.0.0.1:{port}"
@@ -61,8 +74,10 @@ def test_ray_executor_writes_what_the_local_executor_writes(ray_address, three_l
     assert sorted(p.name for p in (tmp_path / "ray").iterdir() if p.name.startswith(".")) == []
     report = json.loads((tmp_path / "ray" / "conversion-report.json").read_text())["logs"]
     assert {log: e["status"] for log, e in report.items()} == {
-        truths[0].log_id: "ok", truths[1].log_id: "ok", truths[2].log_id: "failed",
-    }  # fmt: skip
+        truths[0].log_id: "ok",
+        truths[1].log_id: "ok",
+        truths[2].log_id: "failed",
+    }
     assert report[truths[2].log_id]["error"]["file"] == str(bad)
     assert all(report[t.log_id]["output_bytes"] > 0 and report[t.log_id]["seconds"] > 0 for t in truths[:2])
     rerun = convert(root, tmp_path / "ray", "--executor", "ray", "--ray-address", ray_address)

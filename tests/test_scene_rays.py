@@ -42,26 +42,45 @@ def brute_force(origins_m, directions, times_s, scene: Scene) -> tuple[np.ndarra
 
 boxes = st.lists(
     st.tuples(
-        st.floats(-40, 40), st.floats(-40, 40), st.floats(0.0, 3.0),  # centre
-        st.floats(0.3, 12.0), st.floats(0.3, 5.0), st.floats(0.3, 6.0),  # dims
+        st.floats(-40, 40),
+        st.floats(-40, 40),
+        st.floats(0.0, 3.0),  # centre
+        st.floats(0.3, 12.0),
+        st.floats(0.3, 5.0),
+        st.floats(0.3, 6.0),  # dims
         st.floats(-np.pi, np.pi),  # yaw
-        st.sampled_from([0.0, 0.0, 8.0, -15.0]), st.sampled_from([0.0, 4.0]),  # velocity x, y
+        st.sampled_from([0.0, 0.0, 8.0, -15.0]),
+        st.sampled_from([0.0, 4.0]),  # velocity x, y
     ),
-    min_size=1, max_size=8,
-)  # fmt: skip
+    min_size=1,
+    max_size=8,
+)
 
 
 @settings(max_examples=60, deadline=None)
 @given(boxes, st.booleans(), st.integers(0, 2**32 - 1))
 def test_cast_rays_finds_the_same_first_hit_as_testing_every_box(specs, one_origin, seed):
     rng = np.random.default_rng(seed)
-    scene = Scene(None, [Box(np.array([x, y, z]), np.array([vx, vy, 0.0]), _rotation_z(yaw), np.array([lx, wy, hz]),
-                             "REGULAR_VEHICLE", str(i), 10 + i)
-                         for i, (x, y, z, lx, wy, hz, yaw, vx, vy) in enumerate(specs)])  # fmt: skip
+    scene = Scene(
+        None,
+        [
+            Box(
+                np.array([x, y, z]),
+                np.array([vx, vy, 0.0]),
+                _rotation_z(yaw),
+                np.array([lx, wy, hz]),
+                "REGULAR_VEHICLE",
+                str(i),
+                10 + i,
+            )
+            for i, (x, y, z, lx, wy, hz, yaw, vx, vy) in enumerate(specs)
+        ],
+    )
     n = 600
     azimuth, elevation = rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.5, 0.3, n)
-    directions = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                           np.sin(elevation)], axis=1)  # fmt: skip
+    directions = np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
+    )
     if one_origin:
         origins = np.broadcast_to(np.array([0.5, -0.2, 1.6]), (n, 3))
         times = np.full(n, 0.3)

@@ -47,9 +47,10 @@ def real_tbv(tmp_path_factory):
     log_id = make_tbv_like(av2_log_dir, tmp / "root")
     out = tmp / "out"
     result = CliRunner().invoke(
-        cli, ["--no-progress", "--root-dir", str(tmp / "root"), "--output-dir", str(out), "tbv-v4"],
+        cli,
+        ["--no-progress", "--root-dir", str(tmp / "root"), "--output-dir", str(out), "tbv-v4"],
         catch_exceptions=False,
-    )  # fmt: skip
+    )
     assert result.exit_code == 0, result.output
     return av2_log_dir, out / log_id, open_sequence(out / log_id, log_id)
 

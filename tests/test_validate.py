@@ -144,8 +144,12 @@ def test_validate_passes_on_opv2v_and_v2xset_conversions(tmp_path, layout):
     config = OpenCoodConfig(dataset="v2xset", frames=4, seed=6, cavs=2, infrastructure=True, lidar_columns=90)
     (truth,) = write_dataset(UPath(tmp_path / "src"), config)
     out = tmp_path / "out" / truth.scenario
-    convert_scenario(UPath(tmp_path / "src"), UPath(out), truth.scenario,
-                     OpenCoodOptions(dataset="v2xset", split=config.split, layout=layout))  # fmt: skip
+    convert_scenario(
+        UPath(tmp_path / "src"),
+        UPath(out),
+        truth.scenario,
+        OpenCoodOptions(dataset="v2xset", split=config.split, layout=layout),
+    )
     sequences = find_sequences(UPath(tmp_path / "out"))
     assert len(sequences) == (len(truth.agents) if layout == "agents" else 1)
     for meta in sequences:
@@ -163,13 +167,19 @@ def test_the_validate_command_prints_failures_writes_json_and_exits_non_zero(dir
     assert good.exit_code == 0 and "1 passed, 0 failed" in good.output
     assert json.loads((tmp_path / "good.json").read_text())[0]["ok"] is True
     bad_dir = tmp_path / "bad"
-    corrupt(directory_log, bad_dir, lambda g: g[f"lidars/up_lidar/frames/{frame_keys(g, 'up_lidar')[0]}"
-                                              "/ray_bundle/direction"].__setitem__((0, 0), 3.0))  # fmt: skip
+    corrupt(
+        directory_log,
+        bad_dir,
+        lambda g: g[f"lidars/up_lidar/frames/{frame_keys(g, 'up_lidar')[0]}/ray_bundle/direction"].__setitem__(
+            (0, 0), 3.0
+        ),
+    )
     bad = CliRunner().invoke(cli, ["validate", str(bad_dir), "--json", str(tmp_path / "bad.json")])
     assert bad.exit_code == 1 and "FAIL" in bad.output and "lidar up_lidar: unit directions" in bad.output
     report = json.loads((tmp_path / "bad.json").read_text())[0]
-    assert report["ok"] is False and any(c["name"] == "lidar up_lidar: unit directions" and not c["ok"]
-                                         for c in report["checks"])  # fmt: skip
+    assert report["ok"] is False and any(
+        c["name"] == "lidar up_lidar: unit directions" and not c["ok"] for c in report["checks"]
+    )
 
 
 def test_the_cuboids_decoded_in_a_pool_worker_give_the_same_checks(directory_log):
@@ -202,8 +212,12 @@ def test_source_counts_match_on_the_synthetic_and_real_conversions(synth_log, re
         report = validate_sequence(UPath(meta), UPath(root))
         assert report.ok, failed(report)
         source = {c.name: c.detail for c in report.checks if c.name.startswith("source:")}
-        assert {"source: lidar points", "source: cuboids", "source: points inside each box match num_interior_pts",
-                "source: up_lidar frames (one per sweep)"} <= set(source), source  # fmt: skip
+        assert {
+            "source: lidar points",
+            "source: cuboids",
+            "source: points inside each box match num_interior_pts",
+            "source: up_lidar frames (one per sweep)",
+        } <= set(source), source
         assert source["source: points inside each box match num_interior_pts"].startswith("0 of ")
     # the counts are the generator's truth, not the converter's
     truth = synth_log.truth
@@ -248,9 +262,12 @@ def v2x_directory(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("coreg")
     config = OpenCoodConfig(dataset="v2xset", frames=4, seed=6, cavs=2, infrastructure=True, lidar_columns=360)
     (truth,) = write_dataset(UPath(tmp / "src"), config)
-    convert_scenario(UPath(tmp / "src"), UPath(tmp / "out" / truth.scenario), truth.scenario,
-                     OpenCoodOptions(dataset="v2xset", split=config.split, store_type="directory",
-                                     profile="default"))  # fmt: skip
+    convert_scenario(
+        UPath(tmp / "src"),
+        UPath(tmp / "out" / truth.scenario),
+        truth.scenario,
+        OpenCoodOptions(dataset="v2xset", split=config.split, store_type="directory", profile="default"),
+    )
     return truth, tmp
 
 
@@ -287,8 +304,12 @@ def test_a_misregistered_agent_fails_co_registration(v2x_directory, tmp_path, er
 def test_co_registration_passes_in_both_layouts_and_is_in_the_tree_report(v2x_directory, tmp_path):
     truth, tmp = v2x_directory
     out = tmp_path / "scenario-layout"
-    convert_scenario(UPath(tmp / "src"), UPath(out / truth.scenario), truth.scenario,
-                     OpenCoodOptions(dataset="v2xset", split="test", layout="scenario"))  # fmt: skip
+    convert_scenario(
+        UPath(tmp / "src"),
+        UPath(out / truth.scenario),
+        truth.scenario,
+        OpenCoodOptions(dataset="v2xset", split="test", layout="scenario"),
+    )
     for root in (tmp / "out", out):
         reports = validate_tree(UPath(root), UPath(tmp / "src"))
         assert all(r.ok for r in reports), [failed(r) for r in reports]
@@ -347,9 +368,23 @@ def test_the_conversion_command_validates_unless_told_not_to(tmp_path):
 
     truth = write_log(UPath(tmp_path / "src" / "val"), SynthConfig(seconds=0.3, seed=8, camera_fps=0))
     for flag, out in (("--validate", "on"), ("--no-validate", "off")):
-        result = CliRunner().invoke(cli, ["--no-progress", "--workers", "1", "--root-dir", str(tmp_path / "src"),
-                                          "--output-dir", str(tmp_path / out), flag, "argoverse2-v4", "--split", "val"],
-                                    catch_exceptions=False)  # fmt: skip
+        result = CliRunner().invoke(
+            cli,
+            [
+                "--no-progress",
+                "--workers",
+                "1",
+                "--root-dir",
+                str(tmp_path / "src"),
+                "--output-dir",
+                str(tmp_path / out),
+                flag,
+                "argoverse2-v4",
+                "--split",
+                "val",
+            ],
+            catch_exceptions=False,
+        )
         assert result.exit_code == 0, result.output
         entry = json.loads((tmp_path / out / "conversion-report.json").read_text())["logs"][truth.log_id]
         if out == "on":

@@ -21,10 +21,10 @@ from upath import UPath
 from ncore_convert import __version__
 from ncore_convert.contract import (
     MANIFEST,
+    PRESETS,
     CameraModel,
     ClassNames,
     CuboidLabelSource,
-    PRESETS,
     Layout,
     LidarModelSource,
     Preset,
@@ -102,13 +102,19 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "show_default": True})
 @click.version_option(__version__, prog_name="ncore-convert")
 @click.option(
-    "--root-dir", type=str, default=None, show_default="none; required by conversion commands",
+    "--root-dir",
+    type=str,
+    default=None,
+    show_default="none; required by conversion commands",
     help="Dataset root (local path or fsspec URL).",
-)  # fmt: skip
+)
 @click.option(
-    "--output-dir", type=str, default=None, show_default="none; required by conversion commands",
+    "--output-dir",
+    type=str,
+    default=None,
+    show_default="none; required by conversion commands",
     help="Where sequences are written, one folder per log.",
-)  # fmt: skip
+)
 @click.option(
     "--camera-id", "camera_ids", multiple=True, show_default="all", help="Convert only this camera (repeatable)."
 )
@@ -118,34 +124,48 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
 )
 @off_flag("--no-lidars", help="Convert no lidars.")
 @click.option(
-    "--progress/--no-progress", default=None, show_default="on when stderr is a terminal",
+    "--progress/--no-progress",
+    default=None,
+    show_default="on when stderr is a terminal",
     help="Show progress bars (on stderr). Off, only the per-log summary lines are printed: no cursor escapes"
     " in CI or batch logs.",
-)  # fmt: skip
+)
 @click.option(
-    "--workers", type=click.IntRange(min=1), default=None, show_default="the number of CPUs",
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    show_default="the number of CPUs",
     help="Local worker processes: a log per worker when there are enough logs, else a log's stores (per sensor)"
     " spread over them. Not used with --executor ray.",
-)  # fmt: skip
+)
 @off_flag("--overwrite", help="Reconvert logs that a previous run already converted with the same version and options.")
 @off_flag("--retry-failed", help="Convert only the logs that the last run (conversion-report.json) reported as failed.")
 @click.option(
-    "--shard", type=str, default=None, show_default="none: every log",
+    "--shard",
+    type=str,
+    default=None,
+    show_default="none: every log",
     help="I/N: convert only every N-th log of the sorted list, starting at I (array jobs without Ray).",
-)  # fmt: skip
+)
 @click.option(
-    "--executor", type=click.Choice(get_args(ExecutorKind)), default="local",
+    "--executor",
+    type=click.Choice(get_args(ExecutorKind)),
+    default="local",
     help="Where logs run: this machine's worker processes, or the tasks of an existing Ray cluster.",
-)  # fmt: skip
+)
 @click.option(
-    "--ray-address", type=str, default=None, show_default="RAY_ADDRESS, else a cluster started on this machine",
+    "--ray-address",
+    type=str,
+    default=None,
+    show_default="RAY_ADDRESS, else a cluster started on this machine",
     help="host:port of the Ray head node (with --executor ray).",
-)  # fmt: skip
+)
 @click.option(
-    "--validate/--no-validate", default=True,
+    "--validate/--no-validate",
+    default=True,
     help="Validate each converted log (the checks of 'ncore-convert validate --source', against --root-dir)"
     " before publishing it; a log that fails is not published and counts as failed.",
-)  # fmt: skip
+)
 @off_flag("--verbose", "-v", help="Print the traceback of each failed log under its one-line error.")
 @click.pass_context
 def cli(
@@ -214,52 +234,95 @@ def _parse_shard(text: str | None) -> tuple[int, int] | None:
 
 def store_options(f):
     """Store layout options shared by every dataset command."""
-    for option in reversed([
-        click.option("--store-type", type=click.Choice(get_args(StoreType)), default="itar",
-                     help="Zarr store container."),
-        click.option("--profile", type=click.Choice(get_args(Profile)), default="separate-sensors",
-                     help="Component group layout: one store, one store per sensor, or also separate"
-                     " poses/intrinsics/masks/cuboids."),
-        click.option("--sequence-meta/--no-sequence-meta", default=True,
-                     help="Write <sequence_id>.json (sequence meta)."),
-    ]):  # fmt: skip
+    for option in reversed(
+        [
+            click.option(
+                "--store-type", type=click.Choice(get_args(StoreType)), default="itar", help="Zarr store container."
+            ),
+            click.option(
+                "--profile",
+                type=click.Choice(get_args(Profile)),
+                default="separate-sensors",
+                help="Component group layout: one store, one store per sensor, or also separate"
+                " poses/intrinsics/masks/cuboids.",
+            ),
+            click.option(
+                "--sequence-meta/--no-sequence-meta", default=True, help="Write <sequence_id>.json (sequence meta)."
+            ),
+        ]
+    ):
         f = option(f)
     return f
 
 
 def consumer_options(f):
     """Options every dataset command shares that shape the output for its consumers (docs/consumers.md)."""
-    for option in reversed([
-        click.option("--preset", type=click.Choice(get_args(Preset)), default="ncore",
-                     help="Set the options below as this consumer needs them (explicit flags still win): 3dgut, 3dgrt"
-                     " and nurec: an OpenCV pinhole and world_global at the identity; instant-nurec: f-theta cameras"
-                     " and AUTOLABEL cuboids; ncore: the defaults, as NCore's own converter writes. The run report"
-                     " and the converter metadata record the preset and what it resolved to."),
-        click.option("--camera-model", type=click.Choice(get_args(CameraModel)), default="ideal-pinhole",
-                     help="How cameras are stored: NCore's ideal pinhole; an OpenCV pinhole with zero distortion"
-                     " (the same rays; 3DGUT reads it); or an f-theta model fitted to the pinhole over the whole"
-                     " image (instant-nurec), its worst error in the camera's metadata."),
-        click.option("--class-names", type=click.Choice(get_args(ClassNames)), default="ncore",
-                     help="Cuboid class names: NCore's lowercase names (e.g. REGULAR_VEHICLE -> car), the source"
-                     " name of every track kept in the cuboids' metadata; or the dataset's own names."),
-        click.option("--cuboid-label-source", type=click.Choice(get_args(CuboidLabelSource)), default="auto",
-                     help="LabelSource of the cuboids: 'auto' is the dataset's honest one (AV2 EXTERNAL, OPV2V"
-                     " GT_SYNTHETIC); 'autolabel' is a compatibility setting for instant-nurec, not a provenance"
-                     " claim."),
-        click.option("--seek-sec", type=click.FloatRange(min=0.0), default=None, show_default="none: from the start",
-                     help="Skip this many seconds from the start of each log (its first sweep, image or frame)."),
-        click.option("--duration-sec", type=click.FloatRange(min=0.0, min_open=True), default=None,
-                     show_default="none: to the end",
-                     help="Keep this many seconds from the seek point; lidar frames are kept whole or dropped."),
-        click.option("--lidar-rgb/--no-lidar-rgb", default=False, show_default="off",
-                     help="Colour every lidar point from the camera frame nearest its time (occlusion-tested, never"
-                     " from ego pixels): per-point generic data 'rgb', uint8 [N,3], which 3DGRUT seeds its colours"
-                     " from. AV2, TbV, OPV2V, V2XSet."),
-        click.option("--world-global-mode", type=click.Choice(get_args(WorldGlobalMode)), default="localized",
-                     help="What world -> world_global holds: the dataset's global frame ('localized'), the identity"
-                     " (scene at the origin for 3DGRUT), or no world_global node ('none'); the global pose is kept"
-                     " in the sequence metadata either way."),
-    ]):  # fmt: skip
+    for option in reversed(
+        [
+            click.option(
+                "--preset",
+                type=click.Choice(get_args(Preset)),
+                default="ncore",
+                help="Set the options below as this consumer needs them (explicit flags still win): 3dgut, 3dgrt"
+                " and nurec: an OpenCV pinhole and world_global at the identity; instant-nurec: f-theta cameras"
+                " and AUTOLABEL cuboids; ncore: the defaults, as NCore's own converter writes. The run report"
+                " and the converter metadata record the preset and what it resolved to.",
+            ),
+            click.option(
+                "--camera-model",
+                type=click.Choice(get_args(CameraModel)),
+                default="ideal-pinhole",
+                help="How cameras are stored: NCore's ideal pinhole; an OpenCV pinhole with zero distortion"
+                " (the same rays; 3DGUT reads it); or an f-theta model fitted to the pinhole over the whole"
+                " image (instant-nurec), its worst error in the camera's metadata.",
+            ),
+            click.option(
+                "--class-names",
+                type=click.Choice(get_args(ClassNames)),
+                default="ncore",
+                help="Cuboid class names: NCore's lowercase names (e.g. REGULAR_VEHICLE -> car), the source"
+                " name of every track kept in the cuboids' metadata; or the dataset's own names.",
+            ),
+            click.option(
+                "--cuboid-label-source",
+                type=click.Choice(get_args(CuboidLabelSource)),
+                default="auto",
+                help="LabelSource of the cuboids: 'auto' is the dataset's honest one (AV2 EXTERNAL, OPV2V"
+                " GT_SYNTHETIC); 'autolabel' is a compatibility setting for instant-nurec, not a provenance"
+                " claim.",
+            ),
+            click.option(
+                "--seek-sec",
+                type=click.FloatRange(min=0.0),
+                default=None,
+                show_default="none: from the start",
+                help="Skip this many seconds from the start of each log (its first sweep, image or frame).",
+            ),
+            click.option(
+                "--duration-sec",
+                type=click.FloatRange(min=0.0, min_open=True),
+                default=None,
+                show_default="none: to the end",
+                help="Keep this many seconds from the seek point; lidar frames are kept whole or dropped.",
+            ),
+            click.option(
+                "--lidar-rgb/--no-lidar-rgb",
+                default=False,
+                show_default="off",
+                help="Colour every lidar point from the camera frame nearest its time (occlusion-tested, never"
+                " from ego pixels): per-point generic data 'rgb', uint8 [N,3], which 3DGRUT seeds its colours"
+                " from. AV2, TbV, OPV2V, V2XSet.",
+            ),
+            click.option(
+                "--world-global-mode",
+                type=click.Choice(get_args(WorldGlobalMode)),
+                default="localized",
+                help="What world -> world_global holds: the dataset's global frame ('localized'), the identity"
+                " (scene at the origin for 3DGRUT), or no world_global node ('none'); the global pose is kept"
+                " in the sequence metadata either way.",
+            ),
+        ]
+    ):
         f = option(f)
     return f
 
@@ -274,25 +337,50 @@ def av2_family_options(log_scope: str):
     """Options shared by the Argoverse 2 Sensor and TbV commands."""
 
     def decorate(f):
-        for option in reversed([
-            click.option("--log-id", "log_ids", multiple=True, show_default=f"every log {log_scope}",
-                         help="Convert only this log (repeatable)."),
-            store_options,
-            consumer_options,
-            click.option("--maps/--no-maps", default=True,
-                         help="Store the log's HD map (vector map, ground-height raster, Sim(2)) with the poses."),
-            click.option("--ego-masks", type=str, default="estimate", callback=_ego_masks_option,
-                         metavar="estimate|none|DIR",
-                         help="Camera masks named 'ego' (the ego vehicle's pixels): estimated from a sample of each"
-                         " camera's own images; none; or DIR/<camera_id>.png (binary, the camera's size)."),
-            click.option("--ego-box-m", type=float, nargs=3, default=EgoBox().dims_m, show_default=True,
-                         metavar="LENGTH WIDTH HEIGHT",
-                         help="The nominal ego vehicle for the ego-mask prior (metres, around the rear-axle origin):"
-                         " where the body can be in each camera, and which cameras must see it."),
-            click.option("--lidar-model-source", type=click.Choice(get_args(LidarModelSource)), default="empirical",
-                         help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's"
-                         " model element; 'none': raw per-point-time ray bundles only."),
-        ]):  # fmt: skip
+        for option in reversed(
+            [
+                click.option(
+                    "--log-id",
+                    "log_ids",
+                    multiple=True,
+                    show_default=f"every log {log_scope}",
+                    help="Convert only this log (repeatable).",
+                ),
+                store_options,
+                consumer_options,
+                click.option(
+                    "--maps/--no-maps",
+                    default=True,
+                    help="Store the log's HD map (vector map, ground-height raster, Sim(2)) with the poses.",
+                ),
+                click.option(
+                    "--ego-masks",
+                    type=str,
+                    default="estimate",
+                    callback=_ego_masks_option,
+                    metavar="estimate|none|DIR",
+                    help="Camera masks named 'ego' (the ego vehicle's pixels): estimated from a sample of each"
+                    " camera's own images; none; or DIR/<camera_id>.png (binary, the camera's size).",
+                ),
+                click.option(
+                    "--ego-box-m",
+                    type=float,
+                    nargs=3,
+                    default=EgoBox().dims_m,
+                    show_default=True,
+                    metavar="LENGTH WIDTH HEIGHT",
+                    help="The nominal ego vehicle for the ego-mask prior (metres, around the rear-axle origin):"
+                    " where the body can be in each camera, and which cameras must see it.",
+                ),
+                click.option(
+                    "--lidar-model-source",
+                    type=click.Choice(get_args(LidarModelSource)),
+                    default="empirical",
+                    help="'empirical': derive a VLP-32C row-offset model per unit and log and store each ray's"
+                    " model element; 'none': raw per-point-time ray bundles only.",
+                ),
+            ]
+        ):
             f = option(f)
         return f
 
@@ -358,11 +446,18 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
         fingerprint["options"] = asdict(options)
         try:
             results = run_logs(
-                out, shard_logs(todo, obj.shard), task, executor, echo=click.echo, show_progress=obj.progress,
-                fingerprint=fingerprint, mode=obj.mode, input_dir=partial(dataset.input_dir, root, options),
+                out,
+                shard_logs(todo, obj.shard),
+                task,
+                executor,
+                echo=click.echo,
+                show_progress=obj.progress,
+                fingerprint=fingerprint,
+                mode=obj.mode,
+                input_dir=partial(dataset.input_dir, root, options),
                 report_file=report_name(obj.shard),
                 verbose=obj.verbose,
-            )  # fmt: skip
+            )
         except OSError as err:  # the output storage itself fails (full, read-only): not even the report is kept
             raise click.ClickException(f"{out}: {err.strerror or err}; run stopped") from None
     failed = sum(not r.ok for r in results)
@@ -377,34 +472,75 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
 #: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, default, help).
 #: Unset flags take OpenCOOD's defaults (shown), set in ``make_setting``.
 NOISE_FLAGS = [
-    ("--noise-name", "noise_name", "name", str, "the model's name",
-     "Name of the setting these flags make (its poses instance)."),
-    ("--noise-model", "noise_model", "model", click.Choice(MODELS), "opencood",
-     "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams."),
+    (
+        "--noise-name",
+        "noise_name",
+        "name",
+        str,
+        "the model's name",
+        "Name of the setting these flags make (its poses instance).",
+    ),
+    (
+        "--noise-model",
+        "noise_model",
+        "model",
+        click.Choice(MODELS),
+        "opencood",
+        "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams.",
+    ),
     ("--noise-seed", "noise_seed", "seed", int, "25, OpenCOOD's test seed", "seed."),
     ("--async/--no-async", "async_", "async", None, "off", "async: add communication delay."),
-    ("--async-mode", "async_mode", "async_mode", click.Choice(ASYNC_MODES), "sim",
-     "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone."),
+    (
+        "--async-mode",
+        "async_mode",
+        "async_mode",
+        click.Choice(ASYNC_MODES),
+        "sim",
+        "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone.",
+    ),
     ("--async-overhead", "async_overhead", "async_overhead", float, "0", "async_overhead, ms."),
     ("--backbone-delay", "backbone_delay", "backbone_delay", float, "0", "backbone_delay, ms (real mode)."),
     ("--data-size", "data_size", "data_size", float, "0", "data_size, Mb (real mode)."),
-    ("--transmission-speed", "transmission_speed", "transmission_speed", float, "27",
-     "transmission_speed, Mb/s (real mode)."),
+    (
+        "--transmission-speed",
+        "transmission_speed",
+        "transmission_speed",
+        float,
+        "27",
+        "transmission_speed, Mb/s (real mode).",
+    ),
     ("--loc-err/--no-loc-err", "loc_err", "loc_err", None, "off", "loc_err: add localisation (GPS) error."),
     ("--xyz-std", "xyz_std", "xyz_std", float, "0", "xyz_std: position error std, m."),
     ("--ryp-std", "ryp_std", "ryp_std", float, "0", "ryp_std: angular error std, deg."),
     ("--max-cav", "max_cav", "max_cav", int, "7", "OpenCOOD's train_params.max_cav (opencood model)."),
-    ("--gps-process", "gps_process", "process", click.Choice(PROCESSES), "white",
-     "realistic: per-frame draws or Gauss-Markov drift."),
-    ("--correlation-time-s", "correlation_time_s", "correlation_time_s", float, "10",
-     "realistic: Gauss-Markov correlation time, s."),
+    (
+        "--gps-process",
+        "gps_process",
+        "process",
+        click.Choice(PROCESSES),
+        "white",
+        "realistic: per-frame draws or Gauss-Markov drift.",
+    ),
+    (
+        "--correlation-time-s",
+        "correlation_time_s",
+        "correlation_time_s",
+        float,
+        "10",
+        "realistic: Gauss-Markov correlation time, s.",
+    ),
     ("--bias-xyz-std", "bias_xyz_std", "bias_xyz_std", float, "0", "realistic: std of a constant position bias, m."),
     ("--bias-ryp-std", "bias_ryp_std", "bias_ryp_std", float, "0", "realistic: std of a constant angular bias, deg."),
-    ("--gps-dof", "gps_dof", "dof", click.Choice(DOFS), "6dof",
-     "realistic: perturb all 6 DoF or x, y and yaw."),
-    ("--perturb-ego/--no-perturb-ego", "perturb_ego", "perturb_ego", None, "off",
-     "realistic: perturb the OpenCOOD ego too."),
-]  # fmt: skip
+    ("--gps-dof", "gps_dof", "dof", click.Choice(DOFS), "6dof", "realistic: perturb all 6 DoF or x, y and yaw."),
+    (
+        "--perturb-ego/--no-perturb-ego",
+        "perturb_ego",
+        "perturb_ego",
+        None,
+        "off",
+        "realistic: perturb the OpenCOOD ego too.",
+    ),
+]
 
 
 def noise_options(f):
@@ -412,10 +548,14 @@ def noise_options(f):
     for decl, param, _, kind, shown, help_text in reversed(NOISE_FLAGS):
         f = click.option(decl, param, type=kind, default=None, show_default=shown, help=help_text)(f)
     return click.option(
-        "--noise-config", "noise_configs", multiple=True, metavar="FILE", show_default="none",
+        "--noise-config",
+        "noise_configs",
+        multiple=True,
+        metavar="FILE",
+        show_default="none",
         help="YAML with an OpenCOOD wild_setting block (repeatable): GPS error and delay, written as a"
         " further poses instance named by its 'name' key or the file name.",
-    )(f)  # fmt: skip
+    )(f)
 
 
 def noise_settings(noise_configs: tuple[str, ...], flags: dict) -> tuple:
@@ -449,21 +589,37 @@ def opencood_options(dataset: str):
     """Options of the OPV2V and V2XSet commands."""
 
     def decorate(f):
-        for option in reversed([
-            click.option("--split", type=click.Choice(OPENCOOD_SPLITS[dataset]), required=True,
-                         help="Dataset split folder."),
-            click.option("--scenario", "scenarios", multiple=True, show_default="every scenario of the split",
-                         help="Convert only this scenario (repeatable)."),
-            click.option("--layout", type=click.Choice(get_args(Layout)), default="agents",
-                         help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
-                         " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_)."),
-            click.option("--lidar-model-source", type=click.Choice(get_args(LidarModelSource)), default="empirical",
-                         help="'empirical': the CARLA lidar's structured model from data_protocol.yaml, checked against"
-                         " the data, and each ray's model element; 'none': raw rays only."),
-            store_options,
-            consumer_options,
-            noise_options,
-        ]):  # fmt: skip
+        for option in reversed(
+            [
+                click.option(
+                    "--split", type=click.Choice(OPENCOOD_SPLITS[dataset]), required=True, help="Dataset split folder."
+                ),
+                click.option(
+                    "--scenario",
+                    "scenarios",
+                    multiple=True,
+                    show_default="every scenario of the split",
+                    help="Convert only this scenario (repeatable).",
+                ),
+                click.option(
+                    "--layout",
+                    type=click.Choice(get_args(Layout)),
+                    default="agents",
+                    help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
+                    " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_).",
+                ),
+                click.option(
+                    "--lidar-model-source",
+                    type=click.Choice(get_args(LidarModelSource)),
+                    default="empirical",
+                    help="'empirical': the CARLA lidar's structured model from data_protocol.yaml, checked against"
+                    " the data, and each ray's model element; 'none': raw rays only.",
+                ),
+                store_options,
+                consumer_options,
+                noise_options,
+            ]
+        ):
             f = option(f)
         return f
 
@@ -505,11 +661,22 @@ def v2xset_v4(obj: GroupOptions, split, scenarios, **options):
 
 @cli.command("validate")
 @click.argument("path", type=click.Path(exists=True))
-@click.option("--source", "source_root", type=str, default=None, show_default="none: no source comparison",
-              help="The dataset root the sequences were converted from (the converter's --root-dir): also"
-              " compare frames, points, images and cuboids with it.")  # fmt: skip
-@click.option("--json", "json_file", type=click.Path(dir_okay=False, writable=True), show_default="none",
-              help="Also write every check of every sequence to this JSON file.")  # fmt: skip
+@click.option(
+    "--source",
+    "source_root",
+    type=str,
+    default=None,
+    show_default="none: no source comparison",
+    help="The dataset root the sequences were converted from (the converter's --root-dir): also"
+    " compare frames, points, images and cuboids with it.",
+)
+@click.option(
+    "--json",
+    "json_file",
+    type=click.Path(dir_okay=False, writable=True),
+    show_default="none",
+    help="Also write every check of every sequence to this JSON file.",
+)
 @off_flag("--details", help="Print every check with its detail, not only the failed ones.")
 def validate_command(path, source_root, json_file, details):
     """Check converted sequences and cooperative scenarios (PATH: a <sequence_id>.json, a scenario.json
@@ -545,9 +712,13 @@ def validate_command(path, source_root, json_file, details):
 @cli.command("preview")
 @click.argument("path", type=click.Path(exists=True, dir_okay=False))
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Folder for the PNGs.")
-@click.option("--frame", type=click.IntRange(min=0), default=None, show_default="the middle frame",
-              help="Frame index: of the first lidar (a sequence), or of the frames all agents share"
-              " (scenario.json).")  # fmt: skip
+@click.option(
+    "--frame",
+    type=click.IntRange(min=0),
+    default=None,
+    show_default="the middle frame",
+    help="Frame index: of the first lidar (a sequence), or of the frames all agents share (scenario.json).",
+)
 def preview_command(path, out_dir, frame):
     """PNGs of a converted sequence or cooperative scenario (PATH: <sequence_id>.json or scenario.json).
 
@@ -571,11 +742,20 @@ def preview_command(path, out_dir, frame):
 
 @cli.command("export-opencood")
 @click.argument("scenario", type=click.Path(exists=True, dir_okay=False))
-@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True,
-              help="Folder to write <scenario>/ into (OpenCOOD's layout).")  # fmt: skip
-@click.option("--poses", default=None, show_default="the ground truth",
-              help="A stored noise setting whose lidar_pose the YAMLs get (then switch OpenCOOD's own"
-              " wild_setting off, or the noise is applied twice).")  # fmt: skip
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    required=True,
+    help="Folder to write <scenario>/ into (OpenCOOD's layout).",
+)
+@click.option(
+    "--poses",
+    default=None,
+    show_default="the ground truth",
+    help="A stored noise setting whose lidar_pose the YAMLs get (then switch OpenCOOD's own"
+    " wild_setting off, or the noise is applied twice).",
+)
 @click.pass_obj
 def export_opencood_command(obj: GroupOptions, scenario, out_dir, poses):
     """Write a converted OPV2V / V2XSet scenario back in OpenCOOD's layout (SCENARIO: its scenario.json):
@@ -633,26 +813,52 @@ def synth():
 
 def synth_camera_options(f):
     """The camera-picture options of ``synth argoverse2`` and ``synth tbv``."""
-    f = click.option("--world", type=click.Choice(["pattern", "render"]), default="pattern", show_default=True,
-                     help="The pictures: a few textured pictures per camera, cycled (cheap); or each picture ray-cast"
-                     " from the scene the lidar sees at its own time, flat-shaded (one world: lidar colours can be"
-                     " checked against it; ~0.3 s per picture).")(f)
-    f = click.option("--ego-body", type=click.Choice(["realistic", "easy", "glossy"]), default="realistic",
-                     show_default=True, help="The ego body in the cameras that see it: glossy paint with reflections,"
-                     " lighting changes, markings, glare and camouflaged silhouette stretches; still paint under ±5 %"
-                     " light; or the realistic body with strong reflections (75-95 % of the scene's contrast).")(f)
-    f = click.option("--light", type=click.Choice(["day", "night"]), default="day", show_default=True,
-                     help="Daylight, or a night scene: a dark world lit by moving lamps, which the paint mirrors.")(f)
-    f = click.option("--shadows/--no-shadows", default=False, show_default=True,
-                     help="Moving soft-edged shadows across the pictures, the body included.")(f)
-    f = click.option("--pictures", type=click.IntRange(min=1), default=16, show_default=True,
-                     help="Distinct pictures per camera that its images cycle through (the ego-mask estimator samples"
-                     " 32 images per camera).")(f)
+    f = click.option(
+        "--world",
+        type=click.Choice(["pattern", "render"]),
+        default="pattern",
+        show_default=True,
+        help="The pictures: a few textured pictures per camera, cycled (cheap); or each picture ray-cast"
+        " from the scene the lidar sees at its own time, flat-shaded (one world: lidar colours can be"
+        " checked against it; ~0.3 s per picture).",
+    )(f)
+    f = click.option(
+        "--ego-body",
+        type=click.Choice(["realistic", "easy", "glossy"]),
+        default="realistic",
+        show_default=True,
+        help="The ego body in the cameras that see it: glossy paint with reflections,"
+        " lighting changes, markings, glare and camouflaged silhouette stretches; still paint under ±5 %"
+        " light; or the realistic body with strong reflections (75-95 % of the scene's contrast).",
+    )(f)
+    f = click.option(
+        "--light",
+        type=click.Choice(["day", "night"]),
+        default="day",
+        show_default=True,
+        help="Daylight, or a night scene: a dark world lit by moving lamps, which the paint mirrors.",
+    )(f)
+    f = click.option(
+        "--shadows/--no-shadows",
+        default=False,
+        show_default=True,
+        help="Moving soft-edged shadows across the pictures, the body included.",
+    )(f)
+    f = click.option(
+        "--pictures",
+        type=click.IntRange(min=1),
+        default=16,
+        show_default=True,
+        help="Distinct pictures per camera that its images cycle through (the ego-mask estimator samples"
+        " 32 images per camera).",
+    )(f)
     return click.option(
-        "--parked-fraction", type=click.FloatRange(0.0, 1.0), default=0.0,
+        "--parked-fraction",
+        type=click.FloatRange(0.0, 1.0),
+        default=0.0,
         help="The first part of the log (a fraction) in which the cameras' world stands still, as if parked"
         " (1: the whole log; tests the ego-mask fallback).",
-    )(f)  # fmt: skip
+    )(f)
 
 
 @synth.command("argoverse2")
@@ -674,8 +880,9 @@ def synth_argoverse2(out_dir, seconds, seed, swap_lidar_halves, camera_fps, **ca
     ego body in five of them), cuboids."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    config = SynthConfig(seconds=seconds, seed=seed, swap_lidar_halves=swap_lidar_halves, camera_fps=camera_fps,
-                         **camera_options)  # fmt: skip
+    config = SynthConfig(
+        seconds=seconds, seed=seed, swap_lidar_halves=swap_lidar_halves, camera_fps=camera_fps, **camera_options
+    )
     truth = write_log(UPath(out_dir), config)
     click.echo(
         f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps,"
@@ -710,30 +917,73 @@ def synth_tbv(out_dir, seconds, seed, camera_fps, **camera_options):
 
 def _synth_opencood(dataset: str):
     @synth.command(dataset, help=f"Synthetic {dataset.upper()} scenarios, written as OpenCDA writes them, with truth.")
-    @click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True,
-                  help="Dataset root: writes <out>/<split>/<scenario>/<agent_id>/...")  # fmt: skip
+    @click.option(
+        "--out",
+        "out_dir",
+        type=click.Path(file_okay=False),
+        required=True,
+        help="Dataset root: writes <out>/<split>/<scenario>/<agent_id>/...",
+    )
     @click.option("--split", type=click.Choice(OPENCOOD_SPLITS[dataset]), default="test", help="Split folder.")
     @click.option("--scenarios", type=click.IntRange(min=1), default=1, help="Number of scenarios.")
-    @click.option("--frames", type=click.IntRange(min=1), default=10,
-                  help="Frames per scenario (10 per second; 1: a one-tick scenario).")  # fmt: skip
+    @click.option(
+        "--frames",
+        type=click.IntRange(min=1),
+        default=10,
+        help="Frames per scenario (10 per second; 1: a one-tick scenario).",
+    )
     @click.option("--cavs", type=click.IntRange(min=2), default=2, help="Connected vehicles per scenario.")
-    @click.option("--infrastructure", type=click.IntRange(min=0), default=1 if dataset == "v2xset" else 0,
-                  help="Infrastructure units per scenario.")  # fmt: skip
-    @click.option("--lidar-columns", type=click.IntRange(min=16), default=720,
-                  help="Lidar azimuths per channel and tick (one tick is one revolution, as in OPV2V's 1016);"
-                  " data_protocol.yaml's points_per_second is written to match.")  # fmt: skip
-    @click.option("--lidar-noise-stddev", type=click.FloatRange(min=0.0), default=0.0,
-                  help="CARLA's noise_stddev: range noise along each ray, m (OPV2V: 0.02).")  # fmt: skip
-    @click.option("--lidar-dropoff-rate", type=click.FloatRange(0.0, 1.0), default=0.0,
-                  help="CARLA's dropoff_general_rate: share of points dropped at random (OPV2V: 0.1).")  # fmt: skip
+    @click.option(
+        "--infrastructure",
+        type=click.IntRange(min=0),
+        default=1 if dataset == "v2xset" else 0,
+        help="Infrastructure units per scenario.",
+    )
+    @click.option(
+        "--lidar-columns",
+        type=click.IntRange(min=16),
+        default=720,
+        help="Lidar azimuths per channel and tick (one tick is one revolution, as in OPV2V's 1016);"
+        " data_protocol.yaml's points_per_second is written to match.",
+    )
+    @click.option(
+        "--lidar-noise-stddev",
+        type=click.FloatRange(min=0.0),
+        default=0.0,
+        help="CARLA's noise_stddev: range noise along each ray, m (OPV2V: 0.02).",
+    )
+    @click.option(
+        "--lidar-dropoff-rate",
+        type=click.FloatRange(0.0, 1.0),
+        default=0.0,
+        help="CARLA's dropoff_general_rate: share of points dropped at random (OPV2V: 0.1).",
+    )
     @click.option("--seed", type=int, default=0, help="Random seed (scene, actor ids, scenario names).")
-    def command(out_dir, split, scenarios, frames, cavs, infrastructure, lidar_columns, lidar_noise_stddev,
-                lidar_dropoff_rate, seed):  # fmt: skip
+    def command(
+        out_dir,
+        split,
+        scenarios,
+        frames,
+        cavs,
+        infrastructure,
+        lidar_columns,
+        lidar_noise_stddev,
+        lidar_dropoff_rate,
+        seed,
+    ):
         from ncore_convert.synth.opencood import SynthConfig, write_dataset
 
-        config = SynthConfig(dataset=dataset, frames=frames, seed=seed, cavs=cavs, infrastructure=infrastructure,
-                             split=split, lidar_columns=lidar_columns, lidar_noise_stddev=lidar_noise_stddev,
-                             lidar_dropoff_rate=lidar_dropoff_rate)  # fmt: skip
+        config = SynthConfig(
+            dataset=dataset,
+            frames=frames,
+            seed=seed,
+            cavs=cavs,
+            infrastructure=infrastructure,
+            split=split,
+            lidar_columns=lidar_columns,
+            lidar_noise_stddev=lidar_noise_stddev,
+            lidar_dropoff_rate=lidar_dropoff_rate,
+        )
         for truth in write_dataset(UPath(out_dir), config, scenarios):
             click.echo(f"wrote {truth.scenario_dir}: agents {', '.join(truth.agents)}, {len(truth.keys)} frames")
 

@@ -139,8 +139,11 @@ class ManifestAgent:
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "agent_id": self.agent_id, "kind": self.kind, "opencood_ego": self.opencood_ego, "written": self.written,
-        }  # fmt: skip
+            "agent_id": self.agent_id,
+            "kind": self.kind,
+            "opencood_ego": self.opencood_ego,
+            "written": self.written,
+        }
         for name in ("frames", "sensors", "sequence", "frame_prefix"):
             if (value := getattr(self, name)) is not None:
                 out[name] = value

@@ -116,8 +116,17 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
         ax.imshow(np.ma.masked_where(~ego, ego), cmap="autumn", alpha=0.35, vmin=0, vmax=1)
         ax.plot([], [], "s", color="orange", alpha=0.5, label=f"ego mask ({ego.mean():.1%})")
     order = np.argsort(-range_m)  # near points drawn last, on top
-    dots = ax.scatter(pixels[order, 0], pixels[order, 1], c=range_m[order], s=1.5, cmap="turbo",
-                      vmin=0, vmax=MAX_RANGE_M, linewidths=0, label=f"lidar points ({len(index)})")  # fmt: skip
+    dots = ax.scatter(
+        pixels[order, 0],
+        pixels[order, 1],
+        c=range_m[order],
+        s=1.5,
+        cmap="turbo",
+        vmin=0,
+        vmax=MAX_RANGE_M,
+        linewidths=0,
+        label=f"lidar points ({len(index)})",
+    )
     ax.set_xlim(0, width)
     ax.set_ylim(height, 0)
     ax.set_xlabel("x (px)")
@@ -141,14 +150,24 @@ def draw_bev(loader: SequenceLoaderV4, t_us: int, xyz: np.ndarray, png: UPath) -
     """Bird's-eye view of ``world`` around the ego at ``t_us``: the lidar points (world, float64 [N,3])
     by height, the cuboids of that sweep, the ego trajectory."""
     T_rig_world = loader.pose_graph.evaluate_poses("rig", "world", np.array([t_us], dtype=np.uint64))[0]
-    pose_times = np.unique(np.concatenate([loader.get_lidar_sensor(s).frames_timestamps_us[:, 1]
-                                           for s in loader.lidar_ids]))  # fmt: skip
+    pose_times = np.unique(
+        np.concatenate([loader.get_lidar_sensor(s).frames_timestamps_us[:, 1] for s in loader.lidar_ids])
+    )
     trajectory = loader.pose_graph.evaluate_poses("rig", "world", pose_times.astype(np.uint64))[:, :2, 3]
     near = np.all(np.abs(xyz[:, :2] - T_rig_world[:2, 3]) < BEV_HALF_SIZE_M, axis=1)
     fig = Figure(figsize=(10, 9.4), dpi=DPI)
     ax = fig.add_axes((0.08, 0.06, 0.78, 0.86))
-    dots = ax.scatter(xyz[near, 0], xyz[near, 1], c=xyz[near, 2] - T_rig_world[2, 3], s=0.3, cmap="viridis",
-                      vmin=-2.0, vmax=3.0, linewidths=0, label="lidar points")  # fmt: skip
+    dots = ax.scatter(
+        xyz[near, 0],
+        xyz[near, 1],
+        c=xyz[near, 2] - T_rig_world[2, 3],
+        s=0.3,
+        cmap="viridis",
+        vmin=-2.0,
+        vmax=3.0,
+        linewidths=0,
+        label="lidar points",
+    )
     frame_end = int(t_us)
     lidar0 = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us
     f = _nearest_frame(lidar0, t_us)

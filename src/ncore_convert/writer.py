@@ -280,7 +280,10 @@ class SequenceWriter:
         """
         self._require_base()
         self._poses[instance].store_dynamic_pose(
-            rig_frame, "world", T_rig_world.astype(np.float32), np.asarray(timestamps_us, dtype=np.uint64),
+            rig_frame,
+            "world",
+            T_rig_world.astype(np.float32),
+            np.asarray(timestamps_us, dtype=np.uint64),
             require_sequence_time_coverage=covers_sequence,
         )
         if T_world_world_global is not None:
@@ -339,16 +342,22 @@ class SequenceWriter:
             params = IdealPinholeCameraModelParameters(**common, **pinhole_terms)
         elif model == "opencv-pinhole":
             params = OpenCVPinholeCameraModelParameters(
-                **common, **pinhole_terms, radial_coeffs=np.zeros(6, dtype=np.float32),
-                tangential_coeffs=np.zeros(2, dtype=np.float32), thin_prism_coeffs=np.zeros(4, dtype=np.float32),
-            )  # fmt: skip
+                **common,
+                **pinhole_terms,
+                radial_coeffs=np.zeros(6, dtype=np.float32),
+                tangential_coeffs=np.zeros(2, dtype=np.float32),
+                thin_prism_coeffs=np.zeros(4, dtype=np.float32),
+            )
         else:
             params = FThetaCameraModelParameters(
-                **common, principal_point=ftheta.principal_point_px,
+                **common,
+                principal_point=ftheta.principal_point_px,
                 reference_poly=FThetaCameraModelParameters.PolynomialType.PIXELDIST_TO_ANGLE,
-                pixeldist_to_angle_poly=ftheta.pixeldist_to_angle, angle_to_pixeldist_poly=ftheta.angle_to_pixeldist,
-                max_angle=ftheta.max_angle_rad, linear_cde=ftheta.linear_cde,
-            )  # fmt: skip
+                pixeldist_to_angle_poly=ftheta.pixeldist_to_angle,
+                angle_to_pixeldist_poly=ftheta.angle_to_pixeldist,
+                max_angle=ftheta.max_angle_rad,
+                linear_cde=ftheta.linear_cde,
+            )
         self._intrinsics.store_camera_intrinsics(camera_id, params)
         self._masks.store_camera_masks(camera_id, masks or {})
 

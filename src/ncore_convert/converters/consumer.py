@@ -123,13 +123,20 @@ class CuboidLabels:
     static_poses: dict[str, tuple[np.ndarray, ...]]
 
 
-def _motion_meta(observations: dynamic.TrackObservations, poses: dict[str, tuple[np.ndarray, ...]],
-                 motion: dict[str, dynamic.TrackMotion], frame: str) -> dict:  # fmt: skip
+def _motion_meta(
+    observations: dynamic.TrackObservations,
+    poses: dict[str, tuple[np.ndarray, ...]],
+    motion: dict[str, dynamic.TrackMotion],
+    frame: str,
+) -> dict:
     """The cuboids' metadata on motion: the dynamic tracks with their figures (``motion``), the rule,
     and the static tracks' median boxes (``poses``) in ``frame``."""
     rotations = euler_xyz_from_rotation(np.stack([p[1] for p in poses.values()])) if poses else []
-    speeds = "measured speeds (every observation of the track has one) over 1 km/h, else " if (
-        observations.speeds_mps is not None) else ""  # fmt: skip
+    speeds = (
+        "measured speeds (every observation of the track has one) over 1 km/h, else "
+        if (observations.speeds_mps is not None)
+        else ""
+    )
     return {
         contract.DYNAMIC_TRACKS: {t: m.as_meta() for t, m in motion.items() if m.dynamic},
         "dynamic_rule": f"class always dynamic ({', '.join(sorted(labels.ALWAYS_DYNAMIC))}); else {speeds}the box"
@@ -143,10 +150,13 @@ def _motion_meta(observations: dynamic.TrackObservations, poses: dict[str, tuple
             " dim (length, width, height, m), rot (x-y-z Euler angles, rad) in the frame named here; the"
             " observations themselves are unchanged",
             "tracks": {
-                t: {"centroid": [round(float(v), 4) for v in pose[0]], "dim": [round(float(v), 4) for v in pose[2]],
-                    "rot": [round(float(v), 6) for v in rot]}
+                t: {
+                    "centroid": [round(float(v), 4) for v in pose[0]],
+                    "dim": [round(float(v), 4) for v in pose[2]],
+                    "rot": [round(float(v), 6) for v in rot],
+                }
                 for (t, pose), rot in zip(poses.items(), rotations, strict=True)
-            },  # fmt: skip
+            },
         },
     }
 
@@ -186,5 +196,4 @@ def cuboid_labels(
         **motion_meta,
     }
     moving = frozenset(motion_meta[contract.DYNAMIC_TRACKS])
-    return CuboidLabels(written, dict(zip(source_classes, written, strict=True)), source, meta, moving, warnings,
-                        poses)  # fmt: skip
+    return CuboidLabels(written, dict(zip(source_classes, written, strict=True)), source, meta, moving, warnings, poses)

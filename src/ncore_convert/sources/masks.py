@@ -47,7 +47,8 @@ def read_mask_folder(folder: UPath, camera_sizes: dict[str, tuple[int, int]]) ->
                 f"{path}: not a binary mask (mode {mode}; expected 1-bit or 8-bit with one non-zero value)"
             )
         if size != camera_sizes[camera]:
-            raise UsageError(f"{path}: {size[0]}x{size[1]} px, but {camera} is {camera_sizes[camera][0]}x"
-                             f"{camera_sizes[camera][1]}")  # fmt: skip
+            raise UsageError(
+                f"{path}: {size[0]}x{size[1]} px, but {camera} is {camera_sizes[camera][0]}x{camera_sizes[camera][1]}"
+            )
         out[camera] = data
     return out

@@ -265,9 +265,10 @@ def _vehicles(path: UPath, table: object) -> Vehicles:
         speeds.append(_vector(path, entry, "speed", 1, where=f"vehicle {actor}: ")[0] if "speed" in entry else np.nan)
     shape = (len(ids), 3)
     return Vehicles(
-        np.array(ids, dtype=np.int64), *(np.array(c, dtype=np.float64).reshape(shape) for c in columns.values()),
+        np.array(ids, dtype=np.int64),
+        *(np.array(c, dtype=np.float64).reshape(shape) for c in columns.values()),
         np.array(speeds, dtype=np.float64),
-    )  # fmt: skip
+    )
 
 
 def yaml_path(agent_dir: UPath, key: str) -> UPath:

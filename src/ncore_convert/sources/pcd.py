@@ -20,8 +20,16 @@ from upath import UPath
 from ncore_convert.errors import SourceError
 from ncore_convert.sources.files import read_bytes
 
-_TYPES = {("F", 4): np.float32, ("F", 8): np.float64, ("U", 1): np.uint8, ("U", 2): np.uint16,
-          ("U", 4): np.uint32, ("I", 1): np.int8, ("I", 2): np.int16, ("I", 4): np.int32}  # fmt: skip
+_TYPES = {
+    ("F", 4): np.float32,
+    ("F", 8): np.float64,
+    ("U", 1): np.uint8,
+    ("U", 2): np.uint16,
+    ("U", 4): np.uint32,
+    ("I", 1): np.int8,
+    ("I", 2): np.int16,
+    ("I", 4): np.int32,
+}
 HEADER_BYTES = 65536  #: a PCD header (at most 65 lines) fits in this
 
 

@@ -150,12 +150,22 @@ class SynthTruth:
 
 def _pandas_metadata(schema: pa.Schema) -> bytes:
     columns = [
-        {"name": f.name, "field_name": f.name, "pandas_type": _pandas_type(f.type),
-         "numpy_type": "object" if f.type == pa.string() else f.type.to_pandas_dtype().__name__, "metadata": None}
+        {
+            "name": f.name,
+            "field_name": f.name,
+            "pandas_type": _pandas_type(f.type),
+            "numpy_type": "object" if f.type == pa.string() else f.type.to_pandas_dtype().__name__,
+            "metadata": None,
+        }
         for f in schema
-    ]  # fmt: skip
-    meta = {"index_columns": [], "column_indexes": [], "columns": columns,
-            "creator": {"library": "pyarrow", "version": pa.__version__}, "pandas_version": "1.3.4"}  # fmt: skip
+    ]
+    meta = {
+        "index_columns": [],
+        "column_indexes": [],
+        "columns": columns,
+        "creator": {"library": "pyarrow", "version": pa.__version__},
+        "pandas_version": "1.3.4",
+    }
     return json.dumps(meta).encode()
 
 
@@ -176,8 +186,15 @@ def write_feather_table(path: UPath, schema: pa.Schema, columns: dict[str, objec
 
 def _pose_columns(T: np.ndarray) -> dict[str, np.ndarray]:
     q = quat_wxyz_from_se3(T)
-    return {"qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
-            "tx_m": T[:, 0, 3], "ty_m": T[:, 1, 3], "tz_m": T[:, 2, 3]}  # fmt: skip
+    return {
+        "qw": q[:, 0],
+        "qx": q[:, 1],
+        "qy": q[:, 2],
+        "qz": q[:, 3],
+        "tx_m": T[:, 0, 3],
+        "ty_m": T[:, 1, 3],
+        "tz_m": T[:, 2, 3],
+    }
 
 
 def _camera_extrinsic(yaw_deg: float, position_m: tuple[float, float, float]) -> np.ndarray:
@@ -241,8 +258,17 @@ def _write_rendered_images(truth: SynthTruth, cam_ns: dict[str, np.ndarray], cam
             t_s = (int(ts) - truth.t0_ns) * 1e-9
             T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
             f, cx, cy = truth.intrinsics[cam]  # AV2's principal point: pixel centres at integers
-            rgb, _ = render(truth.scene, box_rgb, T_camera_city, (f, f, cx + 0.5, cy + 0.5), (width, height), RENDER_STEP,
-                            t_s, MAX_RANGE_M, with_index=False)  # fmt: skip
+            rgb, _ = render(
+                truth.scene,
+                box_rgb,
+                T_camera_city,
+                (f, f, cx + 0.5, cy + 0.5),
+                (width, height),
+                RENDER_STEP,
+                t_s,
+                MAX_RANGE_M,
+                with_index=False,
+            )
             if cam in truth.ego_masks:
                 rgb[truth.ego_masks[cam]] = BODY_RGB
             path = av2.image_path(truth.log_dir, cam, int(ts))
@@ -389,9 +415,12 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
             start = ts + UNIT_WINDOW_START_NS[unit]
             T_sensor_ego = truth.T_sensor_ego[unit]
             hits = simulate_unit(
-                unit, (start, start + SWEEP_PERIOD_NS), t0_ns, scene,
+                unit,
+                (start, start + SWEEP_PERIOD_NS),
+                t0_ns,
+                scene,
                 lambda t_s, T=T_sensor_ego: scene.ego.T_ego_city(t_s) @ T,
-            )  # fmt: skip
+            )
             high_half = (unit == "down_lidar") != config.swap_lidar_halves
             hits["laser_number"] = (hits["beam"] + (32 if high_half else 0)).astype(np.uint8)
             hits["unit"] = np.full(len(hits["beam"]), u, dtype=np.int8)
@@ -403,9 +432,15 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
         write_feather_table(
             av2.sweep_path(truth.log_dir, ts),
             TBV_LIDAR_SCHEMA if config.tbv else av2.LIDAR_SCHEMA,
-            {"x": xyz_ego[:, 0], "y": xyz_ego[:, 1], "z": xyz_ego[:, 2], "intensity": hits["intensity"],
-             "laser_number": hits["laser_number"], "offset_ns": offset_ns},
-        )  # fmt: skip
+            {
+                "x": xyz_ego[:, 0],
+                "y": xyz_ego[:, 1],
+                "z": xyz_ego[:, 2],
+                "intensity": hits["intensity"],
+                "laser_number": hits["laser_number"],
+                "offset_ns": offset_ns,
+            },
+        )
         sweep = SweepTruth(ts, offset_ns)
         if config.keep_truth:
             sweep.unit, sweep.laser_number = hits["unit"], hits["laser_number"]
@@ -441,8 +476,11 @@ def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, T_city_ego: np.nd
     x_sorted = xyz_ego[by_x, 0]
     for box, T_box_ego in annotated_boxes(truth.scene, (ts - truth.t0_ns) * 1e-9, T_city_ego):
         reach_m = np.linalg.norm(box.dims_m) / 2  # only points within this x distance can be inside
-        near = by_x[np.searchsorted(x_sorted, T_box_ego[0, 3] - reach_m) : np.searchsorted(
-            x_sorted, T_box_ego[0, 3] + reach_m, "right")]  # fmt: skip
+        near = by_x[
+            np.searchsorted(x_sorted, T_box_ego[0, 3] - reach_m) : np.searchsorted(
+                x_sorted, T_box_ego[0, 3] + reach_m, "right"
+            )
+        ]
         local = (xyz_ego[near] - T_box_ego[:3, 3]) @ T_box_ego[:3, :3]
         inside = np.all(np.abs(local) <= box.dims_m / 2, axis=1)
         pose = _pose_columns(T_box_ego[None])
@@ -481,13 +519,29 @@ def _write_images(
     for cam, stamps in cam_ns.items():
         _, width, height = cams[cam]
         if cam in truth.ego_masks:
-            variants = ego_pictures(rng, width, height, truth.ego_masks[cam], parked_all, config.ego_body, count[cam],
-                                    config.light, config.shadows)  # fmt: skip
+            variants = ego_pictures(
+                rng,
+                width,
+                height,
+                truth.ego_masks[cam],
+                parked_all,
+                config.ego_body,
+                count[cam],
+                config.light,
+                config.shadows,
+            )
         else:
             if (width, height) not in shared:
-                shared[(width, height)] = ego_pictures(rng, width, height, None, parked_all,
-                                                       count=shared_count[(width, height)], light=config.light,
-                                                       shadows=config.shadows)  # fmt: skip
+                shared[(width, height)] = ego_pictures(
+                    rng,
+                    width,
+                    height,
+                    None,
+                    parked_all,
+                    count=shared_count[(width, height)],
+                    light=config.light,
+                    shadows=config.shadows,
+                )
             variants = shared[(width, height)]
         for i, ts in enumerate(stamps[::step]):
             path = av2.image_path(truth.log_dir, cam, int(ts))

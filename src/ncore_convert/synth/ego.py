@@ -75,8 +75,9 @@ def body_outline_m(camera: str) -> np.ndarray:
     return np.concatenate([flank, rear])
 
 
-def true_mask(camera: str, T_camera_ego: np.ndarray, focal_px: float, cx_px: float, cy_px: float,
-              width: int, height: int) -> np.ndarray:  # fmt: skip
+def true_mask(
+    camera: str, T_camera_ego: np.ndarray, focal_px: float, cx_px: float, cy_px: float, width: int, height: int
+) -> np.ndarray:
     """The ego pixels of ``camera`` (bool [H,W]): below the projected body outline. ``T_camera_ego``
     maps camera points (OpenCV axes) to the ego frame; the principal point is av2's (pixel centres
     at integers)."""
@@ -205,9 +206,17 @@ def _lamps(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
     return 1.5 * np.asarray(spots.filter(PIL.ImageFilter.GaussianBlur(4)), dtype=np.float32)
 
 
-def pictures(rng: np.random.Generator, width: int, height: int, mask: np.ndarray | None, parked: bool,
-             body: str = "realistic", count: int = N_PICTURES, light: str = "day",
-             shadows: bool = False) -> list[bytes]:  # fmt: skip
+def pictures(
+    rng: np.random.Generator,
+    width: int,
+    height: int,
+    mask: np.ndarray | None,
+    parked: bool,
+    body: str = "realistic",
+    count: int = N_PICTURES,
+    light: str = "day",
+    shadows: bool = False,
+) -> list[bytes]:
     """``count`` JPEGs of one camera (~0.45 MB each at AV2 resolutions): a different world in each
     (the same one when ``parked``), the body (``mask``, or none) rendered as ``body`` (one of
     ``BODIES``) in ``light`` (one of ``LIGHTS``), with moving ``shadows`` or not. The first ``k``

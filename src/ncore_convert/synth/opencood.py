@@ -179,8 +179,15 @@ def _actor_pose(road: _Road, actor: _Actor, t_s: float, wobble: bool) -> np.ndar
 
 def _box(T_actor_world: np.ndarray, actor: _Actor, category: str) -> Box:
     center = T_actor_world[:3, :3] @ np.array(actor.center_m) + T_actor_world[:3, 3]
-    return Box(center, np.zeros(3), T_actor_world[:3, :3], 2 * np.array(actor.extent_m), category,
-               str(actor.actor_id), actor.intensity)  # fmt: skip
+    return Box(
+        center,
+        np.zeros(3),
+        T_actor_world[:3, :3],
+        2 * np.array(actor.extent_m),
+        category,
+        str(actor.actor_id),
+        actor.intensity,
+    )
 
 
 def lidar_block(config: SynthConfig, channels: int, upper_fov: float, lower_fov: float) -> dict:
@@ -188,11 +195,18 @@ def lidar_block(config: SynthConfig, channels: int, upper_fov: float, lower_fov:
     and ``points_per_second`` with a fractional share per channel and tick that CARLA rounds to
     ``lidar_columns`` (as OPV2V's 1,300,000 / 20 / 64 = 1015.6 rounds to 1016)."""
     dt = config.fixed_delta_seconds
-    return {"channels": channels, "range": LIDAR_RANGE_M, "upper_fov": upper_fov, "lower_fov": lower_fov,
-            "rotation_frequency": round(1.0 / dt, 9), "points_per_second": round((config.lidar_columns - 0.375)
-                                                                               * channels / dt, 3),
-            "noise_stddev": config.lidar_noise_stddev, "dropoff_general_rate": config.lidar_dropoff_rate,
-            "dropoff_intensity_limit": 1.0, "dropoff_zero_intensity": 0.0}  # fmt: skip
+    return {
+        "channels": channels,
+        "range": LIDAR_RANGE_M,
+        "upper_fov": upper_fov,
+        "lower_fov": lower_fov,
+        "rotation_frequency": round(1.0 / dt, 9),
+        "points_per_second": round((config.lidar_columns - 0.375) * channels / dt, 3),
+        "noise_stddev": config.lidar_noise_stddev,
+        "dropoff_general_rate": config.lidar_dropoff_rate,
+        "dropoff_intensity_limit": 1.0,
+        "dropoff_zero_intensity": 0.0,
+    }
 
 
 def _lidar_rays(block: dict, dt: float) -> np.ndarray:
@@ -214,8 +228,11 @@ def _clear_of_cavs(others: list[_Actor], cavs: list[_Actor], span_s: float) -> l
     t_s = np.linspace(0.0, span_s, 50)
 
     def through_a_cav(act: _Actor) -> bool:
-        return any(act.lane_m == cav.lane_m and np.min(np.abs(act.start_m - cav.start_m + (act.speed_mps - cav.speed_mps)
-                   * t_s)) < CAV_CLEARANCE_M for cav in cavs)  # fmt: skip
+        return any(
+            act.lane_m == cav.lane_m
+            and np.min(np.abs(act.start_m - cav.start_m + (act.speed_mps - cav.speed_mps) * t_s)) < CAV_CLEARANCE_M
+            for cav in cavs
+        )
 
     return [replace(act, lane_m=-1.75) if act.speed_mps and through_a_cav(act) else act for act in others]
 
@@ -225,8 +242,16 @@ def _render_png(scene: Scene, box_rgb: np.ndarray, T_cam_world: np.ndarray) -> t
     the boxes' colours ``box_rgb`` (:func:`synth.scene.render`), and what each pixel shows, int
     [600,800] (a scene box index, -1 ground, ``SKY``)."""
     pinhole = (FOCAL_PX, FOCAL_PX, WIDTH / 2, HEIGHT / 2)
-    image, shows = render(scene, box_rgb, T_cam_world @ T_UE4_OPENCV, pinhole, (WIDTH, HEIGHT), RENDER_STEP,
-                          max_range_m=RENDER_RANGE_M, ground_z_m=0.0)  # fmt: skip
+    image, shows = render(
+        scene,
+        box_rgb,
+        T_cam_world @ T_UE4_OPENCV,
+        pinhole,
+        (WIDTH, HEIGHT),
+        RENDER_STEP,
+        max_range_m=RENDER_RANGE_M,
+        ground_z_m=0.0,
+    )
     out = io.BytesIO()
     PIL.Image.fromarray(image).save(out, format="PNG", compress_level=1)
     return out.getvalue(), shows
@@ -258,11 +283,16 @@ def _protocol(config: SynthConfig, cav_spawns: list[list[float]], rsu_spawns: li
 
     cav = sensing(lidar_block(config, config.lidar_channels, UPPER_FOV_DEG, LOWER_FOV_DEG))
     protocol = {
-        "world": {"client_port": 2000, "fixed_delta_seconds": config.fixed_delta_seconds, "seed": config.seed,
-                  "sync_mode": True, "weather": {"sun_altitude_angle": 15, "cloudiness": 0, "fog_density": 0}},
+        "world": {
+            "client_port": 2000,
+            "fixed_delta_seconds": config.fixed_delta_seconds,
+            "seed": config.seed,
+            "sync_mode": True,
+            "weather": {"sun_altitude_angle": 15, "cloudiness": 0, "fog_density": 0},
+        },
         "vehicle_base": {"sensing": cav},
         "scenario": {"single_cav_list": [{"spawn_position": s, "sensing": cav} for s in cav_spawns]},
-    }  # fmt: skip
+    }
     if rsu_spawns:
         rsu = sensing(lidar_block(config, *RSU_LIDAR))
         protocol["scenario"]["rsu_list"] = [{"spawn_position": s, "sensing": rsu} for s in rsu_spawns]
@@ -272,19 +302,33 @@ def _protocol(config: SynthConfig, cav_spawns: list[list[float]], rsu_spawns: li
 def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0) -> ScenarioTruth:
     """Write one scenario into ``split_dir``; return its truth."""
     rng = np.random.default_rng([config.seed, scenario_seed])
-    road = _Road(np.array([rng.uniform(-300, 300), rng.uniform(-400, 400)]), float(rng.uniform(-180, 180)),
-                 float(rng.choice([-1, 1]) * rng.uniform(1 / 600, 1 / 300)))  # fmt: skip
+    road = _Road(
+        np.array([rng.uniform(-300, 300), rng.uniform(-400, 400)]),
+        float(rng.uniform(-180, 180)),
+        float(rng.choice([-1, 1]) * rng.uniform(1 / 600, 1 / 300)),
+    )
     ids = rng.choice(np.arange(100, 9999), size=config.cavs + 12, replace=False).tolist()
     lincoln = (src.CAV_BOX_EXTENT_M, src.CAV_BOX_CENTER_M)
-    cavs = [_Actor(ids[i], 1.75 * (i % 2), -8.0 + 14.0 * i, 8.0, *lincoln, int(rng.integers(60, 250)))
-            for i in range(config.cavs)]  # fmt: skip
+    cavs = [
+        _Actor(ids[i], 1.75 * (i % 2), -8.0 + 14.0 * i, 8.0, *lincoln, int(rng.integers(60, 250)))
+        for i in range(config.cavs)
+    ]
     others = []
     for j in range(config.cavs, config.cavs + 12):
         moving = j % 3 != 0
         extent = (float(rng.uniform(2.0, 2.6)), float(rng.uniform(0.9, 1.1)), float(rng.uniform(0.7, 0.9)))
         lane = float(rng.choice([-1.75, 0.0, 1.75])) if moving else float(rng.choice([-5.0, 6.5]))
-        others.append(_Actor(ids[j], lane, float(rng.uniform(-60, 80)), float(rng.uniform(4, 12)) if moving else 0.0,
-                             extent, (0.0, 0.0, extent[2]), int(rng.integers(20, 250))))  # fmt: skip
+        others.append(
+            _Actor(
+                ids[j],
+                lane,
+                float(rng.uniform(-60, 80)),
+                float(rng.uniform(4, 12)) if moving else 0.0,
+                extent,
+                (0.0, 0.0, extent[2]),
+                int(rng.integers(20, 250)),
+            )
+        )
     others = _clear_of_cavs(others, cavs, config.frames * config.key_step * config.fixed_delta_seconds)
     pillars, buildings = [], []
     for s in np.arange(-40.0, 80.0, 9.0):
@@ -292,8 +336,17 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             xyz, yaw = road.at(float(s) + rng.uniform(-2, 2), side * 8.5)
             pillars.append(xyz + np.array([0, 0, PILLAR_DIMS_M[2] / 2]))
             xyz_b, yaw_b = road.at(float(s), side * 18.0)
-            buildings.append(Box(xyz_b + np.array([0, 0, 6.0]), np.zeros(3), carla_rotation(np.array([0, yaw_b, 0])),
-                                 np.array([9.0, 5.0, 12.0]), "BUILDING", "", int(rng.integers(10, 40))))  # fmt: skip
+            buildings.append(
+                Box(
+                    xyz_b + np.array([0, 0, 6.0]),
+                    np.zeros(3),
+                    carla_rotation(np.array([0, yaw_b, 0])),
+                    np.array([9.0, 5.0, 12.0]),
+                    "BUILDING",
+                    "",
+                    int(rng.integers(10, 40)),
+                )
+            )
     pillar_boxes = [Box(p, np.zeros(3), np.eye(3), np.array(PILLAR_DIMS_M), "PILLAR", "", 230) for p in pillars]
     rsu_positions = [road.at(25.0 + 30.0 * k, -11.0)[0] for k in range(config.n_infrastructure)]
 
@@ -301,17 +354,26 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
     scenario_dir = split_dir / scenario
     keys = [f"{config.first_key + config.key_step * i:06d}" for i in range(config.frames)]
     agent_ids = [str(c.actor_id) for c in cavs] + [str(-(k + 1)) for k in range(config.n_infrastructure)]
-    truth = ScenarioTruth(scenario_dir, scenario, keys, config.fixed_delta_seconds, np.array(pillars),
-                          {a: AgentTruth(a) for a in agent_ids},
-                          {act.actor_id: act.speed_mps for act in cavs + others})  # fmt: skip
+    truth = ScenarioTruth(
+        scenario_dir,
+        scenario,
+        keys,
+        config.fixed_delta_seconds,
+        np.array(pillars),
+        {a: AgentTruth(a) for a in agent_ids},
+        {act.actor_id: act.speed_mps for act in cavs + others},
+    )
     for a in agent_ids:
         (scenario_dir / a).mkdir(parents=True, exist_ok=True)
     protocol = _protocol(config, [], [[0.0] * 6] if config.n_infrastructure else [])
     rays = {
         False: _lidar_rays(protocol["vehicle_base"]["sensing"]["perception"]["lidar"], config.fixed_delta_seconds),
-        True: _lidar_rays(protocol["scenario"]["rsu_list"][0]["sensing"]["perception"]["lidar"],
-                          config.fixed_delta_seconds) if config.n_infrastructure else None,
-    }  # fmt: skip
+        True: _lidar_rays(
+            protocol["scenario"]["rsu_list"][0]["sensing"]["perception"]["lidar"], config.fixed_delta_seconds
+        )
+        if config.n_infrastructure
+        else None,
+    }
     K = [[FOCAL_PX, 0.0, WIDTH / 2], [0.0, FOCAL_PX, HEIGHT / 2], [0.0, 0.0, 1.0]]
     tick0 = config.first_key * config.fixed_delta_seconds
     cav_spawns = [_floats(_actor_pose(road, c, 0.0, False)) for c in cavs]
@@ -346,8 +408,10 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             boxes = [b for b, act in zip(actor_boxes, actors, strict=True) if act.actor_id != own]
             box_actor = [act.actor_id for act in actors if act.actor_id != own]
             scene = Scene(None, boxes + pillar_boxes + buildings)
-            box_rgb = np.array([own_colour(a) for a in box_actor] + [PILLAR_RGB] * len(pillar_boxes)
-                               + [BUILDING_RGB] * len(buildings), dtype=np.uint8)  # fmt: skip
+            box_rgb = np.array(
+                [own_colour(a) for a in box_actor] + [PILLAR_RGB] * len(pillar_boxes) + [BUILDING_RGB] * len(buildings),
+                dtype=np.uint8,
+            )
             rays_lidar = rays[infra]
             origins = np.broadcast_to(T_lidar_world[:3, 3], rays_lidar.shape)
             directions = rays_lidar @ T_lidar_world[:3, :3].T
@@ -373,12 +437,20 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             for act in actors:
                 if act.actor_id in seen:
                     p = vehicle_pose[act.actor_id]
-                    vehicles[act.actor_id] = {"location": _floats(p[:3]), "angle": _floats(p[3:]),
-                                              "center": list(act.center_m), "extent": list(act.extent_m),
-                                              "speed": float(act.speed_mps * 3.6)}  # fmt: skip
-            frame = {"lidar_pose": carla_pose_list(T_lidar_world), "true_ego_pos": true_ego,
-                     "predicted_ego_pos": _floats(np.array(true_ego) + rng.normal(0, 0.05, 6) * [1, 1, 0, 0, 1, 0]),
-                     "ego_speed": 0.0 if infra else 8.0 * 3.6, "vehicles": vehicles}  # fmt: skip
+                    vehicles[act.actor_id] = {
+                        "location": _floats(p[:3]),
+                        "angle": _floats(p[3:]),
+                        "center": list(act.center_m),
+                        "extent": list(act.extent_m),
+                        "speed": float(act.speed_mps * 3.6),
+                    }
+            frame = {
+                "lidar_pose": carla_pose_list(T_lidar_world),
+                "true_ego_pos": true_ego,
+                "predicted_ego_pos": _floats(np.array(true_ego) + rng.normal(0, 0.05, 6) * [1, 1, 0, 0, 1, 0]),
+                "ego_speed": 0.0 if infra else 8.0 * 3.6,
+                "vehicles": vehicles,
+            }
             if config.dataset == "v2xset":
                 frame["RSU"] = infra
             if not infra:
@@ -393,8 +465,11 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                 visible = [p for p in np.flatnonzero(inside) if _shows_around(shows, uv[p], len(boxes) + p)]
                 markers[index_cam] = {int(p): (float(uv[p, 0]), float(uv[p, 1])) for p in visible}
                 extrinsic = np.linalg.inv(T_cam_world) @ T_lidar_world
-                frame[f"camera{index_cam}"] = {"cords": carla_pose_list(T_cam_world), "intrinsic": [list(r) for r in K],
-                                               "extrinsic": [_floats(row) for row in extrinsic]}  # fmt: skip
+                frame[f"camera{index_cam}"] = {
+                    "cords": carla_pose_list(T_cam_world),
+                    "intrinsic": [list(r) for r in K],
+                    "extrinsic": [_floats(row) for row in extrinsic],
+                }
             (scenario_dir / agent_id / f"{key}.yaml").write_bytes(_yaml(frame))
             agent_truth = truth.agents[agent_id]
             agent_truth.lidar_pose[key] = frame["lidar_pose"]

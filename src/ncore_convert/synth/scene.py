@@ -174,8 +174,11 @@ def make_scene(rng: np.random.Generator, seconds: float, traffic_rng: np.random.
     a little (5-30 cm). ``traffic_rng`` draws all of that, so ``rng``'s stream (and everything the
     generator draws from it after the scene) is the same as without it.
     """
-    ego = EgoMotion(speed_mps=float(rng.uniform(6.0, 9.0)), yaw_rate_rps=float(rng.uniform(0.03, 0.07)),
-                    yaw0_rad=float(rng.uniform(-np.pi, np.pi)))  # fmt: skip
+    ego = EgoMotion(
+        speed_mps=float(rng.uniform(6.0, 9.0)),
+        yaw_rate_rps=float(rng.uniform(0.03, 0.07)),
+        yaw0_rad=float(rng.uniform(-np.pi, np.pi)),
+    )
 
     def along(t_s: float, lateral_m: float, z_m: float) -> tuple[np.ndarray, float]:
         T = ego.T_ego_city(np.array([t_s]))[0]
@@ -192,12 +195,27 @@ def make_scene(rng: np.random.Generator, seconds: float, traffic_rng: np.random.
 
     def add(center, yaw, dims, category, velocity=(0.0, 0.0, 0.0), tilt=(0.0, 0.0), intensity=60, **motion):
         R = Rotation.from_euler("ZYX", [yaw, tilt[0], tilt[1]]).as_matrix()
-        boxes.append(Box(np.asarray(center, float), np.asarray(velocity, float), R, np.asarray(dims, float),
-                         category, uuid(), intensity, **motion))  # fmt: skip
+        boxes.append(
+            Box(
+                np.asarray(center, float),
+                np.asarray(velocity, float),
+                R,
+                np.asarray(dims, float),
+                category,
+                uuid(),
+                intensity,
+                **motion,
+            )
+        )
 
     def jitter(peak_m: tuple[float, float], peak_yaw_deg: tuple[float, float]) -> AnnotationJitter:
-        return annotation_jitter(traffic_rng, -2.0, seconds + 2.0, float(traffic_rng.uniform(*peak_m)),
-                                 np.radians(traffic_rng.uniform(*peak_yaw_deg)))  # fmt: skip
+        return annotation_jitter(
+            traffic_rng,
+            -2.0,
+            seconds + 2.0,
+            float(traffic_rng.uniform(*peak_m)),
+            np.radians(traffic_rng.uniform(*peak_yaw_deg)),
+        )
 
     t_end = seconds + 2.0
     for t in np.arange(-1.0, t_end, 1.1):  # parked cars on both curbs, slightly tilted (full 3-DOF boxes)
@@ -205,20 +223,38 @@ def make_scene(rng: np.random.Generator, seconds: float, traffic_rng: np.random.
             if rng.random() < 0.6:
                 dims = (rng.uniform(4.2, 5.0), rng.uniform(1.8, 2.0), rng.uniform(1.4, 1.8))
                 c, yaw = along(t + rng.uniform(-0.2, 0.2), side * rng.uniform(4.5, 5.5), GROUND_Z_M + dims[2] / 2)
-                add(c, yaw + rng.normal(0, 0.05), dims, "REGULAR_VEHICLE",
-                    tilt=(rng.normal(0, 0.03), rng.normal(0, 0.03)), intensity=int(rng.integers(40, 120)),
-                    jitter=jitter(PARKED_JITTER_M, PARKED_JITTER_DEG))  # fmt: skip
+                add(
+                    c,
+                    yaw + rng.normal(0, 0.05),
+                    dims,
+                    "REGULAR_VEHICLE",
+                    tilt=(rng.normal(0, 0.03), rng.normal(0, 0.03)),
+                    intensity=int(rng.integers(40, 120)),
+                    jitter=jitter(PARKED_JITTER_M, PARKED_JITTER_DEG),
+                )
     for _ in range(3):  # cars moving in the next lane
         dims = (rng.uniform(4.3, 5.2), 1.9, 1.6)
         c, yaw = along(rng.uniform(0, seconds + 1.0), rng.choice([-1.0, 1.0]) * NEXT_LANE_M, GROUND_Z_M + dims[2] / 2)
         speed = rng.uniform(3.0, 10.0)
-        add(c, yaw, dims, "REGULAR_VEHICLE", velocity=(speed * np.cos(yaw), speed * np.sin(yaw), 0.0),
-            intensity=int(rng.integers(60, 160)))  # fmt: skip
+        add(
+            c,
+            yaw,
+            dims,
+            "REGULAR_VEHICLE",
+            velocity=(speed * np.cos(yaw), speed * np.sin(yaw), 0.0),
+            intensity=int(rng.integers(60, 160)),
+        )
     for t in np.arange(0.0, t_end, 0.8):  # pedestrians and bollards on the sidewalks
         side = rng.choice([-1, 1])
         c, yaw = along(t, side * rng.uniform(6.5, 8.0), GROUND_Z_M + 0.85)
-        add(c, yaw + rng.uniform(-3, 3), (0.6, 0.6, 1.7), "PEDESTRIAN",
-            velocity=(rng.normal(0, 0.8), rng.normal(0, 0.8), 0.0), intensity=int(rng.integers(20, 80)))  # fmt: skip
+        add(
+            c,
+            yaw + rng.uniform(-3, 3),
+            (0.6, 0.6, 1.7),
+            "PEDESTRIAN",
+            velocity=(rng.normal(0, 0.8), rng.normal(0, 0.8), 0.0),
+            intensity=int(rng.integers(20, 80)),
+        )
         c, yaw = along(t + 0.4, side * 6.0, GROUND_Z_M + 0.5)
         add(c, yaw, (0.25, 0.25, 1.0), "BOLLARD", intensity=200)
     for t in np.arange(-2.0, t_end + 1.0, 2.2):  # building fronts along both sides (not annotated)
@@ -237,8 +273,17 @@ def _add_slow_traffic(rng: np.random.Generator, seconds: float, along, add, jitt
         dims = (rng.uniform(4.3, 5.0), 1.9, 1.6)
         c, yaw = along(t_pos_s, lateral_m, GROUND_Z_M + dims[2] / 2)
         v = speed_mps * np.array([np.cos(yaw), np.sin(yaw), 0.0])
-        add(c - v * start_s, yaw, dims, "REGULAR_VEHICLE", velocity=v, intensity=int(rng.integers(60, 160)),
-            move_from_s=start_s, move_until_s=end_s, jitter=jitter(SLOW_JITTER_M, SLOW_JITTER_DEG))  # fmt: skip
+        add(
+            c - v * start_s,
+            yaw,
+            dims,
+            "REGULAR_VEHICLE",
+            velocity=v,
+            intensity=int(rng.integers(60, 160)),
+            move_from_s=start_s,
+            move_until_s=end_s,
+            jitter=jitter(SLOW_JITTER_M, SLOW_JITTER_DEG),
+        )
 
     side = rng.choice([-1.0, 1.0])
     if seconds >= CREEPER_MIN_S:
@@ -247,9 +292,13 @@ def _add_slow_traffic(rng: np.random.Generator, seconds: float, along, add, jitt
         speed = float(rng.uniform(1.5, 2.5))
         moving(float(rng.uniform(3.0, 6.0)), -side * FAR_LANE_M, speed, 0.5, 0.5 + GO_STOP_M / speed)
     if seconds >= STOP_AND_GO_MIN_S:
-        moving(float(rng.uniform(4.0, 8.0)), rng.choice([-1.0, 1.0]) * NEXT_LANE_M, float(rng.uniform(3.0, 6.0)),
-               10.0, np.inf)  # fmt: skip
-
+        moving(
+            float(rng.uniform(4.0, 8.0)),
+            rng.choice([-1.0, 1.0]) * NEXT_LANE_M,
+            float(rng.uniform(3.0, 6.0)),
+            10.0,
+            np.inf,
+        )
 
 
 def _azimuth_spans(azimuth_sorted: np.ndarray, offset_m: np.ndarray, sin_half: float) -> list[tuple[int, int]]:
@@ -263,8 +312,9 @@ def _azimuth_spans(azimuth_sorted: np.ndarray, offset_m: np.ndarray, sin_half: f
         parts = [(lo + 2 * np.pi, np.pi), (-np.pi, hi)]
     elif hi > np.pi:
         parts = [(lo, np.pi), (-np.pi, hi - 2 * np.pi)]
-    return [(int(np.searchsorted(azimuth_sorted, a)), int(np.searchsorted(azimuth_sorted, b, "right")))
-            for a, b in parts]  # fmt: skip
+    return [
+        (int(np.searchsorted(azimuth_sorted, a)), int(np.searchsorted(azimuth_sorted, b, "right"))) for a, b in parts
+    ]
 
 
 SKY_RGB, BUILDING_RGB = (135, 180, 235), (170, 120, 90)
@@ -281,8 +331,9 @@ def own_colour(seed: int) -> np.ndarray:
 def box_colours(scene: Scene) -> np.ndarray:
     """The flat colour of every box of ``scene``, uint8 [B,3]: buildings brown, every other box a
     colour of its own, drawn from its index."""
-    return np.array([BUILDING_RGB if b.category == "BUILDING" else own_colour(k) for k, b in enumerate(scene.boxes)],
-                    dtype=np.uint8).reshape(-1, 3)  # fmt: skip
+    return np.array(
+        [BUILDING_RGB if b.category == "BUILDING" else own_colour(k) for k, b in enumerate(scene.boxes)], dtype=np.uint8
+    ).reshape(-1, 3)
 
 
 def surface_rgb(box_rgb: np.ndarray, box_index: np.ndarray, xyz_m: np.ndarray, hit: np.ndarray) -> np.ndarray:
@@ -417,8 +468,9 @@ def cast_rays(
         spans = [(0, n)] if distance <= r else _azimuth_spans(azimuth_sorted, center - center_m, r / distance)
         # of those, the rays that pass the box's bounding sphere (padded by its motion)
         reach_m = box_reach_m[b] + motion_m[b]
-        idx = np.concatenate([order[a:z][_near_sphere(origins_sorted[a:z], directions_sorted[a:z], center, reach_m)]
-                              for a, z in spans])  # fmt: skip
+        idx = np.concatenate(
+            [order[a:z][_near_sphere(origins_sorted[a:z], directions_sorted[a:z], center, reach_m)] for a, z in spans]
+        )
         if not len(idx):
             continue
         if np.any(box.velocity_mps):

@@ -47,9 +47,14 @@ class CarlaLidarSpec:
         if missing:
             raise ValueError(f"lidar block lacks {', '.join(missing)}")
         try:
-            return cls(int(block["channels"]), float(block["upper_fov"]), float(block["lower_fov"]),
-                       float(block["rotation_frequency"]), float(block["points_per_second"]),
-                       float(fixed_delta_seconds))  # fmt: skip
+            return cls(
+                int(block["channels"]),
+                float(block["upper_fov"]),
+                float(block["lower_fov"]),
+                float(block["rotation_frequency"]),
+                float(block["points_per_second"]),
+                float(fixed_delta_seconds),
+            )
         except (TypeError, ValueError) as err:
             raise ValueError(f"lidar block has a non-numeric value ({err})") from None
 

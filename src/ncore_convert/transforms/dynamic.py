@@ -276,8 +276,9 @@ class SolidBoxes:
     moving: DynamicBoxes
 
     @classmethod
-    def select(cls, observations: TrackObservations, static: dict[str, tuple[np.ndarray, ...]],
-               dynamic: Collection[str]) -> SolidBoxes:  # fmt: skip
+    def select(
+        cls, observations: TrackObservations, static: dict[str, tuple[np.ndarray, ...]], dynamic: Collection[str]
+    ) -> SolidBoxes:
         """``static``: track id -> :func:`static_pose` of the static tracks (as :func:`static_poses`
         gives them); ``dynamic``: the ids of the moving tracks, taken from ``observations``."""
         T = np.tile(np.eye(4), (len(static), 1, 1))
@@ -293,8 +294,10 @@ class SolidBoxes:
         tracks, centres, nearest = self.moving.at(t_us)
         T_moving = np.tile(np.eye(4), (len(tracks), 1, 1))
         T_moving[:, :3, :3], T_moving[:, :3, 3] = self.moving.R_box_frame[nearest], centres
-        return (np.concatenate([self.static_T_box_frame, T_moving]),
-                np.concatenate([self.static_half_m, self.moving.half_extent_m[nearest]]))  # fmt: skip
+        return (
+            np.concatenate([self.static_T_box_frame, T_moving]),
+            np.concatenate([self.static_half_m, self.moving.half_extent_m[nearest]]),
+        )
 
 
 def dynamic_flags(xyz_m: np.ndarray, timestamps_us: np.ndarray, boxes: DynamicBoxes) -> np.ndarray:

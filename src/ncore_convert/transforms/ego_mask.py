@@ -121,8 +121,13 @@ class EgoBox:
     def bounds(self, height_fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """(min, max) corners in the ego frame [3] of the box, or of its lower part."""
         lo = np.array([-self.rear_overhang_m, -self.width_m / 2, -self.origin_height_m])
-        hi = np.array([self.length_m - self.rear_overhang_m, self.width_m / 2,
-                       self.height_m * height_fraction - self.origin_height_m])  # fmt: skip
+        hi = np.array(
+            [
+                self.length_m - self.rear_overhang_m,
+                self.width_m / 2,
+                self.height_m * height_fraction - self.origin_height_m,
+            ]
+        )
         return lo, hi
 
 
@@ -188,9 +193,12 @@ def _rays_hit_box(origin: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi
 
 
 def body_prior(
-    shape: tuple[int, int], focal_px: tuple[float, float], centre_px: tuple[float, float], T_camera_ego: np.ndarray,
+    shape: tuple[int, int],
+    focal_px: tuple[float, float],
+    centre_px: tuple[float, float],
+    T_camera_ego: np.ndarray,
     box: EgoBox,
-) -> BodyPrior:  # fmt: skip
+) -> BodyPrior:
     """The body prior of one camera at the reduced resolution.
 
     Args:
@@ -237,9 +245,13 @@ class Cues:
     change: np.ndarray
 
     def __add__(self, other: Cues) -> Cues:
-        return Cues(self.frames + other.frames, self.orientation + other.orientation,
-                    self.gradient_energy + other.gradient_energy, self.folds + other.folds,
-                    np.concatenate([self.change, other.change]))  # fmt: skip
+        return Cues(
+            self.frames + other.frames,
+            self.orientation + other.orientation,
+            self.gradient_energy + other.gradient_energy,
+            self.folds + other.folds,
+            np.concatenate([self.change, other.change]),
+        )
 
 
 def cues(frames: np.ndarray) -> Cues:
@@ -249,8 +261,9 @@ def cues(frames: np.ndarray) -> Cues:
     xx, yy, xy = (np.einsum("nyx,nyx->yx", a, b) for a, b in ((gx, gx), (gy, gy), (gx, gy)))
     # The sum of (gx + i gy)^2, the doubled angle (a contrast whose sign flips keeps its
     # orientation), and of its magnitude.
-    return Cues(len(frames), (xx - yy + 2j * xy).astype(np.complex64), xx + yy, _fold_sums(log_frames),
-                _change_frames(frames))  # fmt: skip
+    return Cues(
+        len(frames), (xx - yy + 2j * xy).astype(np.complex64), xx + yy, _fold_sums(log_frames), _change_frames(frames)
+    )
 
 
 def persistent_edges(c: Cues) -> np.ndarray:
@@ -424,8 +437,9 @@ def _outline(c: Cues, reach: np.ndarray) -> Outline:
     below = np.arange(h)[:, None] >= top[None, :]
     fixed = float(np.median(structure[below])) if below.any() else 0.0
     body = ndimage.binary_opening(below, structure=np.ones((3, 3))) & reach
-    return Outline(top, body, {"edge": edge_on, "fold": fold_on, "change_ratio": _change_ratio(change, top),
-                                "structure": fixed})  # fmt: skip
+    return Outline(
+        top, body, {"edge": edge_on, "fold": fold_on, "change_ratio": _change_ratio(change, top), "structure": fixed}
+    )
 
 
 def split_agreement(first: Outline, second: Outline, height_px: int) -> tuple[float, float]:

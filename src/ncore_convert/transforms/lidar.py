@@ -201,8 +201,9 @@ def exact_rays(xyz_sensor_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     # the few left (~2 %): every further step at once, the nearest that works kept
     tail = np.array(steps[LOOPED_STEPS:], dtype=np.int32)
     moved_m = (nearest_m[todo, None].view(np.int32) + tail[None, :]).view(np.float32)  # [M,S]
-    candidate, ok = _directions_for(np.repeat(xyz_m[todo], len(tail), axis=0),
-                                    np.repeat(bits[todo], len(tail), axis=0), moved_m.reshape(-1))  # fmt: skip
+    candidate, ok = _directions_for(
+        np.repeat(xyz_m[todo], len(tail), axis=0), np.repeat(bits[todo], len(tail), axis=0), moved_m.reshape(-1)
+    )
     good = ok.all(axis=1).reshape(len(todo), len(tail))
     first = np.argmax(good, axis=1)
     found = good[np.arange(len(todo)), first]

@@ -86,8 +86,9 @@ def _in_view(frame: ColourFrame, xyz_world_m: np.ndarray, margin: float) -> np.n
     return ahead[(u >= -margin * w) & (u < (1 + margin) * w) & (v >= -margin * h) & (v < (1 + margin) * h)]
 
 
-def _nearest_in_front(cols: np.ndarray, lines: np.ndarray, depth: np.ndarray, cell_px: tuple[int, int],
-                      size_px: tuple[int, int]) -> np.ndarray:  # fmt: skip
+def _nearest_in_front(
+    cols: np.ndarray, lines: np.ndarray, depth: np.ndarray, cell_px: tuple[int, int], size_px: tuple[int, int]
+) -> np.ndarray:
     """For each projected point (pixel ``cols``, ``lines``, int [V]; camera ``depth`` [V], m), the
     depth of the nearest point that may hide it in a buffer of cells of ``cell_px`` (width, height):
     at or above its row in its own cell and in the cells left and right of it (the pixels at a
@@ -115,7 +116,9 @@ def _nearest_in_front(cols: np.ndarray, lines: np.ndarray, depth: np.ndarray, ce
 
 
 _CORNER_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-_EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(_CORNER_SIGNS[i] != _CORNER_SIGNS[j]) == 1])
+_EDGES = np.array(
+    [(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(_CORNER_SIGNS[i] != _CORNER_SIGNS[j]) == 1]
+)
 
 
 def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray, cols: np.ndarray, lines: np.ndarray) -> np.ndarray:
@@ -147,8 +150,12 @@ def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray, cols: np.ndarray
     with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a box wholly behind the camera: all NaN
         u, v = fx * points[..., 0] / points[..., 2] + cx, fy * points[..., 1] / points[..., 2] + cy
-        u_lo, u_hi, v_lo, v_hi = (np.floor(np.nanmin(u, axis=1)), np.floor(np.nanmax(u, axis=1)),
-                                  np.floor(np.nanmin(v, axis=1)), np.floor(np.nanmax(v, axis=1)))  # fmt: skip
+        u_lo, u_hi, v_lo, v_hi = (
+            np.floor(np.nanmin(u, axis=1)),
+            np.floor(np.nanmax(u, axis=1)),
+            np.floor(np.nanmin(v, axis=1)),
+            np.floor(np.nanmax(v, axis=1)),
+        )
     camera_inside = np.all(np.abs(origin_all) <= half_all, axis=1)
     candidates = ~camera_inside & (u_hi >= 0) & (u_lo < w) & (v_hi >= 0) & (v_lo < h)  # NaN: False
     for k in np.flatnonzero(candidates):
@@ -218,7 +225,9 @@ def point_colours(
         own = sorted((f for f in frames if f.camera_id == camera_id), key=lambda f: f.timestamp_us)
         times = np.array([f.timestamp_us for f in own], dtype=np.int64)
         after = np.clip(np.searchsorted(times, t_us), 1, max(1, len(times) - 1))
-        nearest = after - 1 if len(times) == 1 else np.where(t_us - times[after - 1] <= times[after] - t_us, after - 1, after)
+        nearest = (
+            after - 1 if len(times) == 1 else np.where(t_us - times[after - 1] <= times[after] - t_us, after - 1, after)
+        )
         near = _in_view(own[len(own) // 2], xyz_world_m, VIEW_MARGIN)  # once per camera: the frames are close
         for k, frame in enumerate(own):
             rows, cols, lines = _visible_pixels(frame, xyz_world_m[near])

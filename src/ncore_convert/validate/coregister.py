@@ -198,13 +198,17 @@ def check_coregistration(manifest_path: UPath) -> Report:
             continue
         if not any(p.decisive for p in peaks):
             spacing = min(p.spacing_m for p in peaks)
-            report.add(name, True, f"shared structure too sparse to decide (point spacing {spacing:.2f} m >"
-                       f" {MAX_SPACING_M} m)")  # fmt: skip
+            report.add(
+                name, True, f"shared structure too sparse to decide (point spacing {spacing:.2f} m > {MAX_SPACING_M} m)"
+            )
             continue
         peaks = [p for p in peaks if p.decisive]
         worst = min(peaks, key=lambda p: p.ratio)
-        report.add(name, worst.ratio >= MIN_RATIO,
-                   f"{worst.overlap:.0%} of {worst.points} shared structure points land within {MATCH_M} m;"
-                   f" best nearby alternative ({worst.best_label}) {worst.best_alternative:.0%}"
-                   f" (worst of {len(peaks)} frame(s); must be >= {MIN_RATIO:.0%} of it)")  # fmt: skip
+        report.add(
+            name,
+            worst.ratio >= MIN_RATIO,
+            f"{worst.overlap:.0%} of {worst.points} shared structure points land within {MATCH_M} m;"
+            f" best nearby alternative ({worst.best_label}) {worst.best_alternative:.0%}"
+            f" (worst of {len(peaks)} frame(s); must be >= {MIN_RATIO:.0%} of it)",
+        )
     return report

@@ -129,11 +129,17 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> boo
     report.add(f"{name}: point times within frames", outside_time == 0, f"{outside_time} of {points} points outside")
     report.add(f"{name}: intensity in [0, 1]", bad_intensity == 0, f"{bad_intensity} of {points} outside")
     if model is not None:
-        report.add(f"{name}: model elements within the model", bad_element == 0,
-                   f"{bad_element} outside {model.n_rows} rows x {model.n_columns} columns")  # fmt: skip
+        report.add(
+            f"{name}: model elements within the model",
+            bad_element == 0,
+            f"{bad_element} outside {model.n_rows} rows x {model.n_columns} columns",
+        )
     which = f": {uncovered[:5]}" if uncovered else ""
-    report.add(f"{name}: poses cover every frame and point time", not uncovered,
-               f"{len(uncovered)} of {lidar.frames_count} frames uncovered{which}")  # fmt: skip
+    report.add(
+        f"{name}: poses cover every frame and point time",
+        not uncovered,
+        f"{len(uncovered)} of {lidar.frames_count} frames uncovered{which}",
+    )
     return not uncovered and not unreadable and outside_time == 0  # what motion compensation needs
 
 
@@ -141,9 +147,12 @@ def _check_occupancy(report: Report, loader: SequenceLoaderV4, lidar_id: str, ob
     held, near = _occupancy(loader, lidar_id, observations)
     decisive = near >= OCCUPANCY_MIN_BOXES
     ok = not decisive or held >= OCCUPANCY_MIN_FRACTION * near
-    report.add(f"lidar {lidar_id}: cuboids hold points", ok,
-               f"{held} of {near} boxes within {OCCUPANCY_RANGE_M:.0f} m hold a point"
-               + ("" if decisive else " (too few boxes to decide)"))  # fmt: skip
+    report.add(
+        f"lidar {lidar_id}: cuboids hold points",
+        ok,
+        f"{held} of {near} boxes within {OCCUPANCY_RANGE_M:.0f} m hold a point"
+        + ("" if decisive else " (too few boxes to decide)"),
+    )
 
 
 def _check_camera(report: Report, loader: SequenceLoaderV4, camera_id: str, lidar_frames_us: np.ndarray | None) -> None:
@@ -159,9 +168,12 @@ def _check_camera(report: Report, loader: SequenceLoaderV4, camera_id: str, lida
         mid_cam = frames_us.astype(np.float64).mean(axis=1)
         mid_lidar = lidar_frames_us.astype(np.float64).mean(axis=1)
         nearest = np.abs(mid_cam[:, None] - mid_lidar[None, :]).min(axis=1)
-        report.add(f"{name}: time sync to the lidar", True,
-                   f"|camera - nearest lidar frame| mid-times: median {np.median(nearest) / 1e3:.1f} ms,"
-                   f" max {nearest.max() / 1e3:.1f} ms")  # fmt: skip
+        report.add(
+            f"{name}: time sync to the lidar",
+            True,
+            f"|camera - nearest lidar frame| mid-times: median {np.median(nearest) / 1e3:.1f} ms,"
+            f" max {nearest.max() / 1e3:.1f} ms",
+        )
 
 
 def _check_ego_mask(report: Report, camera, name: str) -> None:
@@ -172,8 +184,12 @@ def _check_ego_mask(report: Report, camera, name: str) -> None:
     width, height = (int(v) for v in camera.model_parameters.resolution)
     covered = float((np.asarray(mask) > 0).mean())
     ok = mask.size == (width, height) and 0.0 < covered <= contract.EGO_MASK_MAX_FRACTION
-    report.add(f"{name}: ego mask", ok, f"{mask.size[0]}x{mask.size[1]} px for a {width}x{height} camera,"
-               f" covers {covered:.2%} (plausible: above 0, at most {contract.EGO_MASK_MAX_FRACTION:.0%})")  # fmt: skip
+    report.add(
+        f"{name}: ego mask",
+        ok,
+        f"{mask.size[0]}x{mask.size[1]} px for a {width}x{height} camera,"
+        f" covers {covered:.2%} (plausible: above 0, at most {contract.EGO_MASK_MAX_FRACTION:.0%})",
+    )
 
 
 def _check_world_global(report: Report, loader: SequenceLoaderV4) -> None:
@@ -184,9 +200,10 @@ def _check_world_global(report: Report, loader: SequenceLoaderV4) -> None:
     present = "world_global" in loader.pose_graph.nodes
     if mode == "none":
         report.add(
-            "no world_global (--world-global-mode none)", not present,
+            "no world_global (--world-global-mode none)",
+            not present,
             f"world_global node {'present' if present else 'absent'}",
-        )  # fmt: skip
+        )
         return
     name = "world_global in the pose graph"
     if not present:
@@ -195,8 +212,9 @@ def _check_world_global(report: Report, loader: SequenceLoaderV4) -> None:
     edge = world_global_edge(loader)
     expected = np.eye(4) if mode == "identity" else np.asarray(record.get("T_world_dataset_global", edge))
     error_m = float(np.abs(edge - expected).max())
-    report.add(name, error_m <= 1e-9,
-               f"static edge as --world-global-mode {mode}: max |edge - expected| = {error_m:.1e}")  # fmt: skip
+    report.add(
+        name, error_m <= 1e-9, f"static edge as --world-global-mode {mode}: max |edge - expected| = {error_m:.1e}"
+    )
 
 
 def _check_window(report: Report, loader: SequenceLoaderV4, observations: list) -> None:
@@ -213,9 +231,12 @@ def _check_window(report: Report, loader: SequenceLoaderV4, observations: list) 
         frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us.astype(np.int64)
         outside += [f"{lidar_id}[{i}]" for i in np.flatnonzero((frames_us[:, 1] < start) | (frames_us[:, 0] > end))]
     outside += [f"cuboid {o.track_id}@{o.timestamp_us}" for o in observations if not start <= o.timestamp_us <= end]
-    report.add("frames and cuboids within the clip window", not outside,
-               f"[{start}, {end}] us ({(end - start) / 1e6:.3f} s); {len(outside)} outside"
-               + (f": {outside[:3]}" if outside else ""))  # fmt: skip
+    report.add(
+        "frames and cuboids within the clip window",
+        not outside,
+        f"[{start}, {end}] us ({(end - start) / 1e6:.3f} s); {len(outside)} outside"
+        + (f": {outside[:3]}" if outside else ""),
+    )
 
 
 def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4) -> None:
@@ -233,8 +254,11 @@ def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4) -> None:
                 continue
             if flag.dtype != np.int8 or flag.shape != (n,) or not np.isin(flag, (0, 1)).all():
                 bad.append(i)
-        report.add(f"lidar {lidar_id}: dynamic_flag per ray", not bad,
-                   f"int8 in {{0, 1}}, one per ray; {len(bad)} of {source.pcs_count} frames not")  # fmt: skip
+        report.add(
+            f"lidar {lidar_id}: dynamic_flag per ray",
+            not bad,
+            f"int8 in {{0, 1}}, one per ray; {len(bad)} of {source.pcs_count} frames not",
+        )
 
 
 def validate_sequence(

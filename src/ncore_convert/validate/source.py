@@ -52,9 +52,12 @@ def _count(report: Report, what: str, converted: int, source: int) -> None:
 def _accounted(report: Report, what: str, converted: int, skipped: dict[str, str], source: int) -> None:
     """Every source frame is converted or declared skipped (in the sensor's ``skipped_frames`` metadata)."""
     causes = sorted(set(skipped.values()))
-    report.add(f"source: {what}", converted + len(skipped) == source,
-               f"{converted} converted + {len(skipped)} declared skipped {causes if causes else ''}".rstrip()
-               + f", {source} in the source")  # fmt: skip
+    report.add(
+        f"source: {what}",
+        converted + len(skipped) == source,
+        f"{converted} converted + {len(skipped)} declared skipped {causes if causes else ''}".rstrip()
+        + f", {source} in the source",
+    )
 
 
 def _stored_points(loader: SequenceLoaderV4, lidar_id: str) -> int:
@@ -88,15 +91,19 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
     window_us = _window(meta)
     sweeps = _in_window_ns(av2.list_sweep_timestamps_ns(log_dir), window_us)
     for lidar_id in loader.lidar_ids:
-        _count(report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count,
-               len(sweeps))  # fmt: skip
+        _count(
+            report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count, len(sweeps)
+        )
     if set(loader.lidar_ids) == set(av2.LIDARS):
         lidar_meta = sequence.sensor_meta()
         not_stored = sum(sum(lidar_meta[u][contract.POINTS_NOT_STORED].values()) for u in av2.LIDARS)
         stored = sum(_stored_points(loader, u) for u in av2.LIDARS)
         source = sum(av2.count_sweep_points(log_dir, int(t)) for t in sweeps)
-        report.add("source: lidar points", stored + not_stored == source,
-                   f"{stored} stored + {not_stored} not representable, {source} in the source")  # fmt: skip
+        report.add(
+            "source: lidar points",
+            stored + not_stored == source,
+            f"{stored} stored + {not_stored} not representable, {source} in the source",
+        )
     cameras_dir = log_dir / "sensors" / "cameras"
     in_source = sorted(p.name for p in cameras_dir.iterdir() if p.is_dir()) if cameras_dir.is_dir() else []
     for camera in in_source:
@@ -126,8 +133,11 @@ def _interior_points(
     sampled = sample_frames(len(frames_us))
     checked, off = 0, []
     for i in sampled:
-        boxes = [b for b in boxes_at(observations, int(frames_us[i, 0]), int(frames_us[i, 1]))
-                 if (b.track_id, b.timestamp_us) in source_points]  # fmt: skip
+        boxes = [
+            b
+            for b in boxes_at(observations, int(frames_us[i, 0]), int(frames_us[i, 1]))
+            if (b.track_id, b.timestamp_us) in source_points
+        ]
         if not boxes:
             continue
         same_sweep = [_frame_starting_at(loader, unit, int(frames_us[i, 0])) for unit in av2.LIDARS]
@@ -141,8 +151,9 @@ def _interior_points(
         for k in np.flatnonzero(bad):
             off.append(f"{boxes[k].track_id[:8]}@{boxes[k].timestamp_us}: {counts[k]} vs {expected[k]}")
     detail = f"{len(off)} of {checked} boxes differ on {len(sampled)} sampled sweeps"
-    report.add("source: points inside each box match num_interior_pts", not off,
-               detail + (f": {off[:3]}" if off else ""))  # fmt: skip
+    report.add(
+        "source: points inside each box match num_interior_pts", not off, detail + (f": {off[:3]}" if off else "")
+    )
 
 
 def _frame_starting_at(loader: SequenceLoaderV4, lidar_id: str, start_us: int) -> int | None:
@@ -163,8 +174,10 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
     keys = {a: ocd.list_frame_keys(scenario_dir / a) for a in ocd.list_agents(scenario_dir)}
     if (window_us := _window(meta)) is not None:
         dt_s = meta["carla_fixed_delta_seconds"]
-        keys = {a: [k for k, keep in zip(ks, in_window(ocd.key_timestamps_us(ks, dt_s), window_us), strict=True)
-                    if keep] for a, ks in keys.items()}  # fmt: skip
+        keys = {
+            a: [k for k, keep in zip(ks, in_window(ocd.key_timestamps_us(ks, dt_s), window_us), strict=True) if keep]
+            for a, ks in keys.items()
+        }
     sensor_meta = sequence.sensor_meta()
     for agent in agents:
         prefix = contract.agent_prefix(agent) if prefixed else ""
@@ -180,9 +193,12 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
             )
             stored = _stored_points(loader, lidar_id)
             source = sum(read_pcd_header(ocd.pcd_path(agent_dir, k)).points for k in keys[agent] if k not in skipped)
-            report.add(f"source: {lidar_id} points", stored + not_stored == source,
-                       f"{stored} stored + {not_stored} not representable, {source} in the source's"
-                       " frames not declared skipped")  # fmt: skip
+            report.add(
+                f"source: {lidar_id} points",
+                stored + not_stored == source,
+                f"{stored} stored + {not_stored} not representable, {source} in the source's"
+                " frames not declared skipped",
+            )
         for index, camera in enumerate(ocd.CAMERAS):
             if prefix + camera in loader.camera_ids:
                 skipped = sensor_meta[prefix + camera].get(contract.SKIPPED_FRAMES, {})

@@ -17,7 +17,6 @@ from ncore_convert.validate.readback import cuboid_observations
 from ncore_convert.validate.report import Report, summarise
 from ncore_convert.validate.sequence import validate_sequence
 
-
 #: A worker pool's ``run``: a list of (function, args) jobs -> their results, in order.
 RunJobs = Callable[[list[tuple[Callable, tuple]]], list]
 

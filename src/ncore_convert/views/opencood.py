@@ -170,8 +170,10 @@ class OpenCoodScenario:
         if agent_id not in self._delays:
             data = self._sequence(agent_id).reader.open_component_readers(PosesComponent.Reader)[self._poses_instance]
             prefix = self.manifest.prefix_of(self._agent(agent_id)) or ""
-            self._delays[agent_id] = (data.get_generic_data(f"{prefix}delay_ego_timestamps_us"),
-                                      data.get_generic_data(f"{prefix}delay_source_keys"))  # fmt: skip
+            self._delays[agent_id] = (
+                data.get_generic_data(f"{prefix}delay_ego_timestamps_us"),
+                data.get_generic_data(f"{prefix}delay_source_keys"),
+            )
         ego_times_us, source_keys = self._delays[agent_id]
         t_us = self._lidar(self.ego_agent_id).frames_timestamps_us[self._frame(self.ego_agent_id, ego_key), 1]
         where = np.flatnonzero(ego_times_us == t_us)

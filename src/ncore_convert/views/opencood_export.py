@@ -35,8 +35,7 @@ class ExportCounts:
     images: int = 0
 
     def line(self, scenario_dir: UPath) -> str:
-        return (f"{scenario_dir}: {self.agents} agents, {self.frames} frames, {self.points} points,"
-                f" {self.images} images")  # fmt: skip
+        return f"{scenario_dir}: {self.agents} agents, {self.frames} frames, {self.points} points, {self.images} images"
 
 
 def export_opencood(

@@ -51,8 +51,13 @@ class SweepColours:
             sx, sy = size[0] / intr.width_px, size[1] / intr.height_px
             mask = plan.ego_masks[cam].image(intr.width_px, intr.height_px) if plan.ego_masks else None
             usable = None if mask is None else ~(np.asarray(mask.resize(size, PIL.Image.NEAREST)) > 0)
-            self._cameras[cam] = (k, size, (intr.fx_px * sx, intr.fy_px * sy),
-                                  ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy), usable)  # fmt: skip
+            self._cameras[cam] = (
+                k,
+                size,
+                (intr.fx_px * sx, intr.fy_px * sy),
+                ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy),
+                usable,
+            )
         self._decode = lru_cache(maxsize=4 * max(1, len(self._cameras)))(self._read)
 
     def _read(self, cam: str, timestamp_ns: int) -> np.ndarray:
@@ -73,12 +78,25 @@ class SweepColours:
             T_camera_world = T_rig_world @ self._plan.inputs.T_sensor_ego[cam]
             for ts, T in zip(picked.tolist(), T_camera_world, strict=True):
                 solids = None if self._plan.solids is None else self._plan.solids.at(ts // NS_PER_US)
-                out.append(ColourFrame(cam, ts // NS_PER_US, invert_se3(T), focal, centre, size,
-                                       lambda cam=cam, ts=ts: self._decode(cam, ts), usable, solids,
-                                       LABEL_SLACK_M))  # fmt: skip
+                out.append(
+                    ColourFrame(
+                        cam,
+                        ts // NS_PER_US,
+                        invert_se3(T),
+                        focal,
+                        centre,
+                        size,
+                        lambda cam=cam, ts=ts: self._decode(cam, ts),
+                        usable,
+                        solids,
+                        LABEL_SLACK_M,
+                    )
+                )
         return out
 
-    def colours(self, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray) -> tuple[np.ndarray, ...]:
+    def colours(
+        self, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray
+    ) -> tuple[np.ndarray, ...]:
         """:func:`point_colours` of a sweep's points (arguments as there) from the frames around it."""
         if not len(xyz_world_m):
             return np.zeros((0, 3), np.uint8), np.zeros(0, bool)

@@ -70,8 +70,9 @@ def reduction(intr: av2.CameraIntrinsics) -> int:
     return 2 ** max(0, int(math.log2(max(intr.width_px, intr.height_px) / REDUCED_SIDE_PX)))
 
 
-def _prior(shape: tuple[int, int], intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray,
-           box: ego_mask.EgoBox) -> ego_mask.BodyPrior:  # fmt: skip
+def _prior(
+    shape: tuple[int, int], intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray, box: ego_mask.EgoBox
+) -> ego_mask.BodyPrior:
     """The camera's body prior at a reduced size (h, w) of its images."""
     sx, sy = shape[1] / intr.width_px, shape[0] / intr.height_px
     centre_px = ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy)
@@ -79,26 +80,39 @@ def _prior(shape: tuple[int, int], intr: av2.CameraIntrinsics, T_camera_ego: np.
 
 
 def _estimate(
-    log_dir: UPath, camera: str, stamps_ns: np.ndarray, intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray,
-    box: ego_mask.EgoBox, require_agreement: bool = True,
-) -> EgoMask:  # fmt: skip
+    log_dir: UPath,
+    camera: str,
+    stamps_ns: np.ndarray,
+    intr: av2.CameraIntrinsics,
+    T_camera_ego: np.ndarray,
+    box: ego_mask.EgoBox,
+    require_agreement: bool = True,
+) -> EgoMask:
     """One camera's estimate; ``require_agreement``: as in ``ego_mask.estimate`` (False only to
     measure the agreement test)."""
     scale = reduction(intr)
     prior = _prior((-(-intr.height_px // scale), -(-intr.width_px // scale)), intr, T_camera_ego, box)
     if not prior.must_see:  # by the calibration, no body along the bottom border: nothing to estimate
-        return EgoMask({"method": "estimate", "decision": "not seen", "must_see": False, "samples": 0,
-                        "lower_body_border_fraction": round(prior.lower_border, 3),
-                        "ego_box_m": [box.length_m, box.width_m, box.height_m],
-                        "rule": f"not estimated: rays along less than {ego_mask.MUST_SEE_BORDER:.0%} of the bottom"
-                        " border hit the nominal ego box's lower body"})  # fmt: skip
+        return EgoMask(
+            {
+                "method": "estimate",
+                "decision": "not seen",
+                "must_see": False,
+                "samples": 0,
+                "lower_body_border_fraction": round(prior.lower_border, 3),
+                "ego_box_m": [box.length_m, box.width_m, box.height_m],
+                "rule": f"not estimated: rays along less than {ego_mask.MUST_SEE_BORDER:.0%} of the bottom"
+                " border hit the nominal ego box's lower body",
+            }
+        )
 
     def decoded(indices: np.ndarray) -> np.ndarray:
         # in two threads (decoding frees the GIL), so that the log's last camera, alone on the
         # workers, still uses two cores for it
         with ThreadPoolExecutor(2) as threads:
-            return np.stack(list(threads.map(lambda i: av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), scale),
-                                             indices)))  # fmt: skip
+            return np.stack(
+                list(threads.map(lambda i: av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), scale), indices))
+            )
 
     picks = spread_indices(len(stamps_ns), SAMPLES)
     frames = decoded(picks)
@@ -153,9 +167,13 @@ def _agreement(camera: str, meta: dict) -> str:
 
 
 def plan_ego_masks(
-    log_dir: UPath, option: str, cameras: dict[str, tuple[np.ndarray, av2.CameraIntrinsics, np.ndarray]],
-    warnings: list[str], box: ego_mask.EgoBox, run_jobs: Callable[[list[Job]], list] | None = None,
-) -> dict[str, EgoMask]:  # fmt: skip
+    log_dir: UPath,
+    option: str,
+    cameras: dict[str, tuple[np.ndarray, av2.CameraIntrinsics, np.ndarray]],
+    warnings: list[str],
+    box: ego_mask.EgoBox,
+    run_jobs: Callable[[list[Job]], list] | None = None,
+) -> dict[str, EgoMask]:
     """Every camera's ego mask under ``--ego-masks`` ``option`` (``estimate``, ``none`` or a folder).
 
     Args:
@@ -194,6 +212,8 @@ def plan_ego_masks(
         seen = [cam for cam in cams if masks[cam].meta["must_see"]]
         note = f" ({', '.join(seen)} must see the ego body by the calibration and the ego box)" if seen else ""
         named = [_agreement(cam, masks[cam].meta) if decision == "halves disagree" else cam for cam in cams]
-        warnings.append(f"{log_dir / 'sensors' / 'cameras'}: ego masks not estimated ({decision}) for"
-                        f" {', '.join(named)}; no ego mask written{note}")  # fmt: skip
+        warnings.append(
+            f"{log_dir / 'sensors' / 'cameras'}: ego masks not estimated ({decision}) for"
+            f" {', '.join(named)}; no ego mask written{note}"
+        )
     return masks

@@ -279,14 +279,22 @@ def plan_log(
         inputs = _clipped(inputs, window_us)
         camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings, " in the clip window")
 
-    camera_inputs = {cam: (inputs.image_timestamps_ns[cam], inputs.intrinsics[cam], inputs.T_sensor_ego[cam])
-                     for cam in camera_ids}  # fmt: skip
+    camera_inputs = {
+        cam: (inputs.image_timestamps_ns[cam], inputs.intrinsics[cam], inputs.T_sensor_ego[cam]) for cam in camera_ids
+    }
     mask_warnings: list[str] = []
     # The ego-mask estimates need only the cameras: they run (on run_jobs) while the rest is planned
     # here, and are collected last, so their warnings come last as before.
     with ThreadPoolExecutor(1) as background:
-        masks = background.submit(plan_ego_masks, log_dir, options.ego_masks, camera_inputs, mask_warnings,
-                                  EgoBox(*options.ego_box_m), run_jobs)  # fmt: skip
+        masks = background.submit(
+            plan_ego_masks,
+            log_dir,
+            options.ego_masks,
+            camera_inputs,
+            mask_warnings,
+            EgoBox(*options.ego_box_m),
+            run_jobs,
+        )
         plan = _plan_rest(log_dir, log_id, options, inputs, camera_ids, lidar_ids, window_us, warnings)
         ego_masks = masks.result()
     warnings.extend(mask_warnings)
@@ -294,9 +302,15 @@ def plan_log(
 
 
 def _plan_rest(
-    log_dir: UPath, log_id: str, options: Argoverse2Options, inputs: LogInputs, camera_ids: list[str],
-    lidar_ids: list[str], window_us: tuple[int, int] | None, warnings: list[str],
-) -> LogPlan:  # fmt: skip
+    log_dir: UPath,
+    log_id: str,
+    options: Argoverse2Options,
+    inputs: LogInputs,
+    camera_ids: list[str],
+    lidar_ids: list[str],
+    window_us: tuple[int, int] | None,
+    warnings: list[str],
+) -> LogPlan:
     """The plan's decisions after the sensors and the window (all but the ego masks)."""
     needed_us = _sensor_time_range_us(inputs, camera_ids, bool(lidar_ids), not options.tbv)
     T_rig_world, T_world_city = ego_trajectory(inputs, needed_us, warnings, cut=window_us is not None)
@@ -407,12 +421,23 @@ def _cuboid_labels(
         return None, None, None
     T_rig_world_at = T_rig_world.interpolate(T_rig_world.relative_seconds(annotations.timestamps_ns))
     T_box_world = T_rig_world_at @ annotations.T_object_ego
-    observations = TrackObservations(annotations.track_uuids, floor_us(annotations.timestamps_ns),
-                                     T_box_world[:, :3, 3], T_box_world[:, :3, :3], annotations.dims_m)  # fmt: skip
+    observations = TrackObservations(
+        annotations.track_uuids,
+        floor_us(annotations.timestamps_ns),
+        T_box_world[:, :3, 3],
+        T_box_world[:, :3, :3],
+        annotations.dims_m,
+    )
     cuboid_labels = consumer.cuboid_labels(
-        observations, annotations.categories, labels.AV2_TO_NCORE, options.class_names,
-        options.cuboid_label_source, "EXTERNAL", "world", str(inputs.log_dir / "annotations.feather"),
-    )  # fmt: skip
+        observations,
+        annotations.categories,
+        labels.AV2_TO_NCORE,
+        options.class_names,
+        options.cuboid_label_source,
+        "EXTERNAL",
+        "world",
+        str(inputs.log_dir / "annotations.feather"),
+    )
     if not with_lidar:
         return cuboid_labels, None, None
     solids = None

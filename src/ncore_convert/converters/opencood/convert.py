@@ -189,9 +189,18 @@ def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t
             continue
         pinhole = agent.cameras[cam].pinhole
         T_camera_world_global = agent.T_rig_world_global[frame] @ agent.T_sensor_rig[cam]
-        out.append(ColourFrame(cam, t_us, invert_se3(T_camera_world_global), pinhole.focal_length_px,
-                               pinhole.principal_point_px, pinhole.resolution_px,
-                               lambda data=data: src.decode_png_rgb(data), solids=solids))  # fmt: skip
+        out.append(
+            ColourFrame(
+                cam,
+                t_us,
+                invert_se3(T_camera_world_global),
+                pinhole.focal_length_px,
+                pinhole.principal_point_px,
+                pinhole.resolution_px,
+                lambda data=data: src.decode_png_rgb(data),
+                solids=solids,
+            )
+        )
     return out
 
 
@@ -216,11 +225,15 @@ def _write_sensors(
 ) -> None:
     """Stream the agent's lidar frames and images, one frame at a time; skip (and report) missing files."""
     if agent.lidar_ids:
-        meta = {"agent_id": agent.agent_id, "carla_lidar": plan.lidar_specs[agent.agent_id], **agent.lidar_model_meta,
-                "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
-                "mounting": agent.mounts[src.LIDAR],
-                contract.DYNAMIC_FLAG: consumer.dynamic_flag_note(len(plan.dynamic_boxes)),
-                contract.LIDAR_RGB: _rgb_note(plan, agent)}  # fmt: skip
+        meta = {
+            "agent_id": agent.agent_id,
+            "carla_lidar": plan.lidar_specs[agent.agent_id],
+            **agent.lidar_model_meta,
+            "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
+            "mounting": agent.mounts[src.LIDAR],
+            contract.DYNAMIC_FLAG: consumer.dynamic_flag_note(len(plan.dynamic_boxes)),
+            contract.LIDAR_RGB: _rgb_note(plan, agent),
+        }
         T_lidar_rig = agent.T_sensor_rig[src.LIDAR]
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
         not_stored = coloured_points = 0
@@ -243,14 +256,19 @@ def _write_sensors(
             generic = {contract.DYNAMIC_FLAG: flags, **_source_points(xyz, sweep.intensity, rays)}
             if plan.options.lidar_rgb and agent.camera_ids:
                 frames = _colour_frames(plan, agent, frame, key, int(t_us))
-                generic[contract.LIDAR_RGB], coloured = point_colours(xyz_world_global, rays.timestamp_us, flags == 1,
-                                                                      frames)  # fmt: skip
+                generic[contract.LIDAR_RGB], coloured = point_colours(
+                    xyz_world_global, rays.timestamp_us, flags == 1, frames
+                )
                 coloured_points += int(coloured.sum())
             elements = None if agent.lidar_model is None else assign_elements(agent.lidar_model, rays.direction)
             lidar.store_frame(
                 rays,
-                {contract.CARLA_FRAME: int(key), contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite,
-                 contract.OPENCOOD_YAML: yaml_text, contract.PCD_LAYOUT: sweep.layout},
+                {
+                    contract.CARLA_FRAME: int(key),
+                    contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite,
+                    contract.OPENCOOD_YAML: yaml_text,
+                    contract.PCD_LAYOUT: sweep.layout,
+                },
                 model_element=elements,
                 generic_data=generic,
             )
@@ -258,8 +276,13 @@ def _write_sensors(
             counts.points += len(rays)
             not_stored += rays.n_zero_range + rays.n_non_finite
             progress(1)
-        lidar.set_meta({**meta, contract.SKIPPED_FRAMES: skipped, **(
-            {"rgb_coloured_points": coloured_points} if plan.options.lidar_rgb and agent.camera_ids else {})})
+        lidar.set_meta(
+            {
+                **meta,
+                contract.SKIPPED_FRAMES: skipped,
+                **({"rgb_coloured_points": coloured_points} if plan.options.lidar_rgb and agent.camera_ids else {}),
+            }
+        )
         counts.points_not_stored += not_stored
         if not_stored:
             counts.warnings.append(
@@ -268,8 +291,12 @@ def _write_sensors(
             )
     for cam in agent.camera_ids:
         index = agent.camera_index[cam]
-        meta = {"agent_id": agent.agent_id, "opencood_camera": f"camera{index}", "mounting": agent.mounts[cam],
-                "camera_model": agent.cameras[cam].meta()}  # fmt: skip
+        meta = {
+            "agent_id": agent.agent_id,
+            "opencood_camera": f"camera{index}",
+            "mounting": agent.mounts[cam],
+            "camera_model": agent.cameras[cam].meta(),
+        }
         stream = writer.add_camera(names.sensor(cam), meta)
         skipped = {}
         for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):

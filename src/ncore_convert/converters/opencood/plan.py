@@ -227,8 +227,10 @@ def plan_agent(
         with_cam = [i for i, f in enumerate(frames) if index in f.camera_cords]
         size = next((s for i in with_cam if (s := src.read_png_size(src.camera_path(agent_dir, keys[i], index)))), None)
         if not with_cam or size is None:
-            warnings.append(f"{agent_dir}: no {'calibration' if not with_cam else 'readable image'} for camera{index}"
-                            f" ({cam}); camera not written")  # fmt: skip
+            warnings.append(
+                f"{agent_dir}: no {'calibration' if not with_cam else 'readable image'} for camera{index}"
+                f" ({cam}); camera not written"
+            )
             continue
         T_camera_world_global = carla.opencv_camera_pose(np.array([frames[i].camera_cords[index] for i in with_cam]))
         T_sensor_rig[cam] = _mount(
@@ -287,9 +289,11 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
             tick = merged.setdefault(frame.path.stem, {})
             if int(agent_id) not in tick:
                 pose, dims = carla.boxes_world_right_handed(
-                    frame.true_ego_pos[None, :3], frame.true_ego_pos[None, 3:],
-                    np.array([src.CAV_BOX_CENTER_M]), np.array([src.CAV_BOX_EXTENT_M]),
-                )  # fmt: skip
+                    frame.true_ego_pos[None, :3],
+                    frame.true_ego_pos[None, 3:],
+                    np.array([src.CAV_BOX_CENTER_M]),
+                    np.array([src.CAV_BOX_EXTENT_M]),
+                )
                 tick[int(agent_id)] = (pose[0], dims[0], frame.ego_speed_kmh / 3.6)
     if disagreements:
         warnings.append(
@@ -316,8 +320,10 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
         raise SourceError(scenario_dir, "no frame YAMLs (<key>.yaml) in any agent folder")
     warnings: list[str] = []
     if protocol.text is None:
-        warnings.append(f"{src.protocol_path(scenario_dir)}: not found; CARLA tick {dt_s} s assumed (OPV2V and"
-                        " V2XSet's), lidar models from the points")  # fmt: skip
+        warnings.append(
+            f"{src.protocol_path(scenario_dir)}: not found; CARLA tick {dt_s} s assumed (OPV2V and"
+            " V2XSet's), lidar models from the points"
+        )
     steps = np.diff([int(k) for k in all_keys])
     if len(steps) and np.any(steps != np.median(steps)):
         warnings.append(f"{scenario_dir}: frame keys do not step uniformly (steps {sorted(set(steps.tolist()))})")
@@ -412,8 +418,9 @@ def _with_lidar_model(
         return _no_model(agent, scenario, f"{why}; not measurable from the points either ({err})", warnings)
     if not _fits(measured.fit):
         figures = _figures(measured.fit, measured.spec)
-        return _no_model(agent, scenario, f"{why}; the grid measured from the points does not fit either: {figures}",
-                         warnings)  # fmt: skip
+        return _no_model(
+            agent, scenario, f"{why}; the grid measured from the points does not fit either: {figures}", warnings
+        )
     found = measured.spec
     warnings.append(
         f"{agent.agent_dir}: scenario {scenario}: {why}; lidar model from the points: {found.channels} lasers"
@@ -525,26 +532,41 @@ def _clipped(plan: ScenarioPlan, window_us: tuple[int, int], scenario_dir: UPath
         rows = np.flatnonzero(keep)
         kept_keys = [agent.keys[i] for i in rows]
         agents[agent_id] = replace(
-            agent, keys=kept_keys, timestamps_us=agent.timestamps_us[rows],
-            lidar_pose_carla=agent.lidar_pose_carla[rows], T_rig_world_global=agent.T_rig_world_global[rows],
-            speed_mps=agent.speed_mps[rows], skipped_keys={k: v for k, v in agent.skipped_keys.items() if inside(k)},
-        )  # fmt: skip
+            agent,
+            keys=kept_keys,
+            timestamps_us=agent.timestamps_us[rows],
+            lidar_pose_carla=agent.lidar_pose_carla[rows],
+            T_rig_world_global=agent.T_rig_world_global[rows],
+            speed_mps=agent.speed_mps[rows],
+            skipped_keys={k: v for k, v in agent.skipped_keys.items() if inside(k)},
+        )
     if not agents:
-        duration_s = (max(int(a.timestamps_us[-1]) for a in plan.agents.values())
-                      - min(int(a.timestamps_us[0]) for a in plan.agents.values())) / 1e6  # fmt: skip
+        duration_s = (
+            max(int(a.timestamps_us[-1]) for a in plan.agents.values())
+            - min(int(a.timestamps_us[0]) for a in plan.agents.values())
+        ) / 1e6
         raise UsageError(
-            f"{scenario_dir}: the clip window holds no frame of any agent (the scenario lasts"
-            f" {duration_s:.3f} s)"
+            f"{scenario_dir}: the clip window holds no frame of any agent (the scenario lasts {duration_s:.3f} s)"
         )
     ego_keep = in_window(src.key_timestamps_us(plan.ego_keys, plan.fixed_delta_seconds), window_us)
     noise = {
-        name: {a: _clipped_noise(n, in_window(plan.agents[a].timestamps_us, window_us), ego_keep)
-               for a, n in per_agent.items() if a in agents}
+        name: {
+            a: _clipped_noise(n, in_window(plan.agents[a].timestamps_us, window_us), ego_keep)
+            for a, n in per_agent.items()
+            if a in agents
+        }
         for name, per_agent in plan.noise.items()
-    }  # fmt: skip
+    }
     boxes = {key: b for key, b in plan.boxes.items() if inside(key)}
-    return replace(plan, agents=agents, warnings=warnings, noise=noise, boxes=boxes, window_us=window_us,
-                   ego_keys=[k for k, keep in zip(plan.ego_keys, ego_keep, strict=True) if keep])  # fmt: skip
+    return replace(
+        plan,
+        agents=agents,
+        warnings=warnings,
+        noise=noise,
+        boxes=boxes,
+        window_us=window_us,
+        ego_keys=[k for k, keep in zip(plan.ego_keys, ego_keep, strict=True) if keep],
+    )
 
 
 def _clipped_noise(agent_noise: AgentNoise, agent_keep: np.ndarray, ego_keep: np.ndarray) -> AgentNoise:
@@ -560,7 +582,7 @@ def _clipped_noise(agent_noise: AgentNoise, agent_keep: np.ndarray, ego_keep: np
             delay_ms=delays.delay_ms[ego_keep],
             source_index=delays.source_index[ego_keep],
             delay_frames=None if delays.delay_frames is None else delays.delay_frames[ego_keep],
-        ),  # fmt: skip
+        ),
         source_keys=agent_noise.source_keys[ego_keep],
         source_timestamps_us=agent_noise.source_timestamps_us[ego_keep],
     )
@@ -580,9 +602,16 @@ def _with_labels(plan: ScenarioPlan, scenario_dir: UPath) -> ScenarioPlan:
     speeds = np.concatenate([b.speeds_mps for b in boxes]) if boxes else np.zeros(0)
     observations = TrackObservations(track_ids, stamps, T_box[:, :3, 3], T_box[:, :3, :3], dims, speeds)
     cuboid_labels = consumer.cuboid_labels(
-        observations, [VEHICLE_CLASS] * len(track_ids), labels.OPENCOOD_TO_NCORE, plan.options.class_names,
-        plan.options.cuboid_label_source, "GT_SYNTHETIC", "world_global", str(scenario_dir),
-    )  # fmt: skip
+        observations,
+        [VEHICLE_CLASS] * len(track_ids),
+        labels.OPENCOOD_TO_NCORE,
+        plan.options.class_names,
+        plan.options.cuboid_label_source,
+        "GT_SYNTHETIC",
+        "world_global",
+        str(scenario_dir),
+    )
     dynamic_boxes = DynamicBoxes.select(observations, cuboid_labels.dynamic)
-    return replace(plan, cuboid_labels=cuboid_labels, dynamic_boxes=dynamic_boxes,
-                   warnings=plan.warnings + cuboid_labels.warnings)  # fmt: skip
+    return replace(
+        plan, cuboid_labels=cuboid_labels, dynamic_boxes=dynamic_boxes, warnings=plan.warnings + cuboid_labels.warnings
+    )
