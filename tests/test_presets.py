@@ -33,6 +33,10 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.cli import cli
+from ncore_convert.converters.argoverse2.convert import convert_log
+from ncore_convert.converters.argoverse2.plan import Argoverse2Options
+from ncore_convert.converters.common import PRESET_DEFAULTS
+from ncore_convert.converters.opencood.plan import OpenCoodOptions
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
 UNITS = ("up_lidar", "down_lidar")
@@ -161,6 +165,37 @@ def test_an_explicit_flag_overrides_the_preset(source):
     assert _camera_models(loader) == {IdealPinholeCameraModel}  # given explicitly, even at its default value
     np.testing.assert_array_equal(_world_global(loader), np.eye(4))  # the rest of the preset holds
     assert _recorded(loader, report, "3dgut")["camera_model"] == "ideal-pinhole"
+
+
+def test_a_library_caller_gets_the_preset_too(source):
+    """``Argoverse2Options(preset=...)`` resolves in the options, not in the CLI: every preset sets
+    its options (``contract.PRESETS``) and leaves the others at their defaults, an explicit value
+    wins, and a conversion from the library writes what ``--preset`` writes."""
+    for preset, values in contract.PRESETS.items():
+        assert set(values) <= set(PRESET_DEFAULTS)
+        for options in (
+            Argoverse2Options(split="val", preset=preset),
+            OpenCoodOptions(dataset="opv2v", split="test", preset=preset),
+        ):
+            assert {name: getattr(options, name) for name in PRESET_DEFAULTS} == {**PRESET_DEFAULTS, **values}
+    explicit = Argoverse2Options(split="val", preset="3dgut", camera_model="ideal-pinhole", lidar_rgb=False)
+    assert (explicit.camera_model, explicit.lidar_rgb, explicit.world_global_mode) == (
+        "ideal-pinhole",
+        False,
+        "identity",
+    )
+    with pytest.raises(ValueError, match="unknown preset"):
+        Argoverse2Options(split="val", preset="nerf")
+    root, truth = source
+    convert_log(
+        UPath(root / "src"),
+        UPath(root / "library"),
+        truth.log_id,
+        Argoverse2Options(split="val", preset="3dgut", lidar_rgb=False),
+    )
+    loader = open_sequence(root / "library", truth.log_id)
+    assert _camera_models(loader) == {OpenCVPinholeCameraModel}
+    np.testing.assert_array_equal(_world_global(loader), np.eye(4))
 
 
 def test_opv2v_lidar_rgb_carries_the_true_colours(tmp_path):

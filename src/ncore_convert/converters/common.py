@@ -9,7 +9,7 @@ from typing import Any
 
 from upath import UPath
 
-from ncore_convert.contract import CameraModel, ClassNames, CuboidLabelSource, Preset, WorldGlobalMode
+from ncore_convert.contract import PRESETS, CameraModel, ClassNames, CuboidLabelSource, Preset, WorldGlobalMode
 
 
 @dataclass(frozen=True)
@@ -36,20 +36,42 @@ class Dataset:
     convert: Callable[..., Any]
 
 
+#: The consumer options a preset may set (``contract.PRESETS``), and their values under none.
+PRESET_DEFAULTS: dict[str, object] = {
+    "camera_model": "ideal-pinhole",
+    "cuboid_label_source": "auto",
+    "world_global_mode": "localized",
+    "lidar_rgb": False,
+}
+
+
 @dataclass(frozen=True, kw_only=True)
 class ConsumerOptions:
     """Options every dataset command shares that shape the output for its consumers
-    (docs/consumers.md): the preset they came from, camera model, class names, label source, clip
-    window, world_global."""
+    (docs/consumers.md): the preset, camera model, class names, label source, clip window,
+    world_global, lidar colours.
 
-    preset: Preset = "ncore"  #: recorded only: the CLI has already resolved the options it sets
-    camera_model: CameraModel = "ideal-pinhole"
+    The options a preset sets (``PRESET_DEFAULTS``) are None until resolved: an option left None
+    takes the preset's value, else its default; one given explicitly wins. So
+    ``Argoverse2Options(preset="3dgut")`` is what ``--preset 3dgut`` converts, from the library
+    as from the command line.
+    """
+
+    preset: Preset = "ncore"
+    camera_model: CameraModel | None = None
     class_names: ClassNames = "ncore"
-    cuboid_label_source: CuboidLabelSource = "auto"
+    cuboid_label_source: CuboidLabelSource | None = None
     seek_sec: float | None = None  #: time skipped from the start of the log, s
     duration_sec: float | None = None  #: time kept from there, s (None: to the end)
-    world_global_mode: WorldGlobalMode = "localized"
-    lidar_rgb: bool = False  #: per-point ``rgb`` from the cameras on every lidar frame
+    world_global_mode: WorldGlobalMode | None = None
+    lidar_rgb: bool | None = None  #: per-point ``rgb`` from the cameras on every lidar frame
+
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown preset {self.preset!r}; known: {list(PRESETS)}")
+        for name, default in PRESET_DEFAULTS.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, PRESETS[self.preset].get(name, default))
 
 
 def select_sensors(requested: tuple[str, ...] | None, known: tuple[str, ...], kind: str) -> list[str]:

@@ -1,0 +1,327 @@
+"""The dataset commands' options, each declared once (docs/cli.md): the store layout, the consumer
+options (the preset resolves in ``converters.common.ConsumerOptions``, so library callers get it
+too), the Argoverse 2 family's, the OpenCOOD family's and the noise flags. Choices come from the
+``Literal`` types the code uses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import get_args
+
+import click
+from upath import UPath
+
+from ncore_convert.contract import (
+    CameraModel,
+    ClassNames,
+    CuboidLabelSource,
+    Layout,
+    LidarModelSource,
+    Preset,
+    Profile,
+    StoreType,
+    WorldGlobalMode,
+)
+from ncore_convert.converters.common import PRESET_DEFAULTS
+from ncore_convert.errors import SourceError
+from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
+from ncore_convert.transforms.ego_mask import EgoBox
+from ncore_convert.transforms.noise import ASYNC_MODES, DOFS, MODELS, PROCESSES
+
+
+def options(*decorators: Callable) -> Callable:
+    """One decorator that applies ``decorators`` as if stacked in this order (the first on top)."""
+
+    def decorate(f):
+        for decorator in reversed(decorators):
+            f = decorator(f)
+        return f
+
+    return decorate
+
+
+def off_flag(*decls: str, help: str):
+    """A boolean flag that is off unless given (documented as such in --help)."""
+    return click.option(*decls, is_flag=True, default=False, show_default="off", help=help)
+
+
+def _preset_default(name: str) -> str:
+    """What --help shows as the default of an option a preset may set."""
+    value = PRESET_DEFAULTS[name]
+    shown = ("on" if value else "off") if isinstance(value, bool) else value
+    return f"{shown}, or the preset's"
+
+
+store_options = options(
+    click.option("--store-type", type=click.Choice(get_args(StoreType)), default="itar", help="Zarr store container."),
+    click.option(
+        "--profile",
+        type=click.Choice(get_args(Profile)),
+        default="separate-sensors",
+        help="Component group layout: one store, one store per sensor, or also separate"
+        " poses/intrinsics/masks/cuboids.",
+    ),
+    click.option("--sequence-meta/--no-sequence-meta", default=True, help="Write <sequence_id>.json (sequence meta)."),
+)
+
+#: Options every dataset command shares that shape the output for its consumers (docs/consumers.md).
+consumer_options = options(
+    click.option(
+        "--preset",
+        type=click.Choice(get_args(Preset)),
+        default="ncore",
+        help="Set the options below as this consumer needs them (explicit flags still win): 3dgut, 3dgrt"
+        " and nurec: an OpenCV pinhole and world_global at the identity; instant-nurec: f-theta cameras"
+        " and AUTOLABEL cuboids; ncore: the defaults, as NCore's own converter writes. The run report"
+        " and the converter metadata record the preset and what it resolved to.",
+    ),
+    click.option(
+        "--camera-model",
+        type=click.Choice(get_args(CameraModel)),
+        default=None,
+        show_default=_preset_default("camera_model"),
+        help="How cameras are stored: NCore's ideal pinhole; an OpenCV pinhole with zero distortion"
+        " (the same rays; 3DGUT reads it); or an f-theta model fitted to the pinhole over the whole"
+        " image (instant-nurec), its worst error in the camera's metadata.",
+    ),
+    click.option(
+        "--class-names",
+        type=click.Choice(get_args(ClassNames)),
+        default="ncore",
+        help="Cuboid class names: NCore's lowercase names (e.g. REGULAR_VEHICLE -> car), the source"
+        " name of every track kept in the cuboids' metadata; or the dataset's own names.",
+    ),
+    click.option(
+        "--cuboid-label-source",
+        type=click.Choice(get_args(CuboidLabelSource)),
+        default=None,
+        show_default=_preset_default("cuboid_label_source"),
+        help="LabelSource of the cuboids: 'auto' is the dataset's honest one (AV2 EXTERNAL, OPV2V"
+        " GT_SYNTHETIC); 'autolabel' is a compatibility setting for instant-nurec, not a provenance"
+        " claim.",
+    ),
+    click.option(
+        "--seek-sec",
+        type=click.FloatRange(min=0.0),
+        default=None,
+        show_default="none: from the start",
+        help="Skip this many seconds from the start of each log (its first sweep, image or frame).",
+    ),
+    click.option(
+        "--duration-sec",
+        type=click.FloatRange(min=0.0, min_open=True),
+        default=None,
+        show_default="none: to the end",
+        help="Keep this many seconds from the seek point; lidar frames are kept whole or dropped.",
+    ),
+    click.option(
+        "--lidar-rgb/--no-lidar-rgb",
+        default=None,
+        show_default=_preset_default("lidar_rgb"),
+        help="Colour every lidar point from the camera frame nearest its time (occlusion-tested, never"
+        " from ego pixels): per-point generic data 'rgb', uint8 [N,3], which 3DGRUT seeds its colours"
+        " from. AV2, TbV, OPV2V, V2XSet.",
+    ),
+    click.option(
+        "--world-global-mode",
+        type=click.Choice(get_args(WorldGlobalMode)),
+        default=None,
+        show_default=_preset_default("world_global_mode"),
+        help="What world -> world_global holds: the dataset's global frame ('localized'), the identity"
+        " (scene at the origin for 3DGRUT), or no world_global node ('none'); the global pose is kept"
+        " in the sequence metadata either way.",
+    ),
+)
+
+lidar_model_source_option = click.option(
+    "--lidar-model-source",
+    type=click.Choice(get_args(LidarModelSource)),
+    default="empirical",
+    help="'empirical': each lidar's structured model (AV2/TbV: a VLP-32C row-offset model derived per unit"
+    " and log; OPV2V/V2XSet: CARLA's from data_protocol.yaml, checked against the data) and each ray's"
+    " model element; 'none': raw per-point-time ray bundles only.",
+)
+
+
+def _ego_masks_option(ctx, param, value: str) -> str:
+    if value in ("estimate", "none") or UPath(value).is_dir():
+        return value
+    raise click.BadParameter(f"{value!r} is neither 'estimate', 'none' nor a folder of <camera_id>.png masks")
+
+
+def av2_family_options(log_scope: str) -> Callable:
+    """Options shared by the Argoverse 2 Sensor and TbV commands."""
+    return options(
+        click.option(
+            "--log-id",
+            "log_ids",
+            multiple=True,
+            show_default=f"every log {log_scope}",
+            help="Convert only this log (repeatable).",
+        ),
+        store_options,
+        consumer_options,
+        click.option(
+            "--maps/--no-maps",
+            default=True,
+            help="Store the log's HD map (vector map, ground-height raster, Sim(2)) with the poses.",
+        ),
+        click.option(
+            "--ego-masks",
+            type=str,
+            default="estimate",
+            callback=_ego_masks_option,
+            metavar="estimate|none|DIR",
+            help="Camera masks named 'ego' (the ego vehicle's pixels): estimated from a sample of each"
+            " camera's own images; none; or DIR/<camera_id>.png (binary, the camera's size).",
+        ),
+        click.option(
+            "--ego-box-m",
+            type=float,
+            nargs=3,
+            default=EgoBox().dims_m,
+            show_default=True,
+            metavar="LENGTH WIDTH HEIGHT",
+            help="The nominal ego vehicle for the ego-mask prior (metres, around the rear-axle origin):"
+            " where the body can be in each camera, and which cameras must see it.",
+        ),
+        lidar_model_source_option,
+    )
+
+
+#: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, default, help).
+#: Unset flags take OpenCOOD's defaults (shown), set in ``make_setting``.
+NOISE_FLAGS = [
+    (
+        "--noise-name",
+        "noise_name",
+        "name",
+        str,
+        "the model's name",
+        "Name of the setting these flags make (its poses instance).",
+    ),
+    (
+        "--noise-model",
+        "noise_model",
+        "model",
+        click.Choice(MODELS),
+        "opencood",
+        "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams.",
+    ),
+    ("--noise-seed", "noise_seed", "seed", int, "25, OpenCOOD's test seed", "seed."),
+    ("--async/--no-async", "async_", "async", None, "off", "async: add communication delay."),
+    (
+        "--async-mode",
+        "async_mode",
+        "async_mode",
+        click.Choice(ASYNC_MODES),
+        "sim",
+        "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone.",
+    ),
+    ("--async-overhead", "async_overhead", "async_overhead", float, "0", "async_overhead, ms."),
+    ("--backbone-delay", "backbone_delay", "backbone_delay", float, "0", "backbone_delay, ms (real mode)."),
+    ("--data-size", "data_size", "data_size", float, "0", "data_size, Mb (real mode)."),
+    (
+        "--transmission-speed",
+        "transmission_speed",
+        "transmission_speed",
+        float,
+        "27",
+        "transmission_speed, Mb/s (real mode).",
+    ),
+    ("--loc-err/--no-loc-err", "loc_err", "loc_err", None, "off", "loc_err: add localisation (GPS) error."),
+    ("--xyz-std", "xyz_std", "xyz_std", float, "0", "xyz_std: position error std, m."),
+    ("--ryp-std", "ryp_std", "ryp_std", float, "0", "ryp_std: angular error std, deg."),
+    ("--max-cav", "max_cav", "max_cav", int, "7", "OpenCOOD's train_params.max_cav (opencood model)."),
+    (
+        "--gps-process",
+        "gps_process",
+        "process",
+        click.Choice(PROCESSES),
+        "white",
+        "realistic: per-frame draws or Gauss-Markov drift.",
+    ),
+    (
+        "--correlation-time-s",
+        "correlation_time_s",
+        "correlation_time_s",
+        float,
+        "10",
+        "realistic: Gauss-Markov correlation time, s.",
+    ),
+    ("--bias-xyz-std", "bias_xyz_std", "bias_xyz_std", float, "0", "realistic: std of a constant position bias, m."),
+    ("--bias-ryp-std", "bias_ryp_std", "bias_ryp_std", float, "0", "realistic: std of a constant angular bias, deg."),
+    ("--gps-dof", "gps_dof", "dof", click.Choice(DOFS), "6dof", "realistic: perturb all 6 DoF or x, y and yaw."),
+    (
+        "--perturb-ego/--no-perturb-ego",
+        "perturb_ego",
+        "perturb_ego",
+        None,
+        "off",
+        "realistic: perturb the OpenCOOD ego too.",
+    ),
+]
+
+#: ``--noise-config`` (repeatable) and the flags that make one further setting (``NOISE_FLAGS``).
+noise_options = options(
+    click.option(
+        "--noise-config",
+        "noise_configs",
+        multiple=True,
+        metavar="FILE",
+        show_default="none",
+        help="YAML with an OpenCOOD wild_setting block (repeatable): GPS error and delay, written as a"
+        " further poses instance named by its 'name' key or the file name.",
+    ),
+    *(
+        click.option(decl, param, type=kind, default=None, show_default=shown, help=help_text)
+        for decl, param, _, kind, shown, help_text in NOISE_FLAGS
+    ),
+)
+
+
+def noise_settings(noise_configs: tuple[str, ...], flags: dict) -> tuple:
+    """The settings of the ``--noise-config`` files, then the one the flags make (if any flag is given)."""
+    from ncore_convert.sources.noise_config import check_unique, make_setting, read_noise_config
+
+    try:
+        settings = [read_noise_config(UPath(path)) for path in noise_configs]
+        given = {key: flags[param] for _, param, key, _, _, _ in NOISE_FLAGS if flags[param] is not None}
+        if given:
+            given.setdefault("name", given.get("model", "opencood"))
+            try:
+                settings.append(make_setting(given))
+            except ValueError as err:
+                raise ValueError(f"noise flags: {err}") from None
+        check_unique(settings)
+    except (SourceError, ValueError) as err:
+        raise click.UsageError(str(err)) from None
+    return tuple(settings)
+
+
+def opencood_options(dataset: str) -> Callable:
+    """Options of the OPV2V and V2XSet commands."""
+    return options(
+        click.option(
+            "--split", type=click.Choice(OPENCOOD_SPLITS[dataset]), required=True, help="Dataset split folder."
+        ),
+        click.option(
+            "--scenario",
+            "scenarios",
+            multiple=True,
+            show_default="every scenario of the split",
+            help="Convert only this scenario (repeatable).",
+        ),
+        click.option(
+            "--layout",
+            type=click.Choice(get_args(Layout)),
+            default="agents",
+            help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
+            " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_).",
+        ),
+        lidar_model_source_option,
+        store_options,
+        consumer_options,
+        noise_options,
+    )
