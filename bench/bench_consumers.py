@@ -238,6 +238,7 @@ def bench_ego_masks(work: Path, repeat: int) -> None:
     import sys
 
     from ncore_convert.converters.argoverse2.masks import plan_ego_masks
+    from ncore_convert.converters.argoverse2.plan import camera_pinhole
     from ncore_convert.run.pool import JobPool
     from ncore_convert.sources import argoverse2 as av2
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
@@ -252,7 +253,8 @@ def bench_ego_masks(work: Path, repeat: int) -> None:
     log_dir = UPath(root / "val" / log_id)
     intrinsics, extrinsics = av2.read_intrinsics(log_dir), av2.read_sensor_extrinsics(log_dir)
     cameras = {
-        cam: (av2.list_image_timestamps_ns(log_dir, cam), intrinsics[cam], extrinsics[cam]) for cam in av2.CAMERAS
+        cam: (av2.list_image_timestamps_ns(log_dir, cam), camera_pinhole(intrinsics[cam]), extrinsics[cam])
+        for cam in av2.CAMERAS
     }
     alone = []
     with JobPool(2, preload=["ncore_convert.converters.argoverse2"]) as pool:  # as the command's 2 workers

@@ -115,6 +115,7 @@ def _run(case: Case, keep: str | None = None) -> list[dict]:
     """Synthesise one log (or reuse it from ``keep``), plan its masks as the converter does, and
     score every camera."""
     from ncore_convert.converters.argoverse2 import masks as planning
+    from ncore_convert.converters.argoverse2.plan import camera_pinhole
     from ncore_convert.sources import argoverse2 as av2
     from ncore_convert.transforms.ego_mask import EgoBox
 
@@ -122,7 +123,7 @@ def _run(case: Case, keep: str | None = None) -> list[dict]:
         log_dir, synth_config, true_masks = _log(case, keep or tmp)
         intrinsics, extrinsics = av2.read_intrinsics(log_dir), av2.read_sensor_extrinsics(log_dir)
         cameras = {
-            cam: (av2.list_image_timestamps_ns(log_dir, cam), intrinsics[cam], extrinsics[cam])
+            cam: (av2.list_image_timestamps_ns(log_dir, cam), camera_pinhole(intrinsics[cam]), extrinsics[cam])
             for cam in synth_config.cameras
         }
         started = time.perf_counter()

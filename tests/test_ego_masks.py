@@ -22,6 +22,7 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.converters.argoverse2 import masks as ego_mask_planning
+from ncore_convert.converters.argoverse2.plan import camera_pinhole
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.synth.ego import EGO_CAMERAS
 from ncore_convert.transforms import ego_mask
@@ -255,13 +256,8 @@ def test_the_prior_on_the_real_calibration():
     must = set()
     for cam, intr in intrinsics.items():
         shape = (intr.height_px // 8, intr.width_px // 8)
-        prior = ego_mask.body_prior(
-            shape,
-            (intr.fx_px / 8, intr.fy_px / 8),
-            ((intr.cx_px + 0.5) / 8, (intr.cy_px + 0.5) / 8),
-            extrinsics[cam],
-            ego_mask.EgoBox(),
-        )
+        pinhole = camera_pinhole(intr).scaled(shape[1], shape[0])
+        prior = ego_mask.body_prior(pinhole, extrinsics[cam], ego_mask.EgoBox())
         assert not prior.reach[: shape[0] // 2].any(), cam  # the body is below the camera
         if prior.must_see:
             must.add(cam)

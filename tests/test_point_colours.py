@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from ncore_convert.synth.scene import Box, EgoMotion, Scene, cast_rays
+from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, FILL_RGB, ColourFrame, point_colours
 
 GROUND_Z = 0.0
@@ -65,9 +66,7 @@ def _frame(time_s: float, usable: np.ndarray | None = None) -> ColourFrame:
         "cam",
         round(time_s * 1e6),
         T_world_camera,
-        (FOCAL, FOCAL),
-        (WIDTH / 2, HEIGHT / 2),
-        (WIDTH, HEIGHT),
+        Pinhole((FOCAL, FOCAL), (WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT)),
         lambda: image,
         usable,
     )
@@ -163,7 +162,7 @@ def test_frames_no_point_takes_are_not_decoded():
     def fail():
         raise AssertionError("decoded a frame no point takes")
 
-    far = ColourFrame("cam", 1_000_000, late.T_world_camera, late.focal_px, late.centre_px, late.size_px, fail)
+    far = ColourFrame("cam", 1_000_000, late.T_world_camera, late.pinhole, fail)
     rgb, coloured = point_colours(xyz, t_us, on_mover, [_frame(0.0), far])
     assert coloured.sum() > 5000
 
@@ -184,7 +183,12 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
     T_camera_scene = np.eye(4)
     T_camera_scene[:3, :3], T_camera_scene[:3, 3] = R_CAMERA_RIG.T, camera_m
     image, _ = render(
-        scene, box_rgb, T_camera_scene, (FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT), 1, ground_z_m=GROUND_Z
+        scene,
+        box_rgb,
+        T_camera_scene,
+        Pinhole((FOCAL, FOCAL), (WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT)),
+        1,
+        ground_z_m=GROUND_Z,
     )
     az, el = np.meshgrid(np.radians(np.arange(-40.0, 40.0, 0.2)), np.radians(np.linspace(-25.0, 5.0, 64)))
     d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)

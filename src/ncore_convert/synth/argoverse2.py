@@ -30,6 +30,7 @@ from ncore_convert.synth.ego import pictures as ego_pictures
 from ncore_convert.synth.maps import write_map
 from ncore_convert.synth.scene import Box, Scene, box_colours, cast_rays, make_scene, render
 from ncore_convert.transforms import vlp32c
+from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
 
 MAX_RANGE_M = 200.0
@@ -262,8 +263,7 @@ def _write_rendered_images(truth: SynthTruth, cam_ns: dict[str, np.ndarray], cam
                 truth.scene,
                 box_rgb,
                 T_camera_city,
-                (f, f, cx + 0.5, cy + 0.5),
-                (width, height),
+                Pinhole((f, f), (cx + 0.5, cy + 0.5), (width, height)),
                 RENDER_STEP,
                 t_s,
                 MAX_RANGE_M,

@@ -39,6 +39,8 @@ import PIL.ImageFilter
 import PIL.ImageFont
 import pyarrow as pa
 
+from ncore_convert.transforms.camera_models import Pinhole
+
 #: The cameras that see the ego body.
 EGO_CAMERAS = ("ring_front_center", "ring_rear_left", "ring_rear_right", "stereo_front_left", "stereo_front_right")
 #: Body renderings: still paint, what real paint does, and real paint with strong reflections.
@@ -87,8 +89,9 @@ def true_mask(
     T_ego_camera = np.linalg.inv(T_camera_ego)
     xyz = body_outline_m(camera) @ T_ego_camera[:3, :3].T + T_ego_camera[:3, 3]
     xyz = xyz[xyz[:, 2] > 0.05]
-    u = np.clip(focal_px * xyz[:, 0] / xyz[:, 2] + cx_px, -4 * width, 5 * width)
-    v = np.clip(focal_px * xyz[:, 1] / xyz[:, 2] + cy_px, -4 * height, 5 * height)
+    # av2's principal point as is: u, v in av2's and PIL's convention (pixel centres at integers)
+    u, v = Pinhole((focal_px, focal_px), (cx_px, cy_px), (width, height)).project(xyz)
+    u, v = np.clip(u, -4 * width, 5 * width), np.clip(v, -4 * height, 5 * height)
     polygon = [(float(a), float(b)) for a, b in zip(u, v, strict=True)]
     polygon += [(float(u[-1]), 2.0 * height), (float(u[0]), 2.0 * height)]
     PIL.ImageDraw.Draw(mask).polygon(polygon, fill=255)  # PIL and av2 both put pixel centres at integers

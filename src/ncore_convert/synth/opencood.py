@@ -30,9 +30,11 @@ from upath import UPath
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.pcd import write_pcd
 from ncore_convert.synth.scene import BUILDING_RGB, Box, Scene, cast_rays, own_colour, render, surface_rgb
+from ncore_convert.transforms.camera_models import Pinhole
 
 WIDTH, HEIGHT, FOV_DEG = 800, 600, 100.0
 FOCAL_PX = float(WIDTH / (2.0 * np.tan(np.radians(FOV_DEG / 2))))
+PINHOLE = Pinhole((FOCAL_PX, FOCAL_PX), (WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT))  #: CARLA's: centred, square pixels
 LIDAR_CHANNELS, UPPER_FOV_DEG, LOWER_FOV_DEG, LIDAR_RANGE_M = 64, 2.0, -25.0, 120.0
 #: The infrastructure units' lidar (V2XSet): channels, upper_fov, lower_fov; its own protocol block.
 RSU_LIDAR = (32, 0.0, -40.0)
@@ -76,7 +78,7 @@ def project_ue4(T_cam_world: np.ndarray, xyz_world: np.ndarray) -> tuple[np.ndar
     principal point at the image centre) and whether each is in front of the camera [M]."""
     p = (xyz_world - T_cam_world[:3, 3]) @ T_cam_world[:3, :3]  # UE4 camera axes
     with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack([WIDTH / 2 + FOCAL_PX * p[:, 1] / p[:, 0], HEIGHT / 2 - FOCAL_PX * p[:, 2] / p[:, 0]], axis=1)
+        uv = np.stack(PINHOLE.project(np.stack([p[:, 1], -p[:, 2], p[:, 0]], axis=1)), axis=1)  # OpenCV axes
     return uv, p[:, 0] > 0.5
 
 
@@ -241,13 +243,11 @@ def _render_png(scene: Scene, box_rgb: np.ndarray, T_cam_world: np.ndarray) -> t
     """An 800x600 PNG of ``scene`` from the CARLA camera ``T_cam_world`` (UE4 axes), flat-shaded with
     the boxes' colours ``box_rgb`` (:func:`synth.scene.render`), and what each pixel shows, int
     [600,800] (a scene box index, -1 ground, ``SKY``)."""
-    pinhole = (FOCAL_PX, FOCAL_PX, WIDTH / 2, HEIGHT / 2)
     image, shows = render(
         scene,
         box_rgb,
         T_cam_world @ T_UE4_OPENCV,
-        pinhole,
-        (WIDTH, HEIGHT),
+        PINHOLE,
         RENDER_STEP,
         max_range_m=RENDER_RANGE_M,
         ground_z_m=0.0,

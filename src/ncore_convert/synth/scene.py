@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ncore_convert.transforms.camera_models import Pinhole
+
 GROUND_Z_M = 45.0  #: city height of the ground plane
 EGO_ORIGIN_HEIGHT_M = 0.33  #: ego origin above ground (AV2 rear-axle origin)
 CITY_ORIGIN_M = np.array([5072.4, 2283.9])  #: offset of the scene from the city origin (large, as in AV2)
@@ -358,8 +360,7 @@ def render(
     scene: Scene,
     box_rgb: np.ndarray,
     T_camera_scene: np.ndarray,
-    pinhole_px: tuple[float, float, float, float],
-    size_px: tuple[int, int],
+    pinhole: Pinhole,
     step: int,
     t_s: float = 0.0,
     max_range_m: float = 300.0,
@@ -372,17 +373,16 @@ def render(
 
     Args:
         T_camera_scene: maps the camera frame (OpenCV: x right, y down, z forward) into the scene.
-        pinhole_px: fx, fy, cx, cy, with pixel (i, j) covering [i, i+1) x [j, j+1).
-        size_px: the picture's (width, height).
+        pinhole: the camera (its resolution is the picture's), with pixel (i, j) covering
+            [i, i+1) x [j, j+1).
 
     Returns:
         rgb: uint8 [height,width,3]; box_index: what each pixel shows, int [height,width] (an index
         into ``scene.boxes``, -1 the ground, ``SKY`` nothing), None without ``with_index``.
     """
-    fx, fy, cx, cy = pinhole_px
-    width, height = size_px
-    u, v = np.meshgrid(np.arange(0, width, step) + step / 2, np.arange(0, height, step) + step / 2)
-    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1).reshape(-1, 3) @ T_camera_scene[:3, :3].T
+    width, height = pinhole.resolution_px
+    rays = pinhole.pixel_rays(step)
+    d = rays.reshape(-1, 3) @ T_camera_scene[:3, :3].T
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     origins = np.broadcast_to(T_camera_scene[:3, 3], d.shape)
     distance, _, index = cast_rays(origins, d, np.full(len(d), t_s), scene, max_range_m, ground_z_m)
@@ -390,7 +390,7 @@ def render(
     rgb = surface_rgb(box_rgb, index, origins + d * np.where(hit, distance, 0.0)[:, None], hit)
 
     def full(small: np.ndarray) -> np.ndarray:  # each ray's value over its step x step block
-        rows, cols = u.shape
+        rows, cols = rays.shape[:2]
         blocks = small.reshape(rows, 1, cols, 1, *small.shape[1:])
         tiled = np.broadcast_to(blocks, (rows, step, cols, step, *small.shape[1:]))
         return tiled.reshape(rows * step, cols * step, *small.shape[1:])[:height, :width]

@@ -53,6 +53,28 @@ class Pinhole:
     principal_point_px: tuple[float, float]
     resolution_px: tuple[int, int]
 
+    def project(self, xyz_camera_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Image coordinates (u, v), px, float64 [N] each, of points in the camera frame (OpenCV: x
+        right, y down, z forward), float [N,3], z > 0 (the caller culls the points behind)."""
+        (fx, fy), (cx, cy) = self.focal_length_px, self.principal_point_px
+        z = xyz_camera_m[:, 2]
+        return fx * xyz_camera_m[:, 0] / z + cx, fy * xyz_camera_m[:, 1] / z + cy
+
+    def scaled(self, width_px: int, height_px: int) -> Pinhole:
+        """The same camera for its images resized to (width_px, height_px) (e.g. decoded with JPEG DCT
+        scaling): focal length and principal point scaled per axis."""
+        sx, sy = width_px / self.resolution_px[0], height_px / self.resolution_px[1]
+        (fx, fy), (cx, cy) = self.focal_length_px, self.principal_point_px
+        return Pinhole((fx * sx, fy * sy), (cx * sx, cy * sy), (width_px, height_px))
+
+    def pixel_rays(self, step_px: int = 1) -> np.ndarray:
+        """The rays through the centres of every ``step_px``-th pixel's ``step_px`` square, in the camera
+        frame with z = 1, float64 [H,W,3] (H, W: the rows and columns sampled)."""
+        (fx, fy), (cx, cy) = self.focal_length_px, self.principal_point_px
+        width, height = self.resolution_px
+        u, v = np.meshgrid(np.arange(0, width, step_px) + step_px / 2, np.arange(0, height, step_px) + step_px / 2)
+        return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+
 
 @dataclass(frozen=True)
 class FThetaFit:

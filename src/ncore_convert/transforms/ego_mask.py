@@ -70,6 +70,8 @@ import numpy as np
 import PIL.Image
 from scipy import ndimage
 
+from ncore_convert.transforms.camera_models import Pinhole
+
 MIN_WORLD_STD = 4.0  #: grey levels: below this, the world did not move enough to tell the body from it
 MIN_FRACTION = 0.005  #: of the image: a smaller region is not a car body
 MAX_FRACTION = 0.30  #: of the image: a larger "body" is the scene standing still
@@ -192,23 +194,14 @@ def _rays_hit_box(origin: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi
     return far >= near
 
 
-def body_prior(
-    shape: tuple[int, int],
-    focal_px: tuple[float, float],
-    centre_px: tuple[float, float],
-    T_camera_ego: np.ndarray,
-    box: EgoBox,
-) -> BodyPrior:
+def body_prior(pinhole: Pinhole, T_camera_ego: np.ndarray, box: EgoBox) -> BodyPrior:
     """The body prior of one camera at the reduced resolution.
 
     Args:
-        shape: (h, w) of the reduced image; focal_px, centre_px: its (fx, fy) and principal point
-            (pixel-corner convention); T_camera_ego: camera (OpenCV) -> ego [4,4]; box: the vehicle.
+        pinhole: the camera at the reduced image size (``Pinhole.scaled``); T_camera_ego: camera
+            (OpenCV) -> ego [4,4]; box: the vehicle.
     """
-    h, w = shape
-    u = (np.arange(w) + 0.5 - centre_px[0]) / focal_px[0]
-    v = (np.arange(h) + 0.5 - centre_px[1]) / focal_px[1]
-    rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((h, w))), axis=-1) @ T_camera_ego[:3, :3].T
+    rays = pinhole.pixel_rays() @ T_camera_ego[:3, :3].T
     origin = T_camera_ego[:3, 3]
     reach = _rays_hit_box(origin, rays, *box.bounds())
     lower = _rays_hit_box(origin, rays[-1], *box.bounds(LOWER_BODY_FRACTION))

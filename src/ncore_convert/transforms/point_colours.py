@@ -30,7 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ncore_convert.transforms.boxes import BOX_EDGES, CORNER_SIGNS
+from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.visibility import nearest_in_front
 
 FILL_RGB = (128, 128, 128)  #: the colour of a point no camera sees: neutral grey
 DYNAMIC_DT_US = 5_000  #: a point on a moving object takes colour only from a frame this close in time
@@ -49,9 +52,7 @@ class ColourFrame:
     Attributes:
         camera_id: the camera; timestamp_us: the frame's time (µs).
         T_world_camera: float64 [4,4], maps world points into the camera frame at the frame's time.
-        focal_px, centre_px: (fx, fy) and (cx, cy) of the pinhole at the image's resolution
-            (pixel-corner convention).
-        size_px: the image's (width, height).
+        pinhole: the camera at the resolution of the image ``load_rgb`` returns.
         load_rgb: returns the image, uint8 [height,width,3]; called only if a point keeps its colour
             from this frame (decoding is slow), from up to ``DECODE_THREADS`` threads.
         usable: bool [height,width], the pixels that show the world (False on the ego body); None: all.
@@ -65,60 +66,22 @@ class ColourFrame:
     camera_id: str
     timestamp_us: int
     T_world_camera: np.ndarray
-    focal_px: tuple[float, float]
-    centre_px: tuple[float, float]
-    size_px: tuple[int, int]
+    pinhole: Pinhole
     load_rgb: Callable[[], np.ndarray]
     usable: np.ndarray | None = None
     solids: tuple[np.ndarray, np.ndarray] | None = None
     solids_slack_m: float = 0.0
 
 
-def _in_view(frame: ColourFrame, xyz_world_m: np.ndarray, margin: float) -> np.ndarray:
+def _in_view(frame: ColourFrame, xyz_world_m: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """The rows of ``xyz_world_m`` [N,3] in front of ``frame``'s camera that project into its image
-    grown by ``margin`` of its size on every side, int [K]."""
+    grown by ``margin`` of its size on every side, int [K], and those points in the camera frame [K,3]."""
     xyz = xyz_world_m @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
-    z = xyz[:, 2]
-    ahead = np.flatnonzero(z > MIN_DEPTH_M)
-    (w, h), (fx, fy), (cx, cy) = frame.size_px, frame.focal_px, frame.centre_px
-    u = fx * xyz[ahead, 0] / z[ahead] + cx
-    v = fy * xyz[ahead, 1] / z[ahead] + cy
-    return ahead[(u >= -margin * w) & (u < (1 + margin) * w) & (v >= -margin * h) & (v < (1 + margin) * h)]
-
-
-def _nearest_in_front(
-    cols: np.ndarray, lines: np.ndarray, depth: np.ndarray, cell_px: tuple[int, int], size_px: tuple[int, int]
-) -> np.ndarray:
-    """For each projected point (pixel ``cols``, ``lines``, int [V]; camera ``depth`` [V], m), the
-    depth of the nearest point that may hide it in a buffer of cells of ``cell_px`` (width, height):
-    at or above its row in its own cell and in the cells left and right of it (the pixels at a
-    silhouette show the occluder up to a cell beyond its last points), and anywhere in the cell
-    above (a nearer point below a point is the ground in front of it and does not hide it); inf
-    where there is none, float64 [V]."""
-    (w, h), (cell_w, cell_h) = size_px, cell_px
-    n_cols = -(-w // cell_w) + 2  # a column either side
-    cells = (lines // cell_h + 1) * n_cols + cols // cell_w + 1  # and a row above
-    order = np.lexsort((lines, cells))
-    o_cells, o_depth = cells[order], depth[order]
-    key = o_cells * (h + 1) + lines[order]
-    big = 2.0 * (float(o_depth.max()) + 1.0) if len(o_depth) else 1.0
-    running = np.minimum.accumulate(o_depth - o_cells * big) + o_cells * big  # per cell, down to a row
-    grid = np.full((-(-h // cell_h) + 1) * n_cols, np.inf)  # per cell, its nearest point: its last running value
-    last = np.flatnonzero(np.r_[o_cells[1:] != o_cells[:-1], True]) if len(o_cells) else np.zeros(0, np.int64)
-    grid[o_cells[last]] = running[last]
-
-    def at_or_above(cell: np.ndarray) -> np.ndarray:
-        i = np.searchsorted(key, cell * (h + 1) + lines, side="right") - 1
-        found = (i >= 0) & (o_cells[np.maximum(i, 0)] == cell)
-        return np.where(found, running[np.maximum(i, 0)], np.inf)
-
-    return np.minimum.reduce([at_or_above(cells), at_or_above(cells - 1), at_or_above(cells + 1), grid[cells - n_cols]])
-
-
-_CORNER_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-_EDGES = np.array(
-    [(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(_CORNER_SIGNS[i] != _CORNER_SIGNS[j]) == 1]
-)
+    ahead = np.flatnonzero(xyz[:, 2] > MIN_DEPTH_M)
+    w, h = frame.pinhole.resolution_px
+    u, v = frame.pinhole.project(xyz[ahead])
+    inside = (u >= -margin * w) & (u < (1 + margin) * w) & (v >= -margin * h) & (v < (1 + margin) * h)
+    return ahead[inside], xyz[ahead[inside]]
 
 
 def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray, cols: np.ndarray, lines: np.ndarray) -> np.ndarray:
@@ -132,24 +95,24 @@ def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray, cols: np.ndarray
         return hidden
     R_wc, t_wc = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
     camera_m = invert_se3(frame.T_world_camera)[:3, 3]  # the camera's centre in the fixed frame
-    (w, h), (fx, fy), (cx, cy) = frame.size_px, frame.focal_px, frame.centre_px
+    w, h = frame.pinhole.resolution_px
     by_col = np.argsort(cols, kind="stable")
     cols_sorted = cols[by_col]
     T_box_world, half_all = frame.solids
     R_all, t_all = T_box_world[:, :3, :3], T_box_world[:, :3, 3]
     origin_all = np.einsum("kji,kj->ki", R_all, camera_m - t_all)  # the camera in each box's frame
-    corners = np.einsum("kij,kcj->kci", R_all, _CORNER_SIGNS[None] * half_all[:, None]) + t_all[:, None]
+    corners = np.einsum("kij,kcj->kci", R_all, CORNER_SIGNS[None] * half_all[:, None]) + t_all[:, None]
     corners = corners @ R_wc.T + t_wc  # [K,8,3] in the camera frame
     # the bounding rectangle of each box's picture: its corners ahead of the camera, and where its
     # edges cross the plane MIN_DEPTH_M ahead of it
-    start, end = corners[:, _EDGES[:, 0]], corners[:, _EDGES[:, 1]]  # [K,12,3]
+    start, end = corners[:, BOX_EDGES[:, 0]], corners[:, BOX_EDGES[:, 1]]  # [K,12,3]
     with np.errstate(divide="ignore", invalid="ignore"):
         f = (MIN_DEPTH_M - start[..., 2]) / (end[..., 2] - start[..., 2])
         crossing = np.where(((f > 0) & (f < 1))[..., None], start + f[..., None] * (end - start), np.nan)
     points = np.concatenate([np.where(corners[..., 2:] >= MIN_DEPTH_M, corners, np.nan), crossing], axis=1)
     with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a box wholly behind the camera: all NaN
-        u, v = fx * points[..., 0] / points[..., 2] + cx, fy * points[..., 1] / points[..., 2] + cy
+        u, v = (c.reshape(points.shape[:-1]) for c in frame.pinhole.project(points.reshape(-1, 3)))
         u_lo, u_hi, v_lo, v_hi = (
             np.floor(np.nanmin(u, axis=1)),
             np.floor(np.nanmax(u, axis=1)),
@@ -182,17 +145,17 @@ def _behind_solids(frame: ColourFrame, xyz_world_m: np.ndarray, cols: np.ndarray
 def _visible_pixels(frame: ColourFrame, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The points (rows of ``xyz_world_m`` [N,3], all that may be in view: each may hide another)
     that ``frame`` sees: their indices [V] and pixel (column, row) [V] each, int."""
-    w, h = frame.size_px
-    rows = _in_view(frame, xyz_world_m, 0.0)
-    xyz = xyz_world_m[rows] @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
+    w, h = frame.pinhole.resolution_px
+    rows, xyz = _in_view(frame, xyz_world_m, 0.0)
     depth = xyz[:, 2]
-    cols = np.minimum((frame.focal_px[0] * xyz[:, 0] / depth + frame.centre_px[0]).astype(np.int64), w - 1)
-    lines = np.minimum((frame.focal_px[1] * xyz[:, 1] / depth + frame.centre_px[1]).astype(np.int64), h - 1)
+    u, v = frame.pinhole.project(xyz)
+    cols, lines = np.minimum(u.astype(np.int64), w - 1), np.minimum(v.astype(np.int64), h - 1)
     if frame.usable is not None:
         ok = frame.usable[lines, cols]
         rows, cols, lines, depth = rows[ok], cols[ok], lines[ok], depth[ok]
-    cell_px = (max(1, int(round(CELL_RAD / 2 * frame.focal_px[0]))), max(1, int(round(CELL_RAD * frame.focal_px[1]))))
-    nearest = _nearest_in_front(cols, lines, depth, cell_px, (w, h))
+    fx, fy = frame.pinhole.focal_length_px
+    cell_px = (max(1, int(round(CELL_RAD / 2 * fx))), max(1, int(round(CELL_RAD * fy))))
+    nearest = nearest_in_front(cols, lines, depth, cell_px, (w, h))
     seen = depth <= nearest * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
     seen[seen] = ~_behind_solids(frame, xyz_world_m[rows[seen]], cols[seen], lines[seen])
     return rows[seen], cols[seen], lines[seen]
@@ -228,7 +191,7 @@ def point_colours(
         nearest = (
             after - 1 if len(times) == 1 else np.where(t_us - times[after - 1] <= times[after] - t_us, after - 1, after)
         )
-        near = _in_view(own[len(own) // 2], xyz_world_m, VIEW_MARGIN)  # once per camera: the frames are close
+        near, _ = _in_view(own[len(own) // 2], xyz_world_m, VIEW_MARGIN)  # once per camera: the frames are close
         for k, frame in enumerate(own):
             rows, cols, lines = _visible_pixels(frame, xyz_world_m[near])
             rows = near[rows]

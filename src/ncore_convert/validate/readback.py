@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE, WORLD_GLOBAL, ScenarioManifest
+from ncore_convert.transforms.boxes import CORNER_SIGNS
 from ncore_convert.transforms.sampling import spread_indices
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
@@ -153,8 +154,7 @@ def box_point_counts(loader: SequenceLoaderV4, boxes: list, xyz_world_m: np.ndar
 
 def box_corners_world(loader: SequenceLoaderV4, box) -> np.ndarray:
     """The 8 corners of a cuboid observation in ``world``, float64 [8,3]."""
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-    xyz_box = signs * np.asarray(box.bbox3.dim) / 2
+    xyz_box = CORNER_SIGNS * np.asarray(box.bbox3.dim) / 2
     R_box_ref = Rotation.from_euler("xyz", box.bbox3.rot).as_matrix()
     xyz_ref = xyz_box @ R_box_ref.T + np.asarray(box.bbox3.centroid)
     T_ref_world = _T_reference_world(loader, box)

@@ -12,7 +12,7 @@ from functools import lru_cache
 import numpy as np
 import PIL.Image
 
-from ncore_convert.converters.argoverse2.masks import reduction
+from ncore_convert.converters.argoverse2.masks import reduced_size, reduction
 from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.geometry import invert_se3
@@ -45,19 +45,11 @@ class SweepColours:
         self._plan = plan
         self._cameras = {}
         for cam in plan.camera_ids:
-            intr = plan.inputs.intrinsics[cam]
-            k = reduction(intr)
-            size = (-(-intr.width_px // k), -(-intr.height_px // k))  # JPEG DCT scaling rounds up
-            sx, sy = size[0] / intr.width_px, size[1] / intr.height_px
-            mask = plan.ego_masks[cam].image(intr.width_px, intr.height_px) if plan.ego_masks else None
-            usable = None if mask is None else ~(np.asarray(mask.resize(size, PIL.Image.NEAREST)) > 0)
-            self._cameras[cam] = (
-                k,
-                size,
-                (intr.fx_px * sx, intr.fy_px * sy),
-                ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy),
-                usable,
-            )
+            full = plan.cameras[cam].pinhole
+            pinhole = full.scaled(*reduced_size(full))
+            mask = plan.ego_masks[cam].image(*full.resolution_px) if plan.ego_masks else None
+            usable = None if mask is None else ~(np.asarray(mask.resize(pinhole.resolution_px, PIL.Image.NEAREST)) > 0)
+            self._cameras[cam] = (reduction(full), pinhole, usable)
         self._decode = lru_cache(maxsize=4 * max(1, len(self._cameras)))(self._read)
 
     def _read(self, cam: str, timestamp_ns: int) -> np.ndarray:
@@ -67,7 +59,7 @@ class SweepColours:
         """Every camera frame from ``t_lo_us - FRAME_MARGIN_US`` to ``t_hi_us + FRAME_MARGIN_US``."""
         out = []
         traj = self._plan.T_rig_world
-        for cam, (_, size, focal, centre, usable) in self._cameras.items():
+        for cam, (_, pinhole, usable) in self._cameras.items():
             stamps_ns = self._plan.inputs.image_timestamps_ns[cam]
             lo = np.searchsorted(stamps_ns, (t_lo_us - FRAME_MARGIN_US) * NS_PER_US)
             hi = np.searchsorted(stamps_ns, (t_hi_us + FRAME_MARGIN_US) * NS_PER_US, side="right")
@@ -83,9 +75,7 @@ class SweepColours:
                         cam,
                         ts // NS_PER_US,
                         invert_se3(T),
-                        focal,
-                        centre,
-                        size,
+                        pinhole,
                         lambda cam=cam, ts=ts: self._decode(cam, ts),
                         usable,
                         solids,

@@ -22,6 +22,7 @@ from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.masks import read_mask_folder
 from ncore_convert.transforms import ego_mask
+from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.sampling import spread_indices
 
 #: Images decoded per camera that must see the body, spread evenly over the log (or clip window):
@@ -65,33 +66,38 @@ _RULE = (
 )
 
 
-def reduction(intr: av2.CameraIntrinsics) -> int:
+def reduction(pinhole: Pinhole) -> int:
     """The power-of-two decode reduction of a camera (2048 px -> 4, TbV's 1024 px -> 2)."""
-    return 2 ** max(0, int(math.log2(max(intr.width_px, intr.height_px) / REDUCED_SIDE_PX)))
+    return 2 ** max(0, int(math.log2(max(pinhole.resolution_px) / REDUCED_SIDE_PX)))
+
+
+def reduced_size(pinhole: Pinhole) -> tuple[int, int]:
+    """(width, height) of the camera's images decoded at :func:`reduction` (JPEG DCT scaling rounds up)."""
+    k = reduction(pinhole)
+    return -(-pinhole.resolution_px[0] // k), -(-pinhole.resolution_px[1] // k)
 
 
 def _prior(
-    shape: tuple[int, int], intr: av2.CameraIntrinsics, T_camera_ego: np.ndarray, box: ego_mask.EgoBox
+    shape: tuple[int, int], pinhole: Pinhole, T_camera_ego: np.ndarray, box: ego_mask.EgoBox
 ) -> ego_mask.BodyPrior:
     """The camera's body prior at a reduced size (h, w) of its images."""
-    sx, sy = shape[1] / intr.width_px, shape[0] / intr.height_px
-    centre_px = ((intr.cx_px + 0.5) * sx, (intr.cy_px + 0.5) * sy)
-    return ego_mask.body_prior(shape, (intr.fx_px * sx, intr.fy_px * sy), centre_px, T_camera_ego, box)
+    return ego_mask.body_prior(pinhole.scaled(shape[1], shape[0]), T_camera_ego, box)
 
 
 def _estimate(
     log_dir: UPath,
     camera: str,
     stamps_ns: np.ndarray,
-    intr: av2.CameraIntrinsics,
+    pinhole: Pinhole,
     T_camera_ego: np.ndarray,
     box: ego_mask.EgoBox,
     require_agreement: bool = True,
 ) -> EgoMask:
     """One camera's estimate; ``require_agreement``: as in ``ego_mask.estimate`` (False only to
     measure the agreement test)."""
-    scale = reduction(intr)
-    prior = _prior((-(-intr.height_px // scale), -(-intr.width_px // scale)), intr, T_camera_ego, box)
+    scale = reduction(pinhole)
+    width, height = reduced_size(pinhole)
+    prior = _prior((height, width), pinhole, T_camera_ego, box)
     if not prior.must_see:  # by the calibration, no body along the bottom border: nothing to estimate
         return EgoMask(
             {
@@ -118,7 +124,7 @@ def _estimate(
     frames = decoded(picks)
     h, w = frames.shape[1:]
     if (h, w) != prior.reach.shape:
-        prior = _prior((h, w), intr, T_camera_ego, box)
+        prior = _prior((h, w), pinhole, T_camera_ego, box)
     seen = ego_mask.views(frames, prior)
     if len(seen.distinct) < len(picks) < len(stamps_ns):
         # The car stopped (repeated views carry no evidence): look between the samples too, once,
@@ -169,7 +175,7 @@ def _agreement(camera: str, meta: dict) -> str:
 def plan_ego_masks(
     log_dir: UPath,
     option: str,
-    cameras: dict[str, tuple[np.ndarray, av2.CameraIntrinsics, np.ndarray]],
+    cameras: dict[str, tuple[np.ndarray, Pinhole, np.ndarray]],
     warnings: list[str],
     box: ego_mask.EgoBox,
     run_jobs: Callable[[list[Job]], list] | None = None,
@@ -177,7 +183,7 @@ def plan_ego_masks(
     """Every camera's ego mask under ``--ego-masks`` ``option`` (``estimate``, ``none`` or a folder).
 
     Args:
-        cameras: camera id -> (its image timestamps in ns [N], intrinsics, T_camera_ego [4,4]).
+        cameras: camera id -> (its image timestamps in ns [N], its pinhole, T_camera_ego [4,4]).
         warnings: fallbacks are reported here, one line per kind of fallback; a camera that must
             see the body (``ego_mask.BodyPrior.must_see``) but gets no mask is always one.
         box: the nominal ego vehicle of the prior.
@@ -188,7 +194,7 @@ def plan_ego_masks(
     if option == "none":
         return {cam: EgoMask({"method": "none"}) for cam in cameras}
     if option != "estimate":
-        sizes = {cam: (intr.width_px, intr.height_px) for cam, (_, intr, _) in cameras.items()}
+        sizes = {cam: pinhole.resolution_px for cam, (_, pinhole, _) in cameras.items()}
         user = read_mask_folder(UPath(option), sizes)
         return {
             cam: EgoMask({"method": "user", "file": f"{cam}.png"}, user_png=user[cam])

@@ -280,7 +280,8 @@ def plan_log(
         camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings, " in the clip window")
 
     camera_inputs = {
-        cam: (inputs.image_timestamps_ns[cam], inputs.intrinsics[cam], inputs.T_sensor_ego[cam]) for cam in camera_ids
+        cam: (inputs.image_timestamps_ns[cam], camera_pinhole(inputs.intrinsics[cam]), inputs.T_sensor_ego[cam])
+        for cam in camera_ids
     }
     mask_warnings: list[str] = []
     # The ego-mask estimates need only the cameras: they run (on run_jobs) while the rest is planned
@@ -343,7 +344,9 @@ def _plan_rest(
     cuboid_labels, dynamic_boxes, solids = _cuboid_labels(inputs, options, T_rig_world, bool(lidar_ids))
     if cuboid_labels is not None:
         warnings.extend(cuboid_labels.warnings)
-    cameras = {cam: consumer.camera_spec(_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids}
+    cameras = {
+        cam: consumer.camera_spec(camera_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids
+    }
     return LogPlan(
         inputs=inputs,
         options=options,
@@ -378,7 +381,7 @@ def _with_frames(
     return [cam for cam in camera_ids if cam not in empty], lidar_ids
 
 
-def _pinhole(intr: av2.CameraIntrinsics) -> Pinhole:
+def camera_pinhole(intr: av2.CameraIntrinsics) -> Pinhole:
     """An AV2 camera as an NCore pinhole: the principal point moves to the pixel-corner convention."""
     return Pinhole((intr.fx_px, intr.fy_px), (intr.cx_px + 0.5, intr.cy_px + 0.5), (intr.width_px, intr.height_px))
 

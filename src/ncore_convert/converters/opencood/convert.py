@@ -187,16 +187,13 @@ def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t
             data = src.read_png(agent.agent_dir, key, agent.camera_index[cam])
         except SourceError:
             continue
-        pinhole = agent.cameras[cam].pinhole
         T_camera_world_global = agent.T_rig_world_global[frame] @ agent.T_sensor_rig[cam]
         out.append(
             ColourFrame(
                 cam,
                 t_us,
                 invert_se3(T_camera_world_global),
-                pinhole.focal_length_px,
-                pinhole.principal_point_px,
-                pinhole.resolution_px,
+                agent.cameras[cam].pinhole,
                 lambda data=data: src.decode_png_rgb(data),
                 solids=solids,
             )
