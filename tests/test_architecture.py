@@ -173,6 +173,45 @@ def av2_transform_names(trees: dict[str, ast.Module]) -> dict[str, set[str]]:
     return out
 
 
+def _is_z(node: ast.expr) -> bool:
+    """``xyz[:, 2]``, ``points[..., 2]`` or a name like ``z`` / ``depth``: a point's depth."""
+    if isinstance(node, ast.Subscript):
+        last = node.slice.elts[-1] if isinstance(node.slice, ast.Tuple) else node.slice
+        return isinstance(last, ast.Constant) and last.value == 2
+    return isinstance(node, ast.Name) and node.id in ("z", "depth", "z_m", "depth_m")
+
+
+def _is_abs_within(node: ast.expr) -> bool:
+    """``np.abs(local) <= half``: a point-in-box (or cube) comparison."""
+    return (
+        isinstance(node, ast.Compare)
+        and isinstance(node.left, ast.Call)
+        and isinstance(node.left.func, ast.Attribute)
+        and node.left.func.attr == "abs"
+        and any(isinstance(op, ast.LtE) for op in node.ops)
+    )
+
+
+def own_geometry(trees: dict[str, ast.Module], owners: tuple[str, ...]) -> dict[str, set[str]]:
+    """Modules under ``owners`` that compute a camera projection of their own (a product divided by a
+    point's depth: ``fx * x / z``) or a box test (``np.all(np.abs(local) <= half, ...)`` or
+    ``(np.abs(...) <= ...).all(...)``), with the line of each; the kernel in ``transforms/`` is
+    where those live."""
+    out: dict[str, set[str]] = {}
+    for name, tree in trees.items():
+        if not under(name, *owners):
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div):
+                if isinstance(node.left, ast.BinOp) and isinstance(node.left.op, ast.Mult) and _is_z(node.right):
+                    out.setdefault(name, set()).add(f"projection at line {node.lineno}")
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "all":
+                tested = node.args[:1] if node.args else [node.func.value]
+                if any(_is_abs_within(arg) for arg in tested):
+                    out.setdefault(name, set()).add(f"box test at line {node.lineno}")
+    return out
+
+
 @pytest.fixture(scope="module")
 def project():
     return import_graph(PACKAGE)
@@ -210,6 +249,15 @@ def test_the_conversion_never_imports_torch(project):
     assert torch_importers(trees) == {"ncore_convert.preview", "ncore_convert.views.opencood_torch"}
 
 
+def test_projection_and_box_tests_live_in_the_kernel(project):
+    """The converters plan and hand over, and the validators and synthetic renderers use the same
+    geometry: every projection and box test is the kernel's (``transforms/``: ``Pinhole.project``,
+    ``boxes.SortedByX`` / ``boxes.in_box``, the depth buffer)."""
+    _, trees = project
+    found = own_geometry(trees, ("ncore_convert",))
+    assert {module for module in found if not under(module, "ncore_convert.transforms")} == set()
+
+
 def test_the_checks_find_known_violations(tmp_path):
     """Negative control: a package with a function-level cycle, a TYPE_CHECKING cycle, an upward
     import, a view importing a converter and a converter a view, a stray writer use, a stray loader
@@ -233,6 +281,10 @@ def test_the_checks_find_known_violations(tmp_path):
         "views/__init__.py": "",
         "views/look.py": "from ncore_convert.validate import check\nfrom ncore_convert.converters import b\n",
         "converters/c.py": "def g():\n    from ncore_convert.views import look\n    import torch.nn\n",
+        "converters/d.py": (
+            "u = fx * xyz[:, 0] / xyz[:, 2] + cx\ninside = np.all(np.abs(local) <= half, axis=1)\n"
+            "near = (np.abs(p - c) <= r).all(axis=1)\nt = (g - o[:, 2]) / d[:, 2]\n"
+        ),
     }
     for rel, text in files.items():
         (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -252,3 +304,6 @@ def test_the_checks_find_known_violations(tmp_path):
     assert loader_constructors(trees) == {"ncore_convert.validate.check"}
     assert av2_transform_names(trees) == {"ncore_convert.transforms.geo": {"city_SE3_ego"}}
     assert torch_importers(trees) == {"ncore_convert.converters.c"}
+    assert own_geometry(trees, ("ncore_convert.converters",)) == {
+        "ncore_convert.converters.d": {"projection at line 1", "box test at line 2", "box test at line 3"}
+    }

@@ -39,6 +39,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ncore_convert.transforms.boxes import SortedByX, in_box
 from ncore_convert.transforms.geometry import sorted_run_starts
 from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, ALWAYS_STATIC
 
@@ -317,27 +318,22 @@ def dynamic_flags(xyz_m: np.ndarray, timestamps_us: np.ndarray, boxes: DynamicBo
     t_us = np.asarray(timestamps_us, dtype=np.int64)
     t_lo, t_hi = int(t_us.min()), int(t_us.max())
     hold_us = round(HOLD_S * 1e6)
-    by_x = np.argsort(xyz_m[:, 0])  # the cull below takes each track's x range by bisection
-    x_sorted, y_m = xyz_m[by_x, 0], np.ascontiguousarray(xyz_m[:, 1])
+    points = SortedByX(xyz_m)
     for k in range(len(boxes)):
         a, b = int(boxes.bounds[k]), int(boxes.bounds[k + 1])
         times = boxes.timestamps_us[a:b]
         if times[-1] + hold_us < t_lo or times[0] - hold_us > t_hi:
             continue
-        # cull: only points near the track's centre during the frame can be inside (a square in x, y)
+        # cull: only points near the track's centre during the frame can be inside
         mid = _centres_at(times, boxes.centers_m[a:b], np.array([(t_lo + t_hi) // 2]))[0][0]
-        reach = boxes.reach_m[k] + boxes.speed_mps[k] * (t_hi - t_lo) * 1e-6 + 1e-3
-        near = by_x[np.searchsorted(x_sorted, mid[0] - reach) : np.searchsorted(x_sorted, mid[0] + reach, "right")]
-        near = near[np.abs(y_m[near] - mid[1]) <= reach]
+        near = points.near(mid, boxes.reach_m[k] + boxes.speed_mps[k] * (t_hi - t_lo) * 1e-6 + 1e-3)
         if not len(near):
             continue
         t_near = t_us[near]
         alive = (t_near >= times[0] - hold_us) & (t_near <= times[-1] + hold_us)
         near, t_near = near[alive], t_near[alive]
         centres, nearest = _centres_at(times, boxes.centers_m[a:b], t_near)
-        R = boxes.R_box_frame[a:b][nearest]
-        local = np.einsum("nji,nj->ni", R, xyz_m[near] - centres)
-        inside = np.all(np.abs(local) <= boxes.half_extent_m[a:b][nearest], axis=1)
+        inside = in_box(xyz_m[near], centres, boxes.R_box_frame[a:b][nearest], boxes.half_extent_m[a:b][nearest])
         flags[near[inside]] = 1
     return flags
 

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE, WORLD_GLOBAL, ScenarioManifest
-from ncore_convert.transforms.boxes import CORNER_SIGNS
+from ncore_convert.transforms.boxes import CORNER_SIGNS, SortedByX
 from ncore_convert.transforms.sampling import spread_indices
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
@@ -137,16 +137,13 @@ def box_point_counts(loader: SequenceLoaderV4, boxes: list, xyz_world_m: np.ndar
     for members in groups.values():
         T_ref_world = _T_reference_world(loader, boxes[members[0]])
         xyz_ref = ((xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3]).astype(np.float32)
-        by_x = np.argsort(xyz_ref[:, 0], kind="stable")
-        x_sorted = xyz_ref[by_x, 0]
+        points = SortedByX(xyz_ref)
         for k in members:
             box = boxes[k]
             centre_ref = np.asarray(box.bbox3.centroid, dtype=np.float64)
             centres[k] = T_ref_world[:3, :3] @ centre_ref + T_ref_world[:3, 3]
             radius_m = 0.5 * float(np.linalg.norm(box.bbox3.dim)) + BOUND_MARGIN_M
-            lo, hi = np.searchsorted(x_sorted, [centre_ref[0] - radius_m, centre_ref[0] + radius_m])
-            candidates = xyz_ref[by_x[lo:hi]]
-            candidates = candidates[(np.abs(candidates - centre_ref) <= radius_m).all(axis=1)]
+            candidates = xyz_ref[points.near(centre_ref, radius_m)]
             bbox = np.array([[*box.bbox3.centroid, *box.bbox3.dim, *box.bbox3.rot]], dtype=np.float32)
             counts[k] = int(is_within_3d_bboxes(candidates, bbox).sum())
     return counts, centres
