@@ -46,60 +46,63 @@ def off_flag(*decls: str, help: str):
     return click.option(*decls, is_flag=True, default=False, show_default="off", help=help)
 
 
-def _preset_default(name: str) -> str:
-    """What --help shows as the default of an option a preset may set."""
-    value = PRESET_DEFAULTS[name]
-    shown = ("on" if value else "off") if isinstance(value, bool) else value
-    return f"{shown}, or the preset's"
+def choice(flag: str, literal, default: str | None, help: str, **settings) -> Callable:
+    """An option choosing one of the values of the ``Literal`` type ``literal``."""
+    return click.option(flag, type=click.Choice(get_args(literal)), default=default, help=help, **settings)
+
+
+def preset_option(flag: str, help: str, literal=None) -> Callable:
+    """An option a preset may set (``PRESET_DEFAULTS``): None unless given, so that the preset decides
+    (``ConsumerOptions``); a ``literal`` choice, or an on/off flag without one."""
+    value = PRESET_DEFAULTS[flag.split("/")[0].removeprefix("--").replace("-", "_")]
+    shown = f"{('on' if value else 'off') if isinstance(value, bool) else value}, or the preset's"
+    if literal is None:
+        return click.option(flag, default=None, show_default=shown, help=help)
+    return choice(flag, literal, None, help, show_default=shown)
 
 
 store_options = options(
-    click.option("--store-type", type=click.Choice(get_args(StoreType)), default="itar", help="Zarr store container."),
-    click.option(
+    choice("--store-type", StoreType, "itar", "Zarr store container."),
+    choice(
         "--profile",
-        type=click.Choice(get_args(Profile)),
-        default="separate-sensors",
-        help="Component group layout: one store, one store per sensor, or also separate"
-        " poses/intrinsics/masks/cuboids.",
+        Profile,
+        "separate-sensors",
+        "Component group layout: one store, one store per sensor, or also separate poses/intrinsics/masks/cuboids.",
     ),
     click.option("--sequence-meta/--no-sequence-meta", default=True, help="Write <sequence_id>.json (sequence meta)."),
 )
 
 #: Options every dataset command shares that shape the output for its consumers (docs/consumers.md).
 consumer_options = options(
-    click.option(
+    choice(
         "--preset",
-        type=click.Choice(get_args(Preset)),
-        default="ncore",
-        help="Set the options below as this consumer needs them (explicit flags still win): 3dgut, 3dgrt"
+        Preset,
+        "ncore",
+        "Set the options below as this consumer needs them (explicit flags still win): 3dgut, 3dgrt"
         " and nurec: an OpenCV pinhole and world_global at the identity; instant-nurec: f-theta cameras"
         " and AUTOLABEL cuboids; ncore: the defaults, as NCore's own converter writes. The run report"
         " and the converter metadata record the preset and what it resolved to.",
     ),
-    click.option(
+    preset_option(
         "--camera-model",
-        type=click.Choice(get_args(CameraModel)),
-        default=None,
-        show_default=_preset_default("camera_model"),
-        help="How cameras are stored: NCore's ideal pinhole; an OpenCV pinhole with zero distortion"
+        "How cameras are stored: NCore's ideal pinhole; an OpenCV pinhole with zero distortion"
         " (the same rays; 3DGUT reads it); or an f-theta model fitted to the pinhole over the whole"
         " image (instant-nurec), its worst error in the camera's metadata.",
+        CameraModel,
     ),
-    click.option(
+    choice(
         "--class-names",
-        type=click.Choice(get_args(ClassNames)),
-        default="ncore",
-        help="Cuboid class names: NCore's lowercase names (e.g. REGULAR_VEHICLE -> car), the source"
+        ClassNames,
+        "ncore",
+        "Cuboid class names: NCore's lowercase names (e.g. REGULAR_VEHICLE -> car), the source"
         " name of every track kept in the cuboids' metadata; or the dataset's own names.",
     ),
-    click.option(
+    preset_option(
         "--cuboid-label-source",
-        type=click.Choice(get_args(CuboidLabelSource)),
-        default=None,
-        show_default=_preset_default("cuboid_label_source"),
-        help="LabelSource of the cuboids: 'auto' is the dataset's honest one (AV2 EXTERNAL, OPV2V"
+        "LabelSource of the cuboids: 'auto' is the dataset's honest one (AV2 EXTERNAL, OPV2V"
         " GT_SYNTHETIC); 'autolabel' is a compatibility setting for instant-nurec, not a provenance"
         " claim.",
+        CuboidLabelSource,
     ),
     click.option(
         "--seek-sec",
@@ -115,30 +118,26 @@ consumer_options = options(
         show_default="none: to the end",
         help="Keep this many seconds from the seek point; lidar frames are kept whole or dropped.",
     ),
-    click.option(
+    preset_option(
         "--lidar-rgb/--no-lidar-rgb",
-        default=None,
-        show_default=_preset_default("lidar_rgb"),
-        help="Colour every lidar point from the camera frame nearest its time (occlusion-tested, never"
+        "Colour every lidar point from the camera frame nearest its time (occlusion-tested, never"
         " from ego pixels): per-point generic data 'rgb', uint8 [N,3], which 3DGRUT seeds its colours"
         " from. AV2, TbV, OPV2V, V2XSet.",
     ),
-    click.option(
+    preset_option(
         "--world-global-mode",
-        type=click.Choice(get_args(WorldGlobalMode)),
-        default=None,
-        show_default=_preset_default("world_global_mode"),
-        help="What world -> world_global holds: the dataset's global frame ('localized'), the identity"
+        "What world -> world_global holds: the dataset's global frame ('localized'), the identity"
         " (scene at the origin for 3DGRUT), or no world_global node ('none'); the global pose is kept"
         " in the sequence metadata either way.",
+        WorldGlobalMode,
     ),
 )
 
-lidar_model_source_option = click.option(
+lidar_model_source_option = choice(
     "--lidar-model-source",
-    type=click.Choice(get_args(LidarModelSource)),
-    default="empirical",
-    help="'empirical': each lidar's structured model (AV2/TbV: a VLP-32C row-offset model derived per unit"
+    LidarModelSource,
+    "empirical",
+    "'empirical': each lidar's structured model (AV2/TbV: a VLP-32C row-offset model derived per unit"
     " and log; OPV2V/V2XSet: CARLA's from data_protocol.yaml, checked against the data) and each ray's"
     " model element; 'none': raw per-point-time ray bundles only.",
 )
@@ -313,11 +312,11 @@ def opencood_options(dataset: str) -> Callable:
             show_default="every scenario of the split",
             help="Convert only this scenario (repeatable).",
         ),
-        click.option(
+        choice(
             "--layout",
-            type=click.Choice(get_args(Layout)),
-            default="agents",
-            help="'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
+            Layout,
+            "agents",
+            "'agents': one sequence per agent (rig = that agent) in <scenario>/<agent_id>/;"
             " 'scenario': one sequence with every agent (frames and sensors prefixed agent<id>_).",
         ),
         lidar_model_source_option,

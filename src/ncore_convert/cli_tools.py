@@ -14,6 +14,11 @@ from ncore_convert.contract import MANIFEST
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
 
 
+def out_option(help: str) -> Callable:
+    """The folder a tool command writes into (``--out``, required)."""
+    return click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help=help)
+
+
 @click.command("validate")
 @click.argument("path", type=click.Path(exists=True))
 @click.option(
@@ -66,7 +71,7 @@ def validate_command(path, source_root, json_file, details):
 
 @click.command("preview")
 @click.argument("path", type=click.Path(exists=True, dir_okay=False))
-@click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help="Folder for the PNGs.")
+@out_option("Folder for the PNGs.")
 @click.option(
     "--frame",
     type=click.IntRange(min=0),
@@ -97,13 +102,7 @@ def preview_command(path, out_dir, frame):
 
 @click.command("export-opencood")
 @click.argument("scenario", type=click.Path(exists=True, dir_okay=False))
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False),
-    required=True,
-    help="Folder to write <scenario>/ into (OpenCOOD's layout).",
-)
+@out_option("Folder to write <scenario>/ into (OpenCOOD's layout).")
 @click.option(
     "--poses",
     default=None,
@@ -169,7 +168,7 @@ def synth():
 def synth_log_options(out_help: str, max_seconds: float | None) -> Callable:
     """The options of ``synth argoverse2`` and ``synth tbv`` (the log and its camera pictures)."""
     return options(
-        click.option("--out", "out_dir", type=click.Path(file_okay=False), required=True, help=out_help),
+        out_option(out_help),
         click.option(
             "--seconds",
             type=click.FloatRange(min=0.1, max=max_seconds),
@@ -256,13 +255,7 @@ def synth_tbv(**config):
 
 def _synth_opencood(dataset: str):
     @synth.command(dataset, help=f"Synthetic {dataset.upper()} scenarios, written as OpenCDA writes them, with truth.")
-    @click.option(
-        "--out",
-        "out_dir",
-        type=click.Path(file_okay=False),
-        required=True,
-        help="Dataset root: writes <out>/<split>/<scenario>/<agent_id>/...",
-    )
+    @out_option("Dataset root: writes <out>/<split>/<scenario>/<agent_id>/...")
     @click.option("--split", type=click.Choice(OPENCOOD_SPLITS[dataset]), default="test", help="Split folder.")
     @click.option("--scenarios", type=click.IntRange(min=1), default=1, help="Number of scenarios.")
     @click.option(
