@@ -109,11 +109,14 @@ def speed_rule_ids(observations, classes: list[str]) -> set[str]:
 def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
     """Per log, the track decision (this rule with its static poses, and the speed rule before it);
     per sweep, reading and ray bundles beside dynamic_flag with either rule's dynamic tracks."""
-    from ncore_convert.converters.argoverse2.convert import sweep_dynamic_flags
-    from ncore_convert.converters.argoverse2.lidar import read_covered_sweep, sweep_ray_bundles
+    from ncore_convert.converters.argoverse2.convert import sweep_world_points
+    from ncore_convert.converters.argoverse2.lidar import sweep_ray_bundles, sweep_times_ns
     from ncore_convert.converters.argoverse2.plan import Argoverse2Options, plan_log
+    from ncore_convert.sources import argoverse2 as av2
     from ncore_convert.transforms import dynamic
+    from ncore_convert.transforms.dynamic import dynamic_flags
     from ncore_convert.transforms.labels import AV2_TO_NCORE
+    from ncore_convert.transforms.timebase import floor_us
 
     plan = plan_log(UPath(root), log_id, Argoverse2Options(split="val", camera_ids=()))
     traj, annotations = plan.T_rig_world, plan.inputs.annotations
@@ -145,13 +148,14 @@ def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
     for _ in range(repeat):
         for sweep_ns in sweeps:
             started = time.perf_counter()
-            sweep = read_covered_sweep(plan.inputs.log_dir, int(sweep_ns), traj, True)
-            units = sweep_ray_bundles(sweep, plan.lidar_calibration, traj, T_sensor_rig)
+            sweep = av2.read_sweep(plan.inputs.log_dir, int(sweep_ns), True)
+            times_ns = sweep_times_ns(sweep, plan.lidar_calibration, traj, T_sensor_rig)
+            units = sweep_ray_bundles(sweep, times_ns, plan.lidar_calibration, traj, T_sensor_rig)
             rays_s.append(time.perf_counter() - started)
             points.append(len(sweep.xyz_ego_m))
             for rule in ("after", "before"):  # interleaved
                 started = time.perf_counter()
-                flags = sweep_dynamic_flags(sweep, traj, boxes[rule])
+                flags = dynamic_flags(sweep_world_points(sweep, traj), floor_us(times_ns), boxes[rule])
                 _per_unit = [flags[unit_rays.sweep_rows] for unit_rays in units.values()]
                 flag_s[rule].append(time.perf_counter() - started)
     rays_ms = statistics.median(rays_s) * 1e3

@@ -10,10 +10,11 @@ import pyarrow as pa
 import pyarrow.feather as feather
 import pytest
 from click.testing import CliRunner
-from conftest import AV2_SAMPLE_LOG, find_av2_sample, open_sequence
-from ncore.data.v4 import LidarSensorComponent
+from conftest import AV2_SAMPLE_LOG, component_meta, find_av2_sample, open_sequence
+from ncore.data.v4 import CuboidsComponent, LidarSensorComponent
 from upath import UPath
 
+from ncore_convert import contract
 from ncore_convert.cli import cli
 from ncore_convert.sources import argoverse2 as av2
 
@@ -175,3 +176,34 @@ def test_tbv_conversions_validate_against_their_source(real_tbv, synth_tbv, tmp_
     names = {c.name for c in report.checks}
     assert "source: lidar points" in names and "source: cuboids" in names  # TbV: no annotations, so 0 cuboids
     assert {f"source: {cam} images" for cam in loader.camera_ids} <= names
+
+
+def test_a_tbv_log_with_annotations_converts_them_at_the_reconstructed_times(tmp_path):
+    """TbV has no annotations.feather; a log folder that holds one (a user's own labels) converts, and
+    the command validates it (cuboids hold points, source counts): its cuboids are stored and each
+    point's dynamic_flag is taken at its reconstructed firing time (computed once per sweep; this
+    failed on the missing offset_ns before). Points on the tracks the converter calls dynamic are
+    flagged, points on the others and on the ground are not (but within a dynamic box's margin)."""
+    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+    config = SynthConfig(seconds=1.0, seed=6, camera_fps=0, keep_truth=True, tbv=True, tbv_annotations=True)
+    truth = write_log(UPath(tmp_path / "root"), config)
+    out = tmp_path / "out"
+    args = ["--no-progress", "--root-dir", str(tmp_path / "root"), "--output-dir", str(out), "tbv-v4"]
+    result = CliRunner().invoke(cli, args, catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    loader = open_sequence(out / truth.log_id, truth.log_id)
+    assert truth.n_cuboids > 0 and len(list(loader.get_cuboid_track_observations())) == truth.n_cuboids
+    dynamic = set(component_meta(loader, CuboidsComponent, "default")[contract.DYNAMIC_TRACKS])
+    on_dynamic = np.array([b.track_uuid in dynamic for b in truth.scene.boxes])
+    hits = flagged = other_flagged = others = 0
+    for unit_index, unit in enumerate(av2.LIDARS):
+        source = loader.get_point_clouds_source(unit)
+        for i, sweep in enumerate(truth.sweeps):
+            flag = source.get_pc_generic_data(i, "dynamic_flag").astype(bool)
+            index = sweep.box_index[sweep.unit == unit_index]
+            hit = (index >= 0) & on_dynamic[np.maximum(index, 0)]
+            hits, flagged = hits + hit.sum(), flagged + (hit & flag).sum()
+            others, other_flagged = others + (~hit).sum(), other_flagged + (~hit & flag).sum()
+    assert hits > 500 and flagged / hits >= 0.99, (flagged, hits)
+    assert other_flagged / others <= 0.01, (other_flagged, others)

@@ -77,6 +77,8 @@ class SynthConfig:
     camera_fps: float = 20.0
     keep_truth: bool = False
     tbv: bool = False  #: write a TbV log (see the module docstring)
+    #: a TbV log with an annotations.feather all the same (TbV has none): the converter's handling of one
+    tbv_annotations: bool = False
     #: the first part of the log (a fraction, 0..1) in which the cameras' world stands still (the
     #: car parked): every image there is the same picture but for the body's lighting
     parked_fraction: float = 0.0
@@ -449,9 +451,9 @@ def _write_sweeps(truth: SynthTruth, sweep_ns: np.ndarray, config: SynthConfig) 
             sweep.distance_m, sweep.time_ns = hits["distance_m"], hits["time_ns"]
             sweep.box_index = hits["box_index"]
         truth.sweeps.append(sweep)
-        if not config.tbv:
+        if not config.tbv or config.tbv_annotations:
             _annotate(truth, ts, xyz_ego.astype(np.float64), T_city_ego_ref, annotation_rows)
-    if config.tbv:  # TbV has no annotations
+    if config.tbv and not config.tbv_annotations:  # TbV has no annotations
         return
     truth.n_cuboids = len(annotation_rows["timestamp_ns"])
     write_feather_table(truth.log_dir / "annotations.feather", av2.ANNOTATIONS_SCHEMA, annotation_rows)

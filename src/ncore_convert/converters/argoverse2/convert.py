@@ -17,13 +17,13 @@ from upath import UPath
 from ncore_convert import contract
 from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.colours import SweepColours, rgb_note
-from ncore_convert.converters.argoverse2.lidar import lidar_meta, read_covered_sweep, sweep_ray_bundles
+from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_ray_bundles, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Tally
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms.dynamic import DynamicBoxes, dynamic_flags
+from ncore_convert.transforms.dynamic import dynamic_flags
 from ncore_convert.transforms.geometry import Trajectory, euler_xyz_from_rotation, transform_points
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import (
@@ -188,12 +188,13 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     source_points = {unit: 0 for unit in lidars}
     coloured_points = {unit: 0 for unit in lidars}
     for sweep_ns in plan.sweep_timestamps_ns:
-        sweep = read_covered_sweep(log_dir, int(sweep_ns), plan.T_rig_world, not plan.options.tbv)
+        sweep = av2.read_sweep(log_dir, int(sweep_ns), not plan.options.tbv)
+        times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
         xyz_world = sweep_world_points(sweep, plan.T_rig_world)
         flag_started = time.perf_counter()
-        sweep_flags = None if boxes is None else dynamic_flags(xyz_world, _point_times_us(sweep), boxes)
+        sweep_flags = None if boxes is None else dynamic_flags(xyz_world, floor_us(times_ns), boxes)
         result.dynamic_flag_seconds += time.perf_counter() - flag_started
-        units = sweep_ray_bundles(sweep, calibration, plan.T_rig_world, T_sensor_rig)
+        units = sweep_ray_bundles(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
         colour_started = time.perf_counter()
         unit_rgb = None if colours is None else _unit_colours(colours, units, xyz_world, sweep_flags)
         result.colour_seconds += time.perf_counter() - colour_started
@@ -233,16 +234,6 @@ def sweep_world_points(sweep: av2.Sweep, T_rig_world: Trajectory) -> np.ndarray:
     to the sweep time, so the sweep's pose places each where it was at its own time."""
     T_sweep_world = T_rig_world.interpolate(T_rig_world.relative_seconds(np.array([sweep.timestamp_ns])))[0]
     return transform_points(T_sweep_world, sweep.xyz_ego_m.astype(np.float64))
-
-
-def _point_times_us(sweep: av2.Sweep) -> np.ndarray:
-    """Each row's own time (AV2's ``timestamp_ns + offset_ns``), µs, int64 [N]."""
-    return floor_us(sweep.timestamp_ns + sweep.offset_ns.astype(np.int64))
-
-
-def sweep_dynamic_flags(sweep: av2.Sweep, T_rig_world: Trajectory, boxes: DynamicBoxes) -> np.ndarray:
-    """``dynamic_flag`` of every row of an AV2 sweep (with ``offset_ns``), int8 [N]."""
-    return dynamic_flags(sweep_world_points(sweep, T_rig_world), _point_times_us(sweep), boxes)
 
 
 def _unit_colours(

@@ -69,6 +69,25 @@ def _check_covered(sweep: av2.Sweep, times_ns: np.ndarray, T_rig_world: Trajecto
         )
 
 
+def sweep_times_ns(
+    sweep: av2.Sweep, calibration: LidarCalibration, T_rig_world: Trajectory, T_sensor_rig: dict[str, np.ndarray]
+) -> np.ndarray:
+    """Every row's own firing time, ns, int64 [N], computed once per sweep for its rays, flags and
+    colours: ``timestamp_ns + offset_ns``, or (TbV: no offset_ns) reconstructed per laser_number half
+    with the rotation knots of its unit in ``T_sensor_rig`` (the rows of a unit not converted keep
+    the sweep time: they are not stored). SourceError if the log's time range does not cover them."""
+    if sweep.offset_ns is not None:
+        times_ns = sweep.timestamp_ns + sweep.offset_ns.astype(np.int64)
+        _check_covered(sweep, times_ns, T_rig_world)
+        return times_ns
+    times_ns = np.full(len(sweep.laser_number), sweep.timestamp_ns, dtype=np.int64)
+    split = calibration.unit_split
+    for unit, low in ((split.low_half_unit, True), (split.high_half_unit, False)):
+        if unit in T_sensor_rig:
+            idx, times_ns[idx] = unit_rows(sweep, low, T_rig_world, T_sensor_rig[unit], calibration.knots[unit])
+    return times_ns
+
+
 def read_covered_sweep(log_dir: UPath, timestamp_ns: int, T_rig_world: Trajectory, with_offsets: bool) -> av2.Sweep:
     """Read a sweep; with offset_ns, check that the trajectory covers all its point times
     (SourceError if not). Reconstructed times are checked when they are computed."""
@@ -214,26 +233,28 @@ class UnitRays:
 
 def sweep_ray_bundles(
     sweep: av2.Sweep,
+    times_ns: np.ndarray,
     calibration: LidarCalibration,
     T_rig_world: Trajectory,
     T_sensor_rig: dict[str, np.ndarray],
 ) -> dict[str, UnitRays]:
-    """Split one sweep by unit, decompensate each half into its unit's frame at per-point time, and
-    give each ray its nearest model element."""
+    """Split one sweep by unit, decompensate each half into its unit's frame at per-point time
+    (``times_ns``: :func:`sweep_times_ns`), and give each ray its nearest model element."""
     out = {}
     split = calibration.unit_split
     for unit, low in ((split.low_half_unit, True), (split.high_half_unit, False)):
         if unit not in T_sensor_rig:
             continue
-        idx, times_ns = unit_rows(sweep, low, T_rig_world, T_sensor_rig[unit], calibration.knots.get(unit))
-        xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T_sensor_rig[unit])
-        rays = ray_bundle(xyz, times_ns, sweep.intensity[idx], floor_us(sweep.timestamp_ns))
+        idx = np.flatnonzero((sweep.laser_number < 32) == low)
+        unit_ns = times_ns[idx]
+        xyz = decompensate(sweep.xyz_ego_m[idx], unit_ns, sweep.timestamp_ns, T_rig_world, T_sensor_rig[unit])
+        rays = ray_bundle(xyz, unit_ns, sweep.intensity[idx], floor_us(sweep.timestamp_ns))
         model = calibration.models.get(unit)
         elements, remap = None, {}
         if model is not None:
             beam = sweep.laser_number[idx[rays.source_index]].astype(np.int64) % vlp32c.N_BEAMS
             elements = model.assign_elements(rays.direction, beam)
-            time_s = (times_ns[rays.source_index] - sweep.timestamp_ns) * 1e-9
+            time_s = (unit_ns[rays.source_index] - sweep.timestamp_ns) * 1e-9
             remap = column_time_remap(
                 elements[:, 1], time_s, len(model.column_azimuths_rad), model.spinning_frequency_hz
             )
