@@ -13,20 +13,19 @@ A TbV log (``SynthConfig.tbv``) has TbV's differences: a TbV-style log id, no of
 from __future__ import annotations
 
 import io
-import json
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 import PIL.Image
 import pyarrow as pa
-import pyarrow.feather as feather
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.ego import EGO_CAMERAS, N_PICTURES, true_mask
 from ncore_convert.synth.ego import pictures as ego_pictures
+from ncore_convert.synth.feather import write_feather_table
 from ncore_convert.synth.maps import write_map
 from ncore_convert.synth.scene import Box, Scene, box_colours, cast_rays, make_scene, render
 from ncore_convert.transforms import vlp32c
@@ -150,42 +149,6 @@ class SynthTruth:
 
     def T_ego_city(self, timestamps_ns: np.ndarray) -> np.ndarray:
         return self.scene.ego.T_ego_city((np.asarray(timestamps_ns) - self.t0_ns) * 1e-9)
-
-
-def _pandas_metadata(schema: pa.Schema) -> bytes:
-    columns = [
-        {
-            "name": f.name,
-            "field_name": f.name,
-            "pandas_type": _pandas_type(f.type),
-            "numpy_type": "object" if f.type == pa.string() else f.type.to_pandas_dtype().__name__,
-            "metadata": None,
-        }
-        for f in schema
-    ]
-    meta = {
-        "index_columns": [],
-        "column_indexes": [],
-        "columns": columns,
-        "creator": {"library": "pyarrow", "version": pa.__version__},
-        "pandas_version": "1.3.4",
-    }
-    return json.dumps(meta).encode()
-
-
-def _pandas_type(t: pa.DataType) -> str:
-    return "unicode" if t == pa.string() else t.to_pandas_dtype().__name__
-
-
-def write_feather_table(path: UPath, schema: pa.Schema, columns: dict[str, object]) -> None:
-    """Write a feather V2 file the way AV2 did (pyarrow, lz4, 64k-row batches, pandas metadata)."""
-    schema = schema.with_metadata({b"pandas": _pandas_metadata(schema)})
-    table = pa.table(
-        {name: pa.array(columns[name], type=schema.field(name).type) for name in schema.names}, schema=schema
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("wb") as f:
-        feather.write_feather(table, f, compression="lz4", chunksize=65536)
 
 
 def _pose_columns(T: np.ndarray) -> dict[str, np.ndarray]:

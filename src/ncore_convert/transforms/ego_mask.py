@@ -71,6 +71,7 @@ import PIL.Image
 from scipy import ndimage
 
 from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.ego_cues import Cues, change_energy, cues, mirror_folds, persistent_edges
 
 MIN_WORLD_STD = 4.0  #: grey levels: below this, the world did not move enough to tell the body from it
 MIN_FRACTION = 0.005  #: of the image: a smaller region is not a car body
@@ -81,9 +82,6 @@ SPLIT_MIN_COLUMNS = 0.9  #: ... and their silhouettes agree in this share of the
 SPLIT_ROW_TOLERANCE = 0.01  #: ... to within this share of the image height
 LOWER_BODY_FRACTION = 2 / 3  #: hood and trunk lid sit at about two thirds of a car's roof height
 MUST_SEE_BORDER = 0.45  #: share of the bottom border on the lower body that makes a camera see the body
-LOG_OFFSET = 16.0  #: grey levels added before the log, so that dark noise does not dominate
-LIGHT_SIGMA_PX = 4.0  #: brightness changes smoother than this (reduced pixels) are lighting, not motion
-SMOOTH_TRUNCATE = 2.0  #: Gaussian smoothing is a scale, not a shape: cut at 2 sigma (95 % of the weight)
 EDGE_WEIGHT = 20.0  #: silhouette bonus per unit of persistent-edge strength
 JUMP_COST = 2.0  #: per row of silhouette change between neighbouring columns
 COST_CLIP = 0.5  #: a single pixel's change energy counts at most this much either way
@@ -96,8 +94,6 @@ STRUCTURE_WEIGHT = 2.0  #: per pixel, what claiming fixed structure (persistent 
 STRUCTURE_SIGMA_PX = (0.7, 4.0)  #: (rows, columns): the structure is averaged along the silhouette
 STRUCTURE_MARGIN = 1.5  #: times the world's own persistent-edge level counts as no structure
 WORLD_SAMPLE_PIXELS = 20000  #: world pixels (evenly strided) behind the exposure and motion figures ...
-FOLD_PAIRS = 2  #: row differences compared on either side of a mirror fold
-FOLD_SIGMA_PX = 2.0  #: along the row, over which a fold's anticorrelation is pooled
 FOLD_FLOOR = 0.1  #: a fold score the world reaches by chance (its median is ~0)
 FOLD_WEIGHT = 12.0  #: silhouette bonus per unit of fold score above the floor
 REPEAT_PIXELS = 2000  #: ... and the fewer of them compared to tell a repeated view
@@ -206,163 +202,6 @@ def body_prior(pinhole: Pinhole, T_camera_ego: np.ndarray, box: EgoBox) -> BodyP
     reach = _rays_hit_box(origin, rays, *box.bounds())
     lower = _rays_hit_box(origin, rays[-1], *box.bounds(LOWER_BODY_FRACTION))
     return BodyPrior(reach, float(lower.mean()))
-
-
-def _log_frames(frames: np.ndarray) -> np.ndarray:
-    """Log grey levels of frames float32 [N,h,w], 0 at mid-grey, float32 [N,h,w] (the gradients and
-    fold sums that follow stay in float32)."""
-    logs = frames + np.float32(LOG_OFFSET)
-    np.log(logs, out=logs)
-    logs -= np.float32(np.log(LOG_OFFSET + 128.0))
-    return logs
-
-
-@dataclass(frozen=True)
-class Cues:
-    """What a set of frames says about each pixel, as sums over the frames, so that the cues of two
-    disjoint sets add up to those of both (:meth:`__add__`); all at the reduced resolution.
-
-    Attributes:
-        frames: how many frames were summed.
-        orientation: sum of the log-image gradients with doubled angles, complex64 [h,w].
-        gradient_energy: sum of their magnitudes, float32 [h,w].
-        folds: sums over frames of the mirrored row-difference products and of the two sides'
-            energies (:func:`mirror_folds`), float32 [3,h,w].
-        change: each frame's fine-change energy (:func:`change_energy`), float32 [N,h,w].
-    """
-
-    frames: int
-    orientation: np.ndarray
-    gradient_energy: np.ndarray
-    folds: np.ndarray
-    change: np.ndarray
-
-    def __add__(self, other: Cues) -> Cues:
-        return Cues(
-            self.frames + other.frames,
-            self.orientation + other.orientation,
-            self.gradient_energy + other.gradient_energy,
-            self.folds + other.folds,
-            np.concatenate([self.change, other.change]),
-        )
-
-
-def cues(frames: np.ndarray) -> Cues:
-    """The :class:`Cues` of greyscale frames, float32 [N,h,w] (grey levels)."""
-    log_frames = _log_frames(frames)
-    gx, gy = _sobel(log_frames)
-    xx, yy, xy = (np.einsum("nyx,nyx->yx", a, b) for a, b in ((gx, gx), (gy, gy), (gx, gy)))
-    # The sum of (gx + i gy)^2, the doubled angle (a contrast whose sign flips keeps its
-    # orientation), and of its magnitude.
-    return Cues(
-        len(frames), (xx - yy + 2j * xy).astype(np.complex64), xx + yy, _fold_sums(log_frames), _change_frames(frames)
-    )
-
-
-def persistent_edges(c: Cues) -> np.ndarray:
-    """Per pixel, how consistently the frames' gradients keep one orientation (0..1), float32 [h,w]."""
-    total = ndimage.gaussian_filter(c.gradient_energy, 1.0)
-    summed = c.orientation
-    consistent = ndimage.gaussian_filter(summed.real, 1.0) ** 2 + ndimage.gaussian_filter(summed.imag, 1.0) ** 2
-    coherence = np.sqrt(consistent) / (total + 1e-12)
-    floor = 1.0 / np.sqrt(c.frames)  # random orientations average to about this
-    mean_energy = c.gradient_energy / c.frames
-    noise = np.median(mean_energy)  # a pixel this weak is flat: its orientation is noise
-    significant = 1.0 - np.exp(-mean_energy / (0.5 * noise + 1e-12))
-    return (np.clip((coherence - floor) / (1.0 - floor), 0.0, 1.0) * significant).astype(np.float32)
-
-
-def _sobel(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The Sobel gradients (d/dx, d/dy) of images [N,h,w], as ``scipy.ndimage.sobel`` gives them
-    (mirrored borders), by slicing: the filter's 3x3 taps on a padded copy."""
-    p = np.pad(images, ((0, 0), (1, 1), (1, 1)), mode="symmetric")
-    across_rows = p[:, 1:-1] * 2  # [N,h,w+2]
-    across_rows += p[:, :-2]
-    across_rows += p[:, 2:]
-    across_cols = p[:, :, 1:-1] * 2  # [N,h+2,w]
-    across_cols += p[:, :, :-2]
-    across_cols += p[:, :, 2:]
-    return across_rows[:, :, 2:] - across_rows[:, :, :-2], across_cols[:, 2:] - across_cols[:, :-2]
-
-
-def _fold_sums(log_frames: np.ndarray) -> np.ndarray:
-    """For :func:`mirror_folds`: per first body row, the sums over frames of the mirrored row
-    differences' products and of each side's energy, float32 [3,h,w]."""
-    diff = np.diff(log_frames, axis=1)  # [N,h-1,w]: row y+1 minus row y
-    energy = np.einsum("nyx,nyx->yx", diff, diff)  # [h-1,w]: each row difference's, over the frames
-    h = log_frames.shape[1]
-    sums = np.zeros((3, h, log_frames.shape[2]), dtype=np.float32)  # product, energy above, energy below
-    for j in range(FOLD_PAIRS):
-        # For first body row t: the difference j rows above the fold line (diff[t-3-j]) against
-        # its mirror j rows below it (diff[t-1+j]); the line sits 1.5 rows above t.
-        rows = slice(3 + j, h - j)
-        sums[0, rows] += np.einsum("nyx,nyx->yx", diff[:, : h - 3 - 2 * j], diff[:, 2 + 2 * j :])
-        sums[1, rows] += energy[: h - 3 - 2 * j]
-        sums[2, rows] += energy[2 + 2 * j :]
-    return sums
-
-
-def mirror_folds(c: Cues) -> np.ndarray:
-    """Per pixel taken as the first body row of its column, how consistently the frames' vertical
-    log-gradients reverse across a line 1.5 rows above it (-1..1; ~0 on the world),
-    float32 [h,w].
-
-    Glossy paint at a grazing angle is a mirror: right under the silhouette it shows the world just
-    above it, flipped. Each frame's column profile then folds at the silhouette: the row
-    differences below it are those above it, reversed in sign (and compressed). The world moves
-    through, but the fold stays at the same rows, even where the mirror leaves no edge at all. The
-    score is the anticorrelation, over frames and ``FOLD_SIGMA_PX`` along the row, of the row
-    differences mirrored about the fold line (``FOLD_PAIRS`` of them).
-    """
-    sums = ndimage.gaussian_filter1d(c.folds, FOLD_SIGMA_PX, axis=2)
-    return (-sums[0] / np.sqrt(sums[1] * sums[2] + 1e-12)).astype(np.float32)
-
-
-def _change_frames(frames: np.ndarray) -> np.ndarray:
-    """Each frame's fine-change energy (:func:`change_energy`) at half the resolution (2x2 bins: a
-    regional cue, smoothed over more than that), float32 [N,ceil(h/2),ceil(w/2)]: its fine
-    structure's departure from the frames' median once its smooth brightness change is divided out."""
-    frames = _binned(frames)
-    median = _over_frames(frames, 0.5)
-    sigma = LIGHT_SIGMA_PX / 2
-    smooth = {"sigma": (0, sigma, sigma), "truncate": SMOOTH_TRUNCATE}
-    lit = ndimage.gaussian_filter(median, sigma, truncate=SMOOTH_TRUNCATE) + 1.0
-    change = frames - ndimage.gaussian_filter(frames, **smooth) / lit * median
-    fine = change - ndimage.gaussian_filter(change, **smooth)
-    return ndimage.gaussian_filter(fine**2, (0, 1.25, 1.25), truncate=SMOOTH_TRUNCATE).astype(np.float32)
-
-
-def _binned(frames: np.ndarray) -> np.ndarray:
-    """Frames [N,h,w] averaged over 2x2 pixel bins (an odd last row or column repeated),
-    float32 [N,ceil(h/2),ceil(w/2)]."""
-    h, w = frames.shape[1:]
-    p = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
-    return (p[:, 0::2, 0::2] + p[:, 1::2, 0::2] + p[:, 0::2, 1::2] + p[:, 1::2, 1::2]) * np.float32(0.25)
-
-
-def change_energy(c: Cues) -> np.ndarray:
-    """Per pixel, how much fine structure changes between frames once each frame's smooth
-    brightness change (lighting, shade, exposure) is divided out, grey levels, float32 [h,w]: the
-    75 % quantile over frames, so glare in a few frames does not count; computed on 2x2 bins and
-    brought back to the full grid bilinearly.
-
-    Linear grey levels, not logs: a reflection adds the scene scaled by the paint's reflectance,
-    so on a dark glossy body it is small in grey levels although large relative to the paint.
-    """
-    binned = np.sqrt(_over_frames(c.change, 0.75))
-    h, w = c.gradient_energy.shape
-    full = ndimage.zoom(binned, (2, 2), order=1, mode="nearest", grid_mode=True)[:h, :w]
-    return full.astype(np.float32)
-
-
-def _over_frames(values: np.ndarray, q: float) -> np.ndarray:
-    """The ``q`` quantile over the frames of ``values`` [N,h,w], [h,w], as ``np.quantile`` gives
-    it (linear interpolation), from one sort (a few times faster for a handful of frames)."""
-    ordered = np.sort(values, axis=0)
-    position = q * (len(values) - 1)
-    lo = int(position)
-    hi = min(lo + 1, len(values) - 1)
-    return ordered[lo] + (position - lo) * (ordered[hi] - ordered[lo])
 
 
 def silhouette(cost_body: np.ndarray, bonus: np.ndarray, reach: np.ndarray, jump_cost: float) -> np.ndarray:

@@ -11,7 +11,7 @@ from upath import UPath
 
 from ncore_convert.converters.common import Dataset, select_sensors
 from ncore_convert.converters.opencood.convert import ScenarioSummary, convert_scenario
-from ncore_convert.converters.opencood.plan import AgentPlan, OpenCoodOptions
+from ncore_convert.converters.opencood.records import AgentPlan, OpenCoodOptions
 from ncore_convert.sources import opencood as src
 
 __all__ = ["DATASETS", "AgentPlan", "OpenCoodOptions", "ScenarioSummary", "convert_scenario"]

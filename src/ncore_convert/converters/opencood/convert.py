@@ -16,13 +16,8 @@ from ncore_convert.contract import ManifestAgent, ManifestNoise, ScenarioManifes
 from ncore_convert.converters import consumer
 from ncore_convert.converters.common import Tally
 from ncore_convert.converters.opencood.noise import instance_meta
-from ncore_convert.converters.opencood.plan import (
-    VEHICLE_CLASS,
-    AgentPlan,
-    OpenCoodOptions,
-    ScenarioPlan,
-    plan_scenario,
-)
+from ncore_convert.converters.opencood.plan import plan_scenario
+from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, OpenCoodOptions, ScenarioPlan
 from ncore_convert.errors import SourceError
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
