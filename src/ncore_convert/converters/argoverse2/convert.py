@@ -23,8 +23,8 @@ from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan,
 from ncore_convert.converters.common import Tally
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms.dynamic import dynamic_flags
 from ncore_convert.transforms.geometry import Trajectory, euler_xyz_from_rotation, transform_points
+from ncore_convert.transforms.lidar_frames import point_data
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import (
     BASE_JOB,
@@ -190,20 +190,19 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     for sweep_ns in plan.sweep_timestamps_ns:
         sweep = av2.read_sweep(log_dir, int(sweep_ns), not plan.options.tbv)
         times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
-        xyz_world = sweep_world_points(sweep, plan.T_rig_world)
-        flag_started = time.perf_counter()
-        sweep_flags = None if boxes is None else dynamic_flags(xyz_world, floor_us(times_ns), boxes)
-        result.dynamic_flag_seconds += time.perf_counter() - flag_started
         units = sweep_ray_bundles(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
-        colour_started = time.perf_counter()
-        unit_rgb = None if colours is None else _unit_colours(colours, units, xyz_world, sweep_flags)
-        result.colour_seconds += time.perf_counter() - colour_started
+        xyz_world = sweep_world_points(sweep, plan.T_rig_world)
+        data = point_data(
+            {unit: xyz_world[unit_rays.sweep_rows] for unit, unit_rays in units.items()},
+            {unit: unit_rays.rays.timestamp_us for unit, unit_rays in units.items()},
+            boxes,
+            None if colours is None else colours.colours,
+        )
+        result.dynamic_flag_seconds += data.flag_seconds
+        result.colour_seconds += data.colour_seconds
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
-            generic = {} if sweep_flags is None else {contract.DYNAMIC_FLAG: sweep_flags[unit_rays.sweep_rows]}
-            if unit_rgb is not None:
-                generic[contract.LIDAR_RGB], coloured = unit_rgb[unit]
-                coloured_points[unit] += int(coloured.sum())
+            coloured_points[unit] += data.coloured.get(unit, 0)
             frame_meta = {
                 "av2_sweep_timestamp_ns": int(sweep_ns),
                 "points_zero_range": rays.n_zero_range,
@@ -211,7 +210,9 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             }
             if unit_rays.column_time_remap:
                 frame_meta["model_column_time_remap"] = unit_rays.column_time_remap
-            lidars[unit].store_frame(rays, frame_meta, model_element=unit_rays.model_elements, generic_data=generic)
+            lidars[unit].store_frame(
+                rays, frame_meta, model_element=unit_rays.model_elements, generic_data=data.generic[unit]
+            )
             not_stored[unit]["zero_range"] += rays.n_zero_range
             not_stored[unit]["non_finite"] += rays.n_non_finite
             source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
@@ -234,19 +235,6 @@ def sweep_world_points(sweep: av2.Sweep, T_rig_world: Trajectory) -> np.ndarray:
     to the sweep time, so the sweep's pose places each where it was at its own time."""
     T_sweep_world = T_rig_world.interpolate(T_rig_world.relative_seconds(np.array([sweep.timestamp_ns])))[0]
     return transform_points(T_sweep_world, sweep.xyz_ego_m.astype(np.float64))
-
-
-def _unit_colours(
-    colours: SweepColours, units: dict, xyz_world: np.ndarray, sweep_flags: np.ndarray | None
-) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Unit -> (``rgb`` uint8 [N,3], coloured bool [N]) of its stored rays: the sweep's units coloured
-    together (each unit's points can hide the other's), at the rays' own times."""
-    rows = np.concatenate([u.sweep_rows for u in units.values()])
-    times_us = np.concatenate([u.rays.timestamp_us.astype(np.int64) for u in units.values()])
-    dynamic = np.zeros(len(rows), bool) if sweep_flags is None else sweep_flags[rows] == 1
-    rgb, coloured = colours.colours(xyz_world[rows], times_us, dynamic)
-    bounds = np.cumsum([0] + [len(u.sweep_rows) for u in units.values()])
-    return {unit: (rgb[a:b], coloured[a:b]) for unit, a, b in zip(units, bounds[:-1], bounds[1:], strict=True)}
 
 
 def _rgb_note(plan: LogPlan) -> str:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
+from functools import partial
 
 import numpy as np
 from upath import UPath
@@ -23,9 +24,9 @@ from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
 from ncore_convert.transforms import carla
 from ncore_convert.transforms.carla_lidar import assign_elements
-from ncore_convert.transforms.dynamic import dynamic_flags
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3, transform_points
 from ncore_convert.transforms.lidar import RayBundle, ray_bundle
+from ncore_convert.transforms.lidar_frames import point_data
 from ncore_convert.transforms.point_colours import FILL_RGB, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 from ncore_convert.writer import Cuboids, SequenceWriter, write_scenario_manifest, write_sequence_meta
@@ -244,14 +245,17 @@ def _write_sensors(
             rays = ray_bundle(xyz, times_ns, sweep.intensity, int(t_us), exact=True)
             T_lidar_world_global = agent.T_rig_world_global[frame] @ T_lidar_rig
             xyz_world_global = transform_points(T_lidar_world_global, xyz[rays.source_index].astype(np.float64))
-            flags = dynamic_flags(xyz_world_global, rays.timestamp_us, plan.dynamic_boxes)
-            generic = {contract.DYNAMIC_FLAG: flags, **_source_points(xyz, sweep.intensity, rays)}
+            colouring = None
             if plan.options.lidar_rgb and agent.camera_ids:
-                frames = _colour_frames(plan, agent, frame, key, int(t_us))
-                generic[contract.LIDAR_RGB], coloured = point_colours(
-                    xyz_world_global, rays.timestamp_us, flags == 1, frames
-                )
-                coloured_points += int(coloured.sum())
+                colouring = partial(point_colours, frames=_colour_frames(plan, agent, frame, key, int(t_us)))
+            data = point_data(
+                {src.LIDAR: xyz_world_global}, {src.LIDAR: rays.timestamp_us}, plan.dynamic_boxes, colouring
+            )
+            own = data.generic[src.LIDAR]
+            generic = {contract.DYNAMIC_FLAG: own[contract.DYNAMIC_FLAG], **_source_points(xyz, sweep.intensity, rays)}
+            if contract.LIDAR_RGB in own:
+                generic[contract.LIDAR_RGB] = own[contract.LIDAR_RGB]
+                coloured_points += data.coloured[src.LIDAR]
             elements = None if agent.lidar_model is None else assign_elements(agent.lidar_model, rays.direction)
             lidar.store_frame(
                 rays,
