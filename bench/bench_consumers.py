@@ -109,14 +109,13 @@ def speed_rule_ids(observations, classes: list[str]) -> set[str]:
 def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
     """Per log, the track decision (this rule with its static poses, and the speed rule before it);
     per sweep, reading and ray bundles beside dynamic_flag with either rule's dynamic tracks."""
-    from ncore_convert.converters.argoverse2.convert import sweep_world_points
-    from ncore_convert.converters.argoverse2.lidar import sweep_ray_bundles, sweep_times_ns
+    from ncore_convert.converters.argoverse2.lidar import sweep_frame, sweep_times_ns
     from ncore_convert.converters.argoverse2.plan import Argoverse2Options, plan_log
     from ncore_convert.sources import argoverse2 as av2
     from ncore_convert.transforms import dynamic
-    from ncore_convert.transforms.dynamic import dynamic_flags
+    from ncore_convert.transforms.geometry import transform_points
     from ncore_convert.transforms.labels import AV2_TO_NCORE
-    from ncore_convert.transforms.timebase import floor_us
+    from ncore_convert.transforms.lidar_frames import lidar_frame, point_data
 
     plan = plan_log(UPath(root), log_id, Argoverse2Options(split="val", camera_ids=()))
     traj, annotations = plan.T_rig_world, plan.inputs.annotations
@@ -150,14 +149,17 @@ def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
             started = time.perf_counter()
             sweep = av2.read_sweep(plan.inputs.log_dir, int(sweep_ns), True)
             times_ns = sweep_times_ns(sweep, plan.lidar_calibration, traj, T_sensor_rig)
-            units = sweep_ray_bundles(sweep, times_ns, plan.lidar_calibration, traj, T_sensor_rig)
+            frame, geometry = sweep_frame(sweep, times_ns, plan.lidar_calibration, traj, T_sensor_rig)
+            units, _ = lidar_frame(frame, geometry, None, None)
             rays_s.append(time.perf_counter() - started)
             points.append(len(sweep.xyz_ego_m))
+            world = {
+                u: transform_points(frame.T_reference_fixed, sweep.xyz_ego_m[s.rows].astype(float))
+                for u, s in units.items()
+            }
+            times_us = {unit: stored.rays.timestamp_us for unit, stored in units.items()}
             for rule in ("after", "before"):  # interleaved
-                started = time.perf_counter()
-                flags = dynamic_flags(sweep_world_points(sweep, traj), floor_us(times_ns), boxes[rule])
-                _per_unit = [flags[unit_rays.sweep_rows] for unit_rays in units.values()]
-                flag_s[rule].append(time.perf_counter() - started)
+                flag_s[rule].append(point_data(world, times_us, boxes[rule], None).flag_seconds)
     rays_ms = statistics.median(rays_s) * 1e3
     after_ms, before_ms = (statistics.median(flag_s[r]) * 1e3 for r in ("after", "before"))
     print(

@@ -1,9 +1,11 @@
-"""The per-point data of a lidar frame, whatever the dataset: each stored ray's ``dynamic_flag`` and
-``rgb``, from its point where the lidar saw it (in a fixed frame) at its own time.
+"""One lidar frame, whatever the dataset: from what a reader yields (:class:`LidarFrame`: points,
+per-point times computed once, intensity, the frame's pose) to what is stored per lidar
+(:class:`StoredRays`): rays at each point's own time with their model elements, and each ray's
+``dynamic_flag`` and ``rgb`` from its point in the fixed frame.
 
-Every converter hands its frames' stored rays here: AV2/TbV both units of a sweep together (each
-unit's points may hide the other's from a camera), OPV2V/V2XSet an agent's one lidar. The flags come
-first: a point on a moving object takes its colour only from a camera frame close to its time.
+AV2/TbV hand over both units of a sweep together (each unit's points may hide the other's from a
+camera), OPV2V/V2XSet an agent's one lidar. The flags come first: a point on a moving object takes
+its colour only from a camera frame close to its time.
 """
 
 from __future__ import annotations
@@ -16,6 +18,9 @@ import numpy as np
 
 from ncore_convert.contract import DYNAMIC_FLAG, LIDAR_RGB
 from ncore_convert.transforms.dynamic import DynamicBoxes, dynamic_flags
+from ncore_convert.transforms.geometry import transform_points
+from ncore_convert.transforms.lidar import RayBundle, ray_bundle
+from ncore_convert.transforms.timebase import floor_us
 
 #: ``(xyz_fixed_m [N,3], timestamps_us int64 [N], dynamic bool [N]) -> (rgb uint8 [N,3], coloured bool [N])``
 Colouring = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -77,3 +82,88 @@ def point_data(
             out.generic[lidar][LIDAR_RGB] = rgb[a:b]
             out.coloured[lidar] = int(coloured[a:b].sum())
     return out
+
+
+@dataclass(frozen=True)
+class LidarFrame:
+    """One lidar frame as a reader yields it.
+
+    Attributes:
+        xyz_m: the points in the frame's reference frame at ``timestamp_ns``, float [N,3] (AV2/TbV: the
+            ego frame, motion-compensated to the sweep time; CARLA: the lidar's frame at the tick).
+        times_ns: each point's own time, int64 [N], computed once (TbV: reconstructed).
+        intensity: [N]; timestamp_ns: the frame's time.
+        rows: lidar -> the rows it measured, int [K] (AV2: the laser_number halves).
+        T_reference_fixed: the reference frame at ``timestamp_ns`` -> the fixed frame of the boxes and
+            cameras [4,4] (world or world_global).
+    """
+
+    xyz_m: np.ndarray
+    times_ns: np.ndarray
+    intensity: np.ndarray
+    timestamp_ns: int
+    rows: dict[str, np.ndarray]
+    T_reference_fixed: np.ndarray
+
+
+@dataclass(frozen=True)
+class LidarGeometry:
+    """How one lidar's rows become rays.
+
+    Attributes:
+        to_sensor: ``(xyz_reference [K,3], times_ns [K]) -> xyz_sensor [K,3]``, each point in the
+            lidar's frame at its own time (AV2: decompensation); None: the points are that already.
+        exact: the points are the source's own float32 values (``ray_bundle(exact=True)``).
+        elements: ``(rays, rows) -> (model elements uint16 [N,2], column-time remap dict)`` with a model
+            (``rows``: each ray's frame row); None: no model.
+    """
+
+    to_sensor: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    exact: bool = False
+    elements: Callable[[RayBundle, np.ndarray], tuple[np.ndarray, dict]] | None = None
+
+
+@dataclass(frozen=True)
+class StoredRays:
+    """One lidar's share of a frame, ready to store.
+
+    Attributes:
+        rays: unit directions in the lidar's frame at each ray's own time, with per-ray times.
+        model_elements: (row, column) of each ray in the lidar's model, uint16 [N,2]; None without one.
+        column_time_remap: the frame's column-time alignment (empty without a model).
+        rows: the frame row of each ray, int [N].
+        generic: per-point generic data (``dynamic_flag``, ``rgb``); coloured: points a camera coloured.
+    """
+
+    rays: RayBundle
+    model_elements: np.ndarray | None
+    column_time_remap: dict
+    rows: np.ndarray
+    generic: dict[str, np.ndarray]
+    coloured: int
+
+
+def lidar_frame(
+    frame: LidarFrame, geometry: dict[str, LidarGeometry], boxes: DynamicBoxes | None, colouring: Colouring | None
+) -> tuple[dict[str, StoredRays], PointData]:
+    """Every lidar's rays, model elements and per-point data of one frame (lidars: ``geometry``'s
+    keys); also the :class:`PointData` (its timings)."""
+    rays, rows, elements = {}, {}, {}
+    for lidar, how in geometry.items():
+        own = frame.rows[lidar]
+        xyz = frame.xyz_m[own] if how.to_sensor is None else how.to_sensor(frame.xyz_m[own], frame.times_ns[own])
+        rays[lidar] = ray_bundle(
+            xyz, frame.times_ns[own], frame.intensity[own], floor_us(frame.timestamp_ns), exact=how.exact
+        )
+        rows[lidar] = own[rays[lidar].source_index]
+        elements[lidar] = (None, {}) if how.elements is None else how.elements(rays[lidar], rows[lidar])
+    xyz_fixed = {
+        lidar: transform_points(frame.T_reference_fixed, frame.xyz_m[rows[lidar]].astype(np.float64))
+        for lidar in geometry
+    }
+    data = point_data(xyz_fixed, {lidar: rays[lidar].timestamp_us for lidar in geometry}, boxes, colouring)
+    stored = {
+        lidar: StoredRays(rays[lidar], *elements[lidar], rows[lidar], data.generic[lidar], data.coloured.get(lidar, 0))
+        for lidar in geometry
+    }
+    return stored, data

@@ -11,20 +11,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import numpy as np
 from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.colours import SweepColours, rgb_note
-from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_ray_bundles, sweep_times_ns
+from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Tally
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms.geometry import Trajectory, euler_xyz_from_rotation, transform_points
-from ncore_convert.transforms.lidar_frames import point_data
+from ncore_convert.transforms.geometry import euler_xyz_from_rotation
+from ncore_convert.transforms.lidar_frames import lidar_frame
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import (
     BASE_JOB,
@@ -190,19 +189,13 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     for sweep_ns in plan.sweep_timestamps_ns:
         sweep = av2.read_sweep(log_dir, int(sweep_ns), not plan.options.tbv)
         times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
-        units = sweep_ray_bundles(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
-        xyz_world = sweep_world_points(sweep, plan.T_rig_world)
-        data = point_data(
-            {unit: xyz_world[unit_rays.sweep_rows] for unit, unit_rays in units.items()},
-            {unit: unit_rays.rays.timestamp_us for unit, unit_rays in units.items()},
-            boxes,
-            None if colours is None else colours.colours,
-        )
+        frame, geometry = sweep_frame(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
+        units, data = lidar_frame(frame, geometry, boxes, None if colours is None else colours.colours)
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
-            coloured_points[unit] += data.coloured.get(unit, 0)
+            coloured_points[unit] += unit_rays.coloured
             frame_meta = {
                 "av2_sweep_timestamp_ns": int(sweep_ns),
                 "points_zero_range": rays.n_zero_range,
@@ -211,7 +204,7 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             if unit_rays.column_time_remap:
                 frame_meta["model_column_time_remap"] = unit_rays.column_time_remap
             lidars[unit].store_frame(
-                rays, frame_meta, model_element=unit_rays.model_elements, generic_data=data.generic[unit]
+                rays, frame_meta, model_element=unit_rays.model_elements, generic_data=unit_rays.generic
             )
             not_stored[unit]["zero_range"] += rays.n_zero_range
             not_stored[unit]["non_finite"] += rays.n_non_finite
@@ -228,13 +221,6 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             f"{result.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
         )
     result.lidar_seconds = time.perf_counter() - started
-
-
-def sweep_world_points(sweep: av2.Sweep, T_rig_world: Trajectory) -> np.ndarray:
-    """Every row of an AV2 or TbV sweep in ``world``, float64 [N,3]. The points are motion-compensated
-    to the sweep time, so the sweep's pose places each where it was at its own time."""
-    T_sweep_world = T_rig_world.interpolate(T_rig_world.relative_seconds(np.array([sweep.timestamp_ns])))[0]
-    return transform_points(T_sweep_world, sweep.xyz_ego_m.astype(np.float64))
 
 
 def _rgb_note(plan: LogPlan) -> str:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from upath import UPath
@@ -24,11 +25,11 @@ from ncore_convert.transforms.lidar import (
     beam_elevation_spread_rad,
     decide_unit_split,
     decompensate,
-    ray_bundle,
 )
+from ncore_convert.transforms.lidar_frames import LidarFrame, LidarGeometry
 from ncore_convert.transforms.lidar_model import SpinningLidarModel, column_time_remap, derive_model
 from ncore_convert.transforms.sampling import spread_indices
-from ncore_convert.transforms.timebase import NS_PER_US, floor_us
+from ncore_convert.transforms.timebase import NS_PER_US
 
 #: Sweeps sampled across the log for the up/down unit decision and the lidar model.
 CALIBRATION_SWEEPS = 5
@@ -213,53 +214,51 @@ def _timing_meta(knots: lidar_timing.RotationKnots | None, timing: TriggerTiming
     }
 
 
-@dataclass(frozen=True)
-class UnitRays:
-    """One unit's share of a sweep, ready to store.
-
-    Attributes:
-        rays: unit directions in the unit's frame at each ray's own time, with per-ray times.
-        model_elements: (row, column) of each ray in the unit's model, uint16 [N,2]; None without a model.
-        column_time_remap: the frame's affine column-time alignment (see :func:`column_time_remap`;
-            empty without a model).
-        sweep_rows: the sweep row of each ray, int64 [N].
-    """
-
-    rays: RayBundle
-    model_elements: np.ndarray | None
-    column_time_remap: dict
-    sweep_rows: np.ndarray
-
-
-def sweep_ray_bundles(
+def sweep_frame(
     sweep: av2.Sweep,
     times_ns: np.ndarray,
     calibration: LidarCalibration,
     T_rig_world: Trajectory,
     T_sensor_rig: dict[str, np.ndarray],
-) -> dict[str, UnitRays]:
-    """Split one sweep by unit, decompensate each half into its unit's frame at per-point time
-    (``times_ns``: :func:`sweep_times_ns`), and give each ray its nearest model element."""
-    out = {}
+) -> tuple[LidarFrame, dict[str, LidarGeometry]]:
+    """One sweep as :func:`lidar_frames.lidar_frame` takes it: the compensated ego-frame points with
+    their own times (``times_ns``: :func:`sweep_times_ns`) and the sweep's pose in ``world``, each
+    converted unit's laser_number half; and how each unit's rays are made (decompensated into its
+    frame at each point's time; its model's nearest elements)."""
     split = calibration.unit_split
-    for unit, low in ((split.low_half_unit, True), (split.high_half_unit, False)):
-        if unit not in T_sensor_rig:
-            continue
-        idx = np.flatnonzero((sweep.laser_number < 32) == low)
-        unit_ns = times_ns[idx]
-        xyz = decompensate(sweep.xyz_ego_m[idx], unit_ns, sweep.timestamp_ns, T_rig_world, T_sensor_rig[unit])
-        rays = ray_bundle(xyz, unit_ns, sweep.intensity[idx], floor_us(sweep.timestamp_ns))
-        model = calibration.models.get(unit)
-        elements, remap = None, {}
-        if model is not None:
-            beam = sweep.laser_number[idx[rays.source_index]].astype(np.int64) % vlp32c.N_BEAMS
-            elements = model.assign_elements(rays.direction, beam)
-            time_s = (unit_ns[rays.source_index] - sweep.timestamp_ns) * 1e-9
-            remap = column_time_remap(
-                elements[:, 1], time_s, len(model.column_azimuths_rad), model.spinning_frequency_hz
-            )
-        out[unit] = UnitRays(rays, elements, remap, idx[rays.source_index])
-    return out
+    halves = [
+        (unit, low)
+        for unit, low in ((split.low_half_unit, True), (split.high_half_unit, False))
+        if unit in T_sensor_rig
+    ]
+    rows = {unit: np.flatnonzero((sweep.laser_number < 32) == low) for unit, low in halves}
+    T_sweep_world = T_rig_world.interpolate(T_rig_world.relative_seconds(np.array([sweep.timestamp_ns])))[0]
+    frame = LidarFrame(sweep.xyz_ego_m, times_ns, sweep.intensity, sweep.timestamp_ns, rows, T_sweep_world)
+    geometry = {
+        unit: LidarGeometry(
+            to_sensor=partial(
+                decompensate, ref_time_ns=sweep.timestamp_ns, T_rig_world=T_rig_world, T_sensor_rig=T_sensor_rig[unit]
+            ),
+            elements=None
+            if unit not in calibration.models
+            else partial(_elements, calibration.models[unit], sweep, times_ns),
+        )
+        for unit, _ in halves
+    }
+    return frame, geometry
+
+
+def _elements(
+    model: SpinningLidarModel, sweep: av2.Sweep, times_ns: np.ndarray, rays: RayBundle, rows: np.ndarray
+) -> tuple[np.ndarray, dict]:
+    """Each ray's nearest element of its unit's model (its beam row), and the sweep's column-time
+    alignment (``rows``: each ray's sweep row)."""
+    beam = sweep.laser_number[rows].astype(np.int64) % vlp32c.N_BEAMS
+    elements = model.assign_elements(rays.direction, beam)
+    time_s = (times_ns[rows] - sweep.timestamp_ns) * 1e-9
+    return elements, column_time_remap(
+        elements[:, 1], time_s, len(model.column_azimuths_rad), model.spinning_frequency_hz
+    )
 
 
 def lidar_meta(calibration: LidarCalibration, unit: str, model_source: str) -> dict:

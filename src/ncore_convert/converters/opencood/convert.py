@@ -24,9 +24,9 @@ from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
 from ncore_convert.transforms import carla
 from ncore_convert.transforms.carla_lidar import assign_elements
-from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3, transform_points
-from ncore_convert.transforms.lidar import RayBundle, ray_bundle
-from ncore_convert.transforms.lidar_frames import point_data
+from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3
+from ncore_convert.transforms.lidar import RayBundle
+from ncore_convert.transforms.lidar_frames import LidarFrame, LidarGeometry, lidar_frame
 from ncore_convert.transforms.point_colours import FILL_RGB, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 from ncore_convert.writer import Cuboids, SequenceWriter, write_scenario_manifest, write_sequence_meta
@@ -228,6 +228,12 @@ def _write_sensors(
             contract.LIDAR_RGB: _rgb_note(plan, agent),
         }
         T_lidar_rig = agent.T_sensor_rig[src.LIDAR]
+        # CARLA's points are in the lidar's frame at the tick already: the source's exact float32 values
+        model = agent.lidar_model
+        geometry = LidarGeometry(
+            exact=True,
+            elements=None if model is None else lambda rays, rows: (assign_elements(model, rays.direction), {}),
+        )
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
         not_stored = coloured_points = 0
         skipped = dict(agent.skipped_keys)
@@ -241,22 +247,28 @@ def _write_sensors(
                 progress(1)
                 continue
             xyz = carla.points_right_handed(sweep.xyz_m)  # float32: the mirror is exact
-            times_ns = np.full(len(xyz), int(t_us) * NS_PER_US, dtype=np.int64)
-            rays = ray_bundle(xyz, times_ns, sweep.intensity, int(t_us), exact=True)
-            T_lidar_world_global = agent.T_rig_world_global[frame] @ T_lidar_rig
-            xyz_world_global = transform_points(T_lidar_world_global, xyz[rays.source_index].astype(np.float64))
+            lidar_frame_in = LidarFrame(
+                xyz,
+                np.full(len(xyz), int(t_us) * NS_PER_US, dtype=np.int64),  # every point at the tick
+                sweep.intensity,
+                int(t_us) * NS_PER_US,
+                {src.LIDAR: np.arange(len(xyz))},
+                agent.T_rig_world_global[frame] @ T_lidar_rig,
+            )
             colouring = None
             if plan.options.lidar_rgb and agent.camera_ids:
                 colouring = partial(point_colours, frames=_colour_frames(plan, agent, frame, key, int(t_us)))
-            data = point_data(
-                {src.LIDAR: xyz_world_global}, {src.LIDAR: rays.timestamp_us}, plan.dynamic_boxes, colouring
-            )
-            own = data.generic[src.LIDAR]
-            generic = {contract.DYNAMIC_FLAG: own[contract.DYNAMIC_FLAG], **_source_points(xyz, sweep.intensity, rays)}
-            if contract.LIDAR_RGB in own:
-                generic[contract.LIDAR_RGB] = own[contract.LIDAR_RGB]
-                coloured_points += data.coloured[src.LIDAR]
-            elements = None if agent.lidar_model is None else assign_elements(agent.lidar_model, rays.direction)
+            stored, _ = lidar_frame(lidar_frame_in, {src.LIDAR: geometry}, plan.dynamic_boxes, colouring)
+            own = stored[src.LIDAR]
+            rays = own.rays
+            generic = {
+                contract.DYNAMIC_FLAG: own.generic[contract.DYNAMIC_FLAG],
+                **_source_points(xyz, sweep.intensity, rays),
+            }
+            if contract.LIDAR_RGB in own.generic:
+                generic[contract.LIDAR_RGB] = own.generic[contract.LIDAR_RGB]
+                coloured_points += own.coloured
+            elements = own.model_elements
             lidar.store_frame(
                 rays,
                 {
