@@ -191,76 +191,29 @@ def av2_family_options(log_scope: str) -> Callable:
 
 #: Flags equivalent to a ``wild_setting`` block: (flag, parameter, wild_setting key, type, default, help).
 #: Unset flags take OpenCOOD's defaults (shown), set in ``make_setting``.
+# fmt: off
 NOISE_FLAGS = [
-    (
-        "--noise-name",
-        "noise_name",
-        "name",
-        str,
-        "the model's name",
-        "Name of the setting these flags make (its poses instance).",
-    ),
-    (
-        "--noise-model",
-        "noise_model",
-        "model",
-        click.Choice(MODELS),
-        "opencood",
-        "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams.",
-    ),
+    ("--noise-name", "noise_name", "name", str, "the model's name", "Name of the setting these flags make (its poses instance)."),  # noqa: E501
+    ("--noise-model", "noise_model", "model", click.Choice(MODELS), "opencood", "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams."),  # noqa: E501
     ("--noise-seed", "noise_seed", "seed", int, "25, OpenCOOD's test seed", "seed."),
     ("--async/--no-async", "async_", "async", None, "off", "async: add communication delay."),
-    (
-        "--async-mode",
-        "async_mode",
-        "async_mode",
-        click.Choice(ASYNC_MODES),
-        "sim",
-        "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone.",
-    ),
+    ("--async-mode", "async_mode", "async_mode", click.Choice(ASYNC_MODES), "sim", "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone."),  # noqa: E501
     ("--async-overhead", "async_overhead", "async_overhead", float, "0", "async_overhead, ms."),
     ("--backbone-delay", "backbone_delay", "backbone_delay", float, "0", "backbone_delay, ms (real mode)."),
     ("--data-size", "data_size", "data_size", float, "0", "data_size, Mb (real mode)."),
-    (
-        "--transmission-speed",
-        "transmission_speed",
-        "transmission_speed",
-        float,
-        "27",
-        "transmission_speed, Mb/s (real mode).",
-    ),
+    ("--transmission-speed", "transmission_speed", "transmission_speed", float, "27", "transmission_speed, Mb/s (real mode)."),  # noqa: E501
     ("--loc-err/--no-loc-err", "loc_err", "loc_err", None, "off", "loc_err: add localisation (GPS) error."),
     ("--xyz-std", "xyz_std", "xyz_std", float, "0", "xyz_std: position error std, m."),
     ("--ryp-std", "ryp_std", "ryp_std", float, "0", "ryp_std: angular error std, deg."),
     ("--max-cav", "max_cav", "max_cav", int, "7", "OpenCOOD's train_params.max_cav (opencood model)."),
-    (
-        "--gps-process",
-        "gps_process",
-        "process",
-        click.Choice(PROCESSES),
-        "white",
-        "realistic: per-frame draws or Gauss-Markov drift.",
-    ),
-    (
-        "--correlation-time-s",
-        "correlation_time_s",
-        "correlation_time_s",
-        float,
-        "10",
-        "realistic: Gauss-Markov correlation time, s.",
-    ),
+    ("--gps-process", "gps_process", "process", click.Choice(PROCESSES), "white", "realistic: per-frame draws or Gauss-Markov drift."),  # noqa: E501
+    ("--correlation-time-s", "correlation_time_s", "correlation_time_s", float, "10", "realistic: Gauss-Markov correlation time, s."),  # noqa: E501
     ("--bias-xyz-std", "bias_xyz_std", "bias_xyz_std", float, "0", "realistic: std of a constant position bias, m."),
     ("--bias-ryp-std", "bias_ryp_std", "bias_ryp_std", float, "0", "realistic: std of a constant angular bias, deg."),
     ("--gps-dof", "gps_dof", "dof", click.Choice(DOFS), "6dof", "realistic: perturb all 6 DoF or x, y and yaw."),
-    (
-        "--perturb-ego/--no-perturb-ego",
-        "perturb_ego",
-        "perturb_ego",
-        None,
-        "off",
-        "realistic: perturb the OpenCOOD ego too.",
-    ),
+    ("--perturb-ego/--no-perturb-ego", "perturb_ego", "perturb_ego", None, "off", "realistic: perturb the OpenCOOD ego too."),  # noqa: E501
 ]
+# fmt: on
 
 #: ``--noise-config`` (repeatable) and the flags that make one further setting (``NOISE_FLAGS``).
 noise_options = options(

@@ -149,31 +149,24 @@ class BodyPrior:
 
 @dataclass(frozen=True)
 class EgoMaskEstimate:
-    """The estimate for one camera.
+    """The estimate for one camera, and the figures it was decided on.
 
     Attributes:
         mask: ego pixels at the reduced resolution, bool [h,w]; None when no mask is written.
         decision: ``"mask"``, ``"not seen"`` (no body), or a fallback: ``"too few images"``,
             ``"too little motion"``, ``"too few distinct images"``, ``"implausible coverage"``,
             ``"no persistent silhouette"``, ``"halves disagree"``.
-        covered_fraction: the share of the image the mask covers (0 without one).
-        world_std: the median temporal standard deviation outside the reach (grey levels).
-        edge: mean persistent-edge strength along the silhouette (0..1).
-        fold: mean mirror-fold score along the silhouette, over ``FOLD_FLOOR`` (:func:`mirror_folds`).
-        change_ratio: the world's change energy above the silhouette over the body's below it.
-        structure: the median fixed structure (:func:`_fixed_structure`) below the silhouette.
-        split_iou, split_columns: the agreement of the log's two halves (:func:`split_agreement`);
-            0 when the estimate stopped before it.
     """
 
     mask: np.ndarray | None
     decision: str
-    covered_fraction: float = 0.0
-    world_std: float = 0.0
-    edge: float = 0.0
-    fold: float = 0.0
-    change_ratio: float = 0.0
-    structure: float = 0.0
+    covered_fraction: float = 0.0  #: the share of the image the mask covers (0 without one)
+    world_std: float = 0.0  #: the median temporal standard deviation outside the reach (grey levels)
+    edge: float = 0.0  #: mean persistent-edge strength along the silhouette (0..1)
+    fold: float = 0.0  #: mean mirror-fold score along the silhouette, over ``FOLD_FLOOR`` (``mirror_folds``)
+    change_ratio: float = 0.0  #: the world's change energy above the silhouette over the body's below it
+    structure: float = 0.0  #: the median fixed structure (:func:`_fixed_structure`) below the silhouette
+    #: the agreement of the log's two halves (:func:`split_agreement`); 0 when the estimate stopped before it
     split_iou: float = 0.0
     split_columns: float = 0.0
 
