@@ -91,14 +91,6 @@ def camera_spec(pinhole: Pinhole, model: CameraModel) -> CameraSpec:
     return CameraSpec(pinhole, model, fit_ftheta(pinhole) if model == "ftheta" else None)
 
 
-def dynamic_flag_note(n_dynamic_tracks: int) -> str:
-    """What a lidar's metadata says of the ``dynamic_flag`` written on its frames."""
-    return (
-        f"written: int8 per point, 1 = inside one of {n_dynamic_tracks} dynamic tracks' boxes grown by"
-        f" {dynamic.BOX_MARGIN_M:g} m at the point's own time (cuboids metadata: dynamic_tracks, dynamic_rule)"
-    )
-
-
 @dataclass(frozen=True)
 class CuboidLabels:
     """The cuboids' names and provenance as written.

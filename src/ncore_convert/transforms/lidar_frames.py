@@ -17,9 +17,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ncore_convert.contract import DYNAMIC_FLAG, LIDAR_RGB
-from ncore_convert.transforms.dynamic import DynamicBoxes, dynamic_flags
+from ncore_convert.transforms.dynamic import BOX_MARGIN_M, DynamicBoxes, dynamic_flags
 from ncore_convert.transforms.geometry import transform_points
 from ncore_convert.transforms.lidar import RayBundle, ray_bundle
+from ncore_convert.transforms.point_colours import FILL_RGB
 from ncore_convert.transforms.timebase import floor_us
 
 #: ``(xyz_fixed_m [N,3], timestamps_us int64 [N], dynamic bool [N]) -> (rgb uint8 [N,3], coloured bool [N])``
@@ -167,3 +168,44 @@ def lidar_frame(
         for lidar in geometry
     }
     return stored, data
+
+
+@dataclass
+class LidarCounts:
+    """One lidar's tallies over the frames written (its metadata's figures)."""
+
+    stored: int = 0  #: rays stored
+    zero_range: int = 0  #: points at zero range: no ray
+    non_finite: int = 0  #: points with non-finite coordinates: no ray
+    coloured: int = 0  #: points a camera coloured
+
+    def add(self, frame: StoredRays) -> None:
+        self.stored += len(frame.rays)
+        self.zero_range += frame.rays.n_zero_range
+        self.non_finite += frame.rays.n_non_finite
+        self.coloured += frame.coloured
+
+    @property
+    def not_stored(self) -> int:
+        return self.zero_range + self.non_finite
+
+
+def dynamic_flag_note(n_dynamic_tracks: int) -> str:
+    """What a lidar's metadata says of the ``dynamic_flag`` written on its frames."""
+    return (
+        f"written: int8 per point, 1 = inside one of {n_dynamic_tracks} dynamic tracks' boxes grown by"
+        f" {BOX_MARGIN_M:g} m at the point's own time (cuboids metadata: dynamic_tracks, dynamic_rule)"
+    )
+
+
+def rgb_note(lidar_rgb: bool, cameras: bool, taken_from: str) -> str:
+    """What a lidar's metadata says of ``rgb``: written (``taken_from``: the pixel of which camera
+    frame, and what occludes it), or why not (``--lidar-rgb`` off, no ``cameras`` converted)."""
+    if not lidar_rgb:
+        return "not written (--lidar-rgb is off)"
+    if not cameras:
+        return "not written: no cameras converted"
+    return (
+        f"written: uint8 [N,3] per point, the colour of the {taken_from}; {list(FILL_RGB)} where no camera sees it"
+        " (rgb_coloured_points counts the others)"
+    )

@@ -16,7 +16,7 @@ from ncore_convert.converters.argoverse2.masks import reduced_size, reduction
 from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.geometry import invert_se3
-from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, FILL_RGB, ColourFrame, point_colours
+from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 
 #: Camera frames this far (µs) beyond a sweep's first and last point are candidates: a 20 Hz
@@ -27,15 +27,12 @@ FRAME_MARGIN_US = 30_000
 LABEL_SLACK_M = 0.5
 
 
-def rgb_note() -> str:
-    """What a lidar's metadata says of the ``rgb`` written on its frames."""
-    return (
-        "written: uint8 [N,3] per point, the colour of the camera pixel it projects to in the frame nearest its"
-        " own time (occlusion by a depth buffer of the sweep's points and by the annotated boxes, never from ego"
-        f" pixels, points on dynamic tracks only from a frame within {DYNAMIC_DT_US / 1000:g} ms); {list(FILL_RGB)}"
-        " where no camera sees it"
-        " (rgb_coloured_points counts the others)"
-    )
+#: Which pixel a point's ``rgb`` is (``lidar_frames.rgb_note``).
+COLOURS_TAKEN_FROM = (
+    "camera pixel it projects to in the frame nearest its own time (occlusion by a depth buffer of the sweep's"
+    " points and by the annotated boxes, never from ego pixels, points on dynamic tracks only from a frame within"
+    f" {DYNAMIC_DT_US / 1000:g} ms)"
+)
 
 
 class SweepColours:

@@ -15,7 +15,7 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters import consumer
-from ncore_convert.converters.argoverse2.colours import SweepColours, rgb_note
+from ncore_convert.converters.argoverse2.colours import COLOURS_TAKEN_FROM, SweepColours
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
@@ -23,7 +23,7 @@ from ncore_convert.converters.common import Tally
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
-from ncore_convert.transforms.lidar_frames import lidar_frame
+from ncore_convert.transforms.lidar_frames import LidarCounts, dynamic_flag_note, lidar_frame, rgb_note
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import (
     BASE_JOB,
@@ -183,9 +183,7 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
         unit: writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta})
         for unit in plan.lidar_ids
     }
-    not_stored = {unit: {"zero_range": 0, "non_finite": 0} for unit in lidars}
-    source_points = {unit: 0 for unit in lidars}
-    coloured_points = {unit: 0 for unit in lidars}
+    counts = {unit: LidarCounts() for unit in lidars}
     for sweep_ns in plan.sweep_timestamps_ns:
         sweep = av2.read_sweep(log_dir, int(sweep_ns), not plan.options.tbv)
         times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
@@ -195,7 +193,7 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
         result.colour_seconds += data.colour_seconds
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
-            coloured_points[unit] += unit_rays.coloured
+            counts[unit].add(unit_rays)
             frame_meta = {
                 "av2_sweep_timestamp_ns": int(sweep_ns),
                 "points_zero_range": rays.n_zero_range,
@@ -206,16 +204,17 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             lidars[unit].store_frame(
                 rays, frame_meta, model_element=unit_rays.model_elements, generic_data=unit_rays.generic
             )
-            not_stored[unit]["zero_range"] += rays.n_zero_range
-            not_stored[unit]["non_finite"] += rays.n_non_finite
-            source_points[unit] += len(rays) + rays.n_zero_range + rays.n_non_finite
-            result.points += len(rays)
-            result.points_not_stored += rays.n_zero_range + rays.n_non_finite
         result.sweeps += 1
         progress(1)
     for unit, stream in lidars.items():
-        counts = {"source_points": source_points[unit], contract.POINTS_NOT_STORED: not_stored[unit]}
-        stream.set_meta(counts if colours is None else {**counts, "rgb_coloured_points": coloured_points[unit]})
+        unit_counts = counts[unit]
+        result.points += unit_counts.stored
+        result.points_not_stored += unit_counts.not_stored
+        figures = {
+            "source_points": unit_counts.stored + unit_counts.not_stored,
+            contract.POINTS_NOT_STORED: {"zero_range": unit_counts.zero_range, "non_finite": unit_counts.non_finite},
+        }
+        stream.set_meta(figures if colours is None else {**figures, "rgb_coloured_points": unit_counts.coloured})
     if result.points_not_stored:
         result.warnings.append(
             f"{result.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
@@ -225,15 +224,13 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
 
 def _rgb_note(plan: LogPlan) -> str:
     """What the lidar metadata says of ``rgb`` (written, or why not)."""
-    if not plan.options.lidar_rgb:
-        return "not written (--lidar-rgb is off)"
-    return rgb_note() if plan.camera_ids else "not written: no cameras converted"
+    return rgb_note(plan.options.lidar_rgb, bool(plan.camera_ids), COLOURS_TAKEN_FROM)
 
 
 def _dynamic_flag_note(plan: LogPlan) -> str:
     """What the lidar metadata says of ``dynamic_flag`` (written, or why not)."""
     if plan.dynamic_boxes is not None:
-        return consumer.dynamic_flag_note(len(plan.dynamic_boxes))
+        return dynamic_flag_note(len(plan.dynamic_boxes))
     return "not written: " + ("TbV has no cuboids" if plan.options.tbv else "the log has no annotations")
 
 

@@ -26,8 +26,15 @@ from ncore_convert.transforms import carla
 from ncore_convert.transforms.carla_lidar import assign_elements
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3
 from ncore_convert.transforms.lidar import RayBundle
-from ncore_convert.transforms.lidar_frames import LidarFrame, LidarGeometry, lidar_frame
-from ncore_convert.transforms.point_colours import FILL_RGB, ColourFrame, point_colours
+from ncore_convert.transforms.lidar_frames import (
+    LidarCounts,
+    LidarFrame,
+    LidarGeometry,
+    dynamic_flag_note,
+    lidar_frame,
+    rgb_note,
+)
+from ncore_convert.transforms.point_colours import ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 from ncore_convert.writer import Cuboids, SequenceWriter, write_scenario_manifest, write_sequence_meta
 
@@ -153,18 +160,11 @@ def _write_base(
         writer.store_lidar_model(names.sensor(src.LIDAR), agent.lidar_model)
 
 
-def _rgb_note(plan: ScenarioPlan, agent: AgentPlan) -> str:
-    """What a lidar's metadata says of ``rgb`` (written, or why not)."""
-    if not plan.options.lidar_rgb:
-        return "not written (--lidar-rgb is off)"
-    if not agent.camera_ids:
-        return "not written: no cameras converted"
-    return (
-        "written: uint8 [N,3] per point, the colour of the pixel it projects to in the agent's own cameras at the"
-        f" same tick (occlusion by a depth buffer of the frame's points and by the tick's labelled vehicles);"
-        f" {list(FILL_RGB)} where no camera sees it"
-        " (rgb_coloured_points counts the others)"
-    )
+#: Which pixel a point's ``rgb`` is (``lidar_frames.rgb_note``).
+COLOURS_TAKEN_FROM = (
+    "pixel it projects to in the agent's own cameras at the same tick (occlusion by a depth buffer of the frame's"
+    " points and by the tick's labelled vehicles)"
+)
 
 
 def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t_us: int) -> list[ColourFrame]:
@@ -224,8 +224,8 @@ def _write_sensors(
             **agent.lidar_model_meta,
             "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
             "mounting": agent.mounts[src.LIDAR],
-            contract.DYNAMIC_FLAG: consumer.dynamic_flag_note(len(plan.dynamic_boxes)),
-            contract.LIDAR_RGB: _rgb_note(plan, agent),
+            contract.DYNAMIC_FLAG: dynamic_flag_note(len(plan.dynamic_boxes)),
+            contract.LIDAR_RGB: rgb_note(plan.options.lidar_rgb, bool(agent.camera_ids), COLOURS_TAKEN_FROM),
         }
         T_lidar_rig = agent.T_sensor_rig[src.LIDAR]
         # CARLA's points are in the lidar's frame at the tick already: the source's exact float32 values
@@ -235,7 +235,7 @@ def _write_sensors(
             elements=None if model is None else lambda rays, rows: (assign_elements(model, rays.direction), {}),
         )
         lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
-        not_stored = coloured_points = 0
+        tally = LidarCounts()
         skipped = dict(agent.skipped_keys)
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
@@ -267,8 +267,7 @@ def _write_sensors(
             }
             if contract.LIDAR_RGB in own.generic:
                 generic[contract.LIDAR_RGB] = own.generic[contract.LIDAR_RGB]
-                coloured_points += own.coloured
-            elements = own.model_elements
+            tally.add(own)
             lidar.store_frame(
                 rays,
                 {
@@ -277,25 +276,24 @@ def _write_sensors(
                     contract.OPENCOOD_YAML: yaml_text,
                     contract.PCD_LAYOUT: sweep.layout,
                 },
-                model_element=elements,
+                model_element=own.model_elements,
                 generic_data=generic,
             )
             counts.frames += 1
-            counts.points += len(rays)
-            not_stored += rays.n_zero_range + rays.n_non_finite
             progress(1)
         lidar.set_meta(
             {
                 **meta,
                 contract.SKIPPED_FRAMES: skipped,
-                **({"rgb_coloured_points": coloured_points} if plan.options.lidar_rgb and agent.camera_ids else {}),
+                **({"rgb_coloured_points": tally.coloured} if plan.options.lidar_rgb and agent.camera_ids else {}),
             }
         )
-        counts.points_not_stored += not_stored
-        if not_stored:
+        counts.points += tally.stored
+        counts.points_not_stored += tally.not_stored
+        if tally.not_stored:
             counts.warnings.append(
-                f"{agent.agent_dir}: {not_stored} lidar points at zero range or with non-finite coordinates not stored"
-                " as rays (kept in their frames' generic data for the OpenCOOD read-back)"
+                f"{agent.agent_dir}: {tally.not_stored} lidar points at zero range or with non-finite coordinates"
+                " not stored as rays (kept in their frames' generic data for the OpenCOOD read-back)"
             )
     for cam in agent.camera_ids:
         index = agent.camera_index[cam]
