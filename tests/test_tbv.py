@@ -186,7 +186,7 @@ def test_a_tbv_log_with_annotations_converts_them_at_the_reconstructed_times(tmp
     flagged, points on the others and on the ground are not (but within a dynamic box's margin)."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    config = SynthConfig(seconds=1.0, seed=6, camera_fps=0, keep_truth=True, tbv=True, tbv_annotations=True)
+    config = SynthConfig(seconds=0.5, seed=6, camera_fps=0, keep_truth=True, tbv=True, tbv_annotations=True)
     truth = write_log(UPath(tmp_path / "root"), config)
     out = tmp_path / "out"
     args = ["--no-progress", "--root-dir", str(tmp_path / "root"), "--output-dir", str(out), "tbv-v4"]
