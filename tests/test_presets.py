@@ -191,7 +191,8 @@ def test_a_library_caller_gets_the_preset_too(source):
         UPath(root / "src"),
         UPath(root / "library"),
         truth.log_id,
-        Argoverse2Options(split="val", preset="3dgut", lidar_rgb=False),
+        # the cameras and poses are what the preset changes: no lidars, no ego-mask estimate (suite time)
+        Argoverse2Options(split="val", preset="3dgut", lidar_ids=(), camera_ids=("ring_front_left",), ego_masks="none"),
     )
     loader = open_sequence(root / "library", truth.log_id)
     assert _camera_models(loader) == {OpenCVPinholeCameraModel}
