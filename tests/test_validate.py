@@ -182,9 +182,9 @@ def test_the_validate_command_prints_failures_writes_json_and_exits_non_zero(dir
     )
 
 
-def test_the_cuboids_decoded_in_a_pool_worker_give_the_same_checks(directory_log):
-    """With the converter's pool, the observations are decoded by a worker job while the parent runs
-    the other checks: the same checks and details, in the same order."""
+def test_the_lidars_checked_in_pool_workers_give_the_same_checks(directory_log):
+    """With the converter's pool, each lidar's frames are checked by a worker job while the parent
+    runs the other checks: the same checks and details, in the same order."""
     from ncore_convert.run.pool import JobPool
 
     (meta,) = directory_log.seq_dir.glob("*.json")
@@ -194,13 +194,99 @@ def test_the_cuboids_decoded_in_a_pool_worker_give_the_same_checks(directory_log
     with JobPool(1) as pool:
 
         def run_jobs(batch):
-            jobs.extend(fn.__name__ for fn, _ in batch)
+            jobs.extend((fn.__name__, args[1]) for fn, args in batch)
             return pool.run(batch)
 
         (pooled,) = validate_tree(UPath(meta), root, run_jobs=run_jobs)
-    assert jobs == ["_observations_job"]
+    assert jobs == [("lidar_frame_checks", lidar) for lidar in directory_log.loader.lidar_ids]
     assert pooled.checks == alone.checks and alone.ok
-    assert {"lidar up_lidar: cuboids hold points", "source: cuboids"} <= {c.name for c in pooled.checks}
+    assert {"lidar up_lidar: unit directions", "lidar up_lidar: cuboids hold points", "source: cuboids"} <= {
+        c.name for c in pooled.checks
+    }
+
+
+def edit_cuboids(edit):
+    """A store edit: ``edit(observations)`` on the stored JSON objects of the default cuboids
+    component (``cuboids/default/cuboids``, attribute ``cuboid_track_observations``: NCore's
+    documented layout)."""
+
+    def apply(group):
+        attrs = group["cuboids/default/cuboids"].attrs
+        observations = attrs["cuboid_track_observations"]
+        edit(observations)
+        attrs["cuboid_track_observations"] = observations
+
+    return apply
+
+
+def _track_rows(observations: list, row: int) -> list[int]:
+    return [i for i, o in enumerate(observations) if o["track_id"] == observations[row]["track_id"]]
+
+
+def _set_box(row: int, key: str, value: list):
+    return lambda obs: obs[row]["bbox3"].__setitem__(key, value)
+
+
+#: a corruption of the stored observations -> the checks it must fail (and no other)
+CUBOID_FAULTS = {
+    "a NaN centre": (_set_box(7, "centroid", [float("nan"), 0.0, 0.0]), {"cuboids: finite boxes with sizes > 0"}),
+    "a zero size": (_set_box(7, "dim", [4.0, 0.0, 1.5]), {"cuboids: finite boxes with sizes > 0"}),
+    "an empty track id": (
+        lambda obs: obs[7].__setitem__("track_id", ""),
+        {"cuboids: track and class ids"},
+    ),
+    "a source NCore does not know": (
+        lambda obs: obs[7].__setitem__("source", "HUMAN"),
+        {"cuboids: label sources", "cuboids: decoded by nvidia-ncore as read (sample)"},
+    ),
+    "a reference frame the pose graph lacks": (
+        lambda obs: obs[7].__setitem__("reference_frame_id", "roof_rack"),
+        {"cuboids: reference frames posed at their times"},
+    ),
+    "a time after the sequence": (
+        lambda obs: obs[7].__setitem__("timestamp_us", obs[7]["timestamp_us"] + 10**7),
+        {"cuboids: times within the sequence"},
+    ),
+    "an object without its box": (lambda obs: obs[7].pop("bbox3"), {"cuboids: readable"}),
+}
+
+
+@pytest.mark.parametrize("fault", list(CUBOID_FAULTS))
+def test_every_cuboid_observation_is_checked_from_the_documented_layout(directory_log, tmp_path, fault):
+    """Each planted fault in one stored observation fails exactly the check that names it."""
+    edit, expected = CUBOID_FAULTS[fault]
+    failures = corrupt(directory_log, tmp_path, edit_cuboids(edit))
+    assert set(failures) == expected, failures
+    if fault == "an object without its box":
+        assert failures["cuboids: readable"].startswith("default cuboids component: observation 7: KeyError")
+
+
+def test_the_library_decodes_every_tracks_first_and_last_observation_and_a_stride():
+    from ncore_convert.validate.cuboids import LIBRARY_SAMPLE_STRIDED, CuboidColumns, library_sample
+
+    rng = np.random.default_rng(0)
+    n_tracks, per_track = 300, 40
+    stored = [
+        {
+            "track_id": f"track-{k}",
+            "class_id": "car",
+            "timestamp_us": int(t),
+            "reference_frame_id": "rig",
+            "reference_frame_timestamp_us": int(t),
+            "bbox3": {"centroid": [0.0, 0.0, 0.0], "dim": [1.0, 1.0, 1.0], "rot": [0.0, 0.0, 0.0]},
+            "source": "EXTERNAL",
+        }
+        for k in range(n_tracks)
+        for t in rng.permutation(per_track) * 100_000 + k
+    ]
+    order = rng.permutation(len(stored))  # tracks interleaved, times out of order, as a store may hold them
+    columns = CuboidColumns.from_stored([stored[i] for i in order])
+    sample = library_sample(columns)
+    picked = {(columns.track_id[i], int(columns.timestamp_us[i]) // 100_000) for i in sample}
+    for k in range(n_tracks):
+        assert {(f"track-{k}", 0), (f"track-{k}", per_track - 1)} <= picked
+    assert len(sample) <= 2 * n_tracks + LIBRARY_SAMPLE_STRIDED and len(set(sample.tolist())) == len(sample)
+    assert len(sample) >= 2 * n_tracks + LIBRARY_SAMPLE_STRIDED // 2  # the stride adds rows the ends do not hold
 
 
 # --- against the source (--source) ---------------------------------------------------------------
@@ -219,6 +305,9 @@ def test_source_counts_match_on_the_synthetic_and_real_conversions(synth_log, re
             "source: up_lidar frames (one per sweep)",
         } <= set(source), source
         assert source["source: points inside each box match num_interior_pts"].startswith("0 of ")
+        every = source["source: every cuboid is its annotation (track, time, centre, size, rotation)"]
+        n = len(list(converted.loader.get_cuboid_track_observations()))
+        assert every.startswith(f"0 of {n} without an annotation row, 0 differ"), every
     # the counts are the generator's truth, not the converter's
     truth = synth_log.truth
     (meta,) = synth_log.seq_dir.glob("*.json")
@@ -226,6 +315,17 @@ def test_source_counts_match_on_the_synthetic_and_real_conversions(synth_log, re
     points = sum(len(s.offset_ns) for s in truth.sweeps)
     assert details["source: lidar points"].endswith(f"{points} in the source")
     assert details["source: cuboids"] == f"{truth.n_cuboids} converted, {truth.n_cuboids} in the source"
+
+
+def test_a_box_moved_by_a_centimetre_differs_from_its_annotation(directory_log, tmp_path):
+    def move(observations):
+        observations[3]["bbox3"]["centroid"][0] += 0.01
+
+    failures = corrupt(directory_log, tmp_path, edit_cuboids(move), source=source_root(directory_log))
+    name = "source: every cuboid is its annotation (track, time, centre, size, rotation)"
+    # the synthetic lidar hits box faces exactly, so a face moved by 1 cm may also change the interior counts
+    assert name in failures and set(failures) <= {name, "source: points inside each box match num_interior_pts"}
+    assert ", 1 differ by more than 1e-06" in failures[name] and "worst 1.00e-02" in failures[name], failures
 
 
 def test_a_flipped_extrinsic_breaks_the_interior_point_counts(directory_log, tmp_path):

@@ -24,6 +24,7 @@ from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE, EGO_MASK
 from ncore_convert.validate.coregister import scenario_lidars
+from ncore_convert.validate.cuboids import CuboidColumns, read_cuboids
 from ncore_convert.validate.readback import (
     box_corners_world,
     boxes_at,
@@ -146,7 +147,7 @@ def _footprint(corners: np.ndarray) -> np.ndarray:
     return corners[[0, 2, 6, 4, 0], :2]
 
 
-def draw_bev(loader: SequenceLoaderV4, t_us: int, xyz: np.ndarray, png: UPath) -> None:
+def draw_bev(loader: SequenceLoaderV4, cuboids: CuboidColumns, t_us: int, xyz: np.ndarray, png: UPath) -> None:
     """Bird's-eye view of ``world`` around the ego at ``t_us``: the lidar points (world, float64 [N,3])
     by height, the cuboids of that sweep, the ego trajectory."""
     T_rig_world = loader.pose_graph.evaluate_poses("rig", "world", np.array([t_us], dtype=np.uint64))[0]
@@ -171,8 +172,8 @@ def draw_bev(loader: SequenceLoaderV4, t_us: int, xyz: np.ndarray, png: UPath) -
     frame_end = int(t_us)
     lidar0 = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us
     f = _nearest_frame(lidar0, t_us)
-    boxes = boxes_at(list(loader.get_cuboid_track_observations()), int(lidar0[f, 0]), int(lidar0[f, 1]))
-    outlines = [_footprint(box_corners_world(loader, b)) for b in boxes]
+    boxes = boxes_at(cuboids, int(lidar0[f, 0]), int(lidar0[f, 1]))
+    outlines = [_footprint(corners) for corners in box_corners_world(loader, boxes)]
     ax.add_collection(LineCollection(outlines, colors="red", linewidths=1.0, label=f"cuboids ({len(boxes)})"))
     ax.plot(trajectory[:, 0], trajectory[:, 1], "-", color="orange", lw=1.5, label="ego trajectory")
     heading_deg = np.degrees(np.arctan2(T_rig_world[1, 0], T_rig_world[0, 0]))
@@ -207,7 +208,8 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
         frame: index of the first lidar's frame to show (default: the middle one); each camera shows
             its frame nearest in time.
     """
-    loader = open_sequence(sequence_json).loader
+    sequence = open_sequence(sequence_json)
+    loader = sequence.loader
     if not loader.lidar_ids:
         raise ValueError(f"{sequence_json}: the sequence has no lidar to preview")
     frames_us = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us
@@ -219,7 +221,8 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
     stem = f"{loader.sequence_id}_f{frame:04d}"
     t_mid = float(frames_us[frame].astype(np.float64).mean())
     xyz = lidar_world_points(loader, t_mid)
-    draw_bev(loader, int(frames_us[frame, 1]), xyz, out_dir / f"{stem}_bev.png")
+    cuboids = read_cuboids(sequence.reader) or CuboidColumns.from_stored([])
+    draw_bev(loader, cuboids, int(frames_us[frame, 1]), xyz, out_dir / f"{stem}_bev.png")
     projections = []
     for camera_id in loader.camera_ids:
         camera_frame = _nearest_frame(loader.get_camera_sensor(camera_id).frames_timestamps_us, t_mid)

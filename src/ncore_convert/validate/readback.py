@@ -9,7 +9,7 @@ Transforms follow the house rule: ``T_a_b`` maps points from frame ``a`` to fram
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from ncore.data.v4 import (
@@ -25,6 +25,7 @@ from upath import UPath
 from ncore_convert.contract import DEFAULT_INSTANCE, WORLD_GLOBAL, ScenarioManifest
 from ncore_convert.transforms.boxes import CORNER_SIGNS, SortedByX
 from ncore_convert.transforms.sampling import spread_indices
+from ncore_convert.validate.cuboids import CuboidColumns
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
 SAMPLED_FRAMES = 5
@@ -34,10 +35,19 @@ BOUND_MARGIN_M = 0.01
 
 @dataclass(frozen=True)
 class OpenSequence:
-    """A sequence opened for reading: the loader, and the reader under it (for component metadata)."""
+    """A sequence opened for reading: the loader, and the reader under it (for component metadata).
+    ``world_points`` keeps the frames it motion-compensated (the checks sample the same frames)."""
 
     loader: SequenceLoaderV4
     reader: SequenceComponentGroupsReader
+    _points: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def world_points(self, lidar_id: str, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`world_points` in ``world``, computed once per lidar frame."""
+        key = (lidar_id, frame)
+        if key not in self._points:
+            self._points[key] = world_points(self.loader, lidar_id, frame)
+        return self._points[key]
 
     def sensor_meta(self) -> dict[str, dict]:
         """Each lidar and camera component's generic metadata, by sensor id."""
@@ -55,12 +65,6 @@ def open_sequence(sequence_json: UPath, poses_instance: str = DEFAULT_INSTANCE) 
     return OpenSequence(SequenceLoaderV4(reader, poses_component_group_name=poses_instance), reader)
 
 
-def cuboid_observations(sequence_json: UPath) -> list:
-    """Every cuboid observation of a sequence, decoded by nvidia-ncore (the slow part of validation:
-    a pool worker can do it while the other checks run)."""
-    return list(open_sequence(sequence_json).loader.get_cuboid_track_observations())
-
-
 def read_manifest(manifest_path: UPath) -> ScenarioManifest:
     return ScenarioManifest.from_dict(json.loads(UPath(manifest_path).read_text()))
 
@@ -70,13 +74,15 @@ def sample_frames(n_frames: int) -> np.ndarray:
     return spread_indices(n_frames, SAMPLED_FRAMES)
 
 
-def boxes_at(observations: list, t0_us: int, t1_us: int) -> list:
+def boxes_at(cuboids: CuboidColumns, t0_us: int, t1_us: int) -> CuboidColumns:
     """The cuboid observations of one labelled instant in a frame [t0_us, t1_us]: the earliest
     label time within it (consecutive lidar frames can overlap by a few ms, so a frame's interval
     may also hold the next sweep's label time)."""
-    inside = [o for o in observations if t0_us <= o.timestamp_us <= t1_us]
-    first = min((o.timestamp_us for o in inside), default=None)
-    return [o for o in inside if o.timestamp_us == first]
+    t_us = cuboids.timestamp_us
+    inside = (t_us >= t0_us) & (t_us <= t1_us)
+    if not inside.any():
+        return cuboids.rows(inside)
+    return cuboids.rows(inside & (t_us == t_us[inside].min()))
 
 
 def world_global_edge(loader: SequenceLoaderV4) -> np.ndarray:
@@ -119,40 +125,49 @@ def world_points(
     return xyz_target_m, T_sensor_target[:3, 3]
 
 
-def _T_reference_world(loader: SequenceLoaderV4, box) -> np.ndarray:
-    """A cuboid observation's reference frame -> ``world`` at its reference time, float64 [4,4]."""
-    t_us = np.array([box.reference_frame_timestamp_us], dtype=np.uint64)
-    return loader.pose_graph.evaluate_poses(box.reference_frame_id, "world", t_us)[0].astype(np.float64)
+def _T_reference_world(loader: SequenceLoaderV4, frame_id: str, t_us: int) -> np.ndarray:
+    """A reference frame -> ``world`` at ``t_us``, float64 [4,4]."""
+    return loader.pose_graph.evaluate_poses(frame_id, "world", np.array([t_us], dtype=np.uint64))[0].astype(np.float64)
 
 
-def box_point_counts(loader: SequenceLoaderV4, boxes: list, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def box_point_counts(
+    loader: SequenceLoaderV4, boxes: CuboidColumns, xyz_world_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """How many of the points (world, float64 [N,3]) lie inside each box, int [B], and the box centres
     in world, float64 [B,3]; each box is tested in its own reference frame at its reference time
     (one pose per reference frame and time; only the points in the cube around the box's bounding
-    sphere go to NCore's ``is_within_3d_bboxes``)."""
+    sphere go to NCore's ``is_within_3d_bboxes``). A box whose reference frame cannot be posed at its
+    time counts -1 and has a NaN centre."""
     counts, centres = np.zeros(len(boxes), dtype=np.int64), np.zeros((len(boxes), 3))
+    bboxes = boxes.bboxes()
+    radius_m = 0.5 * np.linalg.norm(boxes.dim_m, axis=1) + BOUND_MARGIN_M
     groups: dict[tuple[str, int], list[int]] = {}
-    for k, box in enumerate(boxes):
-        groups.setdefault((box.reference_frame_id, box.reference_frame_timestamp_us), []).append(k)
-    for members in groups.values():
-        T_ref_world = _T_reference_world(loader, boxes[members[0]])
+    for k, key in enumerate(zip(boxes.reference_frame_id, boxes.reference_frame_timestamp_us.tolist(), strict=True)):
+        groups.setdefault(key, []).append(k)
+    for (frame_id, t_us), members in groups.items():
+        try:
+            T_ref_world = _T_reference_world(loader, frame_id, t_us)
+        except (KeyError, ValueError, AssertionError):  # the cuboid checks name the unposed reference frame
+            counts[members], centres[members] = -1, np.nan
+            continue
         xyz_ref = ((xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3]).astype(np.float32)
         points = SortedByX(xyz_ref)
+        centres[members] = boxes.centroid_m[members] @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
         for k in members:
-            box = boxes[k]
-            centre_ref = np.asarray(box.bbox3.centroid, dtype=np.float64)
-            centres[k] = T_ref_world[:3, :3] @ centre_ref + T_ref_world[:3, 3]
-            radius_m = 0.5 * float(np.linalg.norm(box.bbox3.dim)) + BOUND_MARGIN_M
-            candidates = xyz_ref[points.near(centre_ref, radius_m)]
-            bbox = np.array([[*box.bbox3.centroid, *box.bbox3.dim, *box.bbox3.rot]], dtype=np.float32)
-            counts[k] = int(is_within_3d_bboxes(candidates, bbox).sum())
+            candidates = xyz_ref[points.near(boxes.centroid_m[k], float(radius_m[k]))]
+            counts[k] = int(is_within_3d_bboxes(candidates, bboxes[k : k + 1]).sum())
     return counts, centres
 
 
-def box_corners_world(loader: SequenceLoaderV4, box) -> np.ndarray:
-    """The 8 corners of a cuboid observation in ``world``, float64 [8,3]."""
-    xyz_box = CORNER_SIGNS * np.asarray(box.bbox3.dim) / 2
-    R_box_ref = Rotation.from_euler("xyz", box.bbox3.rot).as_matrix()
-    xyz_ref = xyz_box @ R_box_ref.T + np.asarray(box.bbox3.centroid)
-    T_ref_world = _T_reference_world(loader, box)
-    return xyz_ref @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
+def box_corners_world(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
+    """The 8 corners of each box in ``world``, float64 [B,8,3]."""
+    xyz_box = CORNER_SIGNS[None] * boxes.dim_m[:, None, :] / 2
+    R_box_ref = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix()
+    xyz_ref = np.einsum("bij,bkj->bki", R_box_ref, xyz_box) + boxes.centroid_m[:, None, :]
+    out = np.empty_like(xyz_ref)
+    for k, (frame_id, t_us) in enumerate(
+        zip(boxes.reference_frame_id, boxes.reference_frame_timestamp_us.tolist(), strict=True)
+    ):
+        T_ref_world = _T_reference_world(loader, frame_id, t_us)
+        out[k] = xyz_ref[k] @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
+    return out

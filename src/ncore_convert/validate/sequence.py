@@ -8,24 +8,28 @@ cuboid-occupancy check, which needs the motion-compensated points of a frame, ru
 
 from __future__ import annotations
 
-from concurrent.futures import Future
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from upath import UPath
 
 from ncore_convert import contract
+from ncore_convert.validate.cuboids import CuboidColumns, check_cuboids, read_cuboids
 from ncore_convert.validate.readback import (
+    OpenSequence,
     box_point_counts,
     boxes_at,
     open_sequence,
     sample_frames,
     world_global_edge,
-    world_points,
 )
 from ncore_convert.validate.report import Report
 from ncore_convert.validate.source import compare_with_source
 
+#: A worker pool's ``run``: a list of (function, args) jobs -> their results, in order.
+RunJobs = Callable[[list[tuple[Callable, tuple]]], list]
 UNIT_TOLERANCE = 1e-4  #: |‖direction‖ − 1| allowed (directions are stored as float32)
 #: A frame interval more than this times the median is a dropped frame; less than 1/this, a shifted one.
 GAP_FACTOR = 1.5
@@ -76,15 +80,16 @@ def _uncovered(loader: SequenceLoaderV4, sensor_id: str, spans_us: np.ndarray) -
     return [i for i in range(len(spans_us)) if not _covered(loader, sensor_id, spans_us[i])]
 
 
-def _occupancy(loader: SequenceLoaderV4, lidar_id: str, observations: list) -> tuple[int, int]:
+def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> tuple[int, int]:
     """(near boxes holding a point, near boxes) over the sampled frames of one lidar."""
+    loader = sequence.loader
     frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us
     held = near = 0
     for i in sample_frames(len(frames_us)):
-        boxes = boxes_at(observations, int(frames_us[i, 0]), int(frames_us[i, 1]))
-        if not boxes:
+        boxes = boxes_at(cuboids, int(frames_us[i, 0]), int(frames_us[i, 1]))
+        if not len(boxes):
             continue
-        xyz_world, sensor_world = world_points(loader, lidar_id, i)
+        xyz_world, sensor_world = sequence.world_points(lidar_id, i)
         counts, centres = box_point_counts(loader, boxes, xyz_world)
         is_near = np.linalg.norm(centres - sensor_world, axis=1) <= OCCUPANCY_RANGE_M
         near += int(is_near.sum())
@@ -112,8 +117,9 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> boo
             unreadable.append(f"frame {i}: {type(err).__name__} {err}")
             continue
         points += len(t_us)
-        if len(direction):
-            worst_norm = max(worst_norm, float(np.abs(np.linalg.norm(direction, axis=1) - 1).max()))
+        if len(direction):  # the extreme squared norms decide the worst |norm - 1|
+            norm2 = np.einsum("ij,ij->i", direction, direction)
+            worst_norm = max(worst_norm, *(abs(float(np.sqrt(v)) - 1) for v in (norm2.min(), norm2.max())))
         outside_time += int(np.sum((t_us < frames_us[i, 0]) | (t_us > frames_us[i, 1])))
         bad_intensity += int(np.sum(~((intensity >= 0) & (intensity <= 1))))
         if model is not None and (element := lidar.get_frame_ray_bundle_model_element(i)) is not None:
@@ -143,8 +149,8 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> boo
     return not uncovered and not unreadable and outside_time == 0  # what motion compensation needs
 
 
-def _check_occupancy(report: Report, loader: SequenceLoaderV4, lidar_id: str, observations: list) -> None:
-    held, near = _occupancy(loader, lidar_id, observations)
+def _check_occupancy(report: Report, sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> None:
+    held, near = _occupancy(sequence, lidar_id, cuboids)
     decisive = near >= OCCUPANCY_MIN_BOXES
     ok = not decisive or held >= OCCUPANCY_MIN_FRACTION * near
     report.add(
@@ -217,7 +223,7 @@ def _check_world_global(report: Report, loader: SequenceLoaderV4) -> None:
     )
 
 
-def _check_window(report: Report, loader: SequenceLoaderV4, observations: list) -> None:
+def _check_window(report: Report, loader: SequenceLoaderV4, cuboids: CuboidColumns) -> None:
     """With a clip window: camera frames and cuboids lie in it, and every lidar frame overlaps it."""
     clip = loader.generic_meta_data.get(contract.CLIP)
     if not clip:
@@ -230,7 +236,8 @@ def _check_window(report: Report, loader: SequenceLoaderV4, observations: list) 
     for lidar_id in loader.lidar_ids:
         frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us.astype(np.int64)
         outside += [f"{lidar_id}[{i}]" for i in np.flatnonzero((frames_us[:, 1] < start) | (frames_us[:, 0] > end))]
-    outside += [f"cuboid {o.track_id}@{o.timestamp_us}" for o in observations if not start <= o.timestamp_us <= end]
+    t_us = cuboids.timestamp_us
+    outside += [f"cuboid {cuboids.track_id[i]}@{t_us[i]}" for i in np.flatnonzero((t_us < start) | (t_us > end))]
     report.add(
         "frames and cuboids within the clip window",
         not outside,
@@ -239,36 +246,50 @@ def _check_window(report: Report, loader: SequenceLoaderV4, observations: list) 
     )
 
 
-def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4) -> None:
-    """Where a lidar has ``dynamic_flag``, every frame has one int8 value in {0, 1} per ray."""
-    for lidar_id in loader.lidar_ids:
-        source = loader.get_point_clouds_source(lidar_id)
-        if not source.pcs_count or not source.has_pc_generic_data(0, contract.DYNAMIC_FLAG):
+def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> None:
+    """Where the lidar has ``dynamic_flag``, every frame has one int8 value in {0, 1} per ray."""
+    source = loader.get_point_clouds_source(lidar_id)
+    if not source.pcs_count or not source.has_pc_generic_data(0, contract.DYNAMIC_FLAG):
+        return
+    bad, lidar = [], loader.get_lidar_sensor(lidar_id)
+    for i in range(source.pcs_count):
+        try:
+            flag = source.get_pc_generic_data(i, contract.DYNAMIC_FLAG)
+            n = lidar.get_frame_ray_bundle_count(i)
+        except (KeyError, ValueError, OSError):  # an unreadable frame: "frames readable" names it
             continue
-        bad, lidar = [], loader.get_lidar_sensor(lidar_id)
-        for i in range(source.pcs_count):
-            try:
-                flag = source.get_pc_generic_data(i, contract.DYNAMIC_FLAG)
-                n = lidar.get_frame_ray_bundle_count(i)
-            except (KeyError, ValueError, OSError):  # an unreadable frame: "frames readable" names it
-                continue
-            if flag.dtype != np.int8 or flag.shape != (n,) or not np.isin(flag, (0, 1)).all():
-                bad.append(i)
-        report.add(
-            f"lidar {lidar_id}: dynamic_flag per ray",
-            not bad,
-            f"int8 in {{0, 1}}, one per ray; {len(bad)} of {source.pcs_count} frames not",
-        )
+        if flag.dtype != np.int8 or flag.shape != (n,) or (n and flag.view(np.uint8).max() > 1):
+            bad.append(i)
+    report.add(
+        f"lidar {lidar_id}: dynamic_flag per ray",
+        not bad,
+        f"int8 in {{0, 1}}, one per ray; {len(bad)} of {source.pcs_count} frames not",
+    )
+
+
+def _lidar_checks(loader: SequenceLoaderV4, lidar_id: str) -> tuple[list, bool]:
+    """Every frame of one lidar read back and checked (:func:`_check_lidar`, ``dynamic_flag``): the
+    checks, and whether the frames allow the occupancy check."""
+    part = Report("")
+    frames_allow = _check_lidar(part, loader, lidar_id)
+    _check_dynamic_flag(part, loader, lidar_id)
+    return part.checks, frames_allow
+
+
+def lidar_frame_checks(sequence_json: UPath, lidar_id: str, progress=None) -> tuple[list, bool]:
+    """:func:`_lidar_checks` as a pool job (``progress``: unused), so that a log's lidars are checked
+    in its idle workers while the parent checks the rest."""
+    return _lidar_checks(open_sequence(sequence_json).loader, lidar_id)
 
 
 def validate_sequence(
-    sequence_json: UPath, source_root: UPath | None = None, observations: Future | None = None
+    sequence_json: UPath, source_root: UPath | None = None, run_jobs: RunJobs | None = None
 ) -> Report:
     """Open a sequence (its ``<sequence_id>.json``) with the default instance names and check it;
-    with ``source_root`` (the converter's --root-dir), also compare its counts with the source.
-    ``observations``: the sequence's cuboid observations (:func:`readback.cuboid_observations`)
-    being decoded elsewhere, e.g. in a worker process; without it they are decoded here, after the
-    checks that do not need them. The checks and their order are the same either way."""
+    with ``source_root`` (the converter's --root-dir), also compare it with the source. With
+    ``run_jobs`` (a worker pool's ``run``), each lidar's frames are checked by a worker job
+    (:func:`lidar_frame_checks`) while this process checks the rest: the same checks in the same
+    order either way."""
     report = Report(str(sequence_json))
     try:
         sequence = open_sequence(sequence_json)
@@ -283,23 +304,29 @@ def validate_sequence(
     report.add(
         "opens with SequenceLoaderV4", True, f"{len(loader.lidar_ids)} lidar(s), {len(loader.camera_ids)} camera(s)"
     )
-    _check_world_global(report, loader)
-    window, flag, cameras = Report(report.sequence), Report(report.sequence), Report(report.sequence)
-    _check_dynamic_flag(flag, loader)
-    lidars, lidar_frames = [], None
-    for lidar_id in loader.lidar_ids:
-        part = Report(report.sequence)
-        lidars.append((lidar_id, part, _check_lidar(part, loader, lidar_id)))
-        lidar_frames = loader.get_lidar_sensor(lidar_id).frames_timestamps_us if lidar_frames is None else lidar_frames
-    for camera_id in loader.camera_ids:
-        _check_camera(cameras, loader, camera_id, lidar_frames)
-    decoded = list(loader.get_cuboid_track_observations()) if observations is None else observations.result()
-    _check_window(window, loader, decoded)
-    for lidar_id, part, frames_allow in lidars:
-        if decoded and frames_allow:
-            _check_occupancy(part, loader, lidar_id, decoded)
-    for part in (window, flag, *(part for _, part, _ in lidars), cameras):
-        report.checks += part.checks
+    with ThreadPoolExecutor(1) as waiter:  # waits on the workers while this thread checks
+        jobs = [(lidar_frame_checks, (sequence_json, lidar_id)) for lidar_id in loader.lidar_ids]
+        pending = waiter.submit(run_jobs, jobs) if run_jobs is not None and jobs else None
+        _check_world_global(report, loader)
+        try:
+            cuboids = read_cuboids(sequence.reader)
+        except ValueError as err:
+            report.add("cuboids: readable", False, f"{contract.DEFAULT_INSTANCE} cuboids component: {err}")
+            cuboids = None
+        if cuboids is not None:
+            check_cuboids(report, loader, cuboids)
+        cuboids = cuboids if cuboids is not None else CuboidColumns.from_stored([])
+        _check_window(report, loader, cuboids)
+        cameras = Report(report.sequence)
+        lidar_frames = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us if loader.lidar_ids else None
+        for camera_id in loader.camera_ids:
+            _check_camera(cameras, loader, camera_id, lidar_frames)
+        lidar_parts = pending.result() if pending else [_lidar_checks(loader, lidar) for lidar in loader.lidar_ids]
+        for lidar_id, (checks, frames_allow) in zip(loader.lidar_ids, lidar_parts, strict=True):
+            report.checks += checks
+            if frames_allow and len(cuboids):
+                _check_occupancy(report, sequence, lidar_id, cuboids)
+        report.checks += cameras.checks
     if source_root is not None:
-        compare_with_source(report, sequence, source_root, decoded)
+        compare_with_source(report, sequence, source_root, cuboids)
     return report

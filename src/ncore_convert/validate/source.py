@@ -13,6 +13,7 @@ from functools import lru_cache
 
 import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
+from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert import contract
@@ -21,24 +22,28 @@ from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.pcd import read_pcd_header
 from ncore_convert.transforms.timebase import floor_us, in_window
-from ncore_convert.validate.readback import OpenSequence, box_point_counts, boxes_at, sample_frames, world_points
+from ncore_convert.validate.cuboids import CuboidColumns
+from ncore_convert.validate.readback import OpenSequence, box_point_counts, boxes_at, sample_frames
 from ncore_convert.validate.report import Report
 
 #: converted points inside a box may differ from AV2's num_interior_pts by this fraction (or 1 point):
 #: points on a box face can fall either side after the float16 -> float32 -> direction round trip
 INTERIOR_TOLERANCE = 0.02
+#: an observation's centre (m), size (m) and rotation-matrix elements may differ from its annotation
+#: row by this much (the xyz Euler angles round trip)
+BOX_TOLERANCE = 1e-6
 
 
-def compare_with_source(report: Report, sequence: OpenSequence, source_root: UPath, observations: list) -> None:
+def compare_with_source(report: Report, sequence: OpenSequence, source_root: UPath, cuboids: CuboidColumns) -> None:
     """Add the ``source:`` checks of one sequence (read from ``source_root``, the converter's --root-dir;
-    ``observations``: the sequence's cuboid observations, as ``get_cuboid_track_observations`` gives them)."""
+    ``cuboids``: the sequence's cuboid observations)."""
     meta = sequence.loader.generic_meta_data
     dataset = meta.get(contract.SOURCE_DATASET)
     try:
         if dataset in contract.ARGOVERSE2_DATASETS:
-            _compare_av2(report, sequence, UPath(source_root), meta, observations)
+            _compare_av2(report, sequence, UPath(source_root), meta, cuboids)
         elif dataset in contract.OPENCOOD_DATASETS:
-            _compare_opencood(report, sequence, UPath(source_root), meta, len(observations))
+            _compare_opencood(report, sequence, UPath(source_root), meta, len(cuboids))
         else:
             report.add("source: dataset known", False, f"source_dataset {dataset!r} is not one this tool converts")
     except SourceError as err:
@@ -81,7 +86,7 @@ def _in_window_ns(timestamps_ns: np.ndarray, window_us: tuple[int, int] | None) 
     return timestamps_ns if window_us is None else timestamps_ns[in_window(floor_us(timestamps_ns), window_us)]
 
 
-def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict, observations: list) -> None:
+def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict, cuboids: CuboidColumns) -> None:
     loader = sequence.loader
     log_dir = av2.log_dir(root, meta.get(contract.AV2_SPLIT), meta[contract.AV2_LOG_ID])
     if not log_dir.is_dir():
@@ -115,13 +120,52 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
     interior = av2.read_interior_points(log_dir)
     if interior is not None and window_us is not None:
         interior = interior.subset(in_window(floor_us(interior.timestamps_ns), window_us))
-    _count(report, "cuboids", len(observations), 0 if interior is None else len(interior.counts))
+    _count(report, "cuboids", len(cuboids), 0 if interior is None else len(interior.counts))
+    if interior is not None:
+        annotations = av2.read_annotations(log_dir)
+        if window_us is not None:
+            annotations = annotations.subset(in_window(floor_us(annotations.timestamps_ns), window_us))
+        _boxes_as_annotated(report, cuboids, annotations)
     if interior is not None and set(loader.lidar_ids) == set(av2.LIDARS):
-        _interior_points(report, loader, observations, interior)
+        _interior_points(report, sequence, cuboids, interior)
+
+
+def _boxes_as_annotated(report: Report, cuboids: CuboidColumns, annotations: av2.Annotations) -> None:
+    """Every observation is its annotation row (same track, the row's µs-floored time), in the rig
+    frame at that time (AV2's ego frame): the same centre, size and rotation within
+    ``BOX_TOLERANCE``."""
+    row_of = {
+        key: row
+        for row, key in enumerate(
+            zip(annotations.track_uuids, floor_us(annotations.timestamps_ns).tolist(), strict=True)
+        )
+    }
+    rows = np.array([row_of.get(k, -1) for k in zip(cuboids.track_id, cuboids.timestamp_us.tolist(), strict=True)])
+    found = rows >= 0
+    T = annotations.T_object_ego[rows[found]]
+    R_box_rig = Rotation.from_euler("xyz", cuboids.rot_rad[found]).as_matrix() if found.any() else np.zeros((0, 3, 3))
+    error = np.concatenate(
+        [
+            np.abs(cuboids.centroid_m[found] - T[:, :3, 3]),
+            np.abs(cuboids.dim_m[found] - annotations.dims_m[rows[found]]),
+            np.abs(R_box_rig - T[:, :3, :3]).reshape(-1, 9),
+        ],
+        axis=1,
+    )
+    off = np.flatnonzero(error.max(axis=1, initial=0.0) > BOX_TOLERANCE)
+    frames = set(cuboids.reference_frame_id[found])
+    ok = found.all() and not len(off) and frames <= {"rig"}
+    report.add(
+        "source: every cuboid is its annotation (track, time, centre, size, rotation)",
+        ok,
+        f"{int((~found).sum())} of {len(cuboids)} without an annotation row, {len(off)} differ by more than"
+        f" {BOX_TOLERANCE:g}; reference frames {sorted(map(str, frames))}"
+        + (f"; worst {error.max():.2e}" if len(error) else ""),
+    )
 
 
 def _interior_points(
-    report: Report, loader: SequenceLoaderV4, observations: list, interior: av2.InteriorPoints
+    report: Report, sequence: OpenSequence, cuboids: CuboidColumns, interior: av2.InteriorPoints
 ) -> None:
     """On sampled sweeps: the converted points inside each box (both lidars, motion-compensated with
     the per-point times) equal AV2's ``num_interior_pts``, within INTERIOR_TOLERANCE."""
@@ -129,27 +173,29 @@ def _interior_points(
         (track, floor_us(int(t_ns))): int(n)
         for track, t_ns, n in zip(interior.track_uuids, interior.timestamps_ns, interior.counts, strict=True)
     }
+    loader = sequence.loader
     frames_us = loader.get_lidar_sensor(av2.LIDARS[0]).frames_timestamps_us
     sampled = sample_frames(len(frames_us))
     checked, off = 0, []
     for i in sampled:
-        boxes = [
-            b
-            for b in boxes_at(observations, int(frames_us[i, 0]), int(frames_us[i, 1]))
-            if (b.track_id, b.timestamp_us) in source_points
-        ]
-        if not boxes:
+        boxes = boxes_at(cuboids, int(frames_us[i, 0]), int(frames_us[i, 1]))
+        keys = list(zip(boxes.track_id, boxes.timestamp_us.tolist(), strict=True))
+        known = np.array([k in source_points for k in keys], dtype=bool)
+        boxes, keys = boxes.rows(known), [k for k in keys if k in source_points]
+        if not len(boxes):
             continue
         same_sweep = [_frame_starting_at(loader, unit, int(frames_us[i, 0])) for unit in av2.LIDARS]
         if None in same_sweep:  # a unit lacks this sweep: the frame counts above already fail
             continue
-        xyz_world = np.concatenate([world_points(loader, u, f)[0] for u, f in zip(av2.LIDARS, same_sweep, strict=True)])
+        xyz_world = np.concatenate(
+            [sequence.world_points(u, f)[0] for u, f in zip(av2.LIDARS, same_sweep, strict=True)]
+        )
         counts, _ = box_point_counts(loader, boxes, xyz_world)
-        expected = np.array([source_points[(b.track_id, b.timestamp_us)] for b in boxes])
+        expected = np.array([source_points[k] for k in keys])
         bad = np.abs(counts - expected) > np.maximum(1, INTERIOR_TOLERANCE * expected)
         checked += len(boxes)
         for k in np.flatnonzero(bad):
-            off.append(f"{boxes[k].track_id[:8]}@{boxes[k].timestamp_us}: {counts[k]} vs {expected[k]}")
+            off.append(f"{boxes.track_id[k][:8]}@{boxes.timestamp_us[k]}: {counts[k]} vs {expected[k]}")
     detail = f"{len(off)} of {checked} boxes differ on {len(sampled)} sampled sweeps"
     report.add(
         "source: points inside each box match num_interior_pts", not off, detail + (f": {off[:3]}" if off else "")

@@ -5,20 +5,14 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 from upath import UPath
 
 from ncore_convert.contract import MANIFEST
 from ncore_convert.errors import ValidationFailed
 from ncore_convert.validate.coregister import check_coregistration
-from ncore_convert.validate.readback import cuboid_observations
 from ncore_convert.validate.report import Report, summarise
-from ncore_convert.validate.sequence import validate_sequence
-
-#: A worker pool's ``run``: a list of (function, args) jobs -> their results, in order.
-RunJobs = Callable[[list[tuple[Callable, tuple]]], list]
+from ncore_convert.validate.sequence import RunJobs, validate_sequence
 
 
 def validate_tree(
@@ -27,31 +21,18 @@ def validate_tree(
     """Validate a sequence meta, or every sequence and cooperative scenario (``scenario.json``:
     co-registration of its agents) below a folder (a ``scenario.json`` stands for its folder).
     Reports name their file relative to ``relative_to`` when given. With ``run_jobs`` (the
-    converter's idle worker pool), each sequence's cuboid observations are decoded in a worker
-    while the other checks run here."""
+    converter's idle worker pool), each sequence's lidar frames are checked in the workers while
+    the other checks run here."""
     path = UPath(path)
     if path.name == MANIFEST:  # a cooperative scenario's manifest: the scenario's folder
         path = path.parent
-    reports = [_validate_sequence(meta, source_root, run_jobs) for meta in find_sequences(path)]
+    reports = [validate_sequence(meta, source_root, run_jobs) for meta in find_sequences(path)]
     if path.is_dir():
         reports += [check_coregistration(m) for m in sorted(path.rglob(MANIFEST), key=str) if _visible(m, path)]
     if relative_to is not None:
         for report in reports:
             report.sequence = str(UPath(report.sequence).relative_to(UPath(relative_to)))
     return reports
-
-
-def _validate_sequence(sequence_json: UPath, source_root: UPath | None, run_jobs: RunJobs | None) -> Report:
-    if run_jobs is None:
-        return validate_sequence(sequence_json, source_root)
-    with ThreadPoolExecutor(1) as waiter:  # waits on the worker while this thread checks
-        pending = waiter.submit(lambda: run_jobs([(_observations_job, (sequence_json,))])[0])
-        return validate_sequence(sequence_json, source_root, pending)
-
-
-def _observations_job(sequence_json: UPath, progress=None) -> list:
-    """Pool job (pool jobs are given ``progress``; this one reports none)."""
-    return cuboid_observations(sequence_json)
 
 
 def find_sequences(path: UPath) -> list[UPath]:
