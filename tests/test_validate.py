@@ -183,8 +183,8 @@ def test_the_validate_command_prints_failures_writes_json_and_exits_non_zero(dir
 
 
 def test_the_lidars_checked_in_pool_workers_give_the_same_checks(directory_log):
-    """With the converter's pool, each lidar's frames are checked by a worker job while the parent
-    runs the other checks: the same checks and details, in the same order."""
+    """With the converter's pool, each lidar (its frames, its boxes' occupancy) is checked by a
+    worker job while the parent runs the other checks: the same checks and details, in the same order."""
     from ncore_convert.run.pool import JobPool
 
     (meta,) = directory_log.seq_dir.glob("*.json")
@@ -198,7 +198,7 @@ def test_the_lidars_checked_in_pool_workers_give_the_same_checks(directory_log):
             return pool.run(batch)
 
         (pooled,) = validate_tree(UPath(meta), root, run_jobs=run_jobs)
-    assert jobs == [("lidar_frame_checks", lidar) for lidar in directory_log.loader.lidar_ids]
+    assert jobs == [("lidar_checks_job", lidar) for lidar in directory_log.loader.lidar_ids]
     assert pooled.checks == alone.checks and alone.ok
     assert {"lidar up_lidar: unit directions", "lidar up_lidar: cuboids hold points", "source: cuboids"} <= {
         c.name for c in pooled.checks

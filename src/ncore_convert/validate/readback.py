@@ -49,6 +49,14 @@ class OpenSequence:
             self._points[key] = world_points(self.loader, lidar_id, frame)
         return self._points[key]
 
+    def computed_points(self) -> dict:
+        """The frames :meth:`world_points` computed so far: (lidar id, frame) -> its result."""
+        return dict(self._points)
+
+    def keep_points(self, points: dict) -> None:
+        """Take frames another process computed (:meth:`computed_points` there)."""
+        self._points.update(points)
+
     def sensor_meta(self) -> dict[str, dict]:
         """Each lidar and camera component's generic metadata, by sensor id."""
         out = {}

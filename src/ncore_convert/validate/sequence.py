@@ -117,15 +117,20 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> boo
             unreadable.append(f"frame {i}: {type(err).__name__} {err}")
             continue
         points += len(t_us)
-        if len(direction):  # the extreme squared norms decide the worst |norm - 1|
-            norm2 = np.einsum("ij,ij->i", direction, direction)
-            worst_norm = max(worst_norm, *(abs(float(np.sqrt(v)) - 1) for v in (norm2.min(), norm2.max())))
-        outside_time += int(np.sum((t_us < frames_us[i, 0]) | (t_us > frames_us[i, 1])))
-        bad_intensity += int(np.sum(~((intensity >= 0) & (intensity <= 1))))
+        if not len(t_us):
+            continue
+        # each check looks at the extremes first and counts element by element only when they fail
+        norm2 = np.einsum("ij,ij->i", direction, direction)  # the extreme squared norms decide |norm - 1|
+        worst_norm = max(worst_norm, *(abs(float(np.sqrt(v)) - 1) for v in (norm2.min(), norm2.max())))
+        t_min, t_max = t_us.min(), t_us.max()
+        if t_min < frames_us[i, 0] or t_max > frames_us[i, 1]:
+            outside_time += int(np.sum((t_us < frames_us[i, 0]) | (t_us > frames_us[i, 1])))
+        if not (intensity.min() >= 0 and intensity.max() <= 1):  # NaN fails both
+            bad_intensity += int(np.sum(~((intensity >= 0) & (intensity <= 1))))
         if model is not None and (element := lidar.get_frame_ray_bundle_model_element(i)) is not None:
-            bad_element += int(np.sum((element[:, 0] >= model.n_rows) | (element[:, 1] >= model.n_columns)))
-        if len(t_us):
-            spans_us[i] = min(spans_us[i, 0], t_us.min()), max(spans_us[i, 1], t_us.max())
+            if len(element) and (element[:, 0].max() >= model.n_rows or element[:, 1].max() >= model.n_columns):
+                bad_element += int(np.sum((element[:, 0] >= model.n_rows) | (element[:, 1] >= model.n_columns)))
+        spans_us[i] = min(spans_us[i, 0], t_min), max(spans_us[i, 1], t_max)
     uncovered = _uncovered(loader, lidar_id, spans_us)
     first = f" ({unreadable[0]})" if unreadable else ""
     report.add(
@@ -230,10 +235,10 @@ def _check_window(report: Report, loader: SequenceLoaderV4, cuboids: CuboidColum
         return
     start, end = int(clip["start_us"]), int(clip["end_us"])
     outside = []
-    for camera_id in loader.camera_ids:
+    for camera_id in sorted(loader.camera_ids):
         frames_us = loader.get_camera_sensor(camera_id).frames_timestamps_us.astype(np.int64)
         outside += [f"{camera_id}[{i}]" for i in np.flatnonzero((frames_us[:, 1] < start) | (frames_us[:, 1] > end))]
-    for lidar_id in loader.lidar_ids:
+    for lidar_id in sorted(loader.lidar_ids):
         frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us.astype(np.int64)
         outside += [f"{lidar_id}[{i}]" for i in np.flatnonzero((frames_us[:, 1] < start) | (frames_us[:, 0] > end))]
     t_us = cuboids.timestamp_us
@@ -267,19 +272,26 @@ def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4, lidar_id: str)
     )
 
 
-def _lidar_checks(loader: SequenceLoaderV4, lidar_id: str) -> tuple[list, bool]:
-    """Every frame of one lidar read back and checked (:func:`_check_lidar`, ``dynamic_flag``): the
-    checks, and whether the frames allow the occupancy check."""
+def _lidar_checks(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> list:
+    """One lidar's checks: every frame read back (:func:`_check_lidar`, ``dynamic_flag``), then, when
+    the frames allow it, the boxes' occupancy on the sampled frames."""
     part = Report("")
-    frames_allow = _check_lidar(part, loader, lidar_id)
-    _check_dynamic_flag(part, loader, lidar_id)
-    return part.checks, frames_allow
+    if _check_lidar(part, sequence.loader, lidar_id) and len(cuboids):
+        _check_occupancy(part, sequence, lidar_id, cuboids)
+    _check_dynamic_flag(part, sequence.loader, lidar_id)
+    return part.checks
 
 
-def lidar_frame_checks(sequence_json: UPath, lidar_id: str, progress=None) -> tuple[list, bool]:
+def lidar_checks_job(sequence_json: UPath, lidar_id: str, progress=None) -> tuple[list, dict]:
     """:func:`_lidar_checks` as a pool job (``progress``: unused), so that a log's lidars are checked
-    in its idle workers while the parent checks the rest."""
-    return _lidar_checks(open_sequence(sequence_json).loader, lidar_id)
+    in its idle workers while the parent checks the rest: the checks, and the sampled frames' world
+    points (the source comparison counts box points on the same frames)."""
+    sequence = open_sequence(sequence_json)
+    try:
+        cuboids = read_cuboids(sequence.reader) or CuboidColumns.from_stored([])
+    except ValueError:  # the parent's "cuboids: readable" names it
+        cuboids = CuboidColumns.from_stored([])
+    return _lidar_checks(sequence, lidar_id, cuboids), sequence.computed_points()
 
 
 def validate_sequence(
@@ -287,8 +299,8 @@ def validate_sequence(
 ) -> Report:
     """Open a sequence (its ``<sequence_id>.json``) with the default instance names and check it;
     with ``source_root`` (the converter's --root-dir), also compare it with the source. With
-    ``run_jobs`` (a worker pool's ``run``), each lidar's frames are checked by a worker job
-    (:func:`lidar_frame_checks`) while this process checks the rest: the same checks in the same
+    ``run_jobs`` (a worker pool's ``run``), each lidar is checked by a worker job
+    (:func:`lidar_checks_job`) while this process checks the rest: the same checks in the same
     order either way."""
     report = Report(str(sequence_json))
     try:
@@ -304,8 +316,10 @@ def validate_sequence(
     report.add(
         "opens with SequenceLoaderV4", True, f"{len(loader.lidar_ids)} lidar(s), {len(loader.camera_ids)} camera(s)"
     )
+    # sensors in name order: the loader lists them in the order their stores finished loading
+    lidar_ids, camera_ids = sorted(loader.lidar_ids), sorted(loader.camera_ids)
     with ThreadPoolExecutor(1) as waiter:  # waits on the workers while this thread checks
-        jobs = [(lidar_frame_checks, (sequence_json, lidar_id)) for lidar_id in loader.lidar_ids]
+        jobs = [(lidar_checks_job, (sequence_json, lidar_id)) for lidar_id in lidar_ids]
         pending = waiter.submit(run_jobs, jobs) if run_jobs is not None and jobs else None
         _check_world_global(report, loader)
         try:
@@ -318,14 +332,14 @@ def validate_sequence(
         cuboids = cuboids if cuboids is not None else CuboidColumns.from_stored([])
         _check_window(report, loader, cuboids)
         cameras = Report(report.sequence)
-        lidar_frames = loader.get_lidar_sensor(loader.lidar_ids[0]).frames_timestamps_us if loader.lidar_ids else None
-        for camera_id in loader.camera_ids:
+        lidar_frames = loader.get_lidar_sensor(lidar_ids[0]).frames_timestamps_us if lidar_ids else None
+        for camera_id in camera_ids:
             _check_camera(cameras, loader, camera_id, lidar_frames)
-        lidar_parts = pending.result() if pending else [_lidar_checks(loader, lidar) for lidar in loader.lidar_ids]
-        for lidar_id, (checks, frames_allow) in zip(loader.lidar_ids, lidar_parts, strict=True):
+        if pending is None:
+            report.checks += [c for lidar_id in lidar_ids for c in _lidar_checks(sequence, lidar_id, cuboids)]
+        for checks, points in pending.result() if pending else []:
             report.checks += checks
-            if frames_allow and len(cuboids):
-                _check_occupancy(report, sequence, lidar_id, cuboids)
+            sequence.keep_points(points)
         report.checks += cameras.checks
     if source_root is not None:
         compare_with_source(report, sequence, source_root, cuboids)

@@ -95,7 +95,7 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
     options = meta.get(contract.CONVERTER, {}).get("options", {})
     window_us = _window(meta)
     sweeps = _in_window_ns(av2.list_sweep_timestamps_ns(log_dir), window_us)
-    for lidar_id in loader.lidar_ids:
+    for lidar_id in sorted(loader.lidar_ids):
         _count(
             report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count, len(sweeps)
         )
