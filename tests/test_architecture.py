@@ -252,7 +252,7 @@ def test_the_conversion_never_imports_torch(project):
 def test_projection_and_box_tests_live_in_the_kernel(project):
     """The converters plan and hand over, and the validators and synthetic renderers use the same
     geometry: every projection and box test is the kernel's (``transforms/``: ``Pinhole.project``,
-    ``boxes.SortedByX`` / ``boxes.in_box``, the depth buffer)."""
+    ``boxes.PointGrid`` / ``boxes.in_box``, the depth buffer)."""
     _, trees = project
     found = own_geometry(trees, ("ncore_convert",))
     assert {module for module in found if not under(module, "ncore_convert.transforms")} == set()

@@ -165,3 +165,33 @@ def test_a_carla_pose_is_recovered_from_its_matrix(pose):
         turns = (recovered[3:5] - pose[3:5]) / 360.0
         np.testing.assert_allclose(turns, np.round(turns), atol=1e-9)
         np.testing.assert_allclose(recovered[5], pose[5], atol=1e-9)
+
+
+#: point clouds as the box tests see them: clustered, spread over hundreds of metres, with a few
+#: non-finite or far outlying points (a stray return, a NaN that slipped through)
+cloud_coords = st.one_of(
+    st.floats(-60.0, 60.0, allow_nan=False),
+    st.floats(-1e5, 1e5, allow_nan=False),
+    st.sampled_from([np.nan, np.inf, -np.inf, 0.0, 2.0, -2.0]),
+)
+
+
+@PROPERTY
+@given(
+    arrays(np.float64, st.tuples(st.integers(0, 300), st.just(3)), elements=cloud_coords),
+    arrays(np.float64, 3, elements=st.floats(-80.0, 80.0, allow_nan=False)),
+    st.floats(0.0, 40.0),
+    st.integers(0, 2**32 - 1),
+)
+def test_the_point_grid_finds_exactly_the_points_within_reach(xyz, centre, reach, seed):
+    """``PointGrid.near`` returns every row within ``reach`` of the centre on all three axes and no
+    other: the brute-force test over all points (a few centres on points of the cloud itself)."""
+    from ncore_convert.transforms.boxes import PointGrid
+
+    grid = PointGrid(xyz)
+    rng = np.random.default_rng(seed)
+    picked = rng.integers(0, len(xyz), 3) if len(xyz) else []
+    centres = [centre] + [xyz[i] for i in picked if np.isfinite(xyz[i]).all()]
+    for c in centres:
+        truth = np.flatnonzero(np.all(np.abs(xyz - c) <= reach, axis=1))
+        assert sorted(grid.near(c, reach).tolist()) == truth.tolist()

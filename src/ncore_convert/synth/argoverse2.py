@@ -29,7 +29,7 @@ from ncore_convert.synth.feather import write_feather_table
 from ncore_convert.synth.maps import write_map
 from ncore_convert.synth.scene import Box, Scene, box_colours, cast_rays, make_scene, render
 from ncore_convert.transforms import vlp32c
-from ncore_convert.transforms.boxes import SortedByX, in_box
+from ncore_convert.transforms.boxes import PointGrid, in_box
 from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
 
@@ -438,7 +438,7 @@ def annotated_boxes(scene: Scene, t_s: float, T_city_ego: np.ndarray) -> Iterato
 
 def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, T_city_ego: np.ndarray, rows: dict) -> None:
     """Annotation rows (:func:`annotated_boxes`), with num_interior_pts from the stored cloud."""
-    points = SortedByX(xyz_ego)
+    points = PointGrid(xyz_ego)
     for box, T_box_ego in annotated_boxes(truth.scene, (ts - truth.t0_ns) * 1e-9, T_city_ego):
         near = points.near(T_box_ego[:3, 3], np.linalg.norm(box.dims_m) / 2)  # no point further is inside
         inside = in_box(xyz_ego[near], T_box_ego[:3, 3], T_box_ego[:3, :3], box.dims_m / 2)

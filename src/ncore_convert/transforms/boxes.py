@@ -12,27 +12,71 @@ BOX_EDGES = np.array(
 )
 
 
-class SortedByX:
-    """Points sorted by x once, so that each box looks only at the points near it: the one prefilter of
-    every points-in-box test (dynamic flags, the synthetic annotations' interior counts, the
-    validator's counts).
+#: Side of the grid columns points are bucketed into (metres; wider where the points spread over more
+#: than ``GRID_COLUMNS`` columns along an axis).
+GRID_CELL_M = 2.0
+GRID_COLUMNS = 255  #: at most this many columns per axis, so that a column index fits uint16
+
+
+class PointGrid:
+    """Points bucketed once into square columns on the frame's x-y plane, so that each box looks
+    only at the points in the columns its square covers: the one prefilter of every points-in-box
+    test (dynamic flags, the synthetic annotations' interior counts, the validator's counts).
 
     Args:
-        xyz_m: points in the boxes' frame, float [N,3].
+        xyz_m: points in the boxes' frame, float [N,3] (non-finite points are never near anything).
     """
 
     def __init__(self, xyz_m: np.ndarray) -> None:
         self.xyz_m = xyz_m
-        self.by_x = np.argsort(xyz_m[:, 0], kind="stable")
-        self._x_sorted = xyz_m[self.by_x, 0]
+        finite = None
+        axes = [xyz_m[:, 0], xyz_m[:, 1]]  # axis by axis: reductions over [N,2] columns are several times slower
+        lo, hi = _extremes(axes)
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):  # only then look point by point
+            finite = np.isfinite(axes[0]) & np.isfinite(axes[1])
+            axes = [a[finite] for a in axes]
+            lo, hi = _extremes(axes)
+        self._lo = lo
+        self._cell = np.maximum(GRID_CELL_M, (hi - lo) / (GRID_COLUMNS - 1) * (1 + 1e-9))
+        self._shape = np.minimum(((hi - lo) / self._cell).astype(np.int64) + 1, GRID_COLUMNS)
+        # offsets from the minimum are >= 0, so truncation is the floor
+        i, j = (
+            np.minimum(((a - lo[k]) * (1.0 / self._cell[k])).astype(np.int64), self._shape[k] - 1)
+            for k, a in enumerate(axes)
+        )
+        column = (i * self._shape[1] + j).astype(np.uint16)
+        if finite is None:
+            cells = column
+        else:
+            cells = np.full(len(xyz_m), self._shape[0] * self._shape[1], dtype=np.uint16)  # beyond the grid
+            cells[finite] = column
+        self._order = np.argsort(cells, kind="stable")  # a radix sort on uint16
+        counts = np.bincount(cells, minlength=self._shape[0] * self._shape[1] + 1)
+        self._starts = np.concatenate([[0], np.cumsum(counts)])
 
     def near(self, centre_m: np.ndarray, reach_m: float) -> np.ndarray:
-        """The rows within ``reach_m`` of ``centre_m`` [3] along every axis (x by bisection), int [K]:
-        a box whose every point is within ``reach_m`` of its centre has no other."""
-        lo = np.searchsorted(self._x_sorted, centre_m[0] - reach_m)
-        hi = np.searchsorted(self._x_sorted, centre_m[0] + reach_m, "right")
-        rows = self.by_x[lo:hi]
-        return rows[np.all(np.abs(self.xyz_m[rows, 1:] - centre_m[1:]) <= reach_m, axis=1)]
+        """The rows within ``reach_m`` of ``centre_m`` [3] along every axis, int [K] (in no particular
+        order): a box whose every point is within ``reach_m`` of its centre has no other."""
+        centre_xy = np.asarray(centre_m[:2], dtype=np.float64)
+        lo = np.floor((centre_xy - reach_m - self._lo) * (1.0 / self._cell))
+        hi = np.floor((centre_xy + reach_m - self._lo) * (1.0 / self._cell))
+        lo, hi = np.maximum(lo, 0).astype(np.int64), np.minimum(hi, self._shape - 1).astype(np.int64)
+        if np.any(hi < lo):
+            return np.zeros(0, dtype=np.int64)
+        ny = self._shape[1]
+        spans = [
+            self._order[self._starts[i * ny + lo[1]] : self._starts[i * ny + hi[1] + 1]]
+            for i in range(lo[0], hi[0] + 1)
+        ]
+        rows = np.concatenate(spans)
+        return rows[np.all(np.abs(self.xyz_m[rows] - centre_m) <= reach_m, axis=1)]
+
+
+def _extremes(axes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of each coordinate array, float64 [2] each (zeros without points)."""
+    if not len(axes[0]):
+        return np.zeros(2), np.zeros(2)
+    return np.array([float(a.min()) for a in axes]), np.array([float(a.max()) for a in axes])
 
 
 def in_box(xyz_m: np.ndarray, centre_m: np.ndarray, R_box_frame: np.ndarray, half_m: np.ndarray) -> np.ndarray:

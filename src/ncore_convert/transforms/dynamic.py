@@ -39,7 +39,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ncore_convert.transforms.boxes import SortedByX, in_box
+from ncore_convert.transforms.boxes import PointGrid, in_box
 from ncore_convert.transforms.geometry import sorted_run_starts
 from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, ALWAYS_STATIC
 
@@ -318,7 +318,7 @@ def dynamic_flags(xyz_m: np.ndarray, timestamps_us: np.ndarray, boxes: DynamicBo
     t_us = np.asarray(timestamps_us, dtype=np.int64)
     t_lo, t_hi = int(t_us.min()), int(t_us.max())
     hold_us = round(HOLD_S * 1e6)
-    points = SortedByX(xyz_m)
+    points = PointGrid(xyz_m)
     for k in range(len(boxes)):
         a, b = int(boxes.bounds[k]), int(boxes.bounds[k + 1])
         times = boxes.timestamps_us[a:b]

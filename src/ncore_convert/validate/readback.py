@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE, WORLD_GLOBAL, ScenarioManifest
-from ncore_convert.transforms.boxes import CORNER_SIGNS, SortedByX
+from ncore_convert.transforms.boxes import CORNER_SIGNS, PointGrid
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.cuboids import CuboidColumns
 
@@ -159,7 +159,7 @@ def box_point_counts(
             counts[members], centres[members] = -1, np.nan
             continue
         xyz_ref = ((xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3]).astype(np.float32)
-        points = SortedByX(xyz_ref)
+        points = PointGrid(xyz_ref)
         centres[members] = boxes.centroid_m[members] @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
         for k in members:
             candidates = xyz_ref[points.near(boxes.centroid_m[k], float(radius_m[k]))]
