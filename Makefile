@@ -45,6 +45,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_input_checks.py
 	$(PY) bench/bench_consumers.py
 	$(PY) bench/bench_speed.py
+	$(PY) bench/bench_floor.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info
