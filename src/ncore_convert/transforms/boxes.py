@@ -58,6 +58,8 @@ class PointGrid:
         """The rows within ``reach_m`` of ``centre_m`` [3] along every axis, int [K] (in no particular
         order): a box whose every point is within ``reach_m`` of its centre has no other."""
         centre_xy = np.asarray(centre_m[:2], dtype=np.float64)
+        if not (np.isfinite(centre_xy).all() and np.isfinite(reach_m)):  # a NaN box holds no point
+            return np.zeros(0, dtype=np.int64)
         lo = np.floor((centre_xy - reach_m - self._lo) * (1.0 / self._cell))
         hi = np.floor((centre_xy + reach_m - self._lo) * (1.0 / self._cell))
         lo, hi = np.maximum(lo, 0).astype(np.int64), np.minimum(hi, self._shape - 1).astype(np.int64)
