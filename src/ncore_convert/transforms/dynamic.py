@@ -127,7 +127,7 @@ def track_motion(timestamps_us: np.ndarray, centers_m: np.ndarray, speeds_mps: n
     return TrackMotion(net > NET_DYNAMIC_M or deviation > DEVIATION_DYNAMIC_M, net, deviation)
 
 
-def _by_track(ids: np.ndarray, timestamps_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def by_track(ids: np.ndarray, timestamps_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Observations grouped by track, each track by time: the row order [M], and the group bounds
     (track k is ``order[bounds[k]:bounds[k+1]]``), int64 [T+1].
 
@@ -156,7 +156,7 @@ def static_pose(centers_m: np.ndarray, R_box_frame: np.ndarray, dims_m: np.ndarr
 def _tracks(observations: TrackObservations) -> Iterator[tuple[str, np.ndarray]]:
     """(track id, its rows in time order) of every track in ``observations``."""
     ids = np.asarray(observations.track_ids, dtype=object).astype(str)
-    order, bounds = _by_track(ids, np.asarray(observations.timestamps_us))
+    order, bounds = by_track(ids, np.asarray(observations.timestamps_us))
     for start, end in zip(bounds[:-1], bounds[1:], strict=True):
         rows = order[start:end]
         yield str(ids[rows[0]]), rows
@@ -213,7 +213,7 @@ class DynamicBoxes:
         """The observations of the ``dynamic`` tracks (their ids), boxes grown by ``margin_m``."""
         ids = np.asarray(observations.track_ids, dtype=object).astype(str)
         keep = np.flatnonzero(np.isin(ids, list(dynamic)))
-        order, bounds = _by_track(ids[keep], observations.timestamps_us[keep])
+        order, bounds = by_track(ids[keep], observations.timestamps_us[keep])
         keep = keep[order]
         centers = observations.centers_m[keep]
         half = observations.dims_m[keep] / 2 + margin_m

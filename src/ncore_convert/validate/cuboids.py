@@ -28,6 +28,7 @@ from ncore.impl.data.types import CuboidTrackObservation, LabelSource
 from ncore.impl.data.v4.components import ComponentReader
 
 from ncore_convert.contract import DEFAULT_INSTANCE
+from ncore_convert.transforms.dynamic import by_track
 from ncore_convert.validate.report import Report
 
 #: observations decoded by the library besides every track's first and last (a stride over the rest)
@@ -137,10 +138,8 @@ def library_sample(columns: CuboidColumns) -> np.ndarray:
     time) and ``LIBRARY_SAMPLE_STRIDED`` rows spread evenly over all of them."""
     if not len(columns):
         return np.zeros(0, dtype=np.int64)
-    order = np.lexsort((columns.timestamp_us, columns.track_id.astype(str)))
-    track = columns.track_id[order]
-    starts = np.flatnonzero(np.r_[True, track[1:] != track[:-1]])
-    ends = np.r_[starts[1:] - 1, len(order) - 1]
+    order, bounds = by_track(columns.track_id.astype(str), columns.timestamp_us)
+    starts, ends = bounds[:-1], bounds[1:] - 1
     strided = np.unique(np.linspace(0, len(columns) - 1, min(LIBRARY_SAMPLE_STRIDED, len(columns))).astype(np.int64))
     return np.unique(np.concatenate([order[starts], order[ends], strided]))
 
