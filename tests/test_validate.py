@@ -191,7 +191,9 @@ def test_the_lidars_checked_in_pool_workers_give_the_same_checks(directory_log):
     root = UPath(source_root(directory_log))
     (alone,) = validate_tree(UPath(meta), root)
     jobs = []
-    with JobPool(1) as pool:
+    # preloaded as the command preloads: a fork server started without it makes every later pool of
+    # this test process import the converter in each worker
+    with JobPool(1, preload=["ncore_convert.converters.argoverse2"]) as pool:
 
         def run_jobs(batch):
             jobs.extend((fn.__name__, args[1]) for fn, args in batch)

@@ -116,6 +116,9 @@ class JobPool:
 
     Use as a context manager. The workers start at construction, in the background, so their
     start-up overlaps with whatever the caller does before the first :meth:`run`.
+
+    ``preload``: modules the fork server imports once, so that each worker starts with them. A
+    process has one fork server, started by its first pool: later pools share it and its preload.
     """
 
     def __init__(self, workers: int, preload: Sequence[str] = ()) -> None:

@@ -436,6 +436,8 @@ def cast_rays(
         range_m [N] (inf where nothing is hit within max_range_m), the hit intensity [N] (uint8)
         and the index of the hit box in ``scene.boxes`` [N] (-1: the ground or nothing).
     """
+    if origins_m.strides[0] != 0:  # a strided view (a pose stack's translations) gathers slowly
+        origins_m = np.ascontiguousarray(origins_m)
     n = len(origins_m)
     best = np.full(n, np.inf)
     intensity = np.zeros(n, dtype=np.uint8)
