@@ -67,8 +67,8 @@ def _frame(time_s: float, usable: np.ndarray | None = None) -> ColourFrame:
         round(time_s * 1e6),
         T_world_camera,
         Pinhole((FOCAL, FOCAL), (WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT)),
-        lambda: image,
         usable,
+        load_rgb=lambda: image,
     )
 
 
@@ -162,7 +162,7 @@ def test_frames_no_point_takes_are_not_decoded():
     def fail():
         raise AssertionError("decoded a frame no point takes")
 
-    far = ColourFrame("cam", 1_000_000, late.T_world_camera, late.pinhole, fail)
+    far = ColourFrame("cam", 1_000_000, late.T_world_camera, late.pinhole, load_rgb=fail)
     rgb, coloured = point_colours(xyz, t_us, on_mover, [_frame(0.0), far])
     assert coloured.sum() > 5000
 

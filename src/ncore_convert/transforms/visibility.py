@@ -1,9 +1,51 @@
-"""The depth buffer of projected points: which point of a camera picture may hide another (lidar
-colours today; per-camera depth labels build on it). Pixels in NCore's pixel-corner convention."""
+"""Which lidar points a camera frame sees: projection into the frame, a depth buffer of the
+projected points (which point of the picture may hide another) and the labelled boxes as solid
+occluders. Lidar colours (:mod:`point_colours`) use it, and per-camera depth labels build on it.
+Cameras are pinholes in the OpenCV frame (x right, y down, z forward), with NCore's pixel-corner
+convention: pixel (i, j) covers [i, i+1) x [j, j+1).
+"""
 
 from __future__ import annotations
 
+import warnings
+from dataclasses import dataclass
+
 import numpy as np
+
+from ncore_convert.transforms.boxes import BOX_EDGES, CORNER_SIGNS
+from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.geometry import invert_se3
+
+CELL_RAD = np.radians(1.0)  #: depth-buffer cell, as an angle of view: its height; its width is half that
+DEPTH_TOLERANCE = 0.05  #: a point this far behind (relative) its cell's nearest point is still visible ...
+DEPTH_TOLERANCE_M = 0.3  #: ... plus this much
+MIN_DEPTH_M = 0.3  #: points nearer the camera than this are not seen
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """One camera frame, as the points it sees are decided.
+
+    Attributes:
+        camera_id: the camera; timestamp_us: the frame's time (µs).
+        T_world_camera: float64 [4,4], maps fixed-frame (world) points into the camera frame at the
+            frame's time.
+        pinhole: the camera at the resolution its pixels are taken at.
+        usable: bool [height,width], the pixels that show the world (False on the ego body); None: all.
+        solids: boxes known to be solid at the frame's time (labelled vehicles): box -> fixed frame
+            ``T_box_world`` float64 [K,4,4] and half sizes float64 [K,3], m. A point behind one is hidden
+            even where the lidar saw none of the box's face the camera sees. None: no boxes.
+        solids_slack_m: how far the boxes may be off their objects (annotation error), m: a box does
+            not hide the points within this distance of it, which may be its object's own.
+    """
+
+    camera_id: str
+    timestamp_us: int
+    T_world_camera: np.ndarray
+    pinhole: Pinhole
+    usable: np.ndarray | None = None
+    solids: tuple[np.ndarray, np.ndarray] | None = None
+    solids_slack_m: float = 0.0
 
 
 def nearest_in_front(
@@ -33,3 +75,91 @@ def nearest_in_front(
         return np.where(found, running[np.maximum(i, 0)], np.inf)
 
     return np.minimum.reduce([at_or_above(cells), at_or_above(cells - 1), at_or_above(cells + 1), grid[cells - n_cols]])
+
+
+def in_view(frame: CameraView, xyz_world_m: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``xyz_world_m`` [N,3] in front of ``frame``'s camera that project into its image
+    grown by ``margin`` of its size on every side, int [K], and those points in the camera frame [K,3]."""
+    xyz = xyz_world_m @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
+    ahead = np.flatnonzero(xyz[:, 2] > MIN_DEPTH_M)
+    w, h = frame.pinhole.resolution_px
+    u, v = frame.pinhole.project(xyz[ahead])
+    inside = (u >= -margin * w) & (u < (1 + margin) * w) & (v >= -margin * h) & (v < (1 + margin) * h)
+    return ahead[inside], xyz[ahead[inside]]
+
+
+def _behind_solids(frame: CameraView, xyz_world_m: np.ndarray, cols: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """The points (float64 [V,3], fixed frame; their pixel ``cols``, ``lines``, int [V]) whose line of
+    sight from ``frame``'s camera enters one of its ``solids`` more than the depth tolerance before
+    reaching the point, bool [V]. A box the camera is inside hides nothing, nor does a box hide the
+    points within ``frame.solids_slack_m`` of it (its object's own: the depth buffer decides those).
+    Each box in view tests only the points in its picture's bounding rectangle."""
+    hidden = np.zeros(len(xyz_world_m), bool)
+    if frame.solids is None or not len(xyz_world_m):
+        return hidden
+    R_wc, t_wc = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
+    camera_m = invert_se3(frame.T_world_camera)[:3, 3]  # the camera's centre in the fixed frame
+    w, h = frame.pinhole.resolution_px
+    by_col = np.argsort(cols, kind="stable")
+    cols_sorted = cols[by_col]
+    T_box_world, half_all = frame.solids
+    R_all, t_all = T_box_world[:, :3, :3], T_box_world[:, :3, 3]
+    origin_all = np.einsum("kji,kj->ki", R_all, camera_m - t_all)  # the camera in each box's frame
+    corners = np.einsum("kij,kcj->kci", R_all, CORNER_SIGNS[None] * half_all[:, None]) + t_all[:, None]
+    corners = corners @ R_wc.T + t_wc  # [K,8,3] in the camera frame
+    # the bounding rectangle of each box's picture: its corners ahead of the camera, and where its
+    # edges cross the plane MIN_DEPTH_M ahead of it
+    start, end = corners[:, BOX_EDGES[:, 0]], corners[:, BOX_EDGES[:, 1]]  # [K,12,3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = (MIN_DEPTH_M - start[..., 2]) / (end[..., 2] - start[..., 2])
+        crossing = np.where(((f > 0) & (f < 1))[..., None], start + f[..., None] * (end - start), np.nan)
+    points = np.concatenate([np.where(corners[..., 2:] >= MIN_DEPTH_M, corners, np.nan), crossing], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a box wholly behind the camera: all NaN
+        u, v = (c.reshape(points.shape[:-1]) for c in frame.pinhole.project(points.reshape(-1, 3)))
+        u_lo, u_hi, v_lo, v_hi = (
+            np.floor(np.nanmin(u, axis=1)),
+            np.floor(np.nanmax(u, axis=1)),
+            np.floor(np.nanmin(v, axis=1)),
+            np.floor(np.nanmax(v, axis=1)),
+        )
+    camera_inside = np.all(np.abs(origin_all) <= half_all, axis=1)
+    candidates = ~camera_inside & (u_hi >= 0) & (u_lo < w) & (v_hi >= 0) & (v_lo < h)  # NaN: False
+    for k in np.flatnonzero(candidates):
+        R, t, half_m, origin = R_all[k], t_all[k], half_all[k], origin_all[k]
+        near = by_col[np.searchsorted(cols_sorted, u_lo[k]) : np.searchsorted(cols_sorted, u_hi[k], side="right")]
+        near = near[(lines[near] >= v_lo[k]) & (lines[near] <= v_hi[k])]
+        if not len(near):
+            continue
+        local = (xyz_world_m[near] - t) @ R
+        if frame.solids_slack_m > 0:  # a point this close to a loose box may be its object's own
+            away = np.any(np.abs(local) > half_m + frame.solids_slack_m, axis=1)
+            near, local = near[away], local[away]
+        distance_m = np.linalg.norm(xyz_world_m[near] - camera_m, axis=1)
+        step = local - origin  # the line of sight in the box frame, as a fraction of its length
+        with np.errstate(divide="ignore", invalid="ignore"):
+            low, high = (-half_m - origin) / step, (half_m - origin) / step
+        enter = np.nanmax(np.fmin(low, high), axis=1)
+        leave = np.nanmin(np.fmax(low, high), axis=1)
+        allowed_m = distance_m * (1.0 - DEPTH_TOLERANCE) - DEPTH_TOLERANCE_M  # an entry nearer than this hides
+        hidden[near[(enter <= leave) & (enter > 0) & (enter * distance_m < allowed_m)]] = True
+    return hidden
+
+
+def visible_pixels(frame: CameraView, xyz_world_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points (rows of ``xyz_world_m`` [N,3], all that may be in view: each may hide another)
+    that ``frame`` sees: their indices [V] and pixel (column, row) [V] each, int."""
+    w, h = frame.pinhole.resolution_px
+    rows, xyz = in_view(frame, xyz_world_m, 0.0)
+    depth = xyz[:, 2]
+    u, v = frame.pinhole.project(xyz)
+    cols, lines = np.minimum(u.astype(np.int64), w - 1), np.minimum(v.astype(np.int64), h - 1)
+    if frame.usable is not None:
+        ok = frame.usable[lines, cols]
+        rows, cols, lines, depth = rows[ok], cols[ok], lines[ok], depth[ok]
+    fx, fy = frame.pinhole.focal_length_px
+    cell_px = (max(1, int(round(CELL_RAD / 2 * fx))), max(1, int(round(CELL_RAD * fy))))
+    nearest = nearest_in_front(cols, lines, depth, cell_px, (w, h))
+    seen = depth <= nearest * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
+    seen[seen] = ~_behind_solids(frame, xyz_world_m[rows[seen]], cols[seen], lines[seen])
+    return rows[seen], cols[seen], lines[seen]

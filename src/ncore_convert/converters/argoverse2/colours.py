@@ -73,10 +73,10 @@ class SweepColours:
                         ts // NS_PER_US,
                         invert_se3(T),
                         pinhole,
-                        lambda cam=cam, ts=ts: self._decode(cam, ts),
                         usable,
                         solids,
                         LABEL_SLACK_M,
+                        load_rgb=lambda cam=cam, ts=ts: self._decode(cam, ts),
                     )
                 )
         return out

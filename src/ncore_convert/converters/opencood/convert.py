@@ -190,8 +190,8 @@ def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t
                 t_us,
                 invert_se3(T_camera_world_global),
                 agent.cameras[cam].pinhole,
-                lambda data=data: src.decode_png_rgb(data),
                 solids=solids,
+                load_rgb=lambda data=data: src.decode_png_rgb(data),
             )
         )
     return out
