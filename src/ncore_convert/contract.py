@@ -102,6 +102,18 @@ OPENCOOD_PROTOCOL = "opencood_data_protocol"
 
 # --- component instances ---
 #: The instance name every component is written under, and the one ``SequenceLoaderV4`` opens by default.
+#: ``--camera-labels`` kinds, each one NCore camera-labels component per camera, named by NCore's
+#: convention ``category.qualifier@camera_id``: ``depth`` -> ``depth.z@<camera>`` (z-depth in metres
+#: from the lidar points the camera sees, 0 = no measurement).
+CAMERA_LABEL_KINDS = ("depth",)
+CAMERA_LABEL_QUALIFIED = {"depth": "depth.z"}
+
+
+def camera_label_id(kind: str, camera_id: str) -> str:
+    """The component instance name of a camera label (``depth.z@ring_front_center``)."""
+    return f"{CAMERA_LABEL_QUALIFIED[kind]}@{camera_id}"
+
+
 DEFAULT_INSTANCE = "default"
 
 # --- the HD map, stored as generic data of the poses component ---

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import PIL.Image
 from ncore.data.v4 import (
+    CameraLabelsComponent,
     CameraSensorComponent,
     CuboidsComponent,
     IntrinsicsComponent,
@@ -28,11 +29,16 @@ from ncore.data.v4 import (
 from ncore.impl.common.transformations import HalfClosedInterval
 from ncore.impl.data.types import (
     BBox3,
+    CameraLabelDescriptor,
     CuboidTrackObservation,
     FThetaCameraModelParameters,
     IdealPinholeCameraModelParameters,
+    LabelEncoding,
+    LabelSchema,
     LabelSource,
+    LabelType,
     OpenCVPinholeCameraModelParameters,
+    QuantizationParams,
     RowOffsetStructuredSpinningLidarModelParameters,
     ShutterType,
 )
@@ -50,6 +56,7 @@ from ncore_convert.contract import (
     Profile,
     ScenarioManifest,
     StoreType,
+    camera_label_id,
 )
 from ncore_convert.storage import flush_to_disk
 from ncore_convert.transforms.camera_models import FThetaFit, Pinhole
@@ -129,20 +136,57 @@ class LidarStream(_SensorStream):
         )
 
 
+#: How depth labels are stored: RAW, quantized to whole millimetres in uint32 (the error of a
+#: value at most 0.5 mm, any lidar range; 0 stays 0 = no measurement). The zero pixels compress to
+#: almost nothing (Blosc lz4 with bit shuffling, the library's choice).
+DEPTH_QUANTIZATION = QuantizationParams(quantized_dtype=np.dtype("uint32"), scale=0.001, offset=0.0)
+
+
+def _label_descriptor(kind: str, camera_id: str, source: str) -> CameraLabelDescriptor:
+    """The NCore descriptor of one ``contract.CAMERA_LABEL_KINDS`` label of ``camera_id``."""
+    if kind != "depth":
+        raise ValueError(f"unknown camera label kind {kind!r}")
+    return CameraLabelDescriptor(
+        camera_id=camera_id,
+        label_type=LabelType.DEPTH_Z_M,
+        label_schema=LabelSchema(
+            dtype=np.dtype("float32"), encoding=LabelEncoding.RAW, quantization=DEPTH_QUANTIZATION
+        ),
+        label_source=LabelSource[source],
+    )
+
+
+class CameraLabelStream:
+    """The labels of one kind for one camera, one per camera frame."""
+
+    def __init__(self, writer: CameraLabelsComponent.Writer) -> None:
+        self._writer = writer
+
+    def store_label(self, data: np.ndarray, timestamp_us: int, generic_meta_data: dict | None = None) -> None:
+        """Store the label of the camera frame ending at ``timestamp_us``: ``data`` float32
+        [height,width] for depth (metres, 0 = none)."""
+        self._writer.store_label(data, int(timestamp_us), generic_meta_data or {})
+
+    def set_meta(self, generic_meta_data: dict) -> None:
+        """Replace the component-level metadata (the generator and its parameters)."""
+        self._writer.set_generic_data({}, generic_meta_data)
+
+
 @dataclass(frozen=True)
 class WriteJob:
     """One writing job: the base components (poses, intrinsics, masks, cuboids), or the frames of
-    the sensors ``sensor_ids``."""
+    the sensors ``sensor_ids`` and the camera labels ``label_ids`` (component instance names)."""
 
     sensor_ids: tuple[str, ...] = ()
     base: bool = False
+    label_ids: tuple[str, ...] = ()
 
 
 BASE_JOB = WriteJob(base=True)
 
 
 def independent_parts(
-    jobs: list[WriteJob], camera_ids: list[str], lidar_ids: list[str], profile: Profile
+    jobs: list[WriteJob], camera_ids: list[str], lidar_ids: list[str], profile: Profile, label_ids: list[str] = ()
 ) -> list[list[int]]:
     """Group jobs so that no two groups write to the same component store.
 
@@ -150,7 +194,7 @@ def independent_parts(
         lists of job indices; each list can be written by its own :class:`SequenceWriter` (and
         process). With ``profile="default"`` everything shares one store, so there is one group.
     """
-    groups = _component_groups(camera_ids, lidar_ids, profile)
+    groups = _component_groups(camera_ids, lidar_ids, profile, label_ids)
     base_groups = {
         groups.poses_component_group,
         groups.intrinsics_component_group,
@@ -161,19 +205,22 @@ def independent_parts(
     parts: list[tuple[set, list[int]]] = []
     for index, job in enumerate(jobs):
         touched = set(base_groups) if job.base else {sensor_group.get(sensor) for sensor in job.sensor_ids}
+        touched |= {groups.camera_labels_component_groups.get(label) for label in job.label_ids}
         overlapping = [part for part in parts if part[0] & touched]
         merged = (touched.union(*(p[0] for p in overlapping)), sorted([index] + [i for p in overlapping for i in p[1]]))
         parts = [part for part in parts if not part[0] & touched] + [merged]
     return sorted((indices for _, indices in parts), key=lambda indices: indices[0])
 
 
-def _component_groups(camera_ids: list[str], lidar_ids: list[str], profile: Profile) -> ComponentGroupAssignments:
+def _component_groups(
+    camera_ids: list[str], lidar_ids: list[str], profile: Profile, label_ids: list[str] = ()
+) -> ComponentGroupAssignments:
     return ComponentGroupAssignments.create(
         camera_ids=camera_ids,
         lidar_ids=lidar_ids,
         radar_ids=[],
         point_clouds_ids=[],
-        camera_labels_ids=[],
+        camera_labels_ids=list(label_ids),
         profile=profile,
     )
 
@@ -219,6 +266,7 @@ class SequenceWriter:
         base: bool = True,
         poses_meta: dict | None = None,
         extra_pose_instances: dict[str, dict] | None = None,
+        label_ids: list[str] = (),
     ) -> None:
         """
         Args:
@@ -227,8 +275,10 @@ class SequenceWriter:
             extra_pose_instances: instance name -> metadata of further ``PosesComponent`` instances
                 next to ``default`` (e.g. a trajectory with simulated GPS error). Each holds the
                 whole pose graph: the static edges are written to every instance.
+            label_ids: all camera labels of the sequence (``contract.camera_label_id``; they fix
+                the store layout too).
         """
-        self._groups = _component_groups(camera_ids, lidar_ids, profile)
+        self._groups = _component_groups(camera_ids, lidar_ids, profile, label_ids)
         self._writer = SequenceComponentGroupsWriter(
             output_dir_path=output_dir,
             store_base_name=sequence_id,
@@ -393,6 +443,19 @@ class SequenceWriter:
             LidarSensorComponent.Writer, lidar_id, self._groups.lidar_component_groups.get(lidar_id), generic_meta_data
         )
         return LidarStream(writer)
+
+    def add_camera_label(self, kind: str, camera_id: str, source: str, generic_meta_data: dict) -> CameraLabelStream:
+        """Register one camera's labels of ``kind`` (``contract.CAMERA_LABEL_KINDS``) from the NCore
+        ``LabelSource`` named ``source``; they are stored through the returned stream."""
+        label_id = camera_label_id(kind, camera_id)
+        writer = self._writer.register_component_writer(
+            CameraLabelsComponent.Writer,
+            label_id,
+            self._groups.camera_labels_component_groups.get(label_id),
+            generic_meta_data,
+            descriptor=_label_descriptor(kind, camera_id, source),
+        )
+        return CameraLabelStream(writer)
 
     def store_cuboids(self, cuboids: Cuboids | None, source: str = "EXTERNAL", meta: dict | None = None) -> None:
         """Store all cuboid observations (an empty component when there are none), tagged with the

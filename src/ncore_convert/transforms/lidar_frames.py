@@ -36,12 +36,18 @@ class PointData:
             ``rgb`` uint8 [N,3] with a colouring).
         coloured: lidar -> how many of its points a camera coloured.
         flag_seconds, colour_seconds: the time each took (benchmark figures).
+        xyz_fixed_m, timestamps_us, dynamic: the frame's points of all lidars together, where the
+            lidar saw them in the fixed frame (float64 [N,3]), their own times (µs, int64 [N]) and
+            which are on dynamic tracks (bool [N]): what camera labels are made from.
     """
 
     generic: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     coloured: dict[str, int] = field(default_factory=dict)
     flag_seconds: float = 0.0
     colour_seconds: float = 0.0
+    xyz_fixed_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    timestamps_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    dynamic: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 def point_data(
@@ -82,6 +88,7 @@ def point_data(
         for lidar, a, b in parts:
             out.generic[lidar][LIDAR_RGB] = rgb[a:b]
             out.coloured[lidar] = int(coloured[a:b].sum())
+    out.xyz_fixed_m, out.timestamps_us, out.dynamic = xyz, times_us, dynamic
     return out
 
 

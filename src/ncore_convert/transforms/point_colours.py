@@ -28,12 +28,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ncore_convert.transforms.visibility import CameraView, in_view, visible_pixels
+from ncore_convert.transforms.visibility import VIEW_MARGIN, CameraView, in_view, visible_pixels
 
 FILL_RGB = (128, 128, 128)  #: the colour of a point no camera sees: neutral grey
 DYNAMIC_DT_US = 5_000  #: a point on a moving object takes colour only from a frame this close in time
 DECODE_THREADS = 4  #: images are decoded this many at a time
-VIEW_MARGIN = 0.5  #: a camera's frames project only the points its middle frame sees, its image grown by this
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ CELL_RAD = np.radians(1.0)  #: depth-buffer cell, as an angle of view: its heigh
 DEPTH_TOLERANCE = 0.05  #: a point this far behind (relative) its cell's nearest point is still visible ...
 DEPTH_TOLERANCE_M = 0.3  #: ... plus this much
 MIN_DEPTH_M = 0.3  #: points nearer the camera than this are not seen
+VIEW_MARGIN = 0.5  #: a camera's nearby frames project only the points its middle frame sees, its image grown by this
 
 
 @dataclass(frozen=True)

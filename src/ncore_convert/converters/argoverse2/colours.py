@@ -7,6 +7,7 @@ and once per log (a small cache carries them to the next sweep)."""
 
 from __future__ import annotations
 
+import dataclasses
 from functools import lru_cache
 
 import numpy as np
@@ -14,17 +15,14 @@ import PIL.Image
 
 from ncore_convert.converters.argoverse2.masks import reduced_size, reduction
 from ncore_convert.converters.argoverse2.plan import LogPlan
+from ncore_convert.converters.argoverse2.views import camera_views
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms.geometry import invert_se3
 from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 
 #: Camera frames this far (µs) beyond a sweep's first and last point are candidates: a 20 Hz
 #: camera has a frame within 25 ms of any time (TbV's 20 Hz ring cameras too).
 FRAME_MARGIN_US = 30_000
-#: How far an annotated box may be off its object: a parked car's annotations wander 0.1-1.4 m on the
-#: real sample, and their median (the static box) is nearer; a box does not hide points this close to it.
-LABEL_SLACK_M = 0.5
 
 
 #: Which pixel a point's ``rgb`` is (``lidar_frames.rgb_note``).
@@ -55,30 +53,15 @@ class SweepColours:
     def frames(self, t_lo_us: int, t_hi_us: int) -> list[ColourFrame]:
         """Every camera frame from ``t_lo_us - FRAME_MARGIN_US`` to ``t_hi_us + FRAME_MARGIN_US``."""
         out = []
-        traj = self._plan.T_rig_world
         for cam, (_, pinhole, usable) in self._cameras.items():
             stamps_ns = self._plan.inputs.image_timestamps_ns[cam]
             lo = np.searchsorted(stamps_ns, (t_lo_us - FRAME_MARGIN_US) * NS_PER_US)
             hi = np.searchsorted(stamps_ns, (t_hi_us + FRAME_MARGIN_US) * NS_PER_US, side="right")
             picked = stamps_ns[lo:hi]
-            if not len(picked):
-                continue
-            T_rig_world = traj.interpolate(traj.relative_seconds(picked))
-            T_camera_world = T_rig_world @ self._plan.inputs.T_sensor_ego[cam]
-            for ts, T in zip(picked.tolist(), T_camera_world, strict=True):
-                solids = None if self._plan.solids is None else self._plan.solids.at(ts // NS_PER_US)
-                out.append(
-                    ColourFrame(
-                        cam,
-                        ts // NS_PER_US,
-                        invert_se3(T),
-                        pinhole,
-                        usable,
-                        solids,
-                        LABEL_SLACK_M,
-                        load_rgb=lambda cam=cam, ts=ts: self._decode(cam, ts),
-                    )
-                )
+            views = camera_views(self._plan, cam, picked, pinhole, usable)
+            for ts, view in zip(picked.tolist(), views, strict=True):
+                fields = {f.name: getattr(view, f.name) for f in dataclasses.fields(view)}
+                out.append(ColourFrame(**fields, load_rgb=lambda cam=cam, ts=ts: self._decode(cam, ts)))
         return out
 
     def colours(

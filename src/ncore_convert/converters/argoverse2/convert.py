@@ -16,6 +16,7 @@ from upath import UPath
 from ncore_convert import contract
 from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.colours import COLOURS_TAKEN_FROM, SweepColours
+from ncore_convert.converters.argoverse2.labels import DepthLabeller
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
@@ -49,6 +50,8 @@ class Counts(Tally):
     dynamic_flag_seconds: float = 0.0  #: of which: dynamic_flag of every frame
     colour_seconds: float = 0.0  #: of which: per-point rgb of every frame (decoding included)
     camera_seconds: float = 0.0  #: read + write of all images
+    camera_labels: int = 0  #: camera labels written (``--camera-labels``)
+    label_seconds: float = 0.0  #: of ``lidar_seconds``: making and storing the camera labels
     warnings: list[str] = field(default_factory=list)
 
 
@@ -65,7 +68,9 @@ class LogSummary(Counts):
         return (
             f"{self.log_id}: {self.sweeps} sweeps, {self.points} points"
             f" ({self.points_not_stored} not representable), {self.images} images,"
-            f" {self.cuboids} cuboids, {'an HD map' if self.maps else 'no HD map'}, {self.seconds:.1f} s"
+            f" {self.cuboids} cuboids, {'an HD map' if self.maps else 'no HD map'}"
+            + (f", {self.camera_labels} camera labels" if self.camera_labels else "")
+            + f", {self.seconds:.1f} s"
             + (f", {len(self.warnings)} warning(s)" if self.warnings else "")
         )
 
@@ -111,6 +116,7 @@ def _open_writer(plan: LogPlan, output_dir: UPath, base: bool) -> SequenceWriter
         store_type=plan.options.store_type,
         profile=plan.options.profile,
         base=base,
+        label_ids=plan.label_ids,
         poses_meta={
             "calibration_type": "argoverse2-calibration",
             "egomotion_type": "argoverse2-city_SE3_egovehicle",
@@ -178,6 +184,7 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
     boxes = plan.dynamic_boxes
     colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
+    depth = DepthLabeller(plan, writer) if plan.label_ids else None
     flag_meta = {contract.DYNAMIC_FLAG: _dynamic_flag_note(plan), contract.LIDAR_RGB: _rgb_note(plan)}
     lidars = {  # one metadata dict per lidar: the writer updates it in place
         unit: writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta})
@@ -191,6 +198,8 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
         units, data = lidar_frame(frame, geometry, boxes, None if colours is None else colours.colours)
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
+        if depth is not None:
+            depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
             counts[unit].add(unit_rays)
@@ -206,6 +215,10 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             )
         result.sweeps += 1
         progress(1)
+    if depth is not None:
+        depth.finish()
+        result.camera_labels += depth.labels
+        result.label_seconds += depth.seconds
     for unit, stream in lidars.items():
         unit_counts = counts[unit]
         result.points += unit_counts.stored
@@ -282,13 +295,13 @@ def log_jobs(plan: LogPlan) -> list[LogPart]:
     Jobs: the base components, all lidars (they share each sweep read), and one per camera.
     Parts are in store order: base first, then lidars, then cameras.
     """
-    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids))] if plan.lidar_ids else [])
+    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids), label_ids=tuple(plan.label_ids))] if plan.lidar_ids else [])
     jobs += [WriteJob((cam,)) for cam in plan.camera_ids]
     n_cuboids = 0 if plan.inputs.annotations is None else len(plan.inputs.annotations)
     cost = [_COST_S["cuboid"] * n_cuboids]
     cost += [_COST_S["sweep"] * len(plan.sweep_timestamps_ns)] if plan.lidar_ids else []
     cost += [_COST_S["image"] * len(plan.inputs.image_timestamps_ns[cam]) for cam in plan.camera_ids]
-    parts = independent_parts(jobs, plan.camera_ids, plan.lidar_ids, plan.options.profile)
+    parts = independent_parts(jobs, plan.camera_ids, plan.lidar_ids, plan.options.profile, plan.label_ids)
     return [LogPart([jobs[i] for i in part], sum(cost[i] for i in part)) for part in parts]
 
 

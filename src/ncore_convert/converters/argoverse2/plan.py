@@ -59,6 +59,7 @@ class Argoverse2Options(ConsumerOptions):
     ego_box_m: tuple[float, float, float] = EgoBox().dims_m  #: the nominal ego vehicle (length, width, height)
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
+    camera_labels: tuple[str, ...] = ()  #: ``contract.CAMERA_LABEL_KINDS`` written per camera frame
 
     @property
     def tbv(self) -> bool:
@@ -216,8 +217,8 @@ class LogPlan:
         cameras: how each camera is stored (model type, f-theta fit).
         cuboid_labels: class names, label source and dynamic tracks (None without annotations).
         dynamic_boxes: the dynamic tracks' boxes in ``world`` (None: no ``dynamic_flag``).
-        solids: every track's box in ``world`` as an occluder for ``--lidar-rgb`` (None: not colouring,
-            or no annotations).
+        solids: every track's box in ``world`` as an occluder for ``--lidar-rgb`` and depth labels
+            (None: neither, or no annotations).
         ego_masks: each camera's ego mask (``--ego-masks``).
     """
 
@@ -241,6 +242,13 @@ class LogPlan:
     @property
     def sweep_timestamps_ns(self) -> np.ndarray:
         return self.inputs.sweep_timestamps_ns if self.lidar_ids else np.zeros(0, dtype=np.int64)
+
+    @property
+    def label_ids(self) -> list[str]:
+        """The camera labels written (``--camera-labels``): depth needs the lidars."""
+        if not self.lidar_ids:
+            return []
+        return [contract.camera_label_id(kind, cam) for cam in self.camera_ids for kind in self.options.camera_labels]
 
     @property
     def n_frames(self) -> int:
@@ -278,6 +286,11 @@ def plan_log(
     if window_us is not None:
         inputs = _clipped(inputs, window_us)
         camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings, " in the clip window")
+    if options.camera_labels and camera_ids and not lidar_ids:
+        warnings.append(
+            f"{log_dir}: no camera labels written ({', '.join(options.camera_labels)}): they are made from the"
+            " lidar points, and no lidar is converted"
+        )
 
     camera_inputs = {
         cam: (inputs.image_timestamps_ns[cam], camera_pinhole(inputs.intrinsics[cam]), inputs.T_sensor_ego[cam])
@@ -444,6 +457,6 @@ def _cuboid_labels(
     if not with_lidar:
         return cuboid_labels, None, None
     solids = None
-    if options.lidar_rgb:
+    if options.lidar_rgb or options.camera_labels:
         solids = SolidBoxes.select(observations, cuboid_labels.static_poses, cuboid_labels.dynamic)
     return cuboid_labels, DynamicBoxes.select(observations, cuboid_labels.dynamic), solids

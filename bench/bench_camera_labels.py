@@ -1,0 +1,64 @@
+"""Camera labels (``--camera-labels depth``) on the 15 s synthetic AV2 log: what they cost and weigh.
+
+Whole commands (``--no-validate``, so the figures are the conversion's own), with and without the
+labels, interleaved, medians of ``--repeat``; the difference per camera frame; and, from the last
+labelled output, the label stores' bytes against the camera stores'.
+
+    python bench/bench_camera_labels.py --repeat 3
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+from pathlib import Path
+
+from bench_argoverse2 import bench_parser, cached, work_dir
+from bench_speed import ours, timed
+from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from upath import UPath
+
+
+def _bytes(folder: Path, part: str) -> int:
+    """Bytes of the stores of ``folder`` whose names contain ``part``."""
+    return sum(p.stat().st_size for p in folder.rglob("*.zarr.itar") if part in p.name)
+
+
+def main() -> None:
+    parser = bench_parser(__doc__, repeat=3)
+    args = parser.parse_args()
+    work = work_dir(args)
+    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+    root = work / "speed-av2-15s"
+    log_id = cached(
+        root, "the 15 s AV2 log", lambda r: write_log(UPath(r / "val"), SynthConfig(seconds=15.0, seed=2)).log_id
+    )
+    rows: dict[str, list[float]] = {"without labels": [], "--camera-labels depth": []}
+    for round_ in range(args.repeat):
+        plain = timed(ours(root, work / "labels-plain", False), work / "labels-plain")
+        labelled = timed([*ours(root, work / "labels-depth", False), "--camera-labels", "depth"], work / "labels-depth")
+        rows["without labels"].append(plain)
+        rows["--camera-labels depth"].append(labelled)
+        print(f"  round {round_ + 1}: without {plain:.2f} s, with depth labels {labelled:.2f} s", flush=True)
+    med = {label: statistics.median(seconds) for label, seconds in rows.items()}
+    sequence = work / "labels-depth" / log_id
+    loader = SequenceLoaderV4(SequenceComponentGroupsReader([UPath(sequence / f"{log_id}.json")]))
+    frames = sum(len(loader.get_camera_sensor(cam).frames_timestamps_us) for cam in loader.camera_ids)
+    labels = sum(len(loader.get_camera_labels(label).label_timestamps_us) for label in loader.camera_labels_ids)
+    label_bytes = _bytes(sequence, "ncore4-depth.z@")
+    image_bytes = sum(_bytes(sequence, f"ncore4-{cam}.zarr") for cam in loader.camera_ids)
+    extra_s = med["--camera-labels depth"] - med["without labels"]
+    print(f"15 s AV2 log, whole commands (--no-validate), medians of {args.repeat}:")
+    for label, seconds in med.items():
+        print(f"  {label:<24} {seconds:7.2f} s")
+    print(f"  with / without = {med['--camera-labels depth'] / med['without labels']:.2f} (issue 41: <= 2)")
+    print(f"  {labels} depth labels for {frames} camera frames: {1e3 * extra_s / max(frames, 1):.1f} ms more per frame")
+    print(
+        f"  bytes: labels {label_bytes / 1e6:.1f} MB, images {image_bytes / 1e6:.1f} MB"
+        f" (labels / images = {label_bytes / max(image_bytes, 1):.2f}; issue 41: <= 0.25)"
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())
