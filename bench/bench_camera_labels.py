@@ -13,8 +13,8 @@ import statistics
 import sys
 from pathlib import Path
 
-from bench_argoverse2 import bench_parser, cached, work_dir
-from bench_speed import ours, timed
+from bench_argoverse2 import bench_parser, work_dir
+from bench_speed import ours, speed_log, timed
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from upath import UPath
 
@@ -28,12 +28,7 @@ def main() -> None:
     parser = bench_parser(__doc__, repeat=3)
     args = parser.parse_args()
     work = work_dir(args)
-    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-
-    root = work / "speed-av2-15s"
-    log_id = cached(
-        root, "the 15 s AV2 log", lambda r: write_log(UPath(r / "val"), SynthConfig(seconds=15.0, seed=2)).log_id
-    )
+    root, log_id = speed_log(work)
     rows: dict[str, list[float]] = {"without labels": [], "--camera-labels depth": []}
     for round_ in range(args.repeat):
         plain = timed(ours(root, work / "labels-plain", False), work / "labels-plain")

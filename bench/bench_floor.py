@@ -33,8 +33,8 @@ import sys
 import time
 from pathlib import Path
 
-from bench_argoverse2 import bench_parser, cached, copy, process_tree, work_dir
-from bench_speed import ours, timed
+from bench_argoverse2 import bench_parser, copy, process_tree, work_dir
+from bench_speed import ours, speed_log, timed
 from ncore.data.v4 import (
     CameraSensorComponent,
     CuboidsComponent,
@@ -253,12 +253,7 @@ def main() -> None:
     parser = bench_parser(__doc__, repeat=3)
     args = parser.parse_args()
     work = work_dir(args)
-    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-
-    root = work / "speed-av2-15s"
-    log_id = cached(
-        root, "the 15 s AV2 log", lambda r: write_log(UPath(r / "val"), SynthConfig(seconds=15.0, seed=2)).log_id
-    )
+    root, log_id = speed_log(work)
     log_dir = root / "val" / log_id
     reference = work / "floor-reference"
     timed(ours(root, reference, False), reference)

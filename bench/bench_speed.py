@@ -43,6 +43,16 @@ def timed(command: list[str], out: Path | None, env: dict | None = None) -> floa
     return time.perf_counter() - started
 
 
+def speed_log(work: Path) -> tuple[Path, str]:
+    """The 15 s synthetic AV2 log the speed benchmarks share (150 sweeps, 9 cameras at 20 fps),
+    synthesised once into ``work/speed-av2-15s``: its root (``--root-dir``) and log id."""
+    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+    root = work / "speed-av2-15s"
+    config = SynthConfig(seconds=15.0, seed=2)
+    return root, cached(root, "the 15 s AV2 log", lambda r: write_log(UPath(r / "val"), config).log_id)
+
+
 def ours(root: Path, out: Path, validate: bool) -> list[str]:
     flag = "--validate" if validate else "--no-validate"
     return [
@@ -81,11 +91,8 @@ def main() -> None:
     parser.add_argument("--ncore-repo", default=os.environ.get("NCORE_REPO"), help="an NVIDIA/ncore checkout")
     args = parser.parse_args()
     work = work_dir(args)
-    from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    root = work / "speed-av2-15s"
-    config = SynthConfig(seconds=15.0, seed=2)
-    log_id = cached(root, "the 15 s AV2 log", lambda r: write_log(UPath(r / "val"), config).log_id)
+    root, log_id = speed_log(work)
     log_dir = root / "val" / log_id
     repo = Path(args.ncore_repo) if args.ncore_repo else None
     if repo is not None and not (repo / "tools" / "data_converter" / "argoverse2" / "main.py").is_file():
