@@ -8,6 +8,10 @@ each sweep's frames are labelled once the next sweep's middle is known, so two s
 most. The views are at the cameras' full resolution, with their ego masks and the annotated boxes
 at the frames' times (:mod:`views`).
 
+Without cuboids (TbV), which points move is unknown: every point is then treated as possibly
+moving (used only within ``camera_labels.DYNAMIC_DT_US`` of its frame), so the labels are sparser
+but never show where a car was 50 ms earlier; the component metadata says so.
+
 A frame more than ``dynamic.HOLD_S`` before the first sweep's points or after the last one's (the
 cameras may run on beyond the lidar) gets an empty label (0 everywhere) that says why in its
 metadata: there, the moving objects are neither in the points nor in the boxes, and the static
@@ -45,6 +49,7 @@ class DepthLabeller:
 
     def __init__(self, plan: LogPlan, writer: SequenceWriter) -> None:
         self._plan = plan
+        self._unknown_motion = plan.dynamic_boxes is None  # no cuboids: any point may be on a mover
         self._streams: dict[str, CameraLabelStream] = {
             cam: writer.add_camera_label("depth", cam, "EXTERNAL", {}) for cam in plan.camera_ids
         }
@@ -67,14 +72,22 @@ class DepthLabeller:
             self._first_sweep_us = float(np.min(timestamps_us))
         if self._held is not None and np.isfinite(middle_us):
             self._label_until((self._held[3] + middle_us) / 2)
+        if self._unknown_motion:
+            dynamic = np.ones(len(timestamps_us), dtype=bool)
         if np.isfinite(middle_us):
             self._held = (xyz_world_m, timestamps_us, dynamic, middle_us)
 
     def finish(self) -> None:
         """Label the frames after the last sweep's middle (with it) and set each label's metadata."""
         self._label_until(np.inf)
+        meta = dict(DEPTH_GENERATOR)
+        if self._unknown_motion:
+            meta["moving_objects"] = (
+                "unknown (no cuboids): every point is used only within"
+                f" {camera_labels.DYNAMIC_DT_US / 1000:g} ms of its frame"
+            )
         for stream in self._streams.values():
-            stream.set_meta(DEPTH_GENERATOR)
+            stream.set_meta(meta)
 
     def _label_until(self, end_us: float) -> None:
         """Label, with the held sweep, every camera's unlabelled frames before ``end_us`` (µs)."""
