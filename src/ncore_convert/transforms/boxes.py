@@ -18,6 +18,9 @@ GRID_CELL_M = 2.0
 GRID_COLUMNS = 255  #: at most this many columns per axis, so that a column index fits uint16
 
 
+COLUMN_SLACK = 1e-9  #: of a column: how far PointGrid.near widens its column range against rounding
+
+
 class PointGrid:
     """Points bucketed once into square columns on the frame's x-y plane, so that each box looks
     only at the points in the columns its square covers: the one prefilter of every points-in-box
@@ -60,8 +63,11 @@ class PointGrid:
         centre_xy = np.asarray(centre_m[:2], dtype=np.float64)
         if not (np.isfinite(centre_xy).all() and np.isfinite(reach_m)):  # a NaN box holds no point
             return np.zeros(0, dtype=np.int64)
-        lo = np.floor((centre_xy - reach_m - self._lo) * (1.0 / self._cell))
-        hi = np.floor((centre_xy + reach_m - self._lo) * (1.0 / self._cell))
+        # the columns are a superset: widened by a billionth of a column, since centre +- reach rounds
+        # differently from the exact test's |point - centre| (a point at 1e-203 m, a centre at -1/3 m
+        # and a reach of 1/3 m: -1/3 + 1/3 is 0.0, yet |1e-203 + 1/3| rounds to 1/3)
+        lo = np.floor((centre_xy - reach_m - self._lo) * (1.0 / self._cell) - COLUMN_SLACK)
+        hi = np.floor((centre_xy + reach_m - self._lo) * (1.0 / self._cell) + COLUMN_SLACK)
         lo, hi = np.maximum(lo, 0).astype(np.int64), np.minimum(hi, self._shape - 1).astype(np.int64)
         if np.any(hi < lo):
             return np.zeros(0, dtype=np.int64)
