@@ -312,3 +312,17 @@ def test_the_label_checks_find_planted_faults(fault, failed):
     assert [c.name.split(": ")[-1] for c in report.checks if not c.ok] == failed, [
         (c.name, c.detail) for c in report.checks
     ]
+
+
+def test_preview_draws_the_depth_labels(labelled, tmp_path):
+    """``preview`` writes ``<stem>_<camera>_depth.png`` for each camera with depth labels: the
+    camera's picture at its size with the labelled pixels over it; the lidar projections as before."""
+    import PIL.Image
+
+    from ncore_convert.preview import preview_sequence
+
+    shown = preview_sequence(UPath(labelled.seq_dir / f"{labelled.truth.log_id}.json"), UPath(tmp_path))
+    assert {p.name for p in shown.depth_labels} == {c.png.name[:-4] + "_depth.png" for c in shown.cameras}
+    for png in shown.depth_labels:
+        with PIL.Image.open(str(png)) as image:
+            assert image.width >= 1000 and image.height > 0

@@ -82,8 +82,9 @@ def validate_command(path, source_root, json_file, details):
 def preview_command(path, out_dir, frame):
     """PNGs of a converted sequence or cooperative scenario (PATH: <sequence_id>.json or scenario.json).
 
-    A sequence: lidar points projected into every camera (coloured by range, motion-aware) and a
-    bird's-eye view with cuboids and the ego trajectory. A scenario.json: every agent in one
+    A sequence: lidar points projected into every camera (coloured by range, motion-aware), each
+    camera's depth label of that frame if it has one, and a bird's-eye view with cuboids and the
+    ego trajectory. A scenario.json: every agent in one
     bird's-eye view of world_global, with each noisy poses instance beside the ground truth.
     """
     from ncore_convert.preview import preview_scenario, preview_sequence
@@ -93,7 +94,7 @@ def preview_command(path, out_dir, frame):
             written = [preview_scenario(UPath(path), UPath(out_dir), frame)]
         else:
             result = preview_sequence(UPath(path), UPath(out_dir), frame)
-            written = [result.bev] + [p.png for p in result.cameras]
+            written = [result.bev] + [p.png for p in result.cameras] + result.depth_labels
     except ValueError as err:
         raise click.UsageError(str(err)) from None
     for png in written:

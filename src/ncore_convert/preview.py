@@ -19,6 +19,7 @@ import torch
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from ncore.data.v4 import SequenceLoaderV4
+from ncore.impl.data.types import LabelType
 from ncore.sensors import camera_model_from_parameters
 from upath import UPath
 
@@ -142,6 +143,42 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
     return CameraProjection(camera_id, frame, int(frame_us[1]), pixels, xyz_world_m[index], range_m, png)
 
 
+def draw_depth_label(loader: SequenceLoaderV4, camera_id: str, frame: int, png: UPath) -> bool:
+    """The camera image with its ``depth.z`` label of that frame over it, each labelled pixel
+    coloured by its depth on the scale of the lidar projections; False (nothing written) when the
+    camera has no depth label at the frame's end time."""
+    camera = loader.get_camera_sensor(camera_id)
+    end_us = int(camera.frames_timestamps_us[frame, 1])
+    found = loader.query_camera_labels(camera_id, label_type=LabelType.DEPTH_Z_M)
+    if not found or end_us not in set(found[0].label_timestamps_us.tolist()):
+        return False
+    depth = found[0].get_label(end_us).get_data()
+    image = camera.get_frame_image_array(frame)
+    height, width = image.shape[:2]
+    lines, cols = np.nonzero(depth)
+    fig = Figure(figsize=(12, 12 * height / width + 0.6), dpi=DPI)
+    ax = fig.add_axes((0.07, 0.05, 0.82, 0.89))
+    ax.imshow(image)
+    order = np.argsort(-depth[lines, cols])  # near pixels drawn last, on top
+    dots = ax.scatter(
+        cols[order] + 0.5,
+        lines[order] + 0.5,
+        c=depth[lines[order], cols[order]],
+        s=1.5,
+        cmap="turbo",
+        vmin=0,
+        vmax=MAX_RANGE_M,
+        linewidths=0,
+    )
+    ax.set_xlim(0, width)
+    ax.set_ylim(height, 0)
+    fig.colorbar(dots, cax=fig.add_axes((0.91, 0.05, 0.02, 0.89)), label="label depth z (m)")
+    name = found[0].label_descriptor.default_instance_name
+    ax.set_title(_title(loader, f"{name} frame {frame}: {len(lines)} pixels labelled", end_us), fontsize=10)
+    fig.savefig(str(png))
+    return True
+
+
 def _footprint(corners: np.ndarray) -> np.ndarray:
     """The bottom rectangle of a box's corners ([8,3], as box_corners_world orders them), closed, [5,2]."""
     return corners[[0, 2, 6, 4, 0], :2]
@@ -199,6 +236,7 @@ class Preview:
 
     bev: UPath
     cameras: list[CameraProjection]
+    depth_labels: list[UPath]  #: ``<stem>_<camera>_depth.png`` for the cameras with depth labels
 
 
 def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = None) -> Preview:
@@ -223,11 +261,13 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
     xyz = lidar_world_points(loader, t_mid)
     cuboids = read_cuboids(sequence.reader) or CuboidColumns.from_stored([])
     draw_bev(loader, cuboids, int(frames_us[frame, 1]), xyz, out_dir / f"{stem}_bev.png")
-    projections = []
+    projections, labels = [], []
     for camera_id in loader.camera_ids:
         camera_frame = _nearest_frame(loader.get_camera_sensor(camera_id).frames_timestamps_us, t_mid)
         projections.append(draw_camera(loader, camera_id, camera_frame, xyz, out_dir / f"{stem}_{camera_id}.png"))
-    return Preview(out_dir / f"{stem}_bev.png", projections)
+        if draw_depth_label(loader, camera_id, camera_frame, out_dir / f"{stem}_{camera_id}_depth.png"):
+            labels.append(out_dir / f"{stem}_{camera_id}_depth.png")
+    return Preview(out_dir / f"{stem}_bev.png", projections, labels)
 
 
 def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = None) -> UPath:
