@@ -326,3 +326,20 @@ def test_preview_draws_the_depth_labels(labelled, tmp_path):
     for png in shown.depth_labels:
         with PIL.Image.open(str(png)) as image:
             assert image.width >= 1000 and image.height > 0
+
+
+@pytest.mark.parametrize(
+    "value, message",
+    [("dynamic", "'dynamic' labels are not built yet"), ("depth,foo", "unknown camera label 'foo'")],
+)
+def test_camera_labels_not_built_or_unknown_are_usage_errors(tmp_path, value, message):
+    """A label kind that is not built yet, or does not exist, stops the command before any work,
+    naming it (never a silent run without the labels asked for)."""
+    from click.testing import CliRunner
+
+    from ncore_convert.cli import cli
+
+    args = ["--root-dir", str(tmp_path), "--output-dir", str(tmp_path / "out"), "argoverse2-v4", "--split", "val"]
+    result = CliRunner().invoke(cli, [*args, "--camera-labels", value])
+    assert result.exit_code == 2 and message in result.output, result.output
+    assert not (tmp_path / "out").exists()
