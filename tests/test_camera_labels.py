@@ -143,9 +143,11 @@ LABEL_CAMERAS = ("ring_front_center", "ring_side_left")
 
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory) -> Converted:
-    """A 1 s synthetic log (10 fps cameras), two cameras, converted with depth labels."""
+    """A 1 s synthetic log (10 fps cameras), two cameras, converted with every camera label."""
     config = SynthConfig(seconds=1.0, seed=21, camera_fps=10, keep_truth=True, image_cameras=LABEL_CAMERAS)
-    options = Argoverse2Options(split="val", camera_ids=LABEL_CAMERAS, camera_labels=("depth",), ego_masks="none")
+    options = Argoverse2Options(
+        split="val", camera_ids=LABEL_CAMERAS, camera_labels=("depth", "dynamic", "instance"), ego_masks="none"
+    )
     return synth_and_convert(tmp_path_factory.mktemp("labels"), config, options)
 
 
@@ -154,7 +156,8 @@ def test_one_depth_label_per_camera_frame_read_back_by_the_library(labelled):
     the frame's end time, the camera's size, float32 metres (0 or positive), found by the loader's
     own ``query_camera_labels``; and the sequence validates."""
     loader = labelled.loader
-    assert sorted(loader.camera_labels_ids) == sorted(f"depth.z@{cam}" for cam in LABEL_CAMERAS)
+    kinds = ("depth.z", "mask.dynamic", "segmentation.instance")
+    assert sorted(loader.camera_labels_ids) == sorted(f"{kind}@{cam}" for cam in LABEL_CAMERAS for kind in kinds)
     for cam in LABEL_CAMERAS:
         (labels,) = loader.query_camera_labels(cam, label_type=LabelType.DEPTH_Z_M)
         assert labels.label_descriptor.label_source == LabelSource.EXTERNAL
@@ -329,17 +332,23 @@ def test_preview_draws_the_depth_labels(labelled, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "value, message",
-    [("dynamic", "'dynamic' labels are not built yet"), ("depth,foo", "unknown camera label 'foo'")],
+    "command, value, message",
+    [
+        ("argoverse2-v4", "depth,foo", "unknown camera label 'foo'"),
+        ("tbv-v4", "depth,instance", "instance: made from the annotated boxes, and TbV has no cuboids"),
+        ("tbv-v4", "dynamic", "dynamic: made from the annotated boxes, and TbV has no cuboids"),
+    ],
 )
-def test_camera_labels_not_built_or_unknown_are_usage_errors(tmp_path, value, message):
-    """A label kind that is not built yet, or does not exist, stops the command before any work,
-    naming it (never a silent run without the labels asked for)."""
+def test_camera_labels_unknown_or_impossible_are_usage_errors(tmp_path, command, value, message):
+    """A label kind that does not exist, or that the dataset cannot make (TbV has no boxes for
+    masks), stops the command before any work, naming it (never a silent run without the labels
+    asked for)."""
     from click.testing import CliRunner
 
     from ncore_convert.cli import cli
 
-    args = ["--root-dir", str(tmp_path), "--output-dir", str(tmp_path / "out"), "argoverse2-v4", "--split", "val"]
+    args = ["--root-dir", str(tmp_path), "--output-dir", str(tmp_path / "out"), command]
+    args += ["--split", "val"] if command == "argoverse2-v4" else []
     result = CliRunner().invoke(cli, [*args, "--camera-labels", value])
-    assert result.exit_code == 2 and message in result.output, result.output
+    assert result.exit_code == 2 and message in " ".join(result.output.split()), result.output
     assert not (tmp_path / "out").exists()

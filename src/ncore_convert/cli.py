@@ -28,6 +28,7 @@ from ncore_convert.cli_tools import (
     synth,
     validate_command,
 )
+from ncore_convert.contract import BOX_LABEL_KINDS
 from ncore_convert.errors import SourceError
 from ncore_convert.run.executors import ExecutorKind
 from ncore_convert.run.pool import JobPool, default_workers
@@ -307,6 +308,12 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, **options):
 @click.pass_obj
 def tbv_v4(obj: GroupOptions, log_ids, **options):
     """Argoverse 2 TbV (<root>/<log_id>) to NCore V4; per-point times reconstructed (no offset_ns)."""
+    from_boxes = [kind for kind in options["camera_labels"] if kind in BOX_LABEL_KINDS]
+    if from_boxes:
+        raise click.BadParameter(
+            f"{', '.join(from_boxes)}: made from the annotated boxes, and TbV has no cuboids",
+            param_hint="--camera-labels",
+        )
     _convert(obj, "tbv-v4", log_ids, split=None, **options)
 
 

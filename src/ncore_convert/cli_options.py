@@ -150,15 +150,9 @@ def _ego_masks_option(ctx, param, value: str) -> str:
     raise click.BadParameter(f"{value!r} is neither 'estimate', 'none' nor a folder of <camera_id>.png masks")
 
 
-#: ``--camera-labels`` kinds the issue names; only those in ``contract.CAMERA_LABEL_KINDS`` are built.
-_PLANNED_LABELS = ("dynamic", "instance")
-
-
 def _camera_labels_option(ctx, param, value: str | None) -> tuple[str, ...]:
     kinds = tuple(dict.fromkeys(k.strip() for k in (value or "").split(",") if k.strip()))
     for kind in kinds:
-        if kind in _PLANNED_LABELS:
-            raise click.BadParameter(f"{kind!r} labels are not built yet (available: {', '.join(CAMERA_LABEL_KINDS)})")
         if kind not in CAMERA_LABEL_KINDS:
             raise click.BadParameter(f"unknown camera label {kind!r} (available: {', '.join(CAMERA_LABEL_KINDS)})")
     return kinds
@@ -206,11 +200,14 @@ def av2_family_options(log_scope: str) -> Callable:
             type=str,
             default=None,
             callback=_camera_labels_option,
-            metavar="depth",
+            metavar="depth,dynamic,instance",
             show_default="none",
             help="Image-aligned labels per camera frame, in NCore's camera-labels component"
             " (comma-separated): 'depth' -> depth.z@<camera>, the z-depth (m) of the nearest lidar point"
-            " the camera sees in each pixel, 0 where none (needs the lidars).",
+            " the camera sees in each pixel, 0 where none (needs the lidars); 'dynamic' ->"
+            " mask.dynamic@<camera>, 1 where a moving object's box shows; 'instance' ->"
+            " segmentation.instance@<camera>, the per-sequence instance index of the box each pixel"
+            " shows, 0 where none (both need cuboids: not TbV).",
         ),
     )
 

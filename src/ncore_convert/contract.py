@@ -102,19 +102,22 @@ OPENCOOD_PROTOCOL = "opencood_data_protocol"
 
 # --- component instances ---
 #: The instance name every component is written under, and the one ``SequenceLoaderV4`` opens by default.
+DEFAULT_INSTANCE = "default"
 #: ``--camera-labels`` kinds, each one NCore camera-labels component per camera, named by NCore's
 #: convention ``category.qualifier@camera_id``: ``depth`` -> ``depth.z@<camera>`` (z-depth in metres
-#: from the lidar points the camera sees, 0 = no measurement).
-CAMERA_LABEL_KINDS = ("depth",)
-CAMERA_LABEL_QUALIFIED = {"depth": "depth.z"}
+#: from the lidar points the camera sees, 0 = no measurement); ``dynamic`` -> ``mask.dynamic@<camera>``
+#: (1 where a moving object's box shows, else 0); ``instance`` -> ``segmentation.instance@<camera>``
+#: (the per-sequence instance index of the box each pixel shows, 0 = none).
+CAMERA_LABEL_KINDS = ("depth", "dynamic", "instance")
+CAMERA_LABEL_QUALIFIED = {"depth": "depth.z", "dynamic": "mask.dynamic", "instance": "segmentation.instance"}
+#: The kinds made from the annotated boxes (the others from the lidar points).
+BOX_LABEL_KINDS = ("dynamic", "instance")
 
 
 def camera_label_id(kind: str, camera_id: str) -> str:
     """The component instance name of a camera label (``depth.z@ring_front_center``)."""
     return f"{CAMERA_LABEL_QUALIFIED[kind]}@{camera_id}"
 
-
-DEFAULT_INSTANCE = "default"
 
 # --- the HD map, stored as generic data of the poses component ---
 MAP_VECTOR_JSON = "hd_map_vector_json"

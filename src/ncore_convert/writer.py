@@ -9,6 +9,7 @@ readers look up again are defined in :mod:`ncore_convert.contract`.
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -142,30 +143,53 @@ class LidarStream(_SensorStream):
 DEPTH_QUANTIZATION = QuantizationParams(quantized_dtype=np.dtype("uint32"), scale=0.001, offset=0.0)
 
 
+#: How mask labels are stored: PNG (``IMAGE_ENCODED``), the library decoding them through PIL.
+#: ``mask.dynamic`` is a 1-bit PNG (read back as uint8 0/1); ``segmentation.instance`` a 16-bit
+#: grey PNG (uint16: up to 65,535 instances per sequence). zlib level 1: a third of level 6's time.
+PNG_COMPRESS_LEVEL = 1
+_PNG_LABELS = {
+    "dynamic": (LabelType.MASK_DYNAMIC, np.dtype("uint8")),
+    "instance": (LabelType.SEGMENTATION_INSTANCE, np.dtype("uint16")),
+}
+
+
 def _label_descriptor(kind: str, camera_id: str, source: str) -> CameraLabelDescriptor:
     """The NCore descriptor of one ``contract.CAMERA_LABEL_KINDS`` label of ``camera_id``."""
-    if kind != "depth":
+    if kind == "depth":
+        label_type = LabelType.DEPTH_Z_M
+        schema = LabelSchema(dtype=np.dtype("float32"), encoding=LabelEncoding.RAW, quantization=DEPTH_QUANTIZATION)
+    elif kind in _PNG_LABELS:
+        label_type, dtype = _PNG_LABELS[kind]
+        schema = LabelSchema(dtype=dtype, encoding=LabelEncoding.IMAGE_ENCODED, encoded_format="png")
+    else:
         raise ValueError(f"unknown camera label kind {kind!r}")
     return CameraLabelDescriptor(
-        camera_id=camera_id,
-        label_type=LabelType.DEPTH_Z_M,
-        label_schema=LabelSchema(
-            dtype=np.dtype("float32"), encoding=LabelEncoding.RAW, quantization=DEPTH_QUANTIZATION
-        ),
-        label_source=LabelSource[source],
+        camera_id=camera_id, label_type=label_type, label_schema=schema, label_source=LabelSource[source]
     )
+
+
+def _png(data: np.ndarray, kind: str) -> bytes:
+    """A mask label as PNG bytes: 1-bit for ``dynamic`` (``data`` bool or 0/1), 16-bit grey for
+    ``instance`` (``data`` uint16)."""
+    image = PIL.Image.fromarray(data.astype(bool) if kind == "dynamic" else data.astype(np.uint16))
+    out = io.BytesIO()
+    image.save(out, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
+    return out.getvalue()
 
 
 class CameraLabelStream:
     """The labels of one kind for one camera, one per camera frame."""
 
-    def __init__(self, writer: CameraLabelsComponent.Writer) -> None:
+    def __init__(self, writer: CameraLabelsComponent.Writer, kind: str) -> None:
         self._writer = writer
+        self._kind = kind
 
     def store_label(self, data: np.ndarray, timestamp_us: int, generic_meta_data: dict | None = None) -> None:
-        """Store the label of the camera frame ending at ``timestamp_us``: ``data`` float32
-        [height,width] for depth (metres, 0 = none)."""
-        self._writer.store_label(data, int(timestamp_us), generic_meta_data or {})
+        """Store the label of the camera frame ending at ``timestamp_us``, [height,width]: float32
+        metres for ``depth`` (0 = none); bool for ``dynamic``; uint16 instance indices for
+        ``instance`` (0 = none). The masks are PNG-encoded here."""
+        stored = data if self._kind == "depth" else _png(data, self._kind)
+        self._writer.store_label(stored, int(timestamp_us), generic_meta_data or {})
 
     def set_meta(self, generic_meta_data: dict) -> None:
         """Replace the component-level metadata (the generator and its parameters)."""
@@ -455,7 +479,7 @@ class SequenceWriter:
             generic_meta_data,
             descriptor=_label_descriptor(kind, camera_id, source),
         )
-        return CameraLabelStream(writer)
+        return CameraLabelStream(writer, kind)
 
     def store_cuboids(self, cuboids: Cuboids | None, source: str = "EXTERNAL", meta: dict | None = None) -> None:
         """Store all cuboid observations (an empty component when there are none), tagged with the

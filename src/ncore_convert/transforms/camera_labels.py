@@ -1,5 +1,6 @@
 """Image-aligned labels of camera frames, for NCore's camera-labels component: sparse z-depth from
-lidar points (``depth.z``).
+lidar points (``depth.z``), and which labelled box each pixel shows (``mask.dynamic`` and
+``segmentation.instance`` are made from :func:`box_index`).
 
 A depth label holds, per pixel, the camera-frame z (metres, OpenCV frame: z forward) of the nearest
 lidar point that the camera sees there, 0 where no point does. The points are the lidar's, where
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ncore_convert.transforms.visibility import CameraView, visible_pixels
+from ncore_convert.transforms.visibility import CameraView, box_pictures, visible_pixels
 
 #: A point on a moving object labels only a frame this close to its own time (µs): at 15 m/s the
 #: object moves 7.5 cm in that time.
@@ -51,3 +52,52 @@ def depth_z(view: CameraView, xyz_world_m: np.ndarray, timestamps_us: np.ndarray
     first = order[np.r_[True, pixel[order][1:] != pixel[order][:-1]]] if len(order) else order
     image.reshape(-1)[pixel[first]] = z_m[first]
     return image
+
+
+def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> np.ndarray:
+    """Which box each pixel of ``view`` shows: the box whose surface the ray through the pixel's
+    centre meets first (nearest box first where boxes overlap), -1 where it meets none or the pixel
+    is not usable (the ego body). Boxes hide each other; nothing else does (the labels know no
+    other surface). A box the camera is inside is left out.
+
+    Args:
+        view: the camera frame; its pinhole's resolution is the result's.
+        T_box_world: box -> fixed frame, float64 [K,4,4]; half_m: half sizes, float64 [K,3], m.
+
+    Returns:
+        int32 [height,width]: an index into the boxes, or -1.
+    """
+    width, height = view.pinhole.resolution_px
+    index = np.full((height, width), -1, dtype=np.int32)
+    if not len(T_box_world):
+        return index
+    nearest_m = np.full((height, width), np.inf, dtype=np.float32)
+    pictures = box_pictures(view, T_box_world, half_m)
+    u_lo, u_hi, v_lo, v_hi = pictures.rectangle_px
+    (fx, fy), (cx, cy) = view.pinhole.focal_length_px, view.pinhole.principal_point_px
+    R_camera_world = view.T_world_camera[:3, :3].T  # camera axes in the fixed frame
+    for k in np.flatnonzero(pictures.in_view):
+        c0, c1 = int(max(u_lo[k], 0)), int(min(u_hi[k], width - 1)) + 1
+        r0, r1 = int(max(v_lo[k], 0)), int(min(v_hi[k], height - 1)) + 1
+        # the ray through pixel (col, row) is x(col) X + y(row) Y + Z in camera axes (z = 1, so the
+        # ray parameter at a hit is its z-depth); in the box's axes each coordinate is a sum of a
+        # column term and a row term
+        M = T_box_world[k, :3, :3].T @ R_camera_world  # camera axes -> box axes
+        x = ((np.arange(c0, c1) + 0.5 - cx) / fx).astype(np.float32)
+        y = ((np.arange(r0, r1) + 0.5 - cy) / fy).astype(np.float32)
+        enter = np.zeros((r1 - r0, c1 - c0), np.float32)
+        leave = np.full((r1 - r0, c1 - c0), np.inf, np.float32)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for axis in range(3):
+                step = (M[axis, 2] + M[axis, 0] * x)[None, :] + (M[axis, 1] * y)[:, None]  # [rows,cols]
+                low = (-half_m[k, axis] - pictures.origin_m[k, axis]) / step
+                high = (half_m[k, axis] - pictures.origin_m[k, axis]) / step
+                np.fmax(enter, np.fmin(low, high), out=enter)
+                np.fmin(leave, np.fmax(low, high), out=leave)
+        window = nearest_m[r0:r1, c0:c1]
+        shown = (enter <= leave) & (enter < window)
+        window[shown] = enter[shown]
+        index[r0:r1, c0:c1][shown] = k
+    if view.usable is not None:
+        index[~view.usable] = -1
+    return index

@@ -196,6 +196,7 @@ class DynamicBoxes:
         half_extent_m: half the box size, grown by a margin (BOX_MARGIN_M for ``dynamic_flag``), [M,3].
         reach_m: per track, the largest distance from its centre to a grown corner, [T].
         speed_mps: per track, the largest speed between consecutive observations, [T].
+        track_ids: per track, its id, str [T].
     """
 
     bounds: np.ndarray
@@ -205,6 +206,7 @@ class DynamicBoxes:
     half_extent_m: np.ndarray
     reach_m: np.ndarray
     speed_mps: np.ndarray
+    track_ids: np.ndarray
 
     @classmethod
     def select(
@@ -226,7 +228,8 @@ class DynamicBoxes:
             if b - a > 1:
                 dt_s = np.maximum(np.diff(times[a:b]) * 1e-6, 1e-6)
                 step_speed[k] = float((np.linalg.norm(np.diff(centers[a:b], axis=0), axis=1) / dt_s).max())
-        return cls(bounds, times, centers, observations.R_box_frame[keep], half, reach, step_speed)
+        track_ids = ids[keep][bounds[:-1]]
+        return cls(bounds, times, centers, observations.R_box_frame[keep], half, reach, step_speed, track_ids)
 
     def __len__(self) -> int:
         return len(self.bounds) - 1
@@ -270,11 +273,14 @@ class SolidBoxes:
     Attributes:
         static_T_box_frame: box -> fixed frame, float64 [S,4,4]; static_half_m: half sizes [S,3].
         moving: the other tracks' observations, not grown.
+        track_ids: every track's id, the static ones first (in ``static_T_box_frame``'s order),
+            then the moving ones (in ``moving``'s), str [S+T].
     """
 
     static_T_box_frame: np.ndarray
     static_half_m: np.ndarray
     moving: DynamicBoxes
+    track_ids: np.ndarray
 
     @classmethod
     def select(
@@ -286,16 +292,23 @@ class SolidBoxes:
         half = np.zeros((len(static), 3))
         for k, (centre, R, dims) in enumerate(static.values()):
             T[k, :3, :3], T[k, :3, 3], half[k] = R, centre, dims / 2
-        return cls(T, half, DynamicBoxes.select(observations, dynamic, margin_m=0.0))
+        moving = DynamicBoxes.select(observations, dynamic, margin_m=0.0)
+        return cls(T, half, moving, np.concatenate([np.array(list(static), dtype=str), moving.track_ids]))
 
     def at(self, t_us: int) -> tuple[np.ndarray, np.ndarray]:
-        """The boxes at ``t_us``: box -> fixed frame [K,4,4] and half sizes [K,3]; a moving track's
-        centre interpolated, its rotation and size the nearest observation's, while it is observed
-        (up to ``HOLD_S`` beyond its ends)."""
+        """The boxes at ``t_us``: box -> fixed frame [K,4,4] and half sizes [K,3] (:meth:`tracks_at`)."""
+        return self.tracks_at(t_us)[1:]
+
+    def tracks_at(self, t_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The boxes at ``t_us``: each one's track (index into ``track_ids``), int [K]; box -> fixed
+        frame [K,4,4]; half sizes [K,3]. A moving track's centre is interpolated, its rotation and size
+        the nearest observation's, while it is observed (up to ``HOLD_S`` beyond its ends)."""
         tracks, centres, nearest = self.moving.at(t_us)
         T_moving = np.tile(np.eye(4), (len(tracks), 1, 1))
         T_moving[:, :3, :3], T_moving[:, :3, 3] = self.moving.R_box_frame[nearest], centres
+        n_static = len(self.static_T_box_frame)
         return (
+            np.concatenate([np.arange(n_static), n_static + tracks]),
             np.concatenate([self.static_T_box_frame, T_moving]),
             np.concatenate([self.static_half_m, self.moving.half_extent_m[nearest]]),
         )

@@ -89,32 +89,39 @@ def in_view(frame: CameraView, xyz_world_m: np.ndarray, margin: float) -> tuple[
     return ahead[inside], xyz[ahead[inside]]
 
 
-def _behind_solids(frame: CameraView, xyz_world_m: np.ndarray, cols: np.ndarray, lines: np.ndarray) -> np.ndarray:
-    """The points (float64 [V,3], fixed frame; their pixel ``cols``, ``lines``, int [V]) whose line of
-    sight from ``frame``'s camera enters one of its ``solids`` more than the depth tolerance before
-    reaching the point, bool [V]. A box the camera is inside hides nothing, nor does a box hide the
-    points within ``frame.solids_slack_m`` of it (its object's own: the depth buffer decides those).
-    Each box in view tests only the points in its picture's bounding rectangle."""
-    hidden = np.zeros(len(xyz_world_m), bool)
-    if frame.solids is None or not len(xyz_world_m):
-        return hidden
+@dataclass(frozen=True)
+class BoxPictures:
+    """Where boxes appear in a camera frame (:func:`box_pictures`).
+
+    Attributes:
+        origin_m: the camera's centre in each box's frame, float64 [K,3], m.
+        rectangle_px: the bounding rectangle of each box's picture, whole pixels (first and last
+            column, first and last row; NaN for a box wholly behind the camera), float64 [K] each.
+        in_view: the boxes that may show in the image: the camera is outside them and their
+            rectangle meets the image, bool [K].
+    """
+
+    origin_m: np.ndarray
+    rectangle_px: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    in_view: np.ndarray
+
+
+def box_pictures(frame: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> BoxPictures:
+    """Where boxes (box -> fixed frame ``T_box_world`` float64 [K,4,4], half sizes ``half_m`` [K,3],
+    m) appear in ``frame``: the rectangle of each one's corners ahead of the camera and of where its
+    edges cross the plane ``MIN_DEPTH_M`` ahead of it."""
     R_wc, t_wc = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
-    camera_m = invert_se3(frame.T_world_camera)[:3, 3]  # the camera's centre in the fixed frame
-    w, h = frame.pinhole.resolution_px
-    by_col = np.argsort(cols, kind="stable")
-    cols_sorted = cols[by_col]
-    T_box_world, half_all = frame.solids
+    camera_m = invert_se3(frame.T_world_camera)[:3, 3]
     R_all, t_all = T_box_world[:, :3, :3], T_box_world[:, :3, 3]
-    origin_all = np.einsum("kji,kj->ki", R_all, camera_m - t_all)  # the camera in each box's frame
-    corners = np.einsum("kij,kcj->kci", R_all, CORNER_SIGNS[None] * half_all[:, None]) + t_all[:, None]
+    origin_all = np.einsum("kji,kj->ki", R_all, camera_m - t_all)
+    corners = np.einsum("kij,kcj->kci", R_all, CORNER_SIGNS[None] * half_m[:, None]) + t_all[:, None]
     corners = corners @ R_wc.T + t_wc  # [K,8,3] in the camera frame
-    # the bounding rectangle of each box's picture: its corners ahead of the camera, and where its
-    # edges cross the plane MIN_DEPTH_M ahead of it
     start, end = corners[:, BOX_EDGES[:, 0]], corners[:, BOX_EDGES[:, 1]]  # [K,12,3]
     with np.errstate(divide="ignore", invalid="ignore"):
         f = (MIN_DEPTH_M - start[..., 2]) / (end[..., 2] - start[..., 2])
         crossing = np.where(((f > 0) & (f < 1))[..., None], start + f[..., None] * (end - start), np.nan)
     points = np.concatenate([np.where(corners[..., 2:] >= MIN_DEPTH_M, corners, np.nan), crossing], axis=1)
+    w, h = frame.pinhole.resolution_px
     with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a box wholly behind the camera: all NaN
         u, v = (c.reshape(points.shape[:-1]) for c in frame.pinhole.project(points.reshape(-1, 3)))
@@ -124,9 +131,28 @@ def _behind_solids(frame: CameraView, xyz_world_m: np.ndarray, cols: np.ndarray,
             np.floor(np.nanmin(v, axis=1)),
             np.floor(np.nanmax(v, axis=1)),
         )
-    camera_inside = np.all(np.abs(origin_all) <= half_all, axis=1)
-    candidates = ~camera_inside & (u_hi >= 0) & (u_lo < w) & (v_hi >= 0) & (v_lo < h)  # NaN: False
-    for k in np.flatnonzero(candidates):
+    camera_inside = np.all(np.abs(origin_all) <= half_m, axis=1)
+    in_view = ~camera_inside & (u_hi >= 0) & (u_lo < w) & (v_hi >= 0) & (v_lo < h)  # NaN: False
+    return BoxPictures(origin_all, (u_lo, u_hi, v_lo, v_hi), in_view)
+
+
+def _behind_solids(frame: CameraView, xyz_world_m: np.ndarray, cols: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """The points (float64 [V,3], fixed frame; their pixel ``cols``, ``lines``, int [V]) whose line of
+    sight from ``frame``'s camera enters one of its ``solids`` more than the depth tolerance before
+    reaching the point, bool [V]. A box the camera is inside hides nothing, nor does a box hide the
+    points within ``frame.solids_slack_m`` of it (its object's own: the depth buffer decides those).
+    Each box in view tests only the points in its picture's bounding rectangle."""
+    hidden = np.zeros(len(xyz_world_m), bool)
+    if frame.solids is None or not len(xyz_world_m):
+        return hidden
+    camera_m = invert_se3(frame.T_world_camera)[:3, 3]  # the camera's centre in the fixed frame
+    by_col = np.argsort(cols, kind="stable")
+    cols_sorted = cols[by_col]
+    T_box_world, half_all = frame.solids
+    pictures = box_pictures(frame, T_box_world, half_all)
+    R_all, t_all, origin_all = T_box_world[:, :3, :3], T_box_world[:, :3, 3], pictures.origin_m
+    u_lo, u_hi, v_lo, v_hi = pictures.rectangle_px
+    for k in np.flatnonzero(pictures.in_view):
         R, t, half_m, origin = R_all[k], t_all[k], half_all[k], origin_all[k]
         near = by_col[np.searchsorted(cols_sorted, u_lo[k]) : np.searchsorted(cols_sorted, u_hi[k], side="right")]
         near = near[(lines[near] >= v_lo[k]) & (lines[near] <= v_hi[k])]

@@ -6,22 +6,37 @@ import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import LabelCategory
 
+from ncore_convert.transforms.dynamic import HOLD_S
 from ncore_convert.transforms.sampling import spread_indices
+from ncore_convert.validate.cuboids import CuboidColumns
+from ncore_convert.validate.readback import box_corners_world, project_into_camera
 from ncore_convert.validate.report import Report
 
 #: Labels decoded per label component: the first, the last and evenly spread ones between.
 DECODED_SAMPLE = 8
+#: How far (px) a mask pixel may lie outside the rectangle of its box's projected corners (rounding,
+#: and a stored f-theta model's bend of the box's edges between its corners).
+BOX_MARGIN_PX = 2.0
+#: Per-label metadata of a mask whose moving objects are unknown (the dynamic mask is all 1 there).
+UNKNOWN_KEY = "moving_objects_unknown"
 
 
-def check_camera_labels(report: Report, loader: SequenceLoaderV4, camera_id: str) -> None:
+def check_camera_labels(
+    report: Report, loader: SequenceLoaderV4, camera_id: str, cuboids: CuboidColumns | None = None
+) -> None:
     """Every label component of ``camera_id``: one label per camera frame, at the frame's end time;
     a sample of ``DECODED_SAMPLE`` decoded through the library has the camera's size; depth is
-    finite and >= 0 (0: no measurement)."""
+    finite and >= 0 (0: no measurement); a mask's pixels lie within the projections of the boxes
+    they name (``cuboids``, the sequence's): an instance's within its track's, a dynamic pixel's
+    within a dynamic track's."""
     camera = loader.get_camera_sensor(camera_id)
     frames_end_us = np.sort(camera.frames_timestamps_us[:, 1])
     width, height = (int(v) for v in camera.model_parameters.resolution)
-    for labels in loader.query_camera_labels(camera_id):
+    found = loader.query_camera_labels(camera_id)
+    instances = _instance_tables(found)
+    for labels in found:
         descriptor = labels.label_descriptor
+        category = descriptor.label_type.category
         name = f"camera {camera_id}: label {descriptor.default_instance_name}"
         stamps_us = np.sort(labels.label_timestamps_us)
         report.add(
@@ -31,23 +46,114 @@ def check_camera_labels(report: Report, loader: SequenceLoaderV4, camera_id: str
             f" ({len(np.setdiff1d(frames_end_us, stamps_us))} frames without one,"
             f" {len(np.setdiff1d(stamps_us, frames_end_us))} labels at no frame's end time)",
         )
-        problems, labelled = [], []
+        problems, labelled, outside = [], [], []
         for i in spread_indices(len(stamps_us), DECODED_SAMPLE):
             ts = int(stamps_us[i])
             try:
-                data = labels.get_label(ts).get_data()
+                handle = labels.get_label(ts)
+                data = handle.get_data()
             except Exception as err:  # noqa: BLE001 - any failure to decode is the finding
                 problems.append(f"{ts}: does not decode ({type(err).__name__})")
                 continue
             if data.shape[:2] != (height, width):
                 problems.append(f"{ts}: {data.shape[1]}x{data.shape[0]} px")
-            elif descriptor.label_type.category == LabelCategory.DEPTH and not np.all(np.isfinite(data) & (data >= 0)):
+            elif category == LabelCategory.DEPTH and not np.all(np.isfinite(data) & (data >= 0)):
                 problems.append(f"{ts}: depth not finite and >= 0 everywhere")
+            elif category == LabelCategory.MASK and not np.all((data == 0) | (data == 1)):
+                problems.append(f"{ts}: mask values other than 0 and 1")
             else:
                 labelled.append(float(np.count_nonzero(data)) / data.size)
+                if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and cuboids is not None:
+                    if UNKNOWN_KEY not in (handle.generic_meta_data or {}):
+                        frame = int(np.searchsorted(camera.frames_timestamps_us[:, 1], ts))
+                        outside += _outside_boxes(loader, camera_id, frame, data, category, instances, cuboids, ts)
         report.add(
             f"{name}: decodes, the camera's size, valid values",
             not problems,
             "; ".join(problems[:3])
             or f"{len(labelled)} labels decoded ({width}x{height}), median {np.median(labelled):.2%} of pixels set",
         )
+        if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and cuboids is not None:
+            report.add(
+                f"{name}: within the projected boxes",
+                not outside,
+                "; ".join(outside[:3]) or f"every set pixel of {len(labelled)} labels within its boxes' projection",
+            )
+
+
+def _instance_tables(found: list) -> dict[int, dict]:
+    """The instance index -> {track_id, class_id, dynamic} table of the camera's instance labels ({}: none)."""
+    for labels in found:
+        if labels.label_descriptor.label_type.category == LabelCategory.SEGMENTATION:
+            table = (labels.labels_generic_meta_data or {}).get("instances", {})
+            return {int(k): v for k, v in table.items()}
+    return {}
+
+
+def _outside_boxes(
+    loader: SequenceLoaderV4,
+    camera_id: str,
+    frame: int,
+    data: np.ndarray,
+    category: LabelCategory,
+    instances: dict[int, dict],
+    cuboids: CuboidColumns,
+    ts: int,
+) -> list[str]:
+    """What of a mask label (``data`` [H,W], of camera frame ``frame``) lies outside the rectangle
+    of the projected corners of every observation of the track(s) it names, grown by
+    ``BOX_MARGIN_PX`` (and of its ends carried on ``HOLD_S`` along its end segments, as the labels
+    hold them): an instance's pixels outside its own track's; a dynamic mask's outside every
+    dynamic track's (every track's without an instance table). A track with a corner that does not
+    project while others do (it crosses the plane of the camera) bounds nothing: its pixels are not
+    checked; an observation none of whose corners project is out of view and adds nothing."""
+    if category == LabelCategory.SEGMENTATION:
+        groups = {k: [instances.get(k, {}).get("track_id")] for k in np.unique(data[data > 0]).tolist()}
+        unnamed = [k for k, tracks in groups.items() if tracks == [None]]
+        if unnamed:
+            return [f"{ts}: instance(s) {unnamed[:5]} not in the instance table"]
+    else:
+        dynamic = [v["track_id"] for v in instances.values() if v.get("dynamic")] if instances else None
+        groups = {1: dynamic if dynamic is not None else sorted(set(cuboids.track_id.tolist()))}
+    allowed = {k: np.zeros(data.shape[:2], bool) for k in groups}
+    for k, tracks in groups.items():
+        rows = np.flatnonzero(np.isin(cuboids.track_id, tracks))
+        if not len(rows):
+            continue
+        corners = _held_boxes(loader, cuboids.rows(rows)).reshape(-1, 3)
+        pixels, valid = project_into_camera(loader, camera_id, frame, corners)
+        observation = valid // 8
+        for obs in np.unique(observation):
+            if np.count_nonzero(observation == obs) < 8:  # a corner does not project: unbounded
+                allowed[k][:] = True
+                break
+            u, v = pixels[observation == obs, 0], pixels[observation == obs, 1]
+            c0, c1 = int(max(np.floor(u.min() - BOX_MARGIN_PX), 0)), int(max(np.ceil(u.max() + BOX_MARGIN_PX), 0))
+            r0, r1 = int(max(np.floor(v.min() - BOX_MARGIN_PX), 0)), int(max(np.ceil(v.max() + BOX_MARGIN_PX), 0))
+            allowed[k][r0:r1, c0:c1] = True
+    found = []
+    for k in groups:
+        stray = np.count_nonzero((data == k) & ~allowed[k])
+        if stray:
+            what = f"instance {k}" if category == LabelCategory.SEGMENTATION else "dynamic pixels"
+            found.append(f"{ts}: {stray} px of {what} outside the projected boxes")
+    return found
+
+
+def _held_boxes(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
+    """The corners in ``world`` of a set of tracks' observations ([B,8,3], as ``box_corners_world``),
+    and of each track's first and last box carried ``HOLD_S`` on along its end segment (a moving
+    box is labelled that long beyond its observations), float64 [B+2T,8,3]."""
+    corners = box_corners_world(loader, boxes)
+    held = [corners]
+    for track in np.unique(boxes.track_id):
+        rows = np.flatnonzero(boxes.track_id == track)
+        rows = rows[np.argsort(boxes.timestamp_us[rows], kind="stable")]
+        if len(rows) < 2:
+            continue
+        for end, neighbour in ((rows[0], rows[1]), (rows[-1], rows[-2])):
+            dt_us = abs(int(boxes.timestamp_us[end]) - int(boxes.timestamp_us[neighbour]))
+            if dt_us:
+                step_m = corners[end].mean(axis=0) - corners[neighbour].mean(axis=0)
+                held.append(corners[end][None] + step_m * (HOLD_S * 1e6 / dt_us))
+    return np.concatenate(held)

@@ -336,7 +336,7 @@ def validate_sequence(
         lidar_frames = loader.get_lidar_sensor(lidar_ids[0]).frames_timestamps_us if lidar_ids else None
         for camera_id in camera_ids:
             _check_camera(cameras, loader, camera_id, lidar_frames)
-            check_camera_labels(cameras, loader, camera_id)
+            check_camera_labels(cameras, loader, camera_id, cuboids)
         if pending is None:
             report.checks += [c for lidar_id in lidar_ids for c in _lidar_checks(sequence, lidar_id, cuboids)]
         for checks, points in pending.result() if pending else []:

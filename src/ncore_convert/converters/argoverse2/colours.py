@@ -11,11 +11,10 @@ import dataclasses
 from functools import lru_cache
 
 import numpy as np
-import PIL.Image
 
 from ncore_convert.converters.argoverse2.masks import reduced_size, reduction
 from ncore_convert.converters.argoverse2.plan import LogPlan
-from ncore_convert.converters.argoverse2.views import camera_views
+from ncore_convert.converters.argoverse2.views import camera_views, usable_pixels
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
@@ -42,9 +41,7 @@ class SweepColours:
         for cam in plan.camera_ids:
             full = plan.cameras[cam].pinhole
             pinhole = full.scaled(*reduced_size(full))
-            mask = plan.ego_masks[cam].image(*full.resolution_px) if plan.ego_masks else None
-            usable = None if mask is None else ~(np.asarray(mask.resize(pinhole.resolution_px, PIL.Image.NEAREST)) > 0)
-            self._cameras[cam] = (reduction(full), pinhole, usable)
+            self._cameras[cam] = (reduction(full), pinhole, usable_pixels(plan, cam, pinhole))
         self._decode = lru_cache(maxsize=4 * max(1, len(self._cameras)))(self._read)
 
     def _read(self, cam: str, timestamp_ns: int) -> np.ndarray:

@@ -11,12 +11,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.colours import COLOURS_TAKEN_FROM, SweepColours
-from ncore_convert.converters.argoverse2.labels import DepthLabeller
+from ncore_convert.converters.argoverse2.labels import BoxLabeller, DepthLabeller
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
@@ -51,7 +52,7 @@ class Counts(Tally):
     colour_seconds: float = 0.0  #: of which: per-point rgb of every frame (decoding included)
     camera_seconds: float = 0.0  #: read + write of all images
     camera_labels: int = 0  #: camera labels written (``--camera-labels``)
-    label_seconds: float = 0.0  #: of ``lidar_seconds``: making and storing the camera labels
+    label_seconds: float = 0.0  #: of the lidar and camera seconds: making and storing the camera labels
     warnings: list[str] = field(default_factory=list)
 
 
@@ -184,7 +185,7 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
     boxes = plan.dynamic_boxes
     colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
-    depth = DepthLabeller(plan, writer) if plan.label_ids else None
+    depth = DepthLabeller(plan, writer) if plan.job_label_ids(None) else None
     flag_meta = {contract.DYNAMIC_FLAG: _dynamic_flag_note(plan), contract.LIDAR_RGB: _rgb_note(plan)}
     lidars = {  # one metadata dict per lidar: the writer updates it in place
         unit: writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta})
@@ -250,14 +251,22 @@ def _dynamic_flag_note(plan: LogPlan) -> str:
 def _write_camera(
     plan: LogPlan, writer: SequenceWriter, cam: str, result: JobResult, progress: Callable[[int], None]
 ) -> None:
-    """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
+    """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter), and
+    write the camera's box labels (``--camera-labels dynamic,instance``) frame by frame."""
     started = time.perf_counter()
     stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam], plan.cameras[cam], plan.ego_masks[cam]))
+    boxes = BoxLabeller(plan, writer, cam) if plan.job_label_ids(cam) else None
     for image_ns in plan.inputs.image_timestamps_ns[cam]:
         t_us = floor_us(int(image_ns))
         stream.store_frame(av2.read_jpeg(plan.inputs.log_dir, cam, int(image_ns)), "jpeg", (t_us, t_us))
+        if boxes is not None:
+            boxes.label_frames(np.array([image_ns]))
         result.images += 1
         progress(1)
+    if boxes is not None:
+        boxes.finish()
+        result.camera_labels += boxes.labels
+        result.label_seconds += boxes.seconds
     result.camera_seconds += time.perf_counter() - started
 
 
@@ -278,7 +287,7 @@ def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress:
 
 
 #: Rough single-core costs used to start the longest parts first (seconds per item).
-_COST_S = {"sweep": 0.05, "image": 0.0035, "cuboid": 0.00025}
+_COST_S = {"sweep": 0.05, "image": 0.0035, "cuboid": 0.00025, "label": 0.05}
 
 
 @dataclass(frozen=True)
@@ -295,8 +304,10 @@ def log_jobs(plan: LogPlan) -> list[LogPart]:
     Jobs: the base components, all lidars (they share each sweep read), and one per camera.
     Parts are in store order: base first, then lidars, then cameras.
     """
-    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids), label_ids=tuple(plan.label_ids))] if plan.lidar_ids else [])
-    jobs += [WriteJob((cam,)) for cam in plan.camera_ids]
+    jobs = [BASE_JOB] + (
+        [WriteJob(tuple(plan.lidar_ids), label_ids=plan.job_label_ids(None))] if plan.lidar_ids else []
+    )
+    jobs += [WriteJob((cam,), label_ids=plan.job_label_ids(cam)) for cam in plan.camera_ids]
     n_cuboids = 0 if plan.inputs.annotations is None else len(plan.inputs.annotations)
     cost = [_COST_S["cuboid"] * n_cuboids]
     cost += [_COST_S["sweep"] * len(plan.sweep_timestamps_ns)] if plan.lidar_ids else []

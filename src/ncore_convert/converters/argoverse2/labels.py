@@ -1,7 +1,12 @@
-"""AV2 / TbV camera labels (``--camera-labels depth``): one ``depth.z@<camera>`` label per camera
-frame, from the lidar points of the sweep nearest the frame in time
-(:func:`ncore_convert.transforms.camera_labels.depth_z`), written by the lidars' writing job as the
-sweeps stream past.
+"""AV2 / TbV camera labels (``--camera-labels``), one per camera frame and kind.
+
+Depth (:class:`DepthLabeller`): ``depth.z@<camera>``, from the lidar points of the sweep nearest the
+frame in time (:func:`ncore_convert.transforms.camera_labels.depth_z`), written by the lidars'
+writing job as the sweeps stream past.
+
+Boxes (:class:`BoxLabeller`): ``mask.dynamic@<camera>`` and ``segmentation.instance@<camera>``, from
+which annotated box each pixel shows at the frame's time
+(:func:`ncore_convert.transforms.camera_labels.box_index`), written by the camera's own writing job.
 
 A frame belongs to the sweep whose middle (the median time of its points) is nearest its own time:
 each sweep's frames are labelled once the next sweep's middle is known, so two sweeps are held at
@@ -24,11 +29,12 @@ import time
 
 import numpy as np
 
+from ncore_convert import contract
 from ncore_convert.converters.argoverse2.plan import LogPlan
-from ncore_convert.converters.argoverse2.views import LABEL_SLACK_M, camera_views
+from ncore_convert.converters.argoverse2.views import LABEL_SLACK_M, camera_views, usable_pixels
 from ncore_convert.transforms import camera_labels
 from ncore_convert.transforms.dynamic import HOLD_S
-from ncore_convert.transforms.timebase import NS_PER_US
+from ncore_convert.transforms.timebase import NS_PER_US, floor_us
 from ncore_convert.transforms.visibility import VIEW_MARGIN, in_view
 from ncore_convert.writer import CameraLabelStream, SequenceWriter
 
@@ -53,13 +59,10 @@ class DepthLabeller:
         self._streams: dict[str, CameraLabelStream] = {
             cam: writer.add_camera_label("depth", cam, "EXTERNAL", {}) for cam in plan.camera_ids
         }
-        self._usable = {}
-        for cam in plan.camera_ids:
-            pinhole = plan.cameras[cam].pinhole
-            mask = plan.ego_masks[cam].image(*pinhole.resolution_px) if plan.ego_masks else None
-            self._usable[cam] = None if mask is None else ~(np.asarray(mask) > 0)
+        self._usable = {cam: usable_pixels(plan, cam, plan.cameras[cam].pinhole) for cam in plan.camera_ids}
         self._next = {cam: 0 for cam in plan.camera_ids}  # each camera's first frame not labelled yet
-        self._held: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None  # the previous sweep
+        # the previous sweep: points, times, dynamic, median and last point time
+        self._held: tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
         self._first_sweep_us: float | None = None  # the first point time of the first sweep
         self.labels = 0
         self.seconds = 0.0
@@ -75,7 +78,7 @@ class DepthLabeller:
         if self._unknown_motion:
             dynamic = np.ones(len(timestamps_us), dtype=bool)
         if np.isfinite(middle_us):
-            self._held = (xyz_world_m, timestamps_us, dynamic, middle_us)
+            self._held = (xyz_world_m, timestamps_us, dynamic, middle_us, float(np.max(timestamps_us)))
 
     def finish(self) -> None:
         """Label the frames after the last sweep's middle (with it) and set each label's metadata."""
@@ -122,7 +125,99 @@ class DepthLabeller:
         if self._held is None:
             return "no lidar sweep with points"
         hold_us = HOLD_S * 1e6
-        last_us = float(np.max(self._held[1]))
-        if t_us < self._first_sweep_us - hold_us or t_us > last_us + hold_us:
+        if t_us < self._first_sweep_us - hold_us or t_us > self._held[4] + hold_us:
             return f"no lidar sweep within {HOLD_S * 1e3:g} ms: the moving objects are unknown there"
         return ""
+
+
+#: What the box labels' component metadata says of how they were made.
+BOX_GENERATOR = {
+    "generator": "ncore-convert transforms.camera_labels.box_index",
+    "from": "the annotated boxes at the frame's time: a static track's median box, a moving track's box"
+    f" interpolated between its observations (up to {HOLD_S * 1e3:g} ms beyond its ends)",
+    "pixel": "the box the ray through the pixel's centre meets first (nearest box first where boxes overlap);"
+    " none on the ego body (the camera's ego mask)",
+    "not_known": "surfaces other than the boxes (walls, poles, vegetation) do not hide a box; a box over-covers"
+    " its object's true shape",
+    "storage": "PNG (IMAGE_ENCODED): mask.dynamic 1-bit (uint8 0/1), segmentation.instance 16-bit (uint16)",
+}
+#: ``mask.dynamic``: which boxes count.
+DYNAMIC_RULE = "1 where the box shown is a dynamic track's (transforms.dynamic: moved beyond annotation noise, or an"
+DYNAMIC_RULE += " always-dynamic class); 0 elsewhere"
+
+
+def instance_table(plan: LogPlan) -> tuple[np.ndarray, dict[str, dict]]:
+    """The sequence's instance index of every track of ``plan.solids`` (int [S+T], 1 upwards, by
+    sorted track id: the same in every camera), and the table index -> track id, class and whether
+    it is dynamic, as ``segmentation.instance``'s metadata holds it."""
+    track_ids = plan.solids.track_ids
+    order = np.argsort(track_ids, kind="stable")
+    index = np.empty(len(track_ids), dtype=np.int64)
+    index[order] = np.arange(1, len(track_ids) + 1)
+    if len(track_ids) > np.iinfo(np.uint16).max:
+        raise ValueError(f"{len(track_ids)} tracks: more than a uint16 instance label holds")
+    labels = plan.cuboid_labels
+    classes = dict(zip(plan.inputs.annotations.track_uuids, labels.class_ids, strict=True))
+    table = {
+        str(int(index[k])): {"track_id": str(tid), "class_id": classes[tid], "dynamic": tid in labels.dynamic}
+        for k, tid in enumerate(track_ids)
+    }
+    return index, dict(sorted(table.items(), key=lambda item: int(item[0])))
+
+
+class BoxLabeller:
+    """Writes ``camera_id``'s box labels (``plan.job_label_ids(camera_id)``) through ``writer``, one
+    per frame (see the module docstring)."""
+
+    def __init__(self, plan: LogPlan, writer: SequenceWriter, camera_id: str) -> None:
+        self._plan, self._camera_id = plan, camera_id
+        self._kinds = [kind for kind in plan.label_kinds if kind in contract.BOX_LABEL_KINDS]
+        self._streams = {kind: writer.add_camera_label(kind, camera_id, "EXTERNAL", {}) for kind in self._kinds}
+        self._instance, table = instance_table(plan)
+        self._dynamic = np.array([tid in plan.cuboid_labels.dynamic for tid in plan.solids.track_ids], dtype=bool)
+        annotated_us = floor_us(plan.inputs.annotations.timestamps_ns)
+        self._span_us = (int(annotated_us.min()), int(annotated_us.max()))  # the annotated sweeps' times
+        self._meta = {
+            "dynamic": {**BOX_GENERATOR, "value": DYNAMIC_RULE},
+            "instance": {**BOX_GENERATOR, "value": "instance index (0: no box)", "instances": table},
+        }
+        self.labels = 0
+        self.seconds = 0.0
+
+    def label_frames(self, stamps_ns: np.ndarray) -> None:
+        """Label the frames at ``stamps_ns`` (int [K])."""
+        started = time.perf_counter()
+        pinhole = self._plan.cameras[self._camera_id].pinhole
+        usable = usable_pixels(self._plan, self._camera_id, pinhole)
+        for view in camera_views(self._plan, self._camera_id, stamps_ns, pinhole, usable):
+            tracks, T_box_world, half_m = self._plan.solids.tracks_at(view.timestamp_us)
+            box = camera_labels.box_index(view, T_box_world, half_m)  # -1: none, the last entry below
+            unknown = self._unknown(view.timestamp_us)
+            for kind, stream in self._streams.items():
+                if kind == "dynamic":
+                    # where the movers are unknown, every pixel may show one: all 1, and the metadata says why
+                    mask = np.ones(box.shape, bool) if unknown else np.r_[self._dynamic[tracks], False][box]
+                    stream.store_label(mask, view.timestamp_us, {"moving_objects_unknown": unknown} if unknown else {})
+                else:
+                    instance = np.r_[self._instance[tracks], 0].astype(np.uint16)
+                    pixels = np.bincount(box.reshape(-1) + 1, minlength=len(tracks) + 1)[1:]
+                    meta = {"instances_shown": sorted(instance[:-1][pixels > 0].tolist())}
+                    stream.store_label(
+                        instance[box],
+                        view.timestamp_us,
+                        meta | ({"moving_objects_unknown": unknown} if unknown else {}),
+                    )
+                self.labels += 1
+        self.seconds += time.perf_counter() - started
+
+    def _unknown(self, t_us: int) -> str:
+        """Why the moving objects at ``t_us`` are unknown ('' if known): no annotations within
+        ``HOLD_S`` (the cameras may run on beyond the annotated sweeps)."""
+        if self._span_us[0] - HOLD_S * 1e6 <= t_us <= self._span_us[1] + HOLD_S * 1e6:
+            return ""
+        return f"no annotations within {HOLD_S * 1e3:g} ms: the static boxes only (mask.dynamic: all 1)"
+
+    def finish(self) -> None:
+        """Set each kind's component metadata."""
+        for kind, stream in self._streams.items():
+            stream.set_meta(self._meta[kind])

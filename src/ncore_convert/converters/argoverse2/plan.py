@@ -217,8 +217,8 @@ class LogPlan:
         cameras: how each camera is stored (model type, f-theta fit).
         cuboid_labels: class names, label source and dynamic tracks (None without annotations).
         dynamic_boxes: the dynamic tracks' boxes in ``world`` (None: no ``dynamic_flag``).
-        solids: every track's box in ``world`` as an occluder for ``--lidar-rgb`` and depth labels
-            (None: neither, or no annotations).
+        solids: every track's box in ``world``: occluders for ``--lidar-rgb`` and depth labels, and
+            what the box labels show (None: none of them, or no annotations).
         ego_masks: each camera's ego mask (``--ego-masks``).
     """
 
@@ -244,11 +244,28 @@ class LogPlan:
         return self.inputs.sweep_timestamps_ns if self.lidar_ids else np.zeros(0, dtype=np.int64)
 
     @property
+    def label_kinds(self) -> tuple[str, ...]:
+        """The ``--camera-labels`` kinds written: depth needs the lidars, the masks the annotated boxes."""
+        return tuple(
+            kind
+            for kind in self.options.camera_labels
+            if (self.solids is not None if kind in contract.BOX_LABEL_KINDS else bool(self.lidar_ids))
+        )
+
+    @property
     def label_ids(self) -> list[str]:
-        """The camera labels written (``--camera-labels``): depth needs the lidars."""
-        if not self.lidar_ids:
-            return []
-        return [contract.camera_label_id(kind, cam) for cam in self.camera_ids for kind in self.options.camera_labels]
+        """Every camera label component written (``contract.camera_label_id``)."""
+        return [contract.camera_label_id(kind, cam) for cam in self.camera_ids for kind in self.label_kinds]
+
+    def job_label_ids(self, camera_id: str | None) -> tuple[str, ...]:
+        """The label components a writing job writes: the lidars' (``camera_id`` None) the depth
+        labels of every camera, a camera's its box labels."""
+        if camera_id is None:
+            depth = "depth" in self.label_kinds
+            return tuple(contract.camera_label_id("depth", cam) for cam in self.camera_ids if depth)
+        return tuple(
+            contract.camera_label_id(kind, camera_id) for kind in self.label_kinds if kind in contract.BOX_LABEL_KINDS
+        )
 
     @property
     def n_frames(self) -> int:
@@ -286,10 +303,14 @@ def plan_log(
     if window_us is not None:
         inputs = _clipped(inputs, window_us)
         camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings, " in the clip window")
-    if options.camera_labels and camera_ids and not lidar_ids:
+    if "depth" in options.camera_labels and camera_ids and not lidar_ids:
         warnings.append(
-            f"{log_dir}: no camera labels written ({', '.join(options.camera_labels)}): they are made from the"
-            " lidar points, and no lidar is converted"
+            f"{log_dir}: no depth labels written: they are made from the lidar points, and no lidar is converted"
+        )
+    from_boxes = [kind for kind in options.camera_labels if kind in contract.BOX_LABEL_KINDS]
+    if from_boxes and camera_ids and inputs.annotations is None:
+        warnings.append(
+            f"{log_dir / 'annotations.feather'}: none; no {', '.join(from_boxes)} labels written (made from the boxes)"
         )
 
     camera_inputs = {
@@ -454,9 +475,10 @@ def _cuboid_labels(
         "world",
         str(inputs.log_dir / "annotations.feather"),
     )
-    if not with_lidar:
-        return cuboid_labels, None, None
     solids = None
-    if options.lidar_rgb or options.camera_labels:
+    from_boxes = any(kind in contract.BOX_LABEL_KINDS for kind in options.camera_labels)
+    if from_boxes or (with_lidar and (options.lidar_rgb or "depth" in options.camera_labels)):
         solids = SolidBoxes.select(observations, cuboid_labels.static_poses, cuboid_labels.dynamic)
+    if not with_lidar:
+        return cuboid_labels, None, solids
     return cuboid_labels, DynamicBoxes.select(observations, cuboid_labels.dynamic), solids

@@ -1,10 +1,11 @@
 """AV2 / TbV camera frames as :class:`~ncore_convert.transforms.visibility.CameraView`: each
 camera's pose at the frame's own time, its ego mask and the annotated boxes at that time as solid
-occluders. Lidar colours and depth labels both take their frames from here."""
+occluders. Lidar colours and camera labels all take their frames from here."""
 
 from __future__ import annotations
 
 import numpy as np
+import PIL.Image
 
 from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.transforms.camera_models import Pinhole
@@ -33,3 +34,13 @@ def camera_views(
         solids = None if plan.solids is None else plan.solids.at(t_us)
         views.append(CameraView(camera_id, t_us, invert_se3(T), pinhole, usable, solids, LABEL_SLACK_M))
     return views
+
+
+def usable_pixels(plan: LogPlan, camera_id: str, pinhole: Pinhole) -> np.ndarray | None:
+    """The pixels of ``camera_id`` at ``pinhole``'s resolution that show the world: False where its
+    ego mask (resized, nearest pixel) marks the ego body, bool [height,width]; None without a mask."""
+    full = plan.cameras[camera_id].pinhole
+    mask = plan.ego_masks[camera_id].image(*full.resolution_px) if plan.ego_masks else None
+    if mask is None:
+        return None
+    return ~(np.asarray(mask.resize(pinhole.resolution_px, PIL.Image.NEAREST)) > 0)
