@@ -10,6 +10,7 @@ centre at the frame's time (``synth.scene.cast_rays``): the surface the camera r
 from __future__ import annotations
 
 import numpy as np
+import pyarrow.feather
 import pytest
 from conftest import Converted, open_sequence, synth_and_convert
 from ncore.impl.data.types import LabelSource, LabelType
@@ -18,10 +19,11 @@ from upath import UPath
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.synth.argoverse2 import R_EGO_CAM_FORWARD, SynthConfig, simulate_unit, write_log
 from ncore_convert.synth.scene import cast_rays, make_scene
-from ncore_convert.transforms.camera_labels import DYNAMIC_DT_US, depth_z
+from ncore_convert.transforms.camera_labels import DYNAMIC_DT_US, box_index, depth_z
 from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.dynamic import HOLD_S
 from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, AV2_TO_NCORE
 from ncore_convert.transforms.visibility import CameraView
 from ncore_convert.validate.sequence import validate_sequence
 
@@ -136,6 +138,46 @@ def test_depth_labels_cover_the_points_the_camera_sees(world):
     assert not np.any(label.reshape(-1)[only_stale] > 0)
 
 
+def _box_truth(scene, T_camera_city: np.ndarray, t_s: float, pinhole: Pinhole, step: int) -> np.ndarray:
+    """The scene box each ``step``-th pixel's centre shows at ``t_s`` (``synth.scene.cast_rays``):
+    an index into ``scene.boxes``, -1 the ground or nothing, int [H/step, W/step]."""
+    (fx, fy), (cx, cy) = pinhole.focal_length_px, pinhole.principal_point_px
+    width, height = pinhole.resolution_px
+    v, u = np.mgrid[0:height:step, 0:width:step] + 0.5
+    d_city = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1).reshape(-1, 3) @ T_camera_city[:3, :3].T
+    d_city /= np.linalg.norm(d_city, axis=1, keepdims=True)
+    origins = np.broadcast_to(T_camera_city[:3, 3], d_city.shape)
+    distance, _, index = cast_rays(origins, d_city, np.full(len(d_city), t_s), scene, 500.0)
+    return np.where(np.isfinite(distance), index, -1).reshape(u.shape)
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sum(a & b) / max(np.sum(a | b), 1))
+
+
+def test_box_index_is_the_box_the_camera_sees(world):
+    """``box_index`` with the scene's true boxes (the annotated ones) against the scene seen from
+    the camera (every second pixel): every instance's IoU >= 0.95 and the moving boxes' (the
+    dynamic mask) >= 0.95. Where boxes overlap, the truth holds the nearer one. The only
+    differences are where an unannotated building hides a box (the labels know no other surface)."""
+    scene, _, _, _, T_camera_city, view, _ = world
+    annotated = [k for k, b in enumerate(scene.boxes) if b.annotated]
+    boxes = [scene.boxes[k] for k in annotated]
+    T = np.stack([b.T_box_city(CAMERA_S) for b in boxes])
+    half = np.stack([b.dims_m / 2 for b in boxes])
+    ours = box_index(view, T, half)[::2, ::2]
+    truth_scene = _box_truth(scene, T_camera_city, CAMERA_S, PINHOLE, 2)
+    to_annotated = np.full(len(scene.boxes) + 1, -1)
+    to_annotated[annotated] = np.arange(len(annotated))
+    truth = to_annotated[truth_scene]  # -1 (ground, nothing, a building) -> the appended -1
+    shown = np.unique(truth[truth >= 0])
+    assert len(shown) >= 3
+    for k in shown:
+        assert _iou(ours == k, truth == k) >= 0.95, (boxes[k].category, _iou(ours == k, truth == k))
+    moving = np.r_[[bool(np.any(b.velocity_mps)) for b in boxes], False]
+    assert _iou(moving[ours], moving[truth]) >= 0.95
+
+
 # --- the converter's labels (``--camera-labels depth``) on a synthetic AV2 log --------------------
 
 LABEL_CAMERAS = ("ring_front_center", "ring_side_left")
@@ -227,6 +269,69 @@ def test_stored_depth_labels_hold_the_surfaces_the_camera_sees(labelled):
         assert np.mean(ahead) <= 0.001, (cam, "stale surfaces", np.mean(ahead))
 
 
+def test_stored_box_labels_show_the_boxes_the_camera_sees(labelled):
+    """Through the whole chain, every third frame's ``mask.dynamic`` and ``segmentation.instance``
+    against the generator's scene seen from the camera at the label's time (every fourth pixel):
+    the dynamic mask's IoU with the moving objects (those that move in truth, and the always-dynamic
+    classes) >= 0.95 per camera; each instance's IoU with its object >= 0.95 where the annotations
+    are exact (the moving ones here: a parked car's annotations wander, and its median box is as far
+    off its object as that noise leaves it; the pixels it claims, or that its object shows, are
+    judged by those annotations, not here). The instance table names every track's id and class.
+    Frames beyond the annotated sweeps (the cameras run on) say that the movers are unknown there,
+    and their dynamic mask is all 1."""
+    truth, loader = labelled.truth, labelled.loader
+    by_uuid = {b.track_uuid: b for b in truth.scene.boxes if b.annotated}
+    annotated_s = (np.array([s.timestamp_ns for s in truth.sweeps]) - truth.t0_ns) * 1e-9
+    for cam in LABEL_CAMERAS:
+        (instances,) = loader.query_camera_labels(cam, label_type=LabelType.SEGMENTATION_INSTANCE)
+        (dynamic,) = loader.query_camera_labels(cam, label_type=LabelType.MASK_DYNAMIC)
+        table = {int(k): v for k, v in instances.labels_generic_meta_data["instances"].items()}
+        annotations = pyarrow.feather.read_table(str(truth.log_dir / "annotations.feather")).to_pydict()
+        assert sorted(v["track_id"] for v in table.values()) == sorted(set(annotations["track_uuid"]))
+        assert {v["track_id"]: v["class_id"] for v in table.values()} == {
+            t: AV2_TO_NCORE[c] for t, c in zip(annotations["track_uuid"], annotations["category"], strict=True)
+        }
+        index_of = {v["track_id"]: k for k, v in table.items()}
+        f, cx, cy = truth.intrinsics[cam]
+        pinhole = Pinhole((f, f), (cx + 0.5, cy + 0.5), loader.get_camera_sensor(cam).model_parameters.resolution)
+        scene_instance = np.r_[[index_of.get(b.track_uuid, 0) for b in truth.scene.boxes], 0]
+        moves = np.r_[[_moves(b, truth) for b in truth.scene.boxes], False]
+        jittered = np.zeros(max(table) + 1, bool)  # by instance index
+        jittered[[k for k, v in table.items() if by_uuid[v["track_id"]].jitter is not None]] = True
+        inter, union, dyn = {}, {}, [0, 0]
+        for ts in instances.label_timestamps_us[::3]:
+            t_s = (int(ts) * 1000 - truth.t0_ns) * 1e-9
+            unknown = "moving_objects_unknown" in dynamic.get_label(int(ts)).generic_meta_data
+            beyond = t_s < annotated_s.min() - HOLD_S or t_s > annotated_s.max() + HOLD_S
+            assert unknown == beyond, (cam, ts)
+            if unknown:
+                assert np.all(dynamic.get_label(int(ts)).get_data() == 1)
+                continue
+            T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
+            scene_box = _box_truth(truth.scene, T_camera_city, t_s, pinhole, 4)
+            ours = instances.get_label(int(ts)).get_data()[::4, ::4]
+            true_instance = scene_instance[scene_box]
+            judged = ~(jittered[ours] | jittered[true_instance])  # a wandering box's pixels: its annotations'
+            for k in np.unique(np.r_[ours[ours > 0], true_instance[true_instance > 0]]):
+                inter[k] = inter.get(k, 0) + np.sum((ours == k) & (true_instance == k) & judged)
+                union[k] = union.get(k, 0) + np.sum(((ours == k) | (true_instance == k)) & judged)
+            ours_dynamic = dynamic.get_label(int(ts)).get_data()[::4, ::4] == 1
+            true_dynamic = moves[scene_box] & (true_instance > 0)
+            dyn[0] += np.sum(ours_dynamic & true_dynamic)
+            dyn[1] += np.sum(ours_dynamic | true_dynamic)
+        assert dyn[1] > 1000 and dyn[0] / dyn[1] >= 0.95, (cam, dyn[0] / dyn[1])
+        exact = [k for k in union if by_uuid[table[k]["track_id"]].jitter is None]
+        assert exact, cam
+        for k in exact:
+            assert inter[k] / union[k] >= 0.95, (cam, table[k], inter[k] / union[k])
+
+
+def _moves(box, truth) -> bool:
+    """Whether a scene object is a mover in truth: it moves during the log, or its class always may."""
+    seconds = (max(s.timestamp_ns for s in truth.sweeps) - truth.t0_ns) * 1e-9
+    return box.moved_m(0.0, seconds) > 0.0 or AV2_TO_NCORE.get(box.category) in ALWAYS_DYNAMIC
+
+
 def test_tbv_depth_labels_use_only_points_near_the_frame(tmp_path):
     """TbV has no cuboids, so which points move is unknown: every point labels only frames within
     5 ms of it. The labels are sparser but right (the same bounds against the truth, passing cars
@@ -315,6 +420,42 @@ def test_the_label_checks_find_planted_faults(fault, failed):
     assert [c.name.split(": ")[-1] for c in report.checks if not c.ok] == failed, [
         (c.name, c.detail) for c in report.checks
     ]
+
+
+def test_the_mask_check_finds_pixels_outside_their_boxes(labelled):
+    """The validator's box check on the stored masks: none of their pixels lies outside the
+    projections of the boxes they name; a planted blob (an instance painted where its box is not,
+    dynamic pixels where no mover is) is found and counted."""
+    from ncore.impl.data.types import LabelCategory
+
+    from ncore_convert.validate.cuboids import read_cuboids
+    from ncore_convert.validate.labels import _instance_tables, _outside_boxes
+
+    loader = labelled.loader
+    cuboids = read_cuboids(loader._reader)
+    cam = LABEL_CAMERAS[1]
+    found = loader.query_camera_labels(cam)
+    table = _instance_tables(found)
+    (instances,) = loader.query_camera_labels(cam, label_type=LabelType.SEGMENTATION_INSTANCE)
+    (dynamic,) = loader.query_camera_labels(cam, label_type=LabelType.MASK_DYNAMIC)
+    ts = int(instances.label_timestamps_us[4])
+    segmentation, mask = instances.get_label(ts).get_data().copy(), dynamic.get_label(ts).get_data().copy()
+    k = int(np.max(segmentation))
+    assert k > 0 and mask.any()
+    seg, msk = LabelCategory.SEGMENTATION, LabelCategory.MASK
+    assert _outside_boxes(loader, cam, segmentation, seg, table, cuboids, ts) == []
+    assert _outside_boxes(loader, cam, mask, msk, table, cuboids, ts) == []
+    lines, cols = np.nonzero(segmentation == 0)
+    far = np.argmax(np.abs(cols - np.mean(np.nonzero(segmentation == k)[1])))  # a pixel far from instance k
+    r, c = lines[far], cols[far]
+    segmentation[max(r - 5, 0) : r + 5, max(c - 5, 0) : c + 5] = k
+    (finding,) = _outside_boxes(loader, cam, segmentation, seg, table, cuboids, ts)
+    assert f"of instance {k} outside the projected boxes" in finding
+    empty_sky = (slice(0, 10), slice(0, 10))  # the top-left corner: sky, above every box
+    assert not np.any(mask[empty_sky])
+    mask[empty_sky] = 1
+    (finding,) = _outside_boxes(loader, cam, mask, msk, table, cuboids, ts)
+    assert "100 px of dynamic pixels outside the projected boxes" in finding
 
 
 def test_preview_draws_the_depth_labels(labelled, tmp_path):

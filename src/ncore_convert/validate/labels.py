@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import LabelCategory
+from ncore.sensors import camera_model_from_parameters
 
+from ncore_convert.transforms.boxes import BOX_EDGES
 from ncore_convert.transforms.dynamic import HOLD_S
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.cuboids import CuboidColumns
-from ncore_convert.validate.readback import box_corners_world, project_into_camera
+from ncore_convert.validate.readback import box_corners_world
 from ncore_convert.validate.report import Report
 
 #: Labels decoded per label component: the first, the last and evenly spread ones between.
@@ -65,8 +68,7 @@ def check_camera_labels(
                 labelled.append(float(np.count_nonzero(data)) / data.size)
                 if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and cuboids is not None:
                     if UNKNOWN_KEY not in (handle.generic_meta_data or {}):
-                        frame = int(np.searchsorted(camera.frames_timestamps_us[:, 1], ts))
-                        outside += _outside_boxes(loader, camera_id, frame, data, category, instances, cuboids, ts)
+                        outside += _outside_boxes(loader, camera_id, data, category, instances, cuboids, ts)
         report.add(
             f"{name}: decodes, the camera's size, valid values",
             not problems,
@@ -93,20 +95,19 @@ def _instance_tables(found: list) -> dict[int, dict]:
 def _outside_boxes(
     loader: SequenceLoaderV4,
     camera_id: str,
-    frame: int,
     data: np.ndarray,
     category: LabelCategory,
     instances: dict[int, dict],
     cuboids: CuboidColumns,
     ts: int,
 ) -> list[str]:
-    """What of a mask label (``data`` [H,W], of camera frame ``frame``) lies outside the rectangle
+    """What of a mask label (``data`` [H,W], of the camera frame ending at ``ts``, µs) lies outside the rectangle
     of the projected corners of every observation of the track(s) it names, grown by
     ``BOX_MARGIN_PX`` (and of its ends carried on ``HOLD_S`` along its end segments, as the labels
     hold them): an instance's pixels outside its own track's; a dynamic mask's outside every
-    dynamic track's (every track's without an instance table). A track with a corner that does not
-    project while others do (it crosses the plane of the camera) bounds nothing: its pixels are not
-    checked; an observation none of whose corners project is out of view and adds nothing."""
+    dynamic track's (every track's without an instance table). A box crossing the plane of the
+    camera is cut ``CUT_Z_M`` ahead of it (:func:`_in_front`); a track with a point ahead of the
+    camera that the camera model does not project bounds nothing (its pixels are not checked)."""
     if category == LabelCategory.SEGMENTATION:
         groups = {k: [instances.get(k, {}).get("track_id")] for k in np.unique(data[data > 0]).tolist()}
         unnamed = [k for k, tracks in groups.items() if tracks == [None]]
@@ -116,18 +117,25 @@ def _outside_boxes(
         dynamic = [v["track_id"] for v in instances.values() if v.get("dynamic")] if instances else None
         groups = {1: dynamic if dynamic is not None else sorted(set(cuboids.track_id.tolist()))}
     allowed = {k: np.zeros(data.shape[:2], bool) for k in groups}
+    end_us = np.array([ts], dtype=np.uint64)
+    T_world_camera = np.linalg.inv(loader.pose_graph.evaluate_poses(camera_id, "world", end_us)[0].astype(np.float64))
+    parameters = loader.get_camera_sensor(camera_id).model_parameters
+    model = camera_model_from_parameters(parameters, device="cpu", dtype=torch.float64)
+    pinhole = "Pinhole" in type(parameters).__name__  # projects every point ahead, in the image or not
     for k, tracks in groups.items():
         rows = np.flatnonzero(np.isin(cuboids.track_id, tracks))
         if not len(rows):
             continue
-        corners = _held_boxes(loader, cuboids.rows(rows)).reshape(-1, 3)
-        pixels, valid = project_into_camera(loader, camera_id, frame, corners)
-        observation = valid // 8
-        for obs in np.unique(observation):
-            if np.count_nonzero(observation == obs) < 8:  # a corner does not project: unbounded
-                allowed[k][:] = True
-                break
-            u, v = pixels[observation == obs, 0], pixels[observation == obs, 1]
+        points, owner = _in_front(_held_boxes(loader, cuboids.rows(rows)), T_world_camera)
+        if not len(points):
+            continue
+        projected = model.camera_rays_to_image_points(points)
+        pixels = projected.image_points.cpu().numpy().reshape(-1, 2)
+        if not pinhole and not bool(projected.valid_flag.all()):  # beyond an f-theta's reach: unbounded
+            allowed[k][:] = True
+            continue
+        for box in np.unique(owner):
+            u, v = pixels[owner == box, 0], pixels[owner == box, 1]
             c0, c1 = int(max(np.floor(u.min() - BOX_MARGIN_PX), 0)), int(max(np.ceil(u.max() + BOX_MARGIN_PX), 0))
             r0, r1 = int(max(np.floor(v.min() - BOX_MARGIN_PX), 0)), int(max(np.ceil(v.max() + BOX_MARGIN_PX), 0))
             allowed[k][r0:r1, c0:c1] = True
@@ -157,3 +165,23 @@ def _held_boxes(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
                 step_m = corners[end].mean(axis=0) - corners[neighbour].mean(axis=0)
                 held.append(corners[end][None] + step_m * (HOLD_S * 1e6 / dt_us))
     return np.concatenate(held)
+
+
+#: The plane ahead of the camera (m, camera z) that boxes are cut at before projecting: the part of
+#: a box behind it is not in the picture.
+CUT_Z_M = 0.2
+
+
+def _in_front(corners_world_m: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The outline of each box's part ahead of the camera: its corners beyond ``CUT_Z_M`` and where
+    its edges cross that plane, in the camera frame (float64 [P,3]), and the box each point outlines,
+    int [P].
+    The picture of a box lies within the rectangle of these points' projections."""
+    xyz = corners_world_m @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]  # [B,8,3] camera frame
+    start, end = xyz[:, BOX_EDGES[:, 0]], xyz[:, BOX_EDGES[:, 1]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = (CUT_Z_M - start[..., 2]) / (end[..., 2] - start[..., 2])
+    crossing = (f > 0) & (f < 1)
+    points = np.concatenate([xyz[xyz[..., 2] > CUT_Z_M], (start + f[..., None] * (end - start))[crossing]])
+    owner = np.concatenate([np.nonzero(xyz[..., 2] > CUT_Z_M)[0], np.nonzero(crossing)[0]])
+    return points, owner
