@@ -458,16 +458,19 @@ def test_the_mask_check_finds_pixels_outside_their_boxes(labelled):
     assert "100 px of dynamic pixels outside the projected boxes" in finding
 
 
-def test_preview_draws_the_depth_labels(labelled, tmp_path):
-    """``preview`` writes ``<stem>_<camera>_depth.png`` for each camera with depth labels: the
-    camera's picture at its size with the labelled pixels over it; the lidar projections as before."""
+def test_preview_draws_the_depth_and_mask_labels(labelled, tmp_path):
+    """``preview`` writes ``<stem>_<camera>_depth.png`` for each camera with depth labels (the
+    camera's picture at its size with the labelled pixels over it) and ``<stem>_<camera>_masks.png``
+    for each with mask labels (instances coloured, the dynamic mask outlined); the lidar
+    projections as before."""
     import PIL.Image
 
     from ncore_convert.preview import preview_sequence
 
     shown = preview_sequence(UPath(labelled.seq_dir / f"{labelled.truth.log_id}.json"), UPath(tmp_path))
     assert {p.name for p in shown.depth_labels} == {c.png.name[:-4] + "_depth.png" for c in shown.cameras}
-    for png in shown.depth_labels:
+    assert {p.name for p in shown.mask_labels} == {c.png.name[:-4] + "_masks.png" for c in shown.cameras}
+    for png in shown.depth_labels + shown.mask_labels:
         with PIL.Image.open(str(png)) as image:
             assert image.width >= 1000 and image.height > 0
 

@@ -94,7 +94,7 @@ def preview_command(path, out_dir, frame):
             written = [preview_scenario(UPath(path), UPath(out_dir), frame)]
         else:
             result = preview_sequence(UPath(path), UPath(out_dir), frame)
-            written = [result.bev] + [p.png for p in result.cameras] + result.depth_labels
+            written = [result.bev] + [p.png for p in result.cameras] + result.depth_labels + result.mask_labels
     except ValueError as err:
         raise click.UsageError(str(err)) from None
     for png in written:

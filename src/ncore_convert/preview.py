@@ -120,22 +120,37 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
     return CameraProjection(camera_id, frame, int(frame_us[1]), pixels, xyz_world_m[index], range_m, png)
 
 
+def _label_figure(image: np.ndarray) -> tuple[Figure, object]:
+    """A figure with the camera picture (uint8 [H,W,3]) on pixel axes, room right for a colour bar."""
+    height, width = image.shape[:2]
+    fig = Figure(figsize=(12, 12 * height / width + 0.6), dpi=DPI)
+    ax = fig.add_axes((0.07, 0.05, 0.82, 0.89))
+    ax.imshow(image)
+    ax.set_xlim(0, width)
+    ax.set_ylim(height, 0)
+    return fig, ax
+
+
+def _label_at(loader: SequenceLoaderV4, camera_id: str, end_us: int, label_type: LabelType):
+    """The camera's label of ``label_type`` at the frame ending at ``end_us`` (None: none there)."""
+    found = loader.query_camera_labels(camera_id, label_type=label_type)
+    if not found or end_us not in set(found[0].label_timestamps_us.tolist()):
+        return None
+    return found[0]
+
+
 def draw_depth_label(loader: SequenceLoaderV4, camera_id: str, frame: int, png: UPath) -> bool:
     """The camera image with its ``depth.z`` label of that frame over it, each labelled pixel
     coloured by its depth on the scale of the lidar projections; False (nothing written) when the
     camera has no depth label at the frame's end time."""
     camera = loader.get_camera_sensor(camera_id)
     end_us = int(camera.frames_timestamps_us[frame, 1])
-    found = loader.query_camera_labels(camera_id, label_type=LabelType.DEPTH_Z_M)
-    if not found or end_us not in set(found[0].label_timestamps_us.tolist()):
+    labels = _label_at(loader, camera_id, end_us, LabelType.DEPTH_Z_M)
+    if labels is None:
         return False
-    depth = found[0].get_label(end_us).get_data()
-    image = camera.get_frame_image_array(frame)
-    height, width = image.shape[:2]
+    depth = labels.get_label(end_us).get_data()
+    fig, ax = _label_figure(camera.get_frame_image_array(frame))
     lines, cols = np.nonzero(depth)
-    fig = Figure(figsize=(12, 12 * height / width + 0.6), dpi=DPI)
-    ax = fig.add_axes((0.07, 0.05, 0.82, 0.89))
-    ax.imshow(image)
     order = np.argsort(-depth[lines, cols])  # near pixels drawn last, on top
     dots = ax.scatter(
         cols[order] + 0.5,
@@ -147,11 +162,37 @@ def draw_depth_label(loader: SequenceLoaderV4, camera_id: str, frame: int, png: 
         vmax=MAX_RANGE_M,
         linewidths=0,
     )
-    ax.set_xlim(0, width)
-    ax.set_ylim(height, 0)
     fig.colorbar(dots, cax=fig.add_axes((0.91, 0.05, 0.02, 0.89)), label="label depth z (m)")
-    name = found[0].label_descriptor.default_instance_name
+    name = labels.label_descriptor.default_instance_name
     ax.set_title(_title(loader, f"{name} frame {frame}: {len(lines)} pixels labelled", end_us), fontsize=10)
+    fig.savefig(str(png))
+    return True
+
+
+def draw_mask_labels(loader: SequenceLoaderV4, camera_id: str, frame: int, png: UPath) -> bool:
+    """The camera image with its ``segmentation.instance`` label of that frame over it (each
+    instance in a colour of its own) and its ``mask.dynamic`` outlined in red; False (nothing
+    written) when the camera has neither at the frame's end time."""
+    camera = loader.get_camera_sensor(camera_id)
+    end_us = int(camera.frames_timestamps_us[frame, 1])
+    instances = _label_at(loader, camera_id, end_us, LabelType.SEGMENTATION_INSTANCE)
+    dynamic = _label_at(loader, camera_id, end_us, LabelType.MASK_DYNAMIC)
+    if instances is None and dynamic is None:
+        return False
+    fig, ax = _label_figure(camera.get_frame_image_array(frame))
+    what = []
+    if instances is not None:
+        index = instances.get_label(end_us).get_data().astype(np.int64)
+        colours = np.random.default_rng(0).uniform(0.2, 1.0, (int(index.max()) + 1, 4))
+        colours[:, 3], colours[0] = 0.5, 0.0  # half transparent; 0 (no box) clear
+        ax.imshow(colours[index], interpolation="nearest")
+        what.append(f"{len(np.unique(index)) - 1} instances")
+    if dynamic is not None:
+        mask = dynamic.get_label(end_us).get_data() > 0
+        if mask.any() and not mask.all():
+            ax.contour(mask, levels=[0.5], colors="red", linewidths=1.0)
+        what.append(f"dynamic {mask.mean():.1%} of pixels" + (" (movers unknown: all 1)" if mask.all() else ""))
+    ax.set_title(_title(loader, f"{camera_id} masks frame {frame}: {', '.join(what)}", end_us), fontsize=10)
     fig.savefig(str(png))
     return True
 
@@ -214,6 +255,7 @@ class Preview:
     bev: UPath
     cameras: list[CameraProjection]
     depth_labels: list[UPath]  #: ``<stem>_<camera>_depth.png`` for the cameras with depth labels
+    mask_labels: list[UPath]  #: ``<stem>_<camera>_masks.png`` for the cameras with mask labels
 
 
 def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = None) -> Preview:
@@ -238,13 +280,15 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
     xyz = lidar_world_points(loader, t_mid)
     cuboids = read_cuboids(sequence.reader) or CuboidColumns.from_stored([])
     draw_bev(loader, cuboids, int(frames_us[frame, 1]), xyz, out_dir / f"{stem}_bev.png")
-    projections, labels = [], []
+    projections, labels, masks = [], [], []
     for camera_id in loader.camera_ids:
         camera_frame = _nearest_frame(loader.get_camera_sensor(camera_id).frames_timestamps_us, t_mid)
         projections.append(draw_camera(loader, camera_id, camera_frame, xyz, out_dir / f"{stem}_{camera_id}.png"))
         if draw_depth_label(loader, camera_id, camera_frame, out_dir / f"{stem}_{camera_id}_depth.png"):
             labels.append(out_dir / f"{stem}_{camera_id}_depth.png")
-    return Preview(out_dir / f"{stem}_bev.png", projections, labels)
+        if draw_mask_labels(loader, camera_id, camera_frame, out_dir / f"{stem}_{camera_id}_masks.png"):
+            masks.append(out_dir / f"{stem}_{camera_id}_masks.png")
+    return Preview(out_dir / f"{stem}_bev.png", projections, labels, masks)
 
 
 def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = None) -> UPath:
