@@ -158,6 +158,23 @@ def _camera_labels_option(ctx, param, value: str | None) -> tuple[str, ...]:
     return kinds
 
 
+#: ``--camera-labels``, on every dataset command.
+camera_labels_option = click.option(
+    "--camera-labels",
+    type=str,
+    default=None,
+    callback=_camera_labels_option,
+    metavar="depth,dynamic,instance",
+    show_default="none",
+    help="Image-aligned labels per camera frame, in NCore's camera-labels component"
+    " (comma-separated): 'depth' -> depth.z@<camera>, the z-depth (m) of the nearest lidar point"
+    " the camera sees in each pixel, 0 where none (needs the lidars); 'dynamic' ->"
+    " mask.dynamic@<camera>, 1 where a moving object's box shows; 'instance' ->"
+    " segmentation.instance@<camera>, the per-sequence instance index of the box each pixel"
+    " shows, 0 where none (both need cuboids: not TbV).",
+)
+
+
 def av2_family_options(log_scope: str) -> Callable:
     """Options shared by the Argoverse 2 Sensor and TbV commands."""
     return options(
@@ -195,20 +212,7 @@ def av2_family_options(log_scope: str) -> Callable:
             " where the body can be in each camera, and which cameras must see it.",
         ),
         lidar_model_source_option,
-        click.option(
-            "--camera-labels",
-            type=str,
-            default=None,
-            callback=_camera_labels_option,
-            metavar="depth,dynamic,instance",
-            show_default="none",
-            help="Image-aligned labels per camera frame, in NCore's camera-labels component"
-            " (comma-separated): 'depth' -> depth.z@<camera>, the z-depth (m) of the nearest lidar point"
-            " the camera sees in each pixel, 0 where none (needs the lidars); 'dynamic' ->"
-            " mask.dynamic@<camera>, 1 where a moving object's box shows; 'instance' ->"
-            " segmentation.instance@<camera>, the per-sequence instance index of the box each pixel"
-            " shows, 0 where none (both need cuboids: not TbV).",
-        ),
+        camera_labels_option,
     )
 
 
@@ -299,4 +303,5 @@ def opencood_options(dataset: str) -> Callable:
         store_options,
         consumer_options,
         noise_options,
+        camera_labels_option,
     )

@@ -128,6 +128,11 @@ class AgentTruth:
     n_points: dict[str, int] = field(default_factory=dict)
     markers: dict[str, dict[int, dict[int, tuple[float, float]]]] = field(default_factory=dict)
     point_rgb: dict[str, np.ndarray] = field(default_factory=dict)  #: the true colour of each point's surface
+    #: per frame key: the scene the agent's sensors see at the tick (its own vehicle left out), with
+    #: the actor id of each scene box (-2 pillar, -3 building), int [B]
+    scenes: dict[str, tuple[Scene, np.ndarray]] = field(default_factory=dict)
+    #: per frame key: each camera's pose (camera index -> UE4 camera -> CARLA world, [4,4])
+    T_cam_world: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass
@@ -480,6 +485,11 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                 agent_truth.intensity_u8[key] = intensity
                 xyz_world = xyz.astype(np.float64) @ T_lidar_world[:3, :3].T + T_lidar_world[:3, 3]
                 agent_truth.point_rgb[key] = surface_rgb(box_rgb, index[hit], xyz_world, np.ones(len(xyz), bool))
+                agent_truth.scenes[key] = (scene, lookup[:-1])
+                agent_truth.T_cam_world[key] = {
+                    i: T_base_world @ carla_pose_matrix(np.array([mx, my, mz, 0.0, yaw, pitch]))
+                    for i, (mx, my, mz, yaw) in enumerate(CAMERA_MOUNTS if config.cameras else ())
+                }
     return truth
 
 

@@ -181,7 +181,7 @@ def _in_front(corners_world_m: np.ndarray, T_world_camera: np.ndarray) -> tuple[
     start, end = xyz[:, BOX_EDGES[:, 0]], xyz[:, BOX_EDGES[:, 1]]
     with np.errstate(divide="ignore", invalid="ignore"):
         f = (CUT_Z_M - start[..., 2]) / (end[..., 2] - start[..., 2])
-    crossing = (f > 0) & (f < 1)
-    points = np.concatenate([xyz[xyz[..., 2] > CUT_Z_M], (start + f[..., None] * (end - start))[crossing]])
+        crossing = (f > 0) & (f < 1)
+        points = np.concatenate([xyz[xyz[..., 2] > CUT_Z_M], (start + f[..., None] * (end - start))[crossing]])
     owner = np.concatenate([np.nonzero(xyz[..., 2] > CUT_Z_M)[0], np.nonzero(crossing)[0]])
     return points, owner

@@ -16,6 +16,7 @@ from ncore_convert import contract
 from ncore_convert.contract import ManifestAgent, ManifestNoise, ScenarioManifest
 from ncore_convert.converters import consumer
 from ncore_convert.converters.common import Tally
+from ncore_convert.converters.opencood.labels import TickLabeller
 from ncore_convert.converters.opencood.noise import instance_meta
 from ncore_convert.converters.opencood.plan import plan_scenario
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, OpenCoodOptions, ScenarioPlan
@@ -49,6 +50,8 @@ class Counts(Tally):
     points_not_stored: int = 0
     images: int = 0
     cuboids: int = 0
+    camera_labels: int = 0  #: camera labels written (``--camera-labels``)
+    label_seconds: float = 0.0  #: making and storing them
     warnings: list[str] = field(default_factory=list)
 
 
@@ -64,7 +67,9 @@ class ScenarioSummary(Counts):
         return (
             f"{self.scenario}: {len(self.agents)} agents ({', '.join(self.agents)}), {self.frames} lidar frames,"
             f" {self.points} points, {self.images} images, {self.cuboids} cuboids ({self.tracks} tracks),"
-            f" {self.seconds:.1f} s" + (f", {len(self.warnings)} warning(s)" if self.warnings else "")
+            + (f" {self.camera_labels} camera labels," if self.camera_labels else "")
+            + f" {self.seconds:.1f} s"
+            + (f", {len(self.warnings)} warning(s)" if self.warnings else "")
         )
 
 
@@ -213,10 +218,36 @@ def _source_points(xyz: np.ndarray, intensity: np.ndarray, rays: RayBundle) -> d
     return out
 
 
+def _label_kinds(plan: ScenarioPlan, agent: AgentPlan) -> tuple[str, ...]:
+    """The ``--camera-labels`` kinds written for ``agent``'s cameras: depth needs its lidar."""
+    return tuple(kind for kind in plan.options.camera_labels if kind != "depth" or agent.lidar_ids)
+
+
+def _pictured(agent: AgentPlan, key: str) -> list[str]:
+    """The agent's cameras whose picture of tick ``key`` is readable (those get a frame, and labels)."""
+    out = []
+    for cam in agent.camera_ids:
+        try:
+            src.read_png(agent.agent_dir, key, agent.camera_index[cam])
+        except SourceError:
+            continue
+        out.append(cam)
+    return out
+
+
 def _write_sensors(
-    writer: SequenceWriter, plan: ScenarioPlan, agent: AgentPlan, names: Names, counts: Counts, progress: Progress
+    writer: SequenceWriter,
+    plan: ScenarioPlan,
+    agent: AgentPlan,
+    names: Names,
+    counts: Counts,
+    progress: Progress,
+    labeller: TickLabeller | None = None,
 ) -> None:
-    """Stream the agent's lidar frames and images, one frame at a time; skip (and report) missing files."""
+    """Stream the agent's lidar frames and images, one frame at a time; skip (and report) missing
+    files; with ``labeller``, each camera frame's labels alongside (depth with the lidar frame of its
+    tick, box labels with the image)."""
+    depth = labeller is not None and "depth" in labeller.kinds
     if agent.lidar_ids:
         meta = {
             "agent_id": agent.agent_id,
@@ -244,6 +275,8 @@ def _write_sensors(
             except SourceError as err:
                 counts.warnings.append(f"{err}; lidar frame skipped")
                 skipped[key] = err.cause
+                if depth:  # the tick's pictures still get a (empty) depth label, saying why
+                    labeller.store_depth(frame, key, int(t_us), _pictured(agent, key), None, f"lidar frame: {err}")
                 progress(1)
                 continue
             xyz = carla.points_right_handed(sweep.xyz_m)  # float32: the mirror is exact
@@ -258,7 +291,9 @@ def _write_sensors(
             colouring = None
             if plan.options.lidar_rgb and agent.camera_ids:
                 colouring = partial(point_colours, frames=_colour_frames(plan, agent, frame, key, int(t_us)))
-            stored, _ = lidar_frame(lidar_frame_in, {src.LIDAR: geometry}, plan.dynamic_boxes, colouring)
+            stored, points = lidar_frame(lidar_frame_in, {src.LIDAR: geometry}, plan.dynamic_boxes, colouring)
+            if depth:
+                labeller.store_depth(frame, key, int(t_us), _pictured(agent, key), points)
             own = stored[src.LIDAR]
             rays = own.rays
             generic = {
@@ -305,7 +340,8 @@ def _write_sensors(
         }
         stream = writer.add_camera(names.sensor(cam), meta)
         skipped = {}
-        for key, t_us in zip(agent.keys, agent.timestamps_us, strict=True):
+        boxes = labeller is not None and labeller.kinds & set(contract.BOX_LABEL_KINDS)
+        for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
                 data = src.read_png(agent.agent_dir, key, index)
             except SourceError as err:
@@ -314,6 +350,8 @@ def _write_sensors(
             else:
                 stream.store_frame(data, "png", (int(t_us), int(t_us)))
                 counts.images += 1
+                if boxes:
+                    labeller.store_boxes(frame, key, int(t_us), cam)
             progress(1)
         stream.set_meta({**meta, contract.SKIPPED_FRAMES: {**agent.skipped_keys, **skipped}})
 
@@ -330,6 +368,13 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
         T_world_dataset_global, plan.options.world_global_mode, DATASET_GLOBAL
     )
     interval_us = (min(a.pose_span_us[0] for a in agents), max(a.pose_span_us[1] for a in agents))
+    label_kinds = {a.agent_id: _label_kinds(plan, a) for a in agents}
+    label_ids = [
+        contract.camera_label_id(kind, names[a.agent_id].sensor(cam))
+        for a in agents
+        for cam in a.camera_ids
+        for kind in label_kinds[a.agent_id]
+    ]
     writer = SequenceWriter(
         output_dir=out_dir,
         sequence_id=sequence_id,
@@ -341,6 +386,7 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
         profile=plan.options.profile,
         poses_meta={"calibration_type": "carla-sensor-transforms", "egomotion_type": "carla-ground-truth-lidar_pose"},
         extra_pose_instances={s.name: instance_meta(s, plan.agent_folders) for s in plan.options.noise},
+        label_ids=label_ids,
     )
     for i, agent in enumerate(agents):
         edge = world_global_edge if i == 0 else None  # one static edge per sequence
@@ -349,7 +395,15 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
     writer.store_cuboids(cuboids, plan.cuboid_labels.label_source, plan.cuboid_labels.meta)
     counts.cuboids = len(cuboids)
     for agent in agents:
-        _write_sensors(writer, plan, agent, names[agent.agent_id], counts, progress)
+        name = names[agent.agent_id]
+        labeller = None
+        if label_kinds[agent.agent_id] and agent.camera_ids:
+            labeller = TickLabeller(plan, agent, label_kinds[agent.agent_id], writer, name.sensor)
+        _write_sensors(writer, plan, agent, name, counts, progress, labeller)
+        if labeller is not None:
+            labeller.finish()
+            counts.camera_labels += labeller.labels
+            counts.label_seconds += labeller.seconds
     meta = writer.finalize(with_meta=plan.options.sequence_meta)
     if meta is not None:
         write_sequence_meta(out_dir, sequence_id, [meta])

@@ -37,6 +37,7 @@ class OpenCoodOptions(ConsumerOptions):
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
     noise: tuple[NoiseSetting, ...] = ()  #: GPS-error / delay settings, each a further poses instance
+    camera_labels: tuple[str, ...] = ()  #: ``contract.CAMERA_LABEL_KINDS`` written per camera frame
 
     def scenario_dir(self, root_dir: UPath, scenario: str) -> UPath:
         return src.scenario_dir(root_dir, self.split, scenario)

@@ -1,0 +1,151 @@
+"""OPV2V / V2XSet camera labels (``--camera-labels``), ``GT_SYNTHETIC``: one per camera frame and kind.
+
+CARLA takes every point and picture of a tick at the tick, so a camera frame's labels come from
+its own tick:
+
+- ``depth.z@<camera>``: the agent's own lidar points of the tick
+  (:func:`ncore_convert.transforms.camera_labels.depth_z`), the tick's other labelled vehicles as
+  solid occluders; written as each lidar frame streams past. A tick whose lidar frame is unreadable
+  gets an empty label that says why.
+- ``mask.dynamic@<camera>``, ``segmentation.instance@<camera>``: the tick's merged labelled vehicles
+  (the agent's own excepted), which one each pixel shows
+  (:func:`ncore_convert.transforms.camera_labels.box_index`); written with each image.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ncore_convert import contract
+from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, ScenarioPlan
+from ncore_convert.transforms import camera_labels
+from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.visibility import CameraView
+from ncore_convert.writer import CameraLabelStream, SequenceWriter
+
+#: The component metadata of each kind: how the labels were made.
+GENERATOR = {
+    "depth": {
+        "generator": "ncore-convert transforms.camera_labels.depth_z",
+        "from": "the agent's own lidar points of the camera frame's CARLA tick (points and pictures share the tick)",
+        "value": "z in metres (camera frame, OpenCV) of the nearest lidar point the camera sees in the pixel; 0: none",
+        "occlusion": "visibility.visible_pixels: depth buffer of the tick's points and the tick's labelled vehicles",
+        "storage": "RAW, uint32 millimetres (NCore quantization scale 0.001: error <= 0.5 mm)",
+    },
+    "boxes": {
+        "generator": "ncore-convert transforms.camera_labels.box_index",
+        "from": "the tick's merged labelled vehicles (every agent's YAML), the agent's own vehicle excepted",
+        "pixel": "the box the ray through the pixel's centre meets first (nearest box first where boxes overlap)",
+        "not_known": "surfaces other than the labelled vehicles (buildings, poles, unlabelled actors) do not hide"
+        " a box; a box over-covers its vehicle's true shape",
+        "storage": "PNG (IMAGE_ENCODED): mask.dynamic 1-bit (uint8 0/1), segmentation.instance 16-bit (uint16)",
+    },
+}
+DYNAMIC_RULE = (
+    "1 where the box shown is a dynamic track's (transforms.dynamic: CARLA's speed above 1 km/h); 0 elsewhere"
+)
+
+
+def instance_table(plan: ScenarioPlan) -> tuple[dict[int, int], dict[str, dict]]:
+    """The scenario's instance index of every labelled actor (actor id -> 1 upwards, by actor id: the
+    same in every sequence and camera of the scenario), and the table index -> track id, class and
+    whether it is dynamic, as ``segmentation.instance``'s metadata holds it."""
+    actors = sorted({int(a) for boxes in plan.boxes.values() for a in boxes.actor_ids})
+    if len(actors) > np.iinfo(np.uint16).max:
+        raise ValueError(f"{len(actors)} actors: more than a uint16 instance label holds")
+    index = {actor: k + 1 for k, actor in enumerate(actors)}
+    class_id = plan.cuboid_labels.class_map[VEHICLE_CLASS]
+    table = {
+        str(k): {"track_id": str(actor), "class_id": class_id, "dynamic": str(actor) in plan.cuboid_labels.dynamic}
+        for actor, k in index.items()
+    }
+    return index, table
+
+
+class TickLabeller:
+    """Writes the labels of one agent's cameras in a sequence (see the module docstring).
+
+    Args:
+        kinds: the ``contract.CAMERA_LABEL_KINDS`` to write (depth only for an agent with a lidar).
+        sensor_name: the agent's camera id -> its name in the sequence (prefixed in the scenario layout).
+    """
+
+    def __init__(
+        self, plan: ScenarioPlan, agent: AgentPlan, kinds: tuple[str, ...], writer: SequenceWriter, sensor_name
+    ) -> None:
+        self._plan, self._agent = plan, agent
+        self._index, table = instance_table(plan)
+        self._streams: dict[tuple[str, str], CameraLabelStream] = {
+            (kind, cam): writer.add_camera_label(kind, sensor_name(cam), "GT_SYNTHETIC", {})
+            for cam in agent.camera_ids
+            for kind in kinds
+        }
+        self._meta = {
+            "depth": GENERATOR["depth"],
+            "dynamic": {**GENERATOR["boxes"], "value": DYNAMIC_RULE},
+            "instance": {**GENERATOR["boxes"], "value": "instance index (0: no box)", "instances": table},
+        }
+        self.labels = 0
+        self.seconds = 0.0
+
+    @property
+    def kinds(self) -> set[str]:
+        return {kind for kind, _ in self._streams}
+
+    def _boxes(self, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The tick's labelled vehicles but the agent's own: actor ids [K], box -> world_global [K,4,4],
+        half sizes [K,3] (m)."""
+        boxes = self._plan.boxes.get(key)
+        if boxes is None:
+            return np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 3))
+        others = boxes.actor_ids != (int(self._agent.agent_id) if self._agent.kind == "cav" else -1)
+        return boxes.actor_ids[others], boxes.T_box_world_global[others], boxes.dims_m[others] / 2.0
+
+    def _view(self, frame: int, key: str, t_us: int, cam: str) -> CameraView:
+        T_camera_world_global = self._agent.T_rig_world_global[frame] @ self._agent.T_sensor_rig[cam]
+        _, T_box, half = self._boxes(key)
+        pinhole = self._agent.cameras[cam].pinhole
+        return CameraView(cam, t_us, invert_se3(T_camera_world_global), pinhole, solids=(T_box, half))
+
+    def store_depth(self, frame: int, key: str, t_us: int, cameras: list[str], points, why_none: str = "") -> None:
+        """The depth labels of ``cameras`` (those with a picture) at tick ``key`` (frame index
+        ``frame``, ``t_us``) from ``points`` (``lidar_frames.PointData`` of the tick; None: the lidar
+        frame is unreadable, ``why_none`` says why)."""
+        started = time.perf_counter()
+        for cam in cameras:
+            if ("depth", cam) not in self._streams:
+                continue
+            if points is None:
+                width, height = self._agent.cameras[cam].pinhole.resolution_px
+                depth, meta = np.zeros((height, width), np.float32), {"no_measurement": why_none}
+            else:
+                view = self._view(frame, key, t_us, cam)
+                depth = camera_labels.depth_z(view, points.xyz_fixed_m, points.timestamps_us, points.dynamic)
+                meta = {contract.CARLA_FRAME: int(key)}
+            self._streams["depth", cam].store_label(depth, t_us, meta)
+            self.labels += 1
+        self.seconds += time.perf_counter() - started
+
+    def store_boxes(self, frame: int, key: str, t_us: int, cam: str) -> None:
+        """The box labels of camera ``cam`` at tick ``key`` (frame index ``frame``, ``t_us``)."""
+        started = time.perf_counter()
+        actors, T_box, half = self._boxes(key)
+        box = camera_labels.box_index(self._view(frame, key, t_us, cam), T_box, half)  # -1: none, the last entry
+        instance = np.r_[[self._index[int(a)] for a in actors], 0].astype(np.uint16)
+        dynamic = np.r_[[str(a) in self._plan.cuboid_labels.dynamic for a in actors], False]
+        if ("dynamic", cam) in self._streams:
+            self._streams["dynamic", cam].store_label(dynamic[box], t_us, {contract.CARLA_FRAME: int(key)})
+            self.labels += 1
+        if ("instance", cam) in self._streams:
+            pixels = np.bincount(box.reshape(-1) + 1, minlength=len(actors) + 1)[1:]
+            meta = {contract.CARLA_FRAME: int(key), "instances_shown": sorted(instance[:-1][pixels > 0].tolist())}
+            self._streams["instance", cam].store_label(instance[box], t_us, meta)
+            self.labels += 1
+        self.seconds += time.perf_counter() - started
+
+    def finish(self) -> None:
+        """Set each component's metadata."""
+        for (kind, _), stream in self._streams.items():
+            stream.set_meta(self._meta[kind])

@@ -1,0 +1,258 @@
+"""OPV2V / V2XSet camera labels (``--camera-labels depth,dynamic,instance``, ``GT_SYNTHETIC``).
+
+The truth: the synthetic scenario's own scene (the tick's vehicles, pillars and buildings) ray-cast
+from each camera at the tick (``synth.scene.cast_rays``), and the raw PCD points projected into the
+pictures as OpenCOOD does it (the YAML's ``extrinsic``: lidar -> camera, UE4 axes; its ``intrinsic``
+K), independently of the converter's own poses and projection. The real OPV2V frames take a
+synthetic agent's place for that last check.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import find_opv2v_sample
+from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from ncore.impl.data.types import LabelSource, LabelType
+from test_opencood_view import opencood_pcd
+from upath import UPath
+
+from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+from ncore_convert.sources.opencood import load_yaml
+from ncore_convert.synth import opencood as synth
+from ncore_convert.synth.scene import cast_rays
+from ncore_convert.validate.sequence import validate_sequence
+
+KINDS = ("depth", "dynamic", "instance")
+#: Where in a pixel the truth is sampled (a label is one point somewhere in its pixel).
+SUBPIXEL = (np.arange(4) + 0.5) / 4
+
+
+def _convert(tmp: Path, config: synth.SynthConfig, real_pcds: bool = False):
+    (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
+    if real_pcds:  # the real frames in the first agent's place (their keys 000070-000078)
+        real = sorted(find_opv2v_sample().glob("*.pcd"))
+        assert [p.stem for p in real] == truth.keys
+        for path in real:
+            shutil.copyfile(path, Path(truth.scenario_dir) / next(iter(truth.agents)) / path.name)
+    out = tmp / "out" / truth.scenario
+    options = OpenCoodOptions(config.dataset, "test", camera_labels=KINDS)
+    summary = convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario, options)
+    return truth, summary, out
+
+
+@pytest.fixture(scope="module", params=["opv2v", "v2xset"])
+def labelled(request, tmp_path_factory):
+    """A 4-tick synthetic scenario (V2XSet: with an infrastructure unit) converted with every label."""
+    config = synth.SynthConfig(dataset=request.param, frames=4, seed=11, keep_truth=True)
+    return _convert(tmp_path_factory.mktemp(request.param), config)
+
+
+def _loader(out: Path, scenario: str, agent_id: str) -> SequenceLoaderV4:
+    return SequenceLoaderV4(SequenceComponentGroupsReader([UPath(out / agent_id / f"{scenario}_agent{agent_id}.json")]))
+
+
+def _labels(loader: SequenceLoaderV4, cam: str, label_type: LabelType):
+    (labels,) = loader.query_camera_labels(cam, label_type=label_type)
+    return labels
+
+
+def _camera_rays(truth, agent_id: str, key: str, index: int, u: np.ndarray, v: np.ndarray):
+    """The rays through image points (``u``, ``v``, px, NCore's corner convention) of camera
+    ``index`` at tick ``key``: origins and unit directions in the CARLA world [K,3], and the length
+    of each OpenCV ray (z = 1) [K]."""
+    T = truth.agents[agent_id].T_cam_world[key][index] @ synth.T_UE4_OPENCV
+    (fx, fy), (cx, cy) = synth.PINHOLE.focal_length_px, synth.PINHOLE.principal_point_px
+    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1) @ T[:3, :3].T
+    norm = np.linalg.norm(d, axis=1)
+    return np.broadcast_to(T[:3, 3], d.shape), d / norm[:, None], norm
+
+
+def _yaml(truth, agent_id: str, key: str) -> dict:
+    return load_yaml(UPath(truth.scenario_dir) / agent_id / f"{key}.yaml")
+
+
+def _cameras(truth, agent_id: str, key: str) -> list[tuple[str, int]]:
+    """(the converter's camera id, OpenCOOD's camera index) of the agent's pictures at ``key``."""
+    yaml = _yaml(truth, agent_id, key)
+    return [(name, i) for i, name in enumerate(CAMERA_IDS) if f"camera{i}" in yaml]
+
+
+CAMERA_IDS = ("camera_front", "camera_right_rear", "camera_left_rear", "camera_back")
+EDGE_PX = 1e-6  #: a raw point this close to a pixel edge projects into the pixels either side
+
+
+def test_labels_one_per_camera_frame_ground_truth_source_and_valid(labelled):
+    """Every agent's camera has the three labels, ``GT_SYNTHETIC``, one per camera frame, read back
+    through the library; the sequences validate (masks within their boxes included)."""
+    truth, summary, out = labelled
+    assert summary.camera_labels == sum(len(truth.keys) * 4 * 3 for _ in truth.agents)
+    for agent_id in truth.agents:
+        loader = _loader(out, truth.scenario, agent_id)
+        assert sorted(loader.camera_labels_ids) == sorted(
+            f"{kind}@{cam}" for cam in CAMERA_IDS for kind in ("depth.z", "mask.dynamic", "segmentation.instance")
+        )
+        for cam in CAMERA_IDS:
+            frames_us = loader.get_camera_sensor(cam).frames_timestamps_us[:, 1]
+            for label_type in (LabelType.DEPTH_Z_M, LabelType.MASK_DYNAMIC, LabelType.SEGMENTATION_INSTANCE):
+                labels = _labels(loader, cam, label_type)
+                assert labels.label_descriptor.label_source == LabelSource.GT_SYNTHETIC
+                np.testing.assert_array_equal(np.sort(labels.label_timestamps_us), np.sort(frames_us))
+        report = validate_sequence(UPath(out / agent_id / f"{truth.scenario}_agent{agent_id}.json"))
+        assert report.ok, [(c.name, c.detail) for c in report.checks if not c.ok]
+
+
+def test_depth_labels_hold_the_surface_the_camera_sees(labelled):
+    """Each labelled pixel against the scene ray-cast from its camera at the tick, sampled 4 x 4 over
+    the pixel: median |error| <= 1 cm; <= 0.5 % occlusion errors (the label > 0.5 m behind every
+    sample: a surface seen through something); and >= 95 % of the pixels that a raw point hits and
+    the camera sees in truth are labelled."""
+    truth, _, out = labelled
+    du, dv = (a.reshape(-1) for a in np.meshgrid(SUBPIXEL, SUBPIXEL))
+    smallest, behind, covered = [], [], []
+    for agent_id in truth.agents:
+        loader = _loader(out, truth.scenario, agent_id)
+        for key in truth.keys:
+            scene, _ = truth.agents[agent_id].scenes[key]
+            for cam, index in _cameras(truth, agent_id, key):
+                labels = _labels(loader, cam, LabelType.DEPTH_Z_M)
+                t_us = int(labels.label_timestamps_us[truth.keys.index(key)])
+                depth = labels.get_label(t_us).get_data()
+                lines, cols = np.nonzero(depth)
+                if len(lines):
+                    u = (cols[:, None] + du).reshape(-1)
+                    v = (lines[:, None] + dv).reshape(-1)
+                    origins, d, norm = _camera_rays(truth, agent_id, key, index, u, v)
+                    hit_m, _, _ = cast_rays(origins, d, np.zeros(len(u)), scene, 500.0, ground_z_m=0.0)
+                    error = depth[lines, cols][:, None] - (hit_m / norm).reshape(len(lines), -1)
+                    smallest.append(np.abs(error).min(axis=1))
+                    behind.append(np.all(error > 0.5, axis=1))
+                covered.append(_visible_point_pixels(truth, agent_id, key, index, scene, depth))
+    smallest, behind, covered = np.concatenate(smallest), np.concatenate(behind), np.concatenate(covered)
+    assert len(smallest) > 5000 and len(covered) > 5000
+    assert np.median(smallest) <= 0.01, np.median(smallest)
+    assert np.mean(behind) <= 0.005, np.mean(behind)
+    assert np.mean(covered) >= 0.95, np.mean(covered)
+
+
+def _opencood_pixels(agent_dir: Path, key: str, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The raw PCD points of tick ``key`` in camera ``index``'s picture as OpenCOOD projects them
+    (YAML ``extrinsic`` lidar -> camera in UE4 axes; x forward, y right, z up -> OpenCV (y, -z, x);
+    K): pixel column, row (int [K]) and depth z (m, [K]) of the points ahead and inside the image
+    (a point within ``EDGE_PX`` of a pixel edge in each pixel it touches)."""
+    yaml = load_yaml(UPath(agent_dir) / f"{key}.yaml")
+    E, K = np.array(yaml[f"camera{index}"]["extrinsic"]), np.array(yaml[f"camera{index}"]["intrinsic"])
+    xyz = opencood_pcd(Path(agent_dir) / f"{key}.pcd")[:, :3].astype(np.float64)
+    ue4 = xyz @ E[:3, :3].T + E[:3, 3]
+    x, y, z = ue4[:, 1], -ue4[:, 2], ue4[:, 0]
+    ahead = z > 0.3
+    u = K[0, 0] * x[ahead] / z[ahead] + K[0, 2]
+    v = K[1, 1] * y[ahead] / z[ahead] + K[1, 2]
+    # a point on a pixel edge (the synthetic lidar has a column of rays on the optical axis, at
+    # u = cx exactly) belongs to the pixels either side: which one is a matter of the last bit
+    u = np.concatenate([u, u + EDGE_PX, u - EDGE_PX, u, u])
+    v = np.concatenate([v, v, v, v + EDGE_PX, v - EDGE_PX])
+    z = np.tile(z[ahead], 5)
+    inside = (u >= 0) & (u < synth.WIDTH) & (v >= 0) & (v < synth.HEIGHT)
+    return u[inside].astype(np.int64), v[inside].astype(np.int64), z[inside]
+
+
+def _visible_point_pixels(truth, agent_id: str, key: str, index: int, scene, depth: np.ndarray) -> np.ndarray:
+    """Whether each pixel hit by a raw point that the camera sees in truth (nothing between the
+    camera and the point but 5 cm) is labelled, bool [P]."""
+    cols, lines, z_m = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
+    origins, d, norm = _camera_rays(truth, agent_id, key, index, cols + 0.5, lines + 0.5)
+    first_m, _, _ = cast_rays(origins, d, np.zeros(len(cols)), scene, 500.0, ground_z_m=0.0)
+    seen = first_m / norm >= z_m - 0.05 * np.maximum(1.0, z_m / 10.0)  # the pixel centre's ray, not the point's
+    pixels = np.unique(lines[seen] * synth.WIDTH + cols[seen])
+    return depth.reshape(-1)[pixels] > 0
+
+
+def _held_out(truth, out: Path, agent_id: str) -> tuple[int, int, int]:
+    """The held-out check on one agent: every labelled depth pixel has a raw PCD point projecting
+    there (OpenCOOD's conventions) within 2 cm of its depth, and that point is the nearest such one.
+    Returns (labelled pixels, without such a point, not the nearest)."""
+    loader = _loader(out, truth.scenario, agent_id)
+    labelled = missing = not_nearest = 0
+    for key in truth.keys:
+        for cam, index in _cameras(truth, agent_id, key):
+            labels = _labels(loader, cam, LabelType.DEPTH_Z_M)
+            depth = labels.get_label(int(labels.label_timestamps_us[truth.keys.index(key)])).get_data()
+            cols, lines, z_m = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
+            pixel = lines * synth.WIDTH + cols
+            label = depth.reshape(-1)[pixel]
+            near = np.abs(z_m - label) <= 0.02
+            set_pixels = np.flatnonzero(depth.reshape(-1))
+            labelled += len(set_pixels)
+            missing += len(np.setdiff1d(set_pixels, pixel[near]))
+            nearest = np.full(depth.size, np.inf)
+            np.minimum.at(nearest, pixel, z_m)
+            not_nearest += int(np.sum(depth.reshape(-1)[set_pixels] > nearest[set_pixels] + 0.02))
+    return labelled, missing, not_nearest
+
+
+def test_every_depth_pixel_is_the_nearest_raw_point_there(labelled):
+    """The held-out check on the synthetic agents (CAVs and, in V2XSet, the infrastructure unit)."""
+    truth, _, out = labelled
+    for agent_id in truth.agents:
+        labelled_px, missing, not_nearest = _held_out(truth, out, agent_id)
+        assert labelled_px > 2000 and missing == 0 and not_nearest == 0, (agent_id, labelled_px, missing, not_nearest)
+
+
+def test_real_opv2v_frames_every_depth_pixel_is_the_nearest_raw_point_there(tmp_path):
+    """The five real OPV2V frames in a synthetic agent's place: every labelled depth pixel is the
+    nearest raw point projecting there within 2 cm (OpenCOOD's projection), and the sequence
+    validates."""
+    config = synth.SynthConfig(dataset="opv2v", frames=5, seed=7, cavs=1, first_key=70, key_step=2)
+    truth, _, out = _convert(tmp_path, config, real_pcds=True)
+    (agent_id,) = truth.agents
+    labelled_px, missing, not_nearest = _held_out(truth, out, agent_id)
+    assert labelled_px > 10_000 and missing == 0 and not_nearest == 0, (labelled_px, missing, not_nearest)
+    assert validate_sequence(UPath(out / agent_id / f"{truth.scenario}_agent{agent_id}.json")).ok
+
+
+def test_box_labels_show_the_vehicles_the_camera_sees(labelled):
+    """Each instance's pixels against the scene ray-cast through every second pixel at the tick:
+    IoU >= 0.95 per instance and for the dynamic mask (the vehicles CARLA moves), pooled over the
+    scenario; CARLA's boxes are the vehicles (the only misses: a pillar or building that hides a
+    box). A vehicle no agent labelled at the tick (no lidar ray hit it) is unknown to the labels: the
+    pixels that show it are not judged."""
+    truth, _, out = labelled
+    inter, union, dyn = {}, {}, [0, 0]
+    for agent_id in truth.agents:
+        loader = _loader(out, truth.scenario, agent_id)
+        for key in truth.keys:
+            scene, actor_of_box = truth.agents[agent_id].scenes[key]
+            labelled_now = {  # the tick's labels: the vehicles of every agent's YAML (OpenCOOD merges them)
+                int(a) for other in truth.agents for a in _yaml(truth, other, key).get("vehicles", {})
+            }
+            for cam, index in _cameras(truth, agent_id, key):
+                instances = _labels(loader, cam, LabelType.SEGMENTATION_INSTANCE)
+                table = instances.labels_generic_meta_data["instances"]
+                index_of = {int(v["track_id"]): int(k) for k, v in table.items()}
+                t_us = int(instances.label_timestamps_us[truth.keys.index(key)])
+                ours = instances.get_label(t_us).get_data()[::2, ::2]
+                ours_dynamic = _labels(loader, cam, LabelType.MASK_DYNAMIC).get_label(t_us).get_data()[::2, ::2] > 0
+                v, u = np.mgrid[0 : synth.HEIGHT : 2, 0 : synth.WIDTH : 2] + 0.5
+                origins, d, _ = _camera_rays(truth, agent_id, key, index, u.reshape(-1), v.reshape(-1))
+                hit_m, _, box = cast_rays(origins, d, np.zeros(len(d)), scene, 500.0, ground_z_m=0.0)
+                actor = np.r_[actor_of_box, -1][np.where(np.isfinite(hit_m), box, -1)].reshape(u.shape)
+                actors = np.unique(actor)
+                instance_of = np.array([index_of.get(int(a), 0) if a in labelled_now else 0 for a in actors])
+                moves = np.array([truth.actor_speed_mps.get(int(a), 0.0) > 0.0 for a in actors])
+                unknown = np.array([a >= 0 and a not in labelled_now for a in actors])  # a vehicle nobody labelled
+                true_instance = instance_of[np.searchsorted(actors, actor)]
+                moving = moves[np.searchsorted(actors, actor)]
+                judged = ~unknown[np.searchsorted(actors, actor)]
+                for k in np.unique(np.r_[ours[ours > 0], true_instance[true_instance > 0]]):
+                    inter[k] = inter.get(k, 0) + np.sum((ours == k) & (true_instance == k) & judged)
+                    union[k] = union.get(k, 0) + np.sum(((ours == k) | (true_instance == k)) & judged)
+                dyn[0] += np.sum(ours_dynamic & moving & (true_instance > 0) & judged)
+                dyn[1] += np.sum((ours_dynamic | (moving & (true_instance > 0))) & judged)
+    assert len(union) >= 5 and dyn[1] > 1000
+    ious = {k: inter[k] / union[k] for k in union}
+    assert min(ious.values()) >= 0.95, [(k, inter[k], union[k]) for k in ious if ious[k] < 0.95]
+    assert dyn[0] / dyn[1] >= 0.95, dyn[0] / dyn[1]
