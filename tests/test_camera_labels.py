@@ -479,6 +479,7 @@ def test_preview_draws_the_depth_and_mask_labels(labelled, tmp_path):
     "command, value, message",
     [
         ("argoverse2-v4", "depth,foo", "unknown camera label 'foo'"),
+        ("opv2v-v4", "instance,bar", "unknown camera label 'bar'"),
         ("tbv-v4", "depth,instance", "instance: made from the annotated boxes, and TbV has no cuboids"),
         ("tbv-v4", "dynamic", "dynamic: made from the annotated boxes, and TbV has no cuboids"),
     ],
@@ -492,7 +493,7 @@ def test_camera_labels_unknown_or_impossible_are_usage_errors(tmp_path, command,
     from ncore_convert.cli import cli
 
     args = ["--root-dir", str(tmp_path), "--output-dir", str(tmp_path / "out"), command]
-    args += ["--split", "val"] if command == "argoverse2-v4" else []
+    args += {"argoverse2-v4": ["--split", "val"], "opv2v-v4": ["--split", "test"]}.get(command, [])
     result = CliRunner().invoke(cli, [*args, "--camera-labels", value])
     assert result.exit_code == 2 and message in " ".join(result.output.split()), result.output
     assert not (tmp_path / "out").exists()
