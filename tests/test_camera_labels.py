@@ -71,16 +71,22 @@ def _world(seed: int, pinhole: Pinhole = PINHOLE):
     return scene, hits, times_us, dynamic, T_camera_city, view, label
 
 
-def _true_depth(scene, T_camera_city: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """z of the surface the camera sees through image points (``u``, ``v``: px, float [K]) at the
-    frame's time, m [K]."""
-    (fx, fy), (cx, cy) = PINHOLE.focal_length_px, PINHOLE.principal_point_px
-    d_camera = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1)
-    d_city = d_camera @ T_camera_city[:3, :3].T
+def _seen(scene, T_camera_city: np.ndarray, pinhole: Pinhole, t_s: float, u: np.ndarray, v: np.ndarray):
+    """What the camera sees through image points (``u``, ``v``: px, float [K], NCore's corner
+    convention) at ``t_s``: the z of the surface hit (m, inf: nothing) and the scene box hit (index
+    into ``scene.boxes``, -1: the ground or nothing), [K] each."""
+    (fx, fy), (cx, cy) = pinhole.focal_length_px, pinhole.principal_point_px
+    d_city = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1) @ T_camera_city[:3, :3].T
     norm = np.linalg.norm(d_city, axis=1)
     origins = np.broadcast_to(T_camera_city[:3, 3], d_city.shape)
-    distance, _, _ = cast_rays(origins, d_city / norm[:, None], np.full(len(u), CAMERA_S), scene, 500.0)
-    return distance / norm  # along the ray -> along the optical axis (z = 1 per unit of d_camera)
+    distance, _, index = cast_rays(origins, d_city / norm[:, None], np.full(len(u), t_s), scene, 500.0)
+    # along the ray -> along the optical axis (z = 1 per unit of d_camera)
+    return distance / norm, np.where(np.isfinite(distance), index, -1)
+
+
+def _true_depth(scene, T_camera_city: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """z of the surface the camera of ``_world`` sees through image points at the frame's time, m [K]."""
+    return _seen(scene, T_camera_city, PINHOLE, CAMERA_S, u, v)[0]
 
 
 #: Where in a pixel the truth is sampled: an 8 x 8 grid (an eighth of a pixel apart: on the ground
@@ -139,16 +145,11 @@ def test_depth_labels_cover_the_points_the_camera_sees(world):
 
 
 def _box_truth(scene, T_camera_city: np.ndarray, t_s: float, pinhole: Pinhole, step: int) -> np.ndarray:
-    """The scene box each ``step``-th pixel's centre shows at ``t_s`` (``synth.scene.cast_rays``):
-    an index into ``scene.boxes``, -1 the ground or nothing, int [H/step, W/step]."""
-    (fx, fy), (cx, cy) = pinhole.focal_length_px, pinhole.principal_point_px
+    """The scene box each ``step``-th pixel's centre shows at ``t_s``: an index into
+    ``scene.boxes``, -1 the ground or nothing, int [H/step, W/step]."""
     width, height = pinhole.resolution_px
     v, u = np.mgrid[0:height:step, 0:width:step] + 0.5
-    d_city = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1).reshape(-1, 3) @ T_camera_city[:3, :3].T
-    d_city /= np.linalg.norm(d_city, axis=1, keepdims=True)
-    origins = np.broadcast_to(T_camera_city[:3, 3], d_city.shape)
-    distance, _, index = cast_rays(origins, d_city, np.full(len(d_city), t_s), scene, 500.0)
-    return np.where(np.isfinite(distance), index, -1).reshape(u.shape)
+    return _seen(scene, T_camera_city, pinhole, t_s, u.reshape(-1), v.reshape(-1))[1].reshape(u.shape)
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -233,6 +234,7 @@ def _label_errors(run: Converted, cam: str) -> tuple[np.ndarray, np.ndarray, np.
     truth, loader = run.truth, run.loader
     (labels,) = loader.query_camera_labels(cam, label_type=LabelType.DEPTH_Z_M)
     f, cx, cy = truth.intrinsics[cam]  # AV2's convention: pixel centres at integers
+    pinhole = Pinhole((f, f), (cx + 0.5, cy + 0.5), loader.get_camera_sensor(cam).model_parameters.resolution)
     du, dv = (a.reshape(-1) for a in np.meshgrid(SUBPIXEL, SUBPIXEL))
     smallest, behind, ahead = [np.zeros(0)], [np.zeros(0, bool)], [np.zeros(0, bool)]
     for ts in labels.label_timestamps_us[1::3]:
@@ -242,14 +244,10 @@ def _label_errors(run: Converted, cam: str) -> tuple[np.ndarray, np.ndarray, np.
             continue
         t_s = (int(ts) * 1000 - truth.t0_ns) * 1e-9
         T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
-        u = (cols[:, None] + du - 0.5).reshape(-1)  # NCore pixel corners -> AV2 pixel centres
-        v = (lines[:, None] + dv - 0.5).reshape(-1)
-        d_camera = np.stack([(u - cx) / f, (v - cy) / f, np.ones(len(u))], axis=1)
-        d_city = d_camera @ T_camera_city[:3, :3].T
-        norm = np.linalg.norm(d_city, axis=1)
-        origins = np.broadcast_to(T_camera_city[:3, 3], d_city.shape)
-        hit_m, _, _ = cast_rays(origins, d_city / norm[:, None], np.full(len(u), t_s), truth.scene, 500.0)
-        error = depth[lines, cols][:, None] - (hit_m / norm).reshape(len(lines), -1)
+        u = (cols[:, None] + du).reshape(-1)
+        v = (lines[:, None] + dv).reshape(-1)
+        z_m, _ = _seen(truth.scene, T_camera_city, pinhole, t_s, u, v)
+        error = depth[lines, cols][:, None] - z_m.reshape(len(lines), -1)
         smallest.append(np.abs(error).min(axis=1))
         behind.append(np.all(error > 0.5, axis=1))
         ahead.append(np.all(error < -0.5, axis=1))
@@ -456,6 +454,45 @@ def test_the_mask_check_finds_pixels_outside_their_boxes(labelled):
     mask[empty_sky] = 1
     (finding,) = _outside_boxes(loader, cam, mask, msk, table, cuboids, ts)
     assert "100 px of dynamic pixels outside the projected boxes" in finding
+
+
+def test_the_mask_box_check_projects_only_distortion_free_pinholes():
+    """The box check projects a camera stored as an ideal pinhole, or an OpenCV pinhole whose
+    coefficients are all 0, as that pinhole; a distorted OpenCV camera or an f-theta model is not
+    projected (the check then says it did not run)."""
+    from ncore.impl.data.types import (
+        FThetaCameraModelParameters,
+        IdealPinholeCameraModelParameters,
+        OpenCVPinholeCameraModelParameters,
+        ShutterType,
+    )
+
+    from ncore_convert.transforms.camera_models import fit_ftheta
+    from ncore_convert.validate.labels import stored_pinhole
+
+    pinhole = Pinhole((800.0, 810.0), (400.0, 300.0), (800, 600))
+    common = {"resolution": np.array([800, 600], np.uint64), "shutter_type": ShutterType.GLOBAL}
+    terms = {
+        "principal_point": np.array([400.0, 300.0], np.float32),
+        "focal_length": np.array([800.0, 810.0], np.float32),
+    }
+    zeros = {"radial_coeffs": np.zeros(6, np.float32), "tangential_coeffs": np.zeros(2, np.float32)}
+    zeros["thin_prism_coeffs"] = np.zeros(4, np.float32)
+    assert stored_pinhole(IdealPinholeCameraModelParameters(**common, **terms)) == pinhole
+    assert stored_pinhole(OpenCVPinholeCameraModelParameters(**common, **terms, **zeros)) == pinhole
+    distorted = {**zeros, "radial_coeffs": np.array([0.1, 0, 0, 0, 0, 0], np.float32)}
+    assert stored_pinhole(OpenCVPinholeCameraModelParameters(**common, **terms, **distorted)) is None
+    fit = fit_ftheta(pinhole)
+    ftheta = FThetaCameraModelParameters(
+        **common,
+        principal_point=fit.principal_point_px,
+        reference_poly=FThetaCameraModelParameters.PolynomialType.PIXELDIST_TO_ANGLE,
+        pixeldist_to_angle_poly=fit.pixeldist_to_angle,
+        angle_to_pixeldist_poly=fit.angle_to_pixeldist,
+        max_angle=fit.max_angle_rad,
+        linear_cde=fit.linear_cde,
+    )
+    assert stored_pinhole(ftheta) is None
 
 
 def test_preview_draws_the_depth_and_mask_labels(labelled, tmp_path):

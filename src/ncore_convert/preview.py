@@ -15,10 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import LabelType
+from ncore.sensors import camera_model_from_parameters
 from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE, EGO_MASK
@@ -28,7 +30,6 @@ from ncore_convert.validate.readback import (
     box_corners_world,
     boxes_at,
     open_sequence,
-    project_into_camera,
     read_manifest,
     sensor_poses,
     world_points,
@@ -72,6 +73,28 @@ def lidar_world_points(loader: SequenceLoaderV4, t_us: float) -> np.ndarray:
         frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us
         clouds.append(world_points(loader, lidar_id, _nearest_frame(frames_us, t_us))[0])
     return np.concatenate(clouds)
+
+
+def project_into_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_m: np.ndarray):
+    """Project world points (float64 [N,3]) into a camera frame with its rolling-shutter poses.
+
+    Returns:
+        (image points float64 [M,2], indices into ``xyz_world_m`` of those points [M]).
+    """
+    camera = loader.get_camera_sensor(camera_id)
+    model = camera_model_from_parameters(camera.model_parameters, device="cpu", dtype=torch.float64)
+    frame_us = camera.frames_timestamps_us[frame].astype(np.uint64)  # (start, end)
+    T_camera_world = loader.pose_graph.evaluate_poses(camera_id, "world", frame_us).astype(np.float64)
+    T_world_camera = np.linalg.inv(T_camera_world)  # NCore's projection takes world -> sensor poses
+    in_front = np.einsum("ij,nj->ni", T_world_camera[1, :3, :3], xyz_world_m)[:, 2] + T_world_camera[1, 2, 3] > 0.1
+    candidates = np.flatnonzero(in_front)
+    if not len(candidates):
+        return np.zeros((0, 2)), candidates
+    result = model.world_points_to_image_points_shutter_pose(
+        xyz_world_m[candidates], T_world_camera[0], T_world_camera[1], return_valid_indices=True
+    )
+    valid = np.atleast_1d(result.valid_indices.cpu().numpy())
+    return result.image_points.cpu().numpy().reshape(-1, 2), candidates[valid]
 
 
 def _title(loader: SequenceLoaderV4, what: str, t_us: int) -> str:

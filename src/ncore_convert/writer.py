@@ -137,16 +137,26 @@ class LidarStream(_SensorStream):
         )
 
 
-#: How depth labels are stored: RAW, quantized to whole millimetres in uint32 (the error of a
-#: value at most 0.5 mm, any lidar range; 0 stays 0 = no measurement). The zero pixels compress to
-#: almost nothing (Blosc lz4 with bit shuffling, the library's choice).
-DEPTH_QUANTIZATION = QuantizationParams(quantized_dtype=np.dtype("uint32"), scale=0.001, offset=0.0)
+#: How depth labels are stored: RAW, quantized to whole millimetres in uint32 (no range cap; 0 stays
+#: 0 = no measurement). The zero pixels compress to almost nothing (Blosc lz4 with bit shuffling,
+#: the library's choice). The library quantizes through ``intermediate_dtype``: float32 here (a
+#: fifth of float64's time on a full picture; the error of a value at most 0.52 mm instead of 0.5
+#: at 250 m). Readers de-quantize through float64 (the field is not stored).
+DEPTH_QUANTIZATION = QuantizationParams(
+    quantized_dtype=np.dtype("uint32"), scale=0.001, offset=0.0, intermediate_dtype=np.dtype("float32")
+)
 
 
 #: How mask labels are stored: PNG (``IMAGE_ENCODED``), the library decoding them through PIL.
 #: ``mask.dynamic`` is a 1-bit PNG (read back as uint8 0/1); ``segmentation.instance`` a 16-bit
 #: grey PNG (uint16: up to 65,535 instances per sequence). zlib level 1: a third of level 6's time.
 PNG_COMPRESS_LEVEL = 1
+#: What each kind's component metadata says of its storage.
+LABEL_STORAGE = {
+    "depth": "RAW, uint32 millimetres (NCore quantization scale 0.001: error <= 0.52 mm)",
+    "dynamic": "PNG (IMAGE_ENCODED), 1-bit: read back as uint8 0/1",
+    "instance": "PNG (IMAGE_ENCODED), 16-bit grey: read back as uint16",
+}
 _PNG_LABELS = {
     "dynamic": (LabelType.MASK_DYNAMIC, np.dtype("uint8")),
     "instance": (LabelType.SEGMENTATION_INSTANCE, np.dtype("uint16")),
@@ -192,8 +202,9 @@ class CameraLabelStream:
         self._writer.store_label(stored, int(timestamp_us), generic_meta_data or {})
 
     def set_meta(self, generic_meta_data: dict) -> None:
-        """Replace the component-level metadata (the generator and its parameters)."""
-        self._writer.set_generic_data({}, generic_meta_data)
+        """Replace the component-level metadata (the generator and its parameters; the storage is
+        added here)."""
+        self._writer.set_generic_data({}, {**generic_meta_data, "storage": LABEL_STORAGE[self._kind]})
 
 
 @dataclass(frozen=True)

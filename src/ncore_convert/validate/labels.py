@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-import torch
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import LabelCategory
-from ncore.sensors import camera_model_from_parameters
 
 from ncore_convert.transforms.boxes import BOX_EDGES
+from ncore_convert.transforms.camera_models import Pinhole
 from ncore_convert.transforms.dynamic import HOLD_S
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.cuboids import CuboidColumns
@@ -37,6 +36,8 @@ def check_camera_labels(
     width, height = (int(v) for v in camera.model_parameters.resolution)
     found = loader.query_camera_labels(camera_id)
     instances = _instance_tables(found)
+    pinhole = stored_pinhole(camera.model_parameters)
+    boxes_checked = cuboids is not None and pinhole is not None
     for labels in found:
         descriptor = labels.label_descriptor
         category = descriptor.label_type.category
@@ -66,7 +67,7 @@ def check_camera_labels(
                 problems.append(f"{ts}: mask values other than 0 and 1")
             else:
                 labelled.append(float(np.count_nonzero(data)) / data.size)
-                if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and cuboids is not None:
+                if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and boxes_checked:
                     if UNKNOWN_KEY not in (handle.generic_meta_data or {}):
                         outside += _outside_boxes(loader, camera_id, data, category, instances, cuboids, ts)
         report.add(
@@ -79,7 +80,13 @@ def check_camera_labels(
             report.add(
                 f"{name}: within the projected boxes",
                 not outside,
-                "; ".join(outside[:3]) or f"every set pixel of {len(labelled)} labels within its boxes' projection",
+                "; ".join(outside[:3])
+                or (
+                    f"every set pixel of {len(labelled)} labels within its boxes' projection"
+                    if boxes_checked
+                    else f"not checked: the camera is stored as {type(camera.model_parameters).__name__},"
+                    " and the check projects distortion-free pinholes"
+                ),
             )
 
 
@@ -106,8 +113,8 @@ def _outside_boxes(
     ``BOX_MARGIN_PX`` (and of its ends carried on ``HOLD_S`` along its end segments, as the labels
     hold them): an instance's pixels outside its own track's; a dynamic mask's outside every
     dynamic track's (every track's without an instance table). A box crossing the plane of the
-    camera is cut ``CUT_Z_M`` ahead of it (:func:`_in_front`); a track with a point ahead of the
-    camera that the camera model does not project bounds nothing (its pixels are not checked)."""
+    camera is cut ``CUT_Z_M`` ahead of it (:func:`_in_front`). The camera is the stored pinhole
+    (the caller checks only cameras stored as one)."""
     if category == LabelCategory.SEGMENTATION:
         groups = {k: [instances.get(k, {}).get("track_id")] for k in np.unique(data[data > 0]).tolist()}
         unnamed = [k for k, tracks in groups.items() if tracks == [None]]
@@ -119,9 +126,7 @@ def _outside_boxes(
     allowed = {k: np.zeros(data.shape[:2], bool) for k in groups}
     end_us = np.array([ts], dtype=np.uint64)
     T_world_camera = np.linalg.inv(loader.pose_graph.evaluate_poses(camera_id, "world", end_us)[0].astype(np.float64))
-    parameters = loader.get_camera_sensor(camera_id).model_parameters
-    model = camera_model_from_parameters(parameters, device="cpu", dtype=torch.float64)
-    pinhole = "Pinhole" in type(parameters).__name__  # projects every point ahead, in the image or not
+    pinhole = stored_pinhole(loader.get_camera_sensor(camera_id).model_parameters)
     for k, tracks in groups.items():
         rows = np.flatnonzero(np.isin(cuboids.track_id, tracks))
         if not len(rows):
@@ -129,11 +134,7 @@ def _outside_boxes(
         points, owner = _in_front(_held_boxes(loader, cuboids.rows(rows)), T_world_camera)
         if not len(points):
             continue
-        projected = model.camera_rays_to_image_points(points)
-        pixels = projected.image_points.cpu().numpy().reshape(-1, 2)
-        if not pinhole and not bool(projected.valid_flag.all()):  # beyond an f-theta's reach: unbounded
-            allowed[k][:] = True
-            continue
+        pixels = np.stack(pinhole.project(points), axis=1)
         for box in np.unique(owner):
             u, v = pixels[owner == box, 0], pixels[owner == box, 1]
             c0, c1 = int(max(np.floor(u.min() - BOX_MARGIN_PX), 0)), int(max(np.ceil(u.max() + BOX_MARGIN_PX), 0))
@@ -185,3 +186,18 @@ def _in_front(corners_world_m: np.ndarray, T_world_camera: np.ndarray) -> tuple[
         points = np.concatenate([xyz[xyz[..., 2] > CUT_Z_M], (start + f[..., None] * (end - start))[crossing]])
     owner = np.concatenate([np.nonzero(xyz[..., 2] > CUT_Z_M)[0], np.nonzero(crossing)[0]])
     return points, owner
+
+
+def stored_pinhole(parameters) -> Pinhole | None:
+    """The camera as a :class:`Pinhole` when it is stored as a distortion-free pinhole (NCore's ideal
+    pinhole, or an OpenCV pinhole whose coefficients are all 0), else None."""
+    if not hasattr(parameters, "focal_length"):
+        return None
+    for name in ("radial_coeffs", "tangential_coeffs", "thin_prism_coeffs"):
+        if np.any(np.asarray(getattr(parameters, name, 0.0)) != 0):
+            return None
+    if getattr(parameters, "external_distortion_parameters", None) is not None:
+        return None
+    (fx, fy), (cx, cy) = (float(v) for v in parameters.focal_length), (float(v) for v in parameters.principal_point)
+    width, height = (int(v) for v in parameters.resolution)
+    return Pinhole((fx, fy), (cx, cy), (width, height))

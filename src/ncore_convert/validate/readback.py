@@ -12,7 +12,6 @@ import json
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 from ncore.data.v4 import (
     CameraSensorComponent,
     LidarSensorComponent,
@@ -20,7 +19,6 @@ from ncore.data.v4 import (
     SequenceLoaderV4,
 )
 from ncore.impl.common.transformations import is_within_3d_bboxes
-from ncore.sensors import camera_model_from_parameters
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
@@ -181,25 +179,3 @@ def box_corners_world(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndar
         T_ref_world = _T_reference_world(loader, frame_id, t_us)
         out[k] = xyz_ref[k] @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
     return out
-
-
-def project_into_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_m: np.ndarray):
-    """Project world points (float64 [N,3]) into a camera frame with its rolling-shutter poses.
-
-    Returns:
-        (image points float64 [M,2], indices into ``xyz_world_m`` of those points [M]).
-    """
-    camera = loader.get_camera_sensor(camera_id)
-    model = camera_model_from_parameters(camera.model_parameters, device="cpu", dtype=torch.float64)
-    frame_us = camera.frames_timestamps_us[frame].astype(np.uint64)  # (start, end)
-    T_camera_world = loader.pose_graph.evaluate_poses(camera_id, "world", frame_us).astype(np.float64)
-    T_world_camera = np.linalg.inv(T_camera_world)  # NCore's projection takes world -> sensor poses
-    in_front = np.einsum("ij,nj->ni", T_world_camera[1, :3, :3], xyz_world_m)[:, 2] + T_world_camera[1, 2, 3] > 0.1
-    candidates = np.flatnonzero(in_front)
-    if not len(candidates):
-        return np.zeros((0, 2)), candidates
-    result = model.world_points_to_image_points_shutter_pose(
-        xyz_world_m[candidates], T_world_camera[0], T_world_camera[1], return_valid_indices=True
-    )
-    valid = np.atleast_1d(result.valid_indices.cpu().numpy())
-    return result.image_points.cpu().numpy().reshape(-1, 2), candidates[valid]

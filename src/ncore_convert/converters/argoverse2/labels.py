@@ -46,7 +46,6 @@ DEPTH_GENERATOR = {
     "dynamic_points_within_us": camera_labels.DYNAMIC_DT_US,
     "occlusion": "visibility.visible_pixels: depth buffer of the sweep's points and the annotated boxes at the"
     f" frame's time (slack {LABEL_SLACK_M} m)",
-    "storage": "RAW, uint32 millimetres (NCore quantization scale 0.001: error <= 0.5 mm)",
 }
 
 
@@ -139,7 +138,6 @@ BOX_GENERATOR = {
     " none on the ego body (the camera's ego mask)",
     "not_known": "surfaces other than the boxes (walls, poles, vegetation) do not hide a box; a box over-covers"
     " its object's true shape",
-    "storage": "PNG (IMAGE_ENCODED): mask.dynamic 1-bit (uint8 0/1), segmentation.instance 16-bit (uint16)",
 }
 #: ``mask.dynamic``: which boxes count.
 DYNAMIC_RULE = "1 where the box shown is a dynamic track's (transforms.dynamic: moved beyond annotation noise, or an"

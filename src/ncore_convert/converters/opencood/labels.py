@@ -32,7 +32,6 @@ GENERATOR = {
         "from": "the agent's own lidar points of the camera frame's CARLA tick (points and pictures share the tick)",
         "value": "z in metres (camera frame, OpenCV) of the nearest lidar point the camera sees in the pixel; 0: none",
         "occlusion": "visibility.visible_pixels: depth buffer of the tick's points and the tick's labelled vehicles",
-        "storage": "RAW, uint32 millimetres (NCore quantization scale 0.001: error <= 0.5 mm)",
     },
     "boxes": {
         "generator": "ncore-convert transforms.camera_labels.box_index",
@@ -40,7 +39,6 @@ GENERATOR = {
         "pixel": "the box the ray through the pixel's centre meets first (nearest box first where boxes overlap)",
         "not_known": "surfaces other than the labelled vehicles (buildings, poles, unlabelled actors) do not hide"
         " a box; a box over-covers its vehicle's true shape",
-        "storage": "PNG (IMAGE_ENCODED): mask.dynamic 1-bit (uint8 0/1), segmentation.instance 16-bit (uint16)",
     },
 }
 DYNAMIC_RULE = (
