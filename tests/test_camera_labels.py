@@ -460,39 +460,18 @@ def test_the_mask_box_check_projects_only_distortion_free_pinholes():
     """The box check projects a camera stored as an ideal pinhole, or an OpenCV pinhole whose
     coefficients are all 0, as that pinhole; a distorted OpenCV camera or an f-theta model is not
     projected (the check then says it did not run)."""
-    from ncore.impl.data.types import (
-        FThetaCameraModelParameters,
-        IdealPinholeCameraModelParameters,
-        OpenCVPinholeCameraModelParameters,
-        ShutterType,
-    )
+    from dataclasses import replace
 
     from ncore_convert.transforms.camera_models import fit_ftheta
     from ncore_convert.validate.labels import stored_pinhole
+    from ncore_convert.writer import camera_model_parameters
 
     pinhole = Pinhole((800.0, 810.0), (400.0, 300.0), (800, 600))
-    common = {"resolution": np.array([800, 600], np.uint64), "shutter_type": ShutterType.GLOBAL}
-    terms = {
-        "principal_point": np.array([400.0, 300.0], np.float32),
-        "focal_length": np.array([800.0, 810.0], np.float32),
-    }
-    zeros = {"radial_coeffs": np.zeros(6, np.float32), "tangential_coeffs": np.zeros(2, np.float32)}
-    zeros["thin_prism_coeffs"] = np.zeros(4, np.float32)
-    assert stored_pinhole(IdealPinholeCameraModelParameters(**common, **terms)) == pinhole
-    assert stored_pinhole(OpenCVPinholeCameraModelParameters(**common, **terms, **zeros)) == pinhole
-    distorted = {**zeros, "radial_coeffs": np.array([0.1, 0, 0, 0, 0, 0], np.float32)}
-    assert stored_pinhole(OpenCVPinholeCameraModelParameters(**common, **terms, **distorted)) is None
-    fit = fit_ftheta(pinhole)
-    ftheta = FThetaCameraModelParameters(
-        **common,
-        principal_point=fit.principal_point_px,
-        reference_poly=FThetaCameraModelParameters.PolynomialType.PIXELDIST_TO_ANGLE,
-        pixeldist_to_angle_poly=fit.pixeldist_to_angle,
-        angle_to_pixeldist_poly=fit.angle_to_pixeldist,
-        max_angle=fit.max_angle_rad,
-        linear_cde=fit.linear_cde,
-    )
-    assert stored_pinhole(ftheta) is None
+    assert stored_pinhole(camera_model_parameters(pinhole, "ideal-pinhole")) == pinhole
+    opencv = camera_model_parameters(pinhole, "opencv-pinhole")
+    assert stored_pinhole(opencv) == pinhole
+    assert stored_pinhole(replace(opencv, radial_coeffs=np.array([0.1, 0, 0, 0, 0, 0], np.float32))) is None
+    assert stored_pinhole(camera_model_parameters(pinhole, "ftheta", fit_ftheta(pinhole))) is None
 
 
 def test_preview_draws_the_depth_and_mask_labels(labelled, tmp_path):

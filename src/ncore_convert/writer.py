@@ -187,6 +187,36 @@ def _png(data: np.ndarray, kind: str) -> bytes:
     return out.getvalue()
 
 
+def camera_model_parameters(pinhole: Pinhole, model: CameraModel, ftheta: FThetaFit | None = None):
+    """NCore's camera model parameters of a global-shutter camera (see :meth:`SequenceWriter.store_camera`)."""
+    common = {"resolution": np.array(pinhole.resolution_px, dtype=np.uint64), "shutter_type": ShutterType.GLOBAL}
+    pinhole_terms = {
+        "principal_point": np.array(pinhole.principal_point_px, dtype=np.float32),
+        "focal_length": np.array(pinhole.focal_length_px, dtype=np.float32),
+    }
+    if model == "ideal-pinhole":
+        params = IdealPinholeCameraModelParameters(**common, **pinhole_terms)
+    elif model == "opencv-pinhole":
+        params = OpenCVPinholeCameraModelParameters(
+            **common,
+            **pinhole_terms,
+            radial_coeffs=np.zeros(6, dtype=np.float32),
+            tangential_coeffs=np.zeros(2, dtype=np.float32),
+            thin_prism_coeffs=np.zeros(4, dtype=np.float32),
+        )
+    else:
+        params = FThetaCameraModelParameters(
+            **common,
+            principal_point=ftheta.principal_point_px,
+            reference_poly=FThetaCameraModelParameters.PolynomialType.PIXELDIST_TO_ANGLE,
+            pixeldist_to_angle_poly=ftheta.pixeldist_to_angle,
+            angle_to_pixeldist_poly=ftheta.angle_to_pixeldist,
+            max_angle=ftheta.max_angle_rad,
+            linear_cde=ftheta.linear_cde,
+        )
+    return params
+
+
 class CameraLabelStream:
     """The labels of one kind for one camera, one per camera frame."""
 
@@ -418,31 +448,7 @@ class SequenceWriter:
                 or ``ftheta`` (``FThetaCameraModelParameters`` from ``ftheta``, the fit to ``pinhole``).
         """
         self._require_base()
-        common = {"resolution": np.array(pinhole.resolution_px, dtype=np.uint64), "shutter_type": ShutterType.GLOBAL}
-        pinhole_terms = {
-            "principal_point": np.array(pinhole.principal_point_px, dtype=np.float32),
-            "focal_length": np.array(pinhole.focal_length_px, dtype=np.float32),
-        }
-        if model == "ideal-pinhole":
-            params = IdealPinholeCameraModelParameters(**common, **pinhole_terms)
-        elif model == "opencv-pinhole":
-            params = OpenCVPinholeCameraModelParameters(
-                **common,
-                **pinhole_terms,
-                radial_coeffs=np.zeros(6, dtype=np.float32),
-                tangential_coeffs=np.zeros(2, dtype=np.float32),
-                thin_prism_coeffs=np.zeros(4, dtype=np.float32),
-            )
-        else:
-            params = FThetaCameraModelParameters(
-                **common,
-                principal_point=ftheta.principal_point_px,
-                reference_poly=FThetaCameraModelParameters.PolynomialType.PIXELDIST_TO_ANGLE,
-                pixeldist_to_angle_poly=ftheta.pixeldist_to_angle,
-                angle_to_pixeldist_poly=ftheta.angle_to_pixeldist,
-                max_angle=ftheta.max_angle_rad,
-                linear_cde=ftheta.linear_cde,
-            )
+        params = camera_model_parameters(pinhole, model, ftheta)
         self._intrinsics.store_camera_intrinsics(camera_id, params)
         self._masks.store_camera_masks(camera_id, masks or {})
 
