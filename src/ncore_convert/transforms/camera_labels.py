@@ -101,3 +101,20 @@ def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> 
     if view.usable is not None:
         index[~view.usable] = -1
     return index
+
+
+def box_labels(box: np.ndarray, instance_of_box: np.ndarray, dynamic_of_box: np.ndarray):
+    """``segmentation.instance`` and ``mask.dynamic`` of a :func:`box_index` picture.
+
+    Args:
+        box: the box each pixel shows, int [H,W] (-1: none).
+        instance_of_box: each box's instance index, int [K] (1 upwards); dynamic_of_box: each box's
+            track moves, bool [K].
+
+    Returns:
+        uint16 [H,W] instance indices (0: none); bool [H,W] dynamic; the instances shown, sorted list.
+    """
+    instance = np.r_[instance_of_box, 0].astype(np.uint16)  # -1 (none) takes the last entry
+    pixels = np.bincount(box.reshape(-1) + 1, minlength=len(instance_of_box) + 1)[1:]
+    shown = sorted(instance[:-1][pixels > 0].tolist())
+    return instance[box], np.r_[np.asarray(dynamic_of_box, bool), False][box], shown

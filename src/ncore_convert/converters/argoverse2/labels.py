@@ -140,8 +140,10 @@ BOX_GENERATOR = {
     " its object's true shape",
 }
 #: ``mask.dynamic``: which boxes count.
-DYNAMIC_RULE = "1 where the box shown is a dynamic track's (transforms.dynamic: moved beyond annotation noise, or an"
-DYNAMIC_RULE += " always-dynamic class); 0 elsewhere"
+DYNAMIC_RULE = (
+    "1 where the box shown is a dynamic track's (transforms.dynamic: moved beyond annotation noise, or an"
+    " always-dynamic class); 0 elsewhere"
+)
 
 
 def instance_table(plan: LogPlan) -> tuple[np.ndarray, dict[str, dict]]:
@@ -175,6 +177,8 @@ class BoxLabeller:
         self._dynamic = np.array([tid in plan.cuboid_labels.dynamic for tid in plan.solids.track_ids], dtype=bool)
         annotated_us = floor_us(plan.inputs.annotations.timestamps_ns)
         self._span_us = (int(annotated_us.min()), int(annotated_us.max()))  # the annotated sweeps' times
+        self._pinhole = plan.cameras[camera_id].pinhole
+        self._usable = usable_pixels(plan, camera_id, self._pinhole)
         self._meta = {
             "dynamic": {**BOX_GENERATOR, "value": DYNAMIC_RULE},
             "instance": {**BOX_GENERATOR, "value": "instance index (0: no box)", "instances": table},
@@ -185,26 +189,16 @@ class BoxLabeller:
     def label_frames(self, stamps_ns: np.ndarray) -> None:
         """Label the frames at ``stamps_ns`` (int [K])."""
         started = time.perf_counter()
-        pinhole = self._plan.cameras[self._camera_id].pinhole
-        usable = usable_pixels(self._plan, self._camera_id, pinhole)
-        for view in camera_views(self._plan, self._camera_id, stamps_ns, pinhole, usable):
+        for view in camera_views(self._plan, self._camera_id, stamps_ns, self._pinhole, self._usable):
             tracks, T_box_world, half_m = self._plan.solids.tracks_at(view.timestamp_us)
-            box = camera_labels.box_index(view, T_box_world, half_m)  # -1: none, the last entry below
-            unknown = self._unknown(view.timestamp_us)
+            box = camera_labels.box_index(view, T_box_world, half_m)
+            instance, dynamic, shown = camera_labels.box_labels(box, self._instance[tracks], self._dynamic[tracks])
+            meta = {"moving_objects_unknown": unknown} if (unknown := self._unknown(view.timestamp_us)) else {}
             for kind, stream in self._streams.items():
-                if kind == "dynamic":
-                    # where the movers are unknown, every pixel may show one: all 1, and the metadata says why
-                    mask = np.ones(box.shape, bool) if unknown else np.r_[self._dynamic[tracks], False][box]
-                    stream.store_label(mask, view.timestamp_us, {"moving_objects_unknown": unknown} if unknown else {})
+                if kind == "dynamic":  # where the movers are unknown, any pixel may show one: all 1
+                    stream.store_label(np.ones_like(dynamic) if unknown else dynamic, view.timestamp_us, meta)
                 else:
-                    instance = np.r_[self._instance[tracks], 0].astype(np.uint16)
-                    pixels = np.bincount(box.reshape(-1) + 1, minlength=len(tracks) + 1)[1:]
-                    meta = {"instances_shown": sorted(instance[:-1][pixels > 0].tolist())}
-                    stream.store_label(
-                        instance[box],
-                        view.timestamp_us,
-                        meta | ({"moving_objects_unknown": unknown} if unknown else {}),
-                    )
+                    stream.store_label(instance, view.timestamp_us, {"instances_shown": shown, **meta})
                 self.labels += 1
         self.seconds += time.perf_counter() - started
 

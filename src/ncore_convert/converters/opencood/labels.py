@@ -130,16 +130,16 @@ class TickLabeller:
         """The box labels of camera ``cam`` at tick ``key`` (frame index ``frame``, ``t_us``)."""
         started = time.perf_counter()
         actors, T_box, half = self._boxes(key)
-        box = camera_labels.box_index(self._view(frame, key, t_us, cam), T_box, half)  # -1: none, the last entry
-        instance = np.r_[[self._index[int(a)] for a in actors], 0].astype(np.uint16)
-        dynamic = np.r_[[str(a) in self._plan.cuboid_labels.dynamic for a in actors], False]
+        box = camera_labels.box_index(self._view(frame, key, t_us, cam), T_box, half)
+        instance_of_box = np.array([self._index[int(a)] for a in actors], dtype=np.int64)
+        dynamic_of_box = np.array([str(a) in self._plan.cuboid_labels.dynamic for a in actors], dtype=bool)
+        instance, dynamic, shown = camera_labels.box_labels(box, instance_of_box, dynamic_of_box)
+        meta = {contract.CARLA_FRAME: int(key)}
         if ("dynamic", cam) in self._streams:
-            self._streams["dynamic", cam].store_label(dynamic[box], t_us, {contract.CARLA_FRAME: int(key)})
+            self._streams["dynamic", cam].store_label(dynamic, t_us, meta)
             self.labels += 1
         if ("instance", cam) in self._streams:
-            pixels = np.bincount(box.reshape(-1) + 1, minlength=len(actors) + 1)[1:]
-            meta = {contract.CARLA_FRAME: int(key), "instances_shown": sorted(instance[:-1][pixels > 0].tolist())}
-            self._streams["instance", cam].store_label(instance[box], t_us, meta)
+            self._streams["instance", cam].store_label(instance, t_us, {**meta, "instances_shown": shown})
             self.labels += 1
         self.seconds += time.perf_counter() - started
 
