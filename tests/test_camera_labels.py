@@ -166,7 +166,9 @@ def test_box_index_is_the_box_the_camera_sees(world):
     boxes = [scene.boxes[k] for k in annotated]
     T = np.stack([b.T_box_city(CAMERA_S) for b in boxes])
     half = np.stack([b.dims_m / 2 for b in boxes])
-    ours = box_index(view, T, half)[::2, ::2]
+    full, shown_boxes = box_index(view, T, half)
+    ours = full[::2, ::2]
+    np.testing.assert_array_equal(shown_boxes, np.unique(full[full >= 0]))
     truth_scene = _box_truth(scene, T_camera_city, CAMERA_S, PINHOLE, 2)
     to_annotated = np.full(len(scene.boxes) + 1, -1)
     to_annotated[annotated] = np.arange(len(annotated))
@@ -454,6 +456,25 @@ def test_the_mask_check_finds_pixels_outside_their_boxes(labelled):
     mask[empty_sky] = 1
     (finding,) = _outside_boxes(loader, cam, mask, msk, table, cuboids, ts)
     assert "100 px of dynamic pixels outside the projected boxes" in finding
+
+
+@pytest.mark.parametrize("top", [3, 255, 256, 65_535])
+def test_mask_pngs_read_back_as_the_library_decodes_them(top):
+    """The writer's PNGs decoded as nvidia-ncore decodes an ``IMAGE_ENCODED`` label (PIL, then
+    ``np.asarray(image, dtype=schema dtype)``): instance indices exact whether the label is stored in
+    8 bits (every index below 256) or 16; the dynamic mask 0/1."""
+    import io
+
+    import PIL.Image
+
+    from ncore_convert.writer import _png
+
+    instance = np.zeros((30, 40), np.uint16)
+    instance[5:9, 3:7], instance[20:25, 30:38] = 1, top
+    back = np.asarray(PIL.Image.open(io.BytesIO(_png(instance, "instance"))), dtype=np.uint16)
+    np.testing.assert_array_equal(back, instance)
+    dynamic = np.asarray(PIL.Image.open(io.BytesIO(_png(instance == top, "dynamic"))), dtype=np.uint8)
+    np.testing.assert_array_equal(dynamic, (instance == top).astype(np.uint8))
 
 
 def test_the_mask_box_check_projects_only_distortion_free_pinholes():

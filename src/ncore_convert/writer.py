@@ -148,14 +148,15 @@ DEPTH_QUANTIZATION = QuantizationParams(
 
 
 #: How mask labels are stored: PNG (``IMAGE_ENCODED``), the library decoding them through PIL.
-#: ``mask.dynamic`` is a 1-bit PNG (read back as uint8 0/1); ``segmentation.instance`` a 16-bit
-#: grey PNG (uint16: up to 65,535 instances per sequence). zlib level 1: a third of level 6's time.
+#: ``mask.dynamic`` is a 1-bit PNG (read back as uint8 0/1); ``segmentation.instance`` a grey PNG,
+#: 8-bit when the label's indices allow, else 16-bit (read back as uint16: up to 65,535 instances
+#: per sequence). zlib level 1: a third of level 6's time.
 PNG_COMPRESS_LEVEL = 1
 #: What each kind's component metadata says of its storage.
 LABEL_STORAGE = {
     "depth": "RAW, uint32 millimetres (NCore quantization scale 0.001: error <= 0.52 mm)",
     "dynamic": "PNG (IMAGE_ENCODED), 1-bit: read back as uint8 0/1",
-    "instance": "PNG (IMAGE_ENCODED), 16-bit grey: read back as uint16",
+    "instance": "PNG (IMAGE_ENCODED), grey, 8-bit where every index is below 256, else 16-bit: read back as uint16",
 }
 _PNG_LABELS = {
     "dynamic": (LabelType.MASK_DYNAMIC, np.dtype("uint8")),
@@ -179,9 +180,13 @@ def _label_descriptor(kind: str, camera_id: str, source: str) -> CameraLabelDesc
 
 
 def _png(data: np.ndarray, kind: str) -> bytes:
-    """A mask label as PNG bytes: 1-bit for ``dynamic`` (``data`` bool or 0/1), 16-bit grey for
-    ``instance`` (``data`` uint16)."""
-    image = PIL.Image.fromarray(data.astype(bool) if kind == "dynamic" else data.astype(np.uint16))
+    """A mask label as PNG bytes: 1-bit for ``dynamic`` (``data`` bool or 0/1); for ``instance``
+    (``data`` uint16) 8-bit grey when every index is below 256, else 16-bit (both read back as the
+    same uint16 values; 8 bits take two thirds of the time)."""
+    if kind == "dynamic":
+        image = PIL.Image.fromarray(data.astype(bool))
+    else:
+        image = PIL.Image.fromarray(data.astype(np.uint8 if int(data.max(initial=0)) < 256 else np.uint16))
     out = io.BytesIO()
     image.save(out, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
     return out.getvalue()

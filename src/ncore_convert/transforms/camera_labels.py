@@ -54,7 +54,7 @@ def depth_z(view: CameraView, xyz_world_m: np.ndarray, timestamps_us: np.ndarray
     return image
 
 
-def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> np.ndarray:
+def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Which box each pixel of ``view`` shows: the box whose surface the ray through the pixel's
     centre meets first (nearest box first where boxes overlap), -1 where it meets none or the pixel
     is not usable (the ego body). Boxes hide each other; nothing else does (the labels know no
@@ -65,12 +65,13 @@ def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> 
         T_box_world: box -> fixed frame, float64 [K,4,4]; half_m: half sizes, float64 [K,3], m.
 
     Returns:
-        int32 [height,width]: an index into the boxes, or -1.
+        int32 [height,width]: an index into the boxes, or -1; and the boxes that hold a pixel,
+        sorted, int [S].
     """
     width, height = view.pinhole.resolution_px
     index = np.full((height, width), -1, dtype=np.int32)
     if not len(T_box_world):
-        return index
+        return index, np.zeros(0, dtype=np.int64)
     nearest_m = np.full((height, width), np.inf, dtype=np.float32)
     pictures = box_pictures(view, T_box_world, half_m)
     u_lo, u_hi, v_lo, v_hi = pictures.rectangle_px
@@ -100,14 +101,20 @@ def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> 
         index[r0:r1, c0:c1][shown] = k
     if view.usable is not None:
         index[~view.usable] = -1
-    return index
+    # the boxes still holding a pixel of their picture's rectangle once every box is in
+    shown = [
+        k
+        for k in np.flatnonzero(pictures.in_view)
+        if np.any(index[int(max(v_lo[k], 0)) : int(v_hi[k]) + 1, int(max(u_lo[k], 0)) : int(u_hi[k]) + 1] == k)
+    ]
+    return index, np.array(shown, dtype=np.int64)
 
 
-def box_labels(box: np.ndarray, instance_of_box: np.ndarray, dynamic_of_box: np.ndarray):
+def box_labels(box: np.ndarray, shown: np.ndarray, instance_of_box: np.ndarray, dynamic_of_box: np.ndarray):
     """``segmentation.instance`` and ``mask.dynamic`` of a :func:`box_index` picture.
 
     Args:
-        box: the box each pixel shows, int [H,W] (-1: none).
+        box: the box each pixel shows, int [H,W] (-1: none); shown: the boxes that hold a pixel, int [S].
         instance_of_box: each box's instance index, int [K] (1 upwards); dynamic_of_box: each box's
             track moves, bool [K].
 
@@ -115,6 +122,4 @@ def box_labels(box: np.ndarray, instance_of_box: np.ndarray, dynamic_of_box: np.
         uint16 [H,W] instance indices (0: none); bool [H,W] dynamic; the instances shown, sorted list.
     """
     instance = np.r_[instance_of_box, 0].astype(np.uint16)  # -1 (none) takes the last entry
-    pixels = np.bincount(box.reshape(-1) + 1, minlength=len(instance_of_box) + 1)[1:]
-    shown = sorted(instance[:-1][pixels > 0].tolist())
-    return instance[box], np.r_[np.asarray(dynamic_of_box, bool), False][box], shown
+    return instance[box], np.r_[np.asarray(dynamic_of_box, bool), False][box], sorted(instance[shown].tolist())
