@@ -166,9 +166,9 @@ def test_box_index_is_the_box_the_camera_sees(world):
     boxes = [scene.boxes[k] for k in annotated]
     T = np.stack([b.T_box_city(CAMERA_S) for b in boxes])
     half = np.stack([b.dims_m / 2 for b in boxes])
-    full, shown_boxes = box_index(view, T, half)
-    ours = full[::2, ::2]
-    np.testing.assert_array_equal(shown_boxes, np.unique(full[full >= 0]))
+    picture = box_index(view, T, half)
+    ours = picture.index[::2, ::2]
+    np.testing.assert_array_equal(picture.shown, np.unique(picture.index[picture.index >= 0]))
     truth_scene = _box_truth(scene, T_camera_city, CAMERA_S, PINHOLE, 2)
     to_annotated = np.full(len(scene.boxes) + 1, -1)
     to_annotated[annotated] = np.arange(len(annotated))

@@ -17,6 +17,8 @@ it saw them, in the fixed (world) frame:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ncore_convert.transforms.visibility import CameraView, box_pictures, visible_pixels
@@ -54,7 +56,23 @@ def depth_z(view: CameraView, xyz_world_m: np.ndarray, timestamps_us: np.ndarray
     return image
 
 
-def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class BoxPicture:
+    """Which box each pixel of a camera frame shows (:func:`box_index`).
+
+    Attributes:
+        index: int32 [height,width], an index into the boxes, or -1.
+        shown: the boxes that hold a pixel, sorted, int [S].
+        rectangles: each shown box's pixels lie in rows ``r0:r1`` and columns ``c0:c1`` of it,
+            int [S,4] (r0, r1, c0, c1).
+    """
+
+    index: np.ndarray
+    shown: np.ndarray
+    rectangles: np.ndarray
+
+
+def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> BoxPicture:
     """Which box each pixel of ``view`` shows: the box whose surface the ray through the pixel's
     centre meets first (nearest box first where boxes overlap), -1 where it meets none or the pixel
     is not usable (the ego body). Boxes hide each other; nothing else does (the labels know no
@@ -63,23 +81,19 @@ def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> 
     Args:
         view: the camera frame; its pinhole's resolution is the result's.
         T_box_world: box -> fixed frame, float64 [K,4,4]; half_m: half sizes, float64 [K,3], m.
-
-    Returns:
-        int32 [height,width]: an index into the boxes, or -1; and the boxes that hold a pixel,
-        sorted, int [S].
     """
     width, height = view.pinhole.resolution_px
     index = np.full((height, width), -1, dtype=np.int32)
-    if not len(T_box_world):
-        return index, np.zeros(0, dtype=np.int64)
-    nearest_m = np.full((height, width), np.inf, dtype=np.float32)
     pictures = box_pictures(view, T_box_world, half_m)
     u_lo, u_hi, v_lo, v_hi = pictures.rectangle_px
+    candidates = np.flatnonzero(pictures.in_view)
+    rectangles = np.zeros((len(candidates), 4), dtype=np.int64)
+    rectangles[:, 0], rectangles[:, 1] = np.maximum(v_lo[candidates], 0), np.minimum(v_hi[candidates], height - 1) + 1
+    rectangles[:, 2], rectangles[:, 3] = np.maximum(u_lo[candidates], 0), np.minimum(u_hi[candidates], width - 1) + 1
+    nearest_m = np.full((height, width), np.inf, dtype=np.float32)
     (fx, fy), (cx, cy) = view.pinhole.focal_length_px, view.pinhole.principal_point_px
     R_camera_world = view.T_world_camera[:3, :3].T  # camera axes in the fixed frame
-    for k in np.flatnonzero(pictures.in_view):
-        c0, c1 = int(max(u_lo[k], 0)), int(min(u_hi[k], width - 1)) + 1
-        r0, r1 = int(max(v_lo[k], 0)), int(min(v_hi[k], height - 1)) + 1
+    for k, (r0, r1, c0, c1) in zip(candidates, rectangles.tolist(), strict=True):
         # the ray through pixel (col, row) is x(col) X + y(row) Y + Z in camera axes (z = 1, so the
         # ray parameter at a hit is its z-depth); in the box's axes each coordinate is a sum of a
         # column term and a row term
@@ -96,30 +110,36 @@ def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> 
                 np.fmax(enter, np.fmin(low, high), out=enter)
                 np.fmin(leave, np.fmax(low, high), out=leave)
         window = nearest_m[r0:r1, c0:c1]
-        shown = (enter <= leave) & (enter < window)
-        window[shown] = enter[shown]
-        index[r0:r1, c0:c1][shown] = k
+        hit = (enter <= leave) & (enter < window)
+        window[hit] = enter[hit]
+        index[r0:r1, c0:c1][hit] = k
     if view.usable is not None:
         index[~view.usable] = -1
-    # the boxes still holding a pixel of their picture's rectangle once every box is in
-    shown = [
-        k
-        for k in np.flatnonzero(pictures.in_view)
-        if np.any(index[int(max(v_lo[k], 0)) : int(v_hi[k]) + 1, int(max(u_lo[k], 0)) : int(u_hi[k]) + 1] == k)
+    # the boxes still holding a pixel of their rectangle once every box is in
+    held = [
+        i
+        for i, (k, (r0, r1, c0, c1)) in enumerate(zip(candidates, rectangles.tolist(), strict=True))
+        if np.any(index[r0:r1, c0:c1] == k)
     ]
-    return index, np.array(shown, dtype=np.int64)
+    return BoxPicture(index, candidates[held], rectangles[held])
 
 
-def box_labels(box: np.ndarray, shown: np.ndarray, instance_of_box: np.ndarray, dynamic_of_box: np.ndarray):
-    """``segmentation.instance`` and ``mask.dynamic`` of a :func:`box_index` picture.
+def box_labels(picture: BoxPicture, instance_of_box: np.ndarray, dynamic_of_box: np.ndarray):
+    """``segmentation.instance`` and ``mask.dynamic`` of a :func:`box_index` picture, written box
+    by box within their rectangles.
 
     Args:
-        box: the box each pixel shows, int [H,W] (-1: none); shown: the boxes that hold a pixel, int [S].
         instance_of_box: each box's instance index, int [K] (1 upwards); dynamic_of_box: each box's
             track moves, bool [K].
 
     Returns:
         uint16 [H,W] instance indices (0: none); bool [H,W] dynamic; the instances shown, sorted list.
     """
-    instance = np.r_[instance_of_box, 0].astype(np.uint16)  # -1 (none) takes the last entry
-    return instance[box], np.r_[np.asarray(dynamic_of_box, bool), False][box], sorted(instance[shown].tolist())
+    instance = np.zeros(picture.index.shape, np.uint16)
+    dynamic = np.zeros(picture.index.shape, bool)
+    for k, (r0, r1, c0, c1) in zip(picture.shown.tolist(), picture.rectangles.tolist(), strict=True):
+        own = picture.index[r0:r1, c0:c1] == k
+        instance[r0:r1, c0:c1][own] = instance_of_box[k]
+        if dynamic_of_box[k]:
+            dynamic[r0:r1, c0:c1] |= own
+    return instance, dynamic, sorted(int(instance_of_box[k]) for k in picture.shown)

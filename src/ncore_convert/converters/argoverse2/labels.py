@@ -191,10 +191,8 @@ class BoxLabeller:
         started = time.perf_counter()
         for view in camera_views(self._plan, self._camera_id, stamps_ns, self._pinhole, self._usable):
             tracks, T_box_world, half_m = self._plan.solids.tracks_at(view.timestamp_us)
-            box, held = camera_labels.box_index(view, T_box_world, half_m)
-            instance, dynamic, shown = camera_labels.box_labels(
-                box, held, self._instance[tracks], self._dynamic[tracks]
-            )
+            picture = camera_labels.box_index(view, T_box_world, half_m)
+            instance, dynamic, shown = camera_labels.box_labels(picture, self._instance[tracks], self._dynamic[tracks])
             meta = {"moving_objects_unknown": unknown} if (unknown := self._unknown(view.timestamp_us)) else {}
             for kind, stream in self._streams.items():
                 if kind == "dynamic":  # where the movers are unknown, any pixel may show one: all 1

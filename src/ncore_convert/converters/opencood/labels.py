@@ -130,10 +130,10 @@ class TickLabeller:
         """The box labels of camera ``cam`` at tick ``key`` (frame index ``frame``, ``t_us``)."""
         started = time.perf_counter()
         actors, T_box, half = self._boxes(key)
-        box, held = camera_labels.box_index(self._view(frame, key, t_us, cam), T_box, half)
+        picture = camera_labels.box_index(self._view(frame, key, t_us, cam), T_box, half)
         instance_of_box = np.array([self._index[int(a)] for a in actors], dtype=np.int64)
         dynamic_of_box = np.array([str(a) in self._plan.cuboid_labels.dynamic for a in actors], dtype=bool)
-        instance, dynamic, shown = camera_labels.box_labels(box, held, instance_of_box, dynamic_of_box)
+        instance, dynamic, shown = camera_labels.box_labels(picture, instance_of_box, dynamic_of_box)
         meta = {contract.CARLA_FRAME: int(key)}
         if ("dynamic", cam) in self._streams:
             self._streams["dynamic", cam].store_label(dynamic, t_us, meta)
