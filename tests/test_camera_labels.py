@@ -477,6 +477,48 @@ def test_mask_pngs_read_back_as_the_library_decodes_them(top):
     np.testing.assert_array_equal(dynamic, (instance == top).astype(np.uint8))
 
 
+#: AV2 classes whose boxes are vehicles (the real-sample box check below).
+VEHICLES = {"REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER"}
+
+
+def test_real_av2_vehicles_own_points_fall_in_their_box_pictures(av2_sample_root):
+    """On the real AV2 sample (its 2 sweeps and annotations; no pictures, so each ring camera of
+    the real calibration looks at the sweep from the ego pose of its time): every vehicle with at
+    least 50 of its own lidar points (inside its box) wholly in a camera's view: >= 99.5 % of those
+    points project into the box's ``box_index`` picture. Real boxes, real extrinsics and intrinsics,
+    the converter's pixel convention: a wrong rotation, axis order or principal point fails it."""
+    from ncore_convert.converters.argoverse2.plan import camera_pinhole
+    from ncore_convert.sources import argoverse2 as av2
+    from ncore_convert.transforms.boxes import in_box
+
+    log = av2.log_dir(UPath(av2_sample_root), "val", "7fab2350-7eaf-3b7e-a39d-6937a4c1bede")
+    intrinsics, T_sensor_ego, boxes = (
+        av2.read_intrinsics(log),
+        av2.read_sensor_extrinsics(log),
+        av2.read_annotations(log),
+    )
+    shares = []
+    for ts in av2.list_sweep_timestamps_ns(log):
+        xyz_ego = av2.read_sweep(log, int(ts)).xyz_ego_m.astype(np.float64)  # the ego frame at ts, as the boxes
+        vehicles = [r for r in np.flatnonzero(boxes.timestamps_ns == ts) if boxes.categories[r] in VEHICLES]
+        for cam in av2.RING_CAMERAS:
+            view = CameraView(cam, 0, invert_se3(T_sensor_ego[cam]), camera_pinhole(intrinsics[cam]))
+            width, height = view.pinhole.resolution_px
+            for r in vehicles:
+                T_box_ego, half_m = boxes.T_object_ego[r], boxes.dims_m[r] / 2
+                own = xyz_ego[in_box(xyz_ego, T_box_ego[:3, 3], T_box_ego[:3, :3], half_m)]
+                xyz_camera = own @ view.T_world_camera[:3, :3].T + view.T_world_camera[:3, 3]
+                if len(own) < 50 or np.any(xyz_camera[:, 2] <= 0.3):
+                    continue
+                u, v = view.pinhole.project(xyz_camera)
+                if np.any((u < 0) | (u >= width) | (v < 0) | (v >= height)):
+                    continue
+                picture = box_index(view, T_box_ego[None], half_m[None]).index == 0
+                shares.append(np.mean(picture[v.astype(np.int64), u.astype(np.int64)]))
+    assert len(shares) >= 20, len(shares)
+    assert min(shares) >= 0.995, sorted(shares)[:5]
+
+
 def test_the_mask_box_check_projects_only_distortion_free_pinholes():
     """The box check projects a camera stored as an ideal pinhole, or an OpenCV pinhole whose
     coefficients are all 0, as that pinhole; a distorted OpenCV camera or an f-theta model is not

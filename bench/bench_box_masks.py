@@ -1,0 +1,67 @@
+"""How much a vehicle's box picture (``mask.dynamic`` / ``segmentation.instance``) covers beyond
+the vehicle, on the real AV2 sample: the area of each vehicle's ``box_index`` picture against the
+convex hull of its own lidar points' projections, per ring camera of the real calibration (each
+camera looks at a sweep from the ego pose of the sweep's time; the sample has no pictures).
+
+The hull is a lower bound of the vehicle's picture (the lidar sees one side of it, sparsely), so
+the ratio is an upper bound of the box's over-cover.
+
+    python bench/bench_box_masks.py
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import ConvexHull
+from upath import UPath
+
+from ncore_convert.converters.argoverse2.plan import camera_pinhole
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.transforms.boxes import in_box
+from ncore_convert.transforms.camera_labels import box_index
+from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.visibility import CameraView
+
+SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "av2-sample"
+LOG_ID = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+VEHICLE_CLASSES = ("REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER")
+
+
+def ratios(log: UPath) -> list[tuple[str, float, float]]:
+    """(class, distance m, box picture area / own-point hull area) per vehicle and camera that sees
+    it whole with at least 50 of its points."""
+    intrinsics, T_sensor_ego = av2.read_intrinsics(log), av2.read_sensor_extrinsics(log)
+    cams = [CameraView(c, 0, invert_se3(T_sensor_ego[c]), camera_pinhole(intrinsics[c])) for c in av2.RING_CAMERAS]
+    boxes = av2.read_annotations(log)
+    out = []
+    for ts in av2.list_sweep_timestamps_ns(log):
+        points = av2.read_sweep(log, int(ts)).xyz_ego_m.astype(np.float64)
+        for row in np.flatnonzero((boxes.timestamps_ns == ts) & np.isin(boxes.categories, VEHICLE_CLASSES)):
+            T, half = boxes.T_object_ego[row], boxes.dims_m[row] / 2
+            members = points[in_box(points, T[:3, 3], T[:3, :3], half)]
+            for view in cams:
+                camera_xyz = members @ view.T_world_camera[:3, :3].T + view.T_world_camera[:3, 3]
+                u, v = view.pinhole.project(camera_xyz) if len(members) >= 50 else (np.zeros(0), np.zeros(0))
+                width, height = view.pinhole.resolution_px
+                whole = len(u) and camera_xyz[:, 2].min() > 0.3 and u.min() >= 0 and u.max() < width
+                if not whole or v.min() < 0 or v.max() >= height:
+                    continue
+                area = np.count_nonzero(box_index(view, T[None], half[None]).index == 0)
+                out.append((boxes.categories[row], float(np.hypot(*T[:2, 3])), area / ConvexHull(np.c_[u, v]).volume))
+    return out
+
+
+def main() -> None:
+    found = ratios(UPath(SAMPLE) / "val" / LOG_ID)
+    r = np.array([x[2] for x in found])
+    near = np.array([x[1] < 15.0 for x in found])
+    print(f"real AV2 sample, {len(found)} vehicle views: box picture / own-point hull area")
+    print(f"  median {np.median(r):.2f}, 10th-90th percentile {np.percentile(r, 10):.2f}-{np.percentile(r, 90):.2f}")
+    print(f"  within 15 m: median {np.median(r[near]):.2f} ({near.sum()} views); beyond: {np.median(r[~near]):.2f}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
