@@ -332,6 +332,32 @@ def _moves(box, truth) -> bool:
     return box.moved_m(0.0, seconds) > 0.0 or AV2_TO_NCORE.get(box.category) in ALWAYS_DYNAMIC
 
 
+def test_depth_labels_are_made_by_several_jobs(tmp_path):
+    """The depth labels of a log's 9 cameras are made by three jobs of at most
+    ``DEPTH_JOB_CAMERAS`` (4) cameras, sharing them evenly (each job streams the sweeps again), each
+    in a part of its own with the separate-sensors profile; every camera's depth label in exactly
+    one of them; the box labels with their camera's images; the lidar job makes no label."""
+    from ncore_convert.converters.argoverse2.convert import DEPTH_JOB_CAMERAS, log_jobs
+    from ncore_convert.converters.argoverse2.plan import plan_log
+
+    truth = write_log(UPath(tmp_path / "val"), SynthConfig(seconds=0.3, seed=23, camera_fps=5))
+    options = Argoverse2Options(split="val", camera_labels=("depth", "dynamic", "instance"), ego_masks="none")
+    plan = plan_log(UPath(tmp_path), truth.log_id, options)
+    assert len(plan.camera_ids) == 9 and DEPTH_JOB_CAMERAS == 4
+    jobs = [job for part in log_jobs(plan) for job in part.jobs]
+    depth_jobs = [job for job in jobs if not job.sensor_ids and not job.base]
+    assert [len(job.label_ids) for job in depth_jobs] == [3, 3, 3]
+    assert sorted(i for job in depth_jobs for i in job.label_ids) == sorted(f"depth.z@{c}" for c in plan.camera_ids)
+    parts_with_depth = [part for part in log_jobs(plan) if any(job in depth_jobs for job in part.jobs)]
+    assert [len(part.jobs) for part in parts_with_depth] == [1, 1, 1]
+    for job in jobs:
+        if job.sensor_ids == tuple(plan.lidar_ids):
+            assert job.label_ids == ()
+        elif len(job.sensor_ids) == 1:
+            (cam,) = job.sensor_ids
+            assert job.label_ids == (f"mask.dynamic@{cam}", f"segmentation.instance@{cam}")
+
+
 def test_tbv_depth_labels_use_only_points_near_the_frame(tmp_path):
     """TbV has no cuboids, so which points move is unknown: every point labels only frames within
     5 ms of it. The labels are sparser but right (the same bounds against the truth, passing cars

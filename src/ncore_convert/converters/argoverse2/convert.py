@@ -8,7 +8,7 @@ streamed one at a time, so memory stays flat.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,7 +25,7 @@ from ncore_convert.converters.common import Tally
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
-from ncore_convert.transforms.lidar_frames import LidarCounts, dynamic_flag_note, lidar_frame, rgb_note
+from ncore_convert.transforms.lidar_frames import LidarCounts, PointData, dynamic_flag_note, lidar_frame, rgb_note
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import (
     BASE_JOB,
@@ -52,7 +52,7 @@ class Counts(Tally):
     colour_seconds: float = 0.0  #: of which: per-point rgb of every frame (decoding included)
     camera_seconds: float = 0.0  #: read + write of all images
     camera_labels: int = 0  #: camera labels written (``--camera-labels``)
-    label_seconds: float = 0.0  #: of the lidar and camera seconds: making and storing the camera labels
+    label_seconds: float = 0.0  #: making and storing the camera labels (depth-label and camera jobs)
     warnings: list[str] = field(default_factory=list)
 
 
@@ -176,36 +176,39 @@ def _store_map(log_dir: UPath, writer: SequenceWriter, result: JobResult) -> Non
     result.maps = 1
 
 
-def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
-    """Stream sweeps one at a time: read, split by unit, decompensate, assign model elements, store.
-    Memory stays flat."""
-    started = time.perf_counter()
-    log_dir = plan.inputs.log_dir
+def _sweeps(plan: LogPlan, colours: SweepColours | None) -> Iterator[tuple[int, dict, PointData]]:
+    """Each sweep of the log, one at a time: read, split by unit, decompensated, model elements and
+    per-point data assigned (``lidar_frames.lidar_frame``): (its timestamp ns, the units' rays, the
+    point data)."""
     calibration = plan.lidar_calibration
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
-    boxes = plan.dynamic_boxes
+    for sweep_ns in plan.sweep_timestamps_ns:
+        sweep = av2.read_sweep(plan.inputs.log_dir, int(sweep_ns), not plan.options.tbv)
+        times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
+        frame, geometry = sweep_frame(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
+        units, data = lidar_frame(frame, geometry, plan.dynamic_boxes, None if colours is None else colours.colours)
+        yield int(sweep_ns), units, data
+
+
+def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
+    """Stream sweeps one at a time (:func:`_sweeps`) and store them. Memory stays flat."""
+    started = time.perf_counter()
+    calibration = plan.lidar_calibration
     colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
-    depth = DepthLabeller(plan, writer) if plan.job_label_ids(None) else None
     flag_meta = {contract.DYNAMIC_FLAG: _dynamic_flag_note(plan), contract.LIDAR_RGB: _rgb_note(plan)}
     lidars = {  # one metadata dict per lidar: the writer updates it in place
         unit: writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta})
         for unit in plan.lidar_ids
     }
     counts = {unit: LidarCounts() for unit in lidars}
-    for sweep_ns in plan.sweep_timestamps_ns:
-        sweep = av2.read_sweep(log_dir, int(sweep_ns), not plan.options.tbv)
-        times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
-        frame, geometry = sweep_frame(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
-        units, data = lidar_frame(frame, geometry, boxes, None if colours is None else colours.colours)
+    for sweep_ns, units, data in _sweeps(plan, colours):
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
-        if depth is not None:
-            depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
             counts[unit].add(unit_rays)
             frame_meta = {
-                "av2_sweep_timestamp_ns": int(sweep_ns),
+                "av2_sweep_timestamp_ns": sweep_ns,
                 "points_zero_range": rays.n_zero_range,
                 "points_non_finite": rays.n_non_finite,
             }
@@ -216,10 +219,6 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             )
         result.sweeps += 1
         progress(1)
-    if depth is not None:
-        depth.finish()
-        result.camera_labels += depth.labels
-        result.label_seconds += depth.seconds
     for unit, stream in lidars.items():
         unit_counts = counts[unit]
         result.points += unit_counts.stored
@@ -234,6 +233,19 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             f"{result.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
         )
     result.lidar_seconds = time.perf_counter() - started
+
+
+def _write_depth_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult) -> None:
+    """The depth labels ``job.label_ids`` (of some cameras): the sweeps streamed again (:func:`_sweeps`,
+    not stored: the lidars' job stores them), each camera frame labelled from the sweep nearest it.
+    A job of its own, so that the labels of the log's cameras are made by several workers at once."""
+    cameras = [cam for cam in plan.camera_ids if contract.camera_label_id("depth", cam) in job.label_ids]
+    depth = DepthLabeller(plan, writer, cameras)
+    for _, _, data in _sweeps(plan, None):
+        depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
+    depth.finish()
+    result.camera_labels += depth.labels
+    result.label_seconds += depth.seconds
 
 
 def _rgb_note(plan: LogPlan) -> str:
@@ -277,6 +289,8 @@ def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress:
     for job in jobs:
         if job.base:
             _write_base(plan, writer, result, progress)
+        elif not job.sensor_ids:
+            _write_depth_labels(plan, writer, job, result)
         elif job.sensor_ids == tuple(plan.lidar_ids):
             _write_lidars(plan, writer, result, progress)
         else:
@@ -286,8 +300,12 @@ def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress:
     return result
 
 
-#: Rough single-core costs used to start the longest parts first (seconds per item).
-_COST_S = {"sweep": 0.05, "image": 0.0035, "cuboid": 0.00025, "label": 0.05}
+#: At most this many cameras per depth-label job: AV2's 7 ring cameras make two jobs (4 and 3), all 9
+#: cameras three; each job streams the sweeps again (about 50 ms a sweep) for about 30 ms a label.
+DEPTH_JOB_CAMERAS = 4
+#: Rough single-core costs used to start the longest parts first (seconds per item; a label: one
+#: kind of one camera frame).
+_COST_S = {"sweep": 0.05, "image": 0.0035, "cuboid": 0.00025, "label": 0.035}
 
 
 @dataclass(frozen=True)
@@ -301,17 +319,24 @@ class LogPart:
 def log_jobs(plan: LogPlan) -> list[LogPart]:
     """The log's writing jobs grouped into independent parts, with an estimated cost per part.
 
-    Jobs: the base components, all lidars (they share each sweep read), and one per camera.
-    Parts are in store order: base first, then lidars, then cameras.
+    Jobs: the base components, all lidars (they share each sweep read), one per camera (with its
+    box labels), and the depth labels in jobs of at most ``DEPTH_JOB_CAMERAS`` cameras (each
+    streams the sweeps again). Parts are in store order: base first, then lidars, then cameras.
     """
-    jobs = [BASE_JOB] + (
-        [WriteJob(tuple(plan.lidar_ids), label_ids=plan.job_label_ids(None))] if plan.lidar_ids else []
-    )
+    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids))] if plan.lidar_ids else [])
     jobs += [WriteJob((cam,), label_ids=plan.job_label_ids(cam)) for cam in plan.camera_ids]
+    depth_ids = plan.job_label_ids(None)
+    n_depth_jobs = -(-len(depth_ids) // DEPTH_JOB_CAMERAS)  # as few as hold them, sharing the cameras evenly
+    depth_jobs = [depth_ids[i::n_depth_jobs] for i in range(n_depth_jobs)]
+    jobs += [WriteJob((), label_ids=ids) for ids in depth_jobs]
     n_cuboids = 0 if plan.inputs.annotations is None else len(plan.inputs.annotations)
+    n_images = {cam: len(plan.inputs.image_timestamps_ns[cam]) for cam in plan.camera_ids}
+    n_sweeps = len(plan.sweep_timestamps_ns)
     cost = [_COST_S["cuboid"] * n_cuboids]
-    cost += [_COST_S["sweep"] * len(plan.sweep_timestamps_ns)] if plan.lidar_ids else []
-    cost += [_COST_S["image"] * len(plan.inputs.image_timestamps_ns[cam]) for cam in plan.camera_ids]
+    cost += [_COST_S["sweep"] * n_sweeps] if plan.lidar_ids else []
+    cost += [(_COST_S["image"] + _COST_S["label"] * len(plan.job_label_ids(cam))) * n_images[cam] for cam in n_images]
+    frames_of = {contract.camera_label_id("depth", cam): n for cam, n in n_images.items()}
+    cost += [_COST_S["sweep"] * n_sweeps + _COST_S["label"] * sum(frames_of[i] for i in ids) for ids in depth_jobs]
     parts = independent_parts(jobs, plan.camera_ids, plan.lidar_ids, plan.options.profile, plan.label_ids)
     return [LogPart([jobs[i] for i in part], sum(cost[i] for i in part)) for part in parts]
 

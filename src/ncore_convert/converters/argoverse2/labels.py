@@ -1,8 +1,8 @@
 """AV2 / TbV camera labels (``--camera-labels``), one per camera frame and kind.
 
 Depth (:class:`DepthLabeller`): ``depth.z@<camera>``, from the lidar points of the sweep nearest the
-frame in time (:func:`ncore_convert.transforms.camera_labels.depth_z`), written by the lidars'
-writing job as the sweeps stream past.
+frame in time (:func:`ncore_convert.transforms.camera_labels.depth_z`), written by depth-label
+jobs of a few cameras each as they stream the sweeps (``convert.log_jobs``).
 
 Boxes (:class:`BoxLabeller`): ``mask.dynamic@<camera>`` and ``segmentation.instance@<camera>``, from
 which annotated box each pixel shows at the frame's time
@@ -50,16 +50,16 @@ DEPTH_GENERATOR = {
 
 
 class DepthLabeller:
-    """Writes the depth labels of every camera of ``plan`` through ``writer`` (see the module docstring)."""
+    """Writes the depth labels of ``camera_ids`` of ``plan`` through ``writer`` (see the module docstring)."""
 
-    def __init__(self, plan: LogPlan, writer: SequenceWriter) -> None:
+    def __init__(self, plan: LogPlan, writer: SequenceWriter, camera_ids: list[str]) -> None:
         self._plan = plan
         self._unknown_motion = plan.dynamic_boxes is None  # no cuboids: any point may be on a mover
         self._streams: dict[str, CameraLabelStream] = {
-            cam: writer.add_camera_label("depth", cam, "EXTERNAL", {}) for cam in plan.camera_ids
+            cam: writer.add_camera_label("depth", cam, "EXTERNAL", {}) for cam in camera_ids
         }
-        self._usable = {cam: usable_pixels(plan, cam, plan.cameras[cam].pinhole) for cam in plan.camera_ids}
-        self._next = {cam: 0 for cam in plan.camera_ids}  # each camera's first frame not labelled yet
+        self._usable = {cam: usable_pixels(plan, cam, plan.cameras[cam].pinhole) for cam in camera_ids}
+        self._next = {cam: 0 for cam in camera_ids}  # each camera's first frame not labelled yet
         # the previous sweep: points, times, dynamic, median and last point time
         self._held: tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
         self._first_sweep_us: float | None = None  # the first point time of the first sweep
