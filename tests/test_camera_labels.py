@@ -332,28 +332,51 @@ def _moves(box, truth) -> bool:
     return box.moved_m(0.0, seconds) > 0.0 or AV2_TO_NCORE.get(box.category) in ALWAYS_DYNAMIC
 
 
-def test_depth_labels_are_made_by_several_jobs(tmp_path):
-    """The depth labels of a log's 9 cameras are made by three jobs of at most
-    ``DEPTH_JOB_CAMERAS`` (4) cameras, sharing them evenly (each job streams the sweeps again), each
-    in a part of its own with the separate-sensors profile; every camera's depth label in exactly
-    one of them; the box labels with their camera's images; the lidar job makes no label."""
-    from ncore_convert.converters.argoverse2.convert import DEPTH_JOB_CAMERAS, log_jobs
+@pytest.fixture(scope="module")
+def nine_camera_plan(tmp_path_factory):
+    """Plans of a short synthetic log with all 9 cameras: depth labels only, and every label."""
     from ncore_convert.converters.argoverse2.plan import plan_log
 
-    truth = write_log(UPath(tmp_path / "val"), SynthConfig(seconds=0.3, seed=23, camera_fps=5))
-    options = Argoverse2Options(split="val", camera_labels=("depth", "dynamic", "instance"), ego_masks="none")
-    plan = plan_log(UPath(tmp_path), truth.log_id, options)
+    root = tmp_path_factory.mktemp("nine")
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=23, camera_fps=5))
+
+    def plan(kinds):
+        options = Argoverse2Options(split="val", camera_labels=kinds, ego_masks="none")
+        return plan_log(UPath(root), truth.log_id, options)
+
+    return plan(("depth",)), plan(("depth", "dynamic", "instance"))
+
+
+def test_depth_labels_alone_are_made_by_several_jobs(nine_camera_plan):
+    """Depth labels alone: made by jobs of their own, three for the 9 cameras (at most
+    ``DEPTH_JOB_CAMERAS`` = 4 each, sharing them evenly; each streams the sweeps again, so several
+    workers make them), each in a part of its own with the separate-sensors profile; every
+    camera's depth label in exactly one of them; the lidar job makes none."""
+    from ncore_convert.converters.argoverse2.convert import DEPTH_JOB_CAMERAS, log_jobs
+
+    plan, _ = nine_camera_plan
     assert len(plan.camera_ids) == 9 and DEPTH_JOB_CAMERAS == 4
-    jobs = [job for part in log_jobs(plan) for job in part.jobs]
+    parts = log_jobs(plan)
+    jobs = [job for part in parts for job in part.jobs]
     depth_jobs = [job for job in jobs if not job.sensor_ids and not job.base]
     assert [len(job.label_ids) for job in depth_jobs] == [3, 3, 3]
     assert sorted(i for job in depth_jobs for i in job.label_ids) == sorted(f"depth.z@{c}" for c in plan.camera_ids)
-    parts_with_depth = [part for part in log_jobs(plan) if any(job in depth_jobs for job in part.jobs)]
-    assert [len(part.jobs) for part in parts_with_depth] == [1, 1, 1]
+    assert [len(part.jobs) for part in parts if any(job in depth_jobs for job in part.jobs)] == [1, 1, 1]
+    assert all(job.label_ids == () for job in jobs if job.sensor_ids)
+
+
+def test_with_box_labels_the_lidar_job_makes_the_depth_labels(nine_camera_plan):
+    """With the box labels too (each camera's job makes its own, more label work than depth), the
+    lidars' job makes every depth label from the sweeps it streams anyway: no job of its own."""
+    from ncore_convert.converters.argoverse2.convert import log_jobs
+
+    _, plan = nine_camera_plan
+    jobs = [job for part in log_jobs(plan) for job in part.jobs]
+    assert all(job.base or job.sensor_ids for job in jobs)
     for job in jobs:
         if job.sensor_ids == tuple(plan.lidar_ids):
-            assert job.label_ids == ()
-        elif len(job.sensor_ids) == 1:
+            assert sorted(job.label_ids) == sorted(f"depth.z@{c}" for c in plan.camera_ids)
+        elif job.sensor_ids:
             (cam,) = job.sensor_ids
             assert job.label_ids == (f"mask.dynamic@{cam}", f"segmentation.instance@{cam}")
 

@@ -190,11 +190,15 @@ def _sweeps(plan: LogPlan, colours: SweepColours | None) -> Iterator[tuple[int, 
         yield int(sweep_ns), units, data
 
 
-def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
-    """Stream sweeps one at a time (:func:`_sweeps`) and store them. Memory stays flat."""
+def _write_lidars(
+    plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult, progress: Callable[[int], None]
+) -> None:
+    """Stream sweeps one at a time (:func:`_sweeps`) and store them, and make the depth labels
+    ``job.label_ids`` from them. Memory stays flat."""
     started = time.perf_counter()
     calibration = plan.lidar_calibration
     colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
+    depth = DepthLabeller(plan, writer, _depth_cameras(plan, job)) if job.label_ids else None
     flag_meta = {contract.DYNAMIC_FLAG: _dynamic_flag_note(plan), contract.LIDAR_RGB: _rgb_note(plan)}
     lidars = {  # one metadata dict per lidar: the writer updates it in place
         unit: writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta})
@@ -204,6 +208,8 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     for sweep_ns, units, data in _sweeps(plan, colours):
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
+        if depth is not None:
+            depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
             counts[unit].add(unit_rays)
@@ -219,6 +225,8 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
             )
         result.sweeps += 1
         progress(1)
+    if depth is not None:
+        _finish_depth(depth, result)
     for unit, stream in lidars.items():
         unit_counts = counts[unit]
         result.points += unit_counts.stored
@@ -235,17 +243,25 @@ def _write_lidars(plan: LogPlan, writer: SequenceWriter, result: JobResult, prog
     result.lidar_seconds = time.perf_counter() - started
 
 
-def _write_depth_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult) -> None:
-    """The depth labels ``job.label_ids`` (of some cameras): the sweeps streamed again (:func:`_sweeps`,
-    not stored: the lidars' job stores them), each camera frame labelled from the sweep nearest it.
-    A job of its own, so that the labels of the log's cameras are made by several workers at once."""
-    cameras = [cam for cam in plan.camera_ids if contract.camera_label_id("depth", cam) in job.label_ids]
-    depth = DepthLabeller(plan, writer, cameras)
-    for _, _, data in _sweeps(plan, None):
-        depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
+def _depth_cameras(plan: LogPlan, job: WriteJob) -> list[str]:
+    """The cameras whose depth labels ``job`` makes."""
+    return [cam for cam in plan.camera_ids if contract.camera_label_id("depth", cam) in job.label_ids]
+
+
+def _finish_depth(depth: DepthLabeller, result: JobResult) -> None:
     depth.finish()
     result.camera_labels += depth.labels
     result.label_seconds += depth.seconds
+
+
+def _write_depth_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult) -> None:
+    """The depth labels ``job.label_ids`` (of some cameras) in a job of their own: the sweeps
+    streamed again (:func:`_sweeps`, not stored: the lidars' job stores them), each camera frame
+    labelled from the sweep nearest it."""
+    depth = DepthLabeller(plan, writer, _depth_cameras(plan, job))
+    for _, _, data in _sweeps(plan, None):
+        depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
+    _finish_depth(depth, result)
 
 
 def _rgb_note(plan: LogPlan) -> str:
@@ -292,7 +308,7 @@ def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress:
         elif not job.sensor_ids:
             _write_depth_labels(plan, writer, job, result)
         elif job.sensor_ids == tuple(plan.lidar_ids):
-            _write_lidars(plan, writer, result, progress)
+            _write_lidars(plan, writer, job, result, progress)
         else:
             (cam,) = job.sensor_ids
             _write_camera(plan, writer, cam, result, progress)
@@ -320,22 +336,31 @@ def log_jobs(plan: LogPlan) -> list[LogPart]:
     """The log's writing jobs grouped into independent parts, with an estimated cost per part.
 
     Jobs: the base components, all lidars (they share each sweep read), one per camera (with its
-    box labels), and the depth labels in jobs of at most ``DEPTH_JOB_CAMERAS`` cameras (each
-    streams the sweeps again). Parts are in store order: base first, then lidars, then cameras.
+    box labels), and the depth labels: with the box labels, in the lidars' job (the cameras' jobs
+    carry more label work than depth: the workers stay balanced and the sweeps are streamed once);
+    without them, in jobs of their own of at most ``DEPTH_JOB_CAMERAS`` cameras (each streams the
+    sweeps again, so that several workers make them). Parts are in store order: base first, then
+    lidars, then cameras.
     """
-    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids))] if plan.lidar_ids else [])
-    jobs += [WriteJob((cam,), label_ids=plan.job_label_ids(cam)) for cam in plan.camera_ids]
     depth_ids = plan.job_label_ids(None)
-    n_depth_jobs = -(-len(depth_ids) // DEPTH_JOB_CAMERAS)  # as few as hold them, sharing the cameras evenly
+    with_boxes = any(plan.job_label_ids(cam) for cam in plan.camera_ids)
+    n_depth_jobs = 0 if with_boxes else -(-len(depth_ids) // DEPTH_JOB_CAMERAS)  # sharing the cameras evenly
     depth_jobs = [depth_ids[i::n_depth_jobs] for i in range(n_depth_jobs)]
+    lidar_labels = depth_ids if with_boxes else ()
+    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids), label_ids=lidar_labels)] if plan.lidar_ids else [])
+    jobs += [WriteJob((cam,), label_ids=plan.job_label_ids(cam)) for cam in plan.camera_ids]
     jobs += [WriteJob((), label_ids=ids) for ids in depth_jobs]
     n_cuboids = 0 if plan.inputs.annotations is None else len(plan.inputs.annotations)
     n_images = {cam: len(plan.inputs.image_timestamps_ns[cam]) for cam in plan.camera_ids}
     n_sweeps = len(plan.sweep_timestamps_ns)
     cost = [_COST_S["cuboid"] * n_cuboids]
-    cost += [_COST_S["sweep"] * n_sweeps] if plan.lidar_ids else []
-    cost += [(_COST_S["image"] + _COST_S["label"] * len(plan.job_label_ids(cam))) * n_images[cam] for cam in n_images]
     frames_of = {contract.camera_label_id("depth", cam): n for cam, n in n_images.items()}
+    cost += (
+        [_COST_S["sweep"] * n_sweeps + _COST_S["label"] * sum(frames_of[i] for i in lidar_labels)]
+        if plan.lidar_ids
+        else []
+    )
+    cost += [(_COST_S["image"] + _COST_S["label"] * len(plan.job_label_ids(cam))) * n_images[cam] for cam in n_images]
     cost += [_COST_S["sweep"] * n_sweeps + _COST_S["label"] * sum(frames_of[i] for i in ids) for ids in depth_jobs]
     parts = independent_parts(jobs, plan.camera_ids, plan.lidar_ids, plan.options.profile, plan.label_ids)
     return [LogPart([jobs[i] for i in part], sum(cost[i] for i in part)) for part in parts]
