@@ -568,22 +568,34 @@ def test_real_av2_vehicles_own_points_fall_in_their_box_pictures(av2_sample_root
     assert min(shares) >= 0.995, sorted(shares)[:5]
 
 
-def test_the_mask_box_check_projects_only_distortion_free_pinholes():
+def test_the_mask_box_check_projects_pinholes_and_the_converters_ftheta():
     """The box check projects a camera stored as an ideal pinhole, or an OpenCV pinhole whose
-    coefficients are all 0, as that pinhole; a distorted OpenCV camera or an f-theta model is not
-    projected (the check then says it did not run)."""
+    coefficients are all 0, as that pinhole; an f-theta model (the converter's fit of the pinhole)
+    through its own polynomials, within the fit's stated error of the pinhole's projection, NaN
+    beyond its largest angle; a distorted OpenCV camera not at all (the check then says it did not
+    run)."""
     from dataclasses import replace
 
-    from ncore_convert.transforms.camera_models import fit_ftheta
-    from ncore_convert.validate.labels import stored_pinhole
+    from ncore_convert.transforms.camera_models import FTheta, fit_ftheta
+    from ncore_convert.validate.labels import stored_camera
     from ncore_convert.writer import camera_model_parameters
 
     pinhole = Pinhole((800.0, 810.0), (400.0, 300.0), (800, 600))
-    assert stored_pinhole(camera_model_parameters(pinhole, "ideal-pinhole")) == pinhole
+    assert stored_camera(camera_model_parameters(pinhole, "ideal-pinhole")) == pinhole
     opencv = camera_model_parameters(pinhole, "opencv-pinhole")
-    assert stored_pinhole(opencv) == pinhole
-    assert stored_pinhole(replace(opencv, radial_coeffs=np.array([0.1, 0, 0, 0, 0, 0], np.float32))) is None
-    assert stored_pinhole(camera_model_parameters(pinhole, "ftheta", fit_ftheta(pinhole))) is None
+    assert stored_camera(opencv) == pinhole
+    assert stored_camera(replace(opencv, radial_coeffs=np.array([0.1, 0, 0, 0, 0, 0], np.float32))) is None
+    fit = fit_ftheta(pinhole)
+    ftheta = stored_camera(camera_model_parameters(pinhole, "ftheta", fit))
+    assert isinstance(ftheta, FTheta)
+    rng = np.random.default_rng(3)
+    xyz = np.column_stack([rng.uniform(-4.9, 4.9, 500), rng.uniform(-3.6, 3.6, 500), np.full(500, 10.0)])
+    expected = np.stack(pinhole.project(xyz), axis=1)
+    got = np.stack(ftheta.project(xyz), axis=1)
+    assert np.all((expected >= 0) & (expected < [800, 600]))  # every point in the picture
+    assert np.max(np.linalg.norm(got - expected, axis=1)) <= fit.max_error_px + 1e-3
+    beyond = ftheta.project(np.array([[10.0, 0.0, 1.0]]))  # 84 degrees off axis
+    assert np.all(np.isnan(beyond))
 
 
 def test_preview_draws_the_depth_and_mask_labels(labelled, tmp_path):

@@ -109,6 +109,43 @@ class FThetaFit:
         }
 
 
+@dataclass(frozen=True)
+class FTheta:
+    """An f-theta camera as NCore stores it (``FThetaCameraModelParameters`` with the
+    pixel-distance -> angle reference polynomial), for projecting points.
+
+    Attributes:
+        principal_point_px: (cx, cy), NCore's pixel-*centre* convention for this model.
+        pixeldist_to_angle: backward (reference) polynomial [6]; angle_to_pixeldist: forward [6].
+        linear_cde: (c, d, e) of the linear term; max_angle_rad: the largest ray angle that projects.
+        resolution_px: (width, height).
+    """
+
+    principal_point_px: tuple[float, float]
+    pixeldist_to_angle: np.ndarray
+    angle_to_pixeldist: np.ndarray
+    linear_cde: tuple[float, float, float]
+    max_angle_rad: float
+    resolution_px: tuple[int, int]
+
+    def project(self, xyz_camera_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Image coordinates (u, v), px, NCore's pixel-corner convention (as :meth:`Pinhole.project`),
+        float64 [N] each, of camera-frame points (OpenCV axes) [N,3]; NaN beyond ``max_angle_rad``.
+        The radius solves the reference polynomial by Newton from the forward one, as NCore does."""
+        xyz = np.asarray(xyz_camera_m, dtype=np.float64)
+        rho = np.hypot(xyz[:, 0], xyz[:, 1])
+        theta = np.arctan2(rho, xyz[:, 2])
+        bw = np.asarray(self.pixeldist_to_angle, np.float64)
+        r = _inverse(bw, np.asarray(self.angle_to_pixeldist, np.float64), theta)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(rho > 0, r / rho, 0.0)
+        scale = np.where(theta <= self.max_angle_rad, scale, np.nan)
+        px, py = xyz[:, 0] * scale, xyz[:, 1] * scale
+        c, d, e = self.linear_cde
+        cx, cy = self.principal_point_px
+        return c * px + d * py + cx + 0.5, e * px + py + cy + 0.5
+
+
 def _pixel_offsets(pinhole: Pinhole) -> tuple[np.ndarray, np.ndarray]:
     """Offsets of every pixel centre from the principal point, after undoing the linear term:
     (dx / c, dy) with c = fx / fy. Returns x [W] and y [H], float64."""

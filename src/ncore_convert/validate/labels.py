@@ -7,7 +7,7 @@ from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import LabelCategory
 
 from ncore_convert.transforms.boxes import BOX_EDGES
-from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.camera_models import FTheta, Pinhole
 from ncore_convert.transforms.dynamic import HOLD_S
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.cuboids import CuboidColumns
@@ -36,8 +36,8 @@ def check_camera_labels(
     width, height = (int(v) for v in camera.model_parameters.resolution)
     found = loader.query_camera_labels(camera_id)
     instances = _instance_tables(found)
-    pinhole = stored_pinhole(camera.model_parameters)
-    boxes_checked = cuboids is not None and pinhole is not None
+    projection = stored_camera(camera.model_parameters)
+    boxes_checked = cuboids is not None and projection is not None
     for labels in found:
         descriptor = labels.label_descriptor
         category = descriptor.label_type.category
@@ -85,7 +85,7 @@ def check_camera_labels(
                     f"every set pixel of {len(labelled)} labels within its boxes' projection"
                     if boxes_checked
                     else f"not checked: the camera is stored as {type(camera.model_parameters).__name__},"
-                    " and the check projects distortion-free pinholes"
+                    " and the check projects distortion-free pinholes and the converter's f-theta models"
                 ),
             )
 
@@ -113,8 +113,8 @@ def _outside_boxes(
     ``BOX_MARGIN_PX`` (and of its ends carried on ``HOLD_S`` along its end segments, as the labels
     hold them): an instance's pixels outside its own track's; a dynamic mask's outside every
     dynamic track's (every track's without an instance table). A box crossing the plane of the
-    camera is cut ``CUT_Z_M`` ahead of it (:func:`_in_front`). The camera is the stored pinhole
-    (the caller checks only cameras stored as one)."""
+    camera is cut ``CUT_Z_M`` ahead of it (:func:`_in_front`), its edges sampled (an f-theta
+    picture of a straight edge bends). The camera is :func:`stored_camera`'s projection."""
     if category == LabelCategory.SEGMENTATION:
         groups = {k: [instances.get(k, {}).get("track_id")] for k in np.unique(data[data > 0]).tolist()}
         unnamed = [k for k, tracks in groups.items() if tracks == [None]]
@@ -126,7 +126,7 @@ def _outside_boxes(
     allowed = {k: np.zeros(data.shape[:2], bool) for k in groups}
     end_us = np.array([ts], dtype=np.uint64)
     T_world_camera = np.linalg.inv(loader.pose_graph.evaluate_poses(camera_id, "world", end_us)[0].astype(np.float64))
-    pinhole = stored_pinhole(loader.get_camera_sensor(camera_id).model_parameters)
+    camera = stored_camera(loader.get_camera_sensor(camera_id).model_parameters)
     for k, tracks in groups.items():
         rows = np.flatnonzero(np.isin(cuboids.track_id, tracks))
         if not len(rows):
@@ -134,7 +134,10 @@ def _outside_boxes(
         points, owner = _in_front(_held_boxes(loader, cuboids.rows(rows)), T_world_camera)
         if not len(points):
             continue
-        pixels = np.stack(pinhole.project(points), axis=1)
+        pixels = np.stack(camera.project(points), axis=1)
+        if not np.all(np.isfinite(pixels)):  # beyond an f-theta's reach: unbounded
+            allowed[k][:] = True
+            continue
         for box in np.unique(owner):
             u, v = pixels[owner == box, 0], pixels[owner == box, 1]
             c0, c1 = int(max(np.floor(u.min() - BOX_MARGIN_PX), 0)), int(max(np.ceil(u.max() + BOX_MARGIN_PX), 0))
@@ -171,33 +174,49 @@ def _held_boxes(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
 #: The plane ahead of the camera (m, camera z) that boxes are cut at before projecting: the part of
 #: a box behind it is not in the picture.
 CUT_Z_M = 0.2
+#: Where along each box edge the outline is sampled (the corners included).
+EDGE_SAMPLES = np.linspace(0.0, 1.0, 9)
 
 
 def _in_front(corners_world_m: np.ndarray, T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The outline of each box's part ahead of the camera: its corners beyond ``CUT_Z_M`` and where
-    its edges cross that plane, in the camera frame (float64 [P,3]), and the box each point outlines,
-    int [P].
-    The picture of a box lies within the rectangle of these points' projections."""
+    """The outline of each box's part ahead of the camera: its edges' samples (``EDGE_SAMPLES``,
+    corners included) beyond ``CUT_Z_M`` and where its edges cross that plane, in the camera frame
+    (float64 [P,3]), and the box each point outlines, int [P]. The picture of a box lies within the
+    rectangle of these points' projections (to the sampling, for a camera that bends edges)."""
     xyz = corners_world_m @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]  # [B,8,3] camera frame
     start, end = xyz[:, BOX_EDGES[:, 0]], xyz[:, BOX_EDGES[:, 1]]
+    along = start[:, :, None] + EDGE_SAMPLES[None, None, :, None] * (end - start)[:, :, None]  # [B,12,S,3]
     with np.errstate(divide="ignore", invalid="ignore"):
         f = (CUT_Z_M - start[..., 2]) / (end[..., 2] - start[..., 2])
         crossing = (f > 0) & (f < 1)
-        points = np.concatenate([xyz[xyz[..., 2] > CUT_Z_M], (start + f[..., None] * (end - start))[crossing]])
-    owner = np.concatenate([np.nonzero(xyz[..., 2] > CUT_Z_M)[0], np.nonzero(crossing)[0]])
+        points = np.concatenate([along[along[..., 2] > CUT_Z_M], (start + f[..., None] * (end - start))[crossing]])
+    owner = np.concatenate([np.nonzero(along[..., 2] > CUT_Z_M)[0], np.nonzero(crossing)[0]])
     return points, owner
 
 
-def stored_pinhole(parameters) -> Pinhole | None:
-    """The camera as a :class:`Pinhole` when it is stored as a distortion-free pinhole (NCore's ideal
-    pinhole, or an OpenCV pinhole whose coefficients are all 0), else None."""
+def stored_camera(parameters) -> Pinhole | FTheta | None:
+    """The stored camera as a projection (``.project(xyz_camera_m) -> (u, v)``): a :class:`Pinhole`
+    when it is stored as a distortion-free pinhole (NCore's ideal pinhole, or an OpenCV pinhole whose
+    coefficients are all 0); an :class:`FTheta` for an f-theta model with the pixel-distance ->
+    angle reference polynomial (the converter's); else None."""
+    width, height = (int(v) for v in parameters.resolution)
+    if getattr(parameters, "external_distortion_parameters", None) is not None:
+        return None
+    if hasattr(parameters, "pixeldist_to_angle_poly"):
+        if parameters.reference_poly.name != "PIXELDIST_TO_ANGLE":
+            return None
+        return FTheta(
+            tuple(float(v) for v in parameters.principal_point),
+            np.asarray(parameters.pixeldist_to_angle_poly, np.float64),
+            np.asarray(parameters.angle_to_pixeldist_poly, np.float64),
+            tuple(float(v) for v in parameters.linear_cde),
+            float(parameters.max_angle),
+            (width, height),
+        )
     if not hasattr(parameters, "focal_length"):
         return None
     for name in ("radial_coeffs", "tangential_coeffs", "thin_prism_coeffs"):
         if np.any(np.asarray(getattr(parameters, name, 0.0)) != 0):
             return None
-    if getattr(parameters, "external_distortion_parameters", None) is not None:
-        return None
     (fx, fy), (cx, cy) = (float(v) for v in parameters.focal_length), (float(v) for v in parameters.principal_point)
-    width, height = (int(v) for v in parameters.resolution)
     return Pinhole((fx, fy), (cx, cy), (width, height))
