@@ -478,11 +478,12 @@ def test_the_mask_check_finds_pixels_outside_their_boxes(labelled):
     from ncore.impl.data.types import LabelCategory
 
     from ncore_convert.validate.cuboids import read_cuboids
-    from ncore_convert.validate.labels import _instance_tables, _outside_boxes
+    from ncore_convert.validate.labels import _instance_tables, _outside_boxes, held_boxes, stored_camera
 
     loader = labelled.loader
-    cuboids = read_cuboids(loader._reader)
+    held = held_boxes(loader, read_cuboids(loader._reader))
     cam = LABEL_CAMERAS[1]
+    camera = stored_camera(loader.get_camera_sensor(cam).model_parameters)
     found = loader.query_camera_labels(cam)
     table = _instance_tables(found)
     (instances,) = loader.query_camera_labels(cam, label_type=LabelType.SEGMENTATION_INSTANCE)
@@ -492,18 +493,18 @@ def test_the_mask_check_finds_pixels_outside_their_boxes(labelled):
     k = int(np.max(segmentation))
     assert k > 0 and mask.any()
     seg, msk = LabelCategory.SEGMENTATION, LabelCategory.MASK
-    assert _outside_boxes(loader, cam, segmentation, seg, table, cuboids, ts) == []
-    assert _outside_boxes(loader, cam, mask, msk, table, cuboids, ts) == []
+    assert _outside_boxes(loader, cam, camera, segmentation, seg, table, held, ts) == []
+    assert _outside_boxes(loader, cam, camera, mask, msk, table, held, ts) == []
     lines, cols = np.nonzero(segmentation == 0)
     far = np.argmax(np.abs(cols - np.mean(np.nonzero(segmentation == k)[1])))  # a pixel far from instance k
     r, c = lines[far], cols[far]
     segmentation[max(r - 5, 0) : r + 5, max(c - 5, 0) : c + 5] = k
-    (finding,) = _outside_boxes(loader, cam, segmentation, seg, table, cuboids, ts)
+    (finding,) = _outside_boxes(loader, cam, camera, segmentation, seg, table, held, ts)
     assert f"of instance {k} outside the projected boxes" in finding
     empty_sky = (slice(0, 10), slice(0, 10))  # the top-left corner: sky, above every box
     assert not np.any(mask[empty_sky])
     mask[empty_sky] = 1
-    (finding,) = _outside_boxes(loader, cam, mask, msk, table, cuboids, ts)
+    (finding,) = _outside_boxes(loader, cam, camera, mask, msk, table, held, ts)
     assert "100 px of dynamic pixels outside the projected boxes" in finding
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import LabelCategory
@@ -24,12 +26,13 @@ UNKNOWN_KEY = "moving_objects_unknown"
 
 
 def check_camera_labels(
-    report: Report, loader: SequenceLoaderV4, camera_id: str, cuboids: CuboidColumns | None = None
+    report: Report, loader: SequenceLoaderV4, camera_id: str, held: HeldBoxes | None = None
 ) -> None:
     """Every label component of ``camera_id``: one label per camera frame, at the frame's end time;
     a sample of ``DECODED_SAMPLE`` decoded through the library has the camera's size; depth is
     finite and >= 0 (0: no measurement); a mask's pixels lie within the projections of the boxes
-    they name (``cuboids``, the sequence's): an instance's within its track's, a dynamic pixel's
+    they name (``held``: the sequence's cuboids, :func:`held_boxes`, made once per sequence): an
+    instance's within its track's, a dynamic pixel's
     within a dynamic track's."""
     camera = loader.get_camera_sensor(camera_id)
     frames_end_us = np.sort(camera.frames_timestamps_us[:, 1])
@@ -37,7 +40,7 @@ def check_camera_labels(
     found = loader.query_camera_labels(camera_id)
     instances = _instance_tables(found)
     projection = stored_camera(camera.model_parameters)
-    boxes_checked = cuboids is not None and projection is not None
+    boxes_checked = held is not None and projection is not None
     for labels in found:
         descriptor = labels.label_descriptor
         category = descriptor.label_type.category
@@ -69,14 +72,14 @@ def check_camera_labels(
                 labelled.append(float(np.count_nonzero(data)) / data.size)
                 if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and boxes_checked:
                     if UNKNOWN_KEY not in (handle.generic_meta_data or {}):
-                        outside += _outside_boxes(loader, camera_id, data, category, instances, cuboids, ts)
+                        outside += _outside_boxes(loader, camera_id, projection, data, category, instances, held, ts)
         report.add(
             f"{name}: decodes, the camera's size, valid values",
             not problems,
             "; ".join(problems[:3])
             or f"{len(labelled)} labels decoded ({width}x{height}), median {np.median(labelled):.2%} of pixels set",
         )
-        if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and cuboids is not None:
+        if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and held is not None:
             report.add(
                 f"{name}: within the projected boxes",
                 not outside,
@@ -102,10 +105,11 @@ def _instance_tables(found: list) -> dict[int, dict]:
 def _outside_boxes(
     loader: SequenceLoaderV4,
     camera_id: str,
+    camera: Pinhole | FTheta,
     data: np.ndarray,
     category: LabelCategory,
     instances: dict[int, dict],
-    cuboids: CuboidColumns,
+    held: HeldBoxes,
     ts: int,
 ) -> list[str]:
     """What of a mask label (``data`` [H,W], of the camera frame ending at ``ts``, µs) lies outside the rectangle
@@ -114,7 +118,7 @@ def _outside_boxes(
     hold them): an instance's pixels outside its own track's; a dynamic mask's outside every
     dynamic track's (every track's without an instance table). A box crossing the plane of the
     camera is cut ``CUT_Z_M`` ahead of it (:func:`_in_front`), its edges sampled (an f-theta
-    picture of a straight edge bends). The camera is :func:`stored_camera`'s projection."""
+    picture of a straight edge bends). ``camera``: :func:`stored_camera`'s projection."""
     if category == LabelCategory.SEGMENTATION:
         groups = {k: [instances.get(k, {}).get("track_id")] for k in np.unique(data[data > 0]).tolist()}
         unnamed = [k for k, tracks in groups.items() if tracks == [None]]
@@ -122,16 +126,15 @@ def _outside_boxes(
             return [f"{ts}: instance(s) {unnamed[:5]} not in the instance table"]
     else:
         dynamic = [v["track_id"] for v in instances.values() if v.get("dynamic")] if instances else None
-        groups = {1: dynamic if dynamic is not None else sorted(set(cuboids.track_id.tolist()))}
+        groups = {1: dynamic if dynamic is not None else sorted(set(held.track_id.tolist()))}
     allowed = {k: np.zeros(data.shape[:2], bool) for k in groups}
     end_us = np.array([ts], dtype=np.uint64)
     T_world_camera = np.linalg.inv(loader.pose_graph.evaluate_poses(camera_id, "world", end_us)[0].astype(np.float64))
-    camera = stored_camera(loader.get_camera_sensor(camera_id).model_parameters)
     for k, tracks in groups.items():
-        rows = np.flatnonzero(np.isin(cuboids.track_id, tracks))
+        rows = np.flatnonzero(np.isin(held.track_id, tracks))
         if not len(rows):
             continue
-        points, owner = _in_front(_held_boxes(loader, cuboids.rows(rows)), T_world_camera)
+        points, owner = _in_front(held.corners_world_m[rows], T_world_camera)
         if not len(points):
             continue
         pixels = np.stack(camera.project(points), axis=1)
@@ -152,12 +155,21 @@ def _outside_boxes(
     return found
 
 
-def _held_boxes(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
-    """The corners in ``world`` of a set of tracks' observations ([B,8,3], as ``box_corners_world``),
-    and of each track's first and last box carried ``HOLD_S`` on along its end segment (a moving
-    box is labelled that long beyond its observations), float64 [B+2T,8,3]."""
+@dataclass(frozen=True)
+class HeldBoxes:
+    """The sequence's cuboids as the labels hold them (:func:`held_boxes`): corners in ``world``,
+    float64 [B,8,3], and each box's track id, str [B]."""
+
+    corners_world_m: np.ndarray
+    track_id: np.ndarray
+
+
+def held_boxes(loader: SequenceLoaderV4, boxes: CuboidColumns) -> HeldBoxes:
+    """Every observation's box (``box_corners_world``), and each track's first and last box carried
+    ``HOLD_S`` on along its end segment (a moving box is labelled that long beyond its
+    observations). Made once per sequence: the corners take a pose look-up per observation."""
     corners = box_corners_world(loader, boxes)
-    held = [corners]
+    held, tracks = [corners], [np.asarray(boxes.track_id, dtype=object)]
     for track in np.unique(boxes.track_id):
         rows = np.flatnonzero(boxes.track_id == track)
         rows = rows[np.argsort(boxes.timestamp_us[rows], kind="stable")]
@@ -168,7 +180,8 @@ def _held_boxes(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
             if dt_us:
                 step_m = corners[end].mean(axis=0) - corners[neighbour].mean(axis=0)
                 held.append(corners[end][None] + step_m * (HOLD_S * 1e6 / dt_us))
-    return np.concatenate(held)
+                tracks.append(np.array([track], dtype=object))
+    return HeldBoxes(np.concatenate(held), np.concatenate(tracks))
 
 
 #: The plane ahead of the camera (m, camera z) that boxes are cut at before projecting: the part of

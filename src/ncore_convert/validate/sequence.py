@@ -17,7 +17,7 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.validate.cuboids import CuboidColumns, check_cuboids, read_cuboids
-from ncore_convert.validate.labels import check_camera_labels
+from ncore_convert.validate.labels import check_camera_labels, held_boxes
 from ncore_convert.validate.readback import (
     OpenSequence,
     box_point_counts,
@@ -334,9 +334,10 @@ def validate_sequence(
         _check_window(report, loader, cuboids)
         cameras = Report(report.sequence)
         lidar_frames = loader.get_lidar_sensor(lidar_ids[0]).frames_timestamps_us if lidar_ids else None
+        held = held_boxes(loader, cuboids) if loader.camera_labels_ids else None  # once: masks are checked on it
         for camera_id in camera_ids:
             _check_camera(cameras, loader, camera_id, lidar_frames)
-            check_camera_labels(cameras, loader, camera_id, cuboids)
+            check_camera_labels(cameras, loader, camera_id, held)
         if pending is None:
             report.checks += [c for lidar_id in lidar_ids for c in _lidar_checks(sequence, lidar_id, cuboids)]
         for checks, points in pending.result() if pending else []:

@@ -101,9 +101,9 @@ class TickLabeller:
         others = boxes.actor_ids != (int(self._agent.agent_id) if self._agent.kind == "cav" else -1)
         return boxes.actor_ids[others], boxes.T_box_world_global[others], boxes.dims_m[others] / 2.0
 
-    def _view(self, frame: int, key: str, t_us: int, cam: str) -> CameraView:
+    def _view(self, frame: int, t_us: int, cam: str, T_box: np.ndarray, half: np.ndarray) -> CameraView:
+        """Camera ``cam`` at tick frame ``frame`` with the tick's boxes (:meth:`_boxes`) as occluders."""
         T_camera_world_global = self._agent.T_rig_world_global[frame] @ self._agent.T_sensor_rig[cam]
-        _, T_box, half = self._boxes(key)
         pinhole = self._agent.cameras[cam].pinhole
         return CameraView(cam, t_us, invert_se3(T_camera_world_global), pinhole, solids=(T_box, half))
 
@@ -112,6 +112,7 @@ class TickLabeller:
         ``frame``, ``t_us``) from ``points`` (``lidar_frames.PointData`` of the tick; None: the lidar
         frame is unreadable, ``why_none`` says why)."""
         started = time.perf_counter()
+        _, T_box, half = self._boxes(key)
         for cam in cameras:
             if ("depth", cam) not in self._streams:
                 continue
@@ -119,7 +120,7 @@ class TickLabeller:
                 width, height = self._agent.cameras[cam].pinhole.resolution_px
                 depth, meta = np.zeros((height, width), np.float32), {"no_measurement": why_none}
             else:
-                view = self._view(frame, key, t_us, cam)
+                view = self._view(frame, t_us, cam, T_box, half)
                 depth = camera_labels.depth_z(view, points.xyz_fixed_m, points.timestamps_us, points.dynamic)
                 meta = {contract.CARLA_FRAME: int(key)}
             self._streams["depth", cam].store_label(depth, t_us, meta)
@@ -130,7 +131,7 @@ class TickLabeller:
         """The box labels of camera ``cam`` at tick ``key`` (frame index ``frame``, ``t_us``)."""
         started = time.perf_counter()
         actors, T_box, half = self._boxes(key)
-        picture = camera_labels.box_index(self._view(frame, key, t_us, cam), T_box, half)
+        picture = camera_labels.box_index(self._view(frame, t_us, cam, T_box, half), T_box, half)
         instance_of_box = np.array([self._index[int(a)] for a in actors], dtype=np.int64)
         dynamic_of_box = np.array([str(a) in self._plan.cuboid_labels.dynamic for a in actors], dtype=bool)
         instance, dynamic, shown = camera_labels.box_labels(picture, instance_of_box, dynamic_of_box)
