@@ -85,6 +85,10 @@ UNSTORED_INDEX = "unstored_points_index"
 UNSTORED_XYZ = "unstored_points_xyz"
 UNSTORED_INTENSITY = "unstored_points_intensity"
 
+#: sequence metadata: sensor id -> why it was not written, {"reason", "files": {file: cause}} (every
+#: source frame of it unreadable, or none in the clip window)
+SENSORS_NOT_WRITTEN = "sensors_not_written"
+
 # --- keys of sensor metadata ---
 #: sensor metadata: frame key -> why the source frame was not written (unreadable YAML, PCD or image)
 SKIPPED_FRAMES = "skipped_frames"
@@ -151,6 +155,8 @@ class ManifestAgent:
     sensors: list[str] | None = None
     sequence: str | None = None  #: ``<agent_id>/<sequence_id>.json``, relative to the manifest
     frame_prefix: str | None = None
+    #: what of the agent was left out and why: sensor id (or ``"agent"``) -> {"reason", "files"}
+    not_written: dict[str, dict] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -159,7 +165,7 @@ class ManifestAgent:
             "opencood_ego": self.opencood_ego,
             "written": self.written,
         }
-        for name in ("frames", "sensors", "sequence", "frame_prefix"):
+        for name in ("frames", "sensors", "sequence", "frame_prefix", "not_written"):
             if (value := getattr(self, name)) is not None:
                 out[name] = value
         return out

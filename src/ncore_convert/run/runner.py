@@ -80,10 +80,11 @@ class LogResult:
     validation: dict | None = None  #: of a log that failed validation (a converted log's is in its summary)
     traceback: str | None = None  #: of a failure, also from a worker process (printed with --verbose)
     usage_error: bool = False  #: failed because an option cannot apply to this log (the command exits 2)
+    failure_warnings: list[str] | None = None  #: the warnings a failed log gave before it failed
 
     @property
     def warnings(self) -> list[str]:
-        return list(self.summary.warnings) if self.summary is not None else []
+        return list(self.summary.warnings) if self.summary is not None else list(self.failure_warnings or [])
 
 
 def _origin(err: BaseException) -> str:
@@ -151,6 +152,7 @@ def _failure(log_id: str, err: Exception, output: UPath) -> LogResult:
     else:
         result = LogResult(log_id, False, error=f"{type(err).__name__}: {err} (at {_origin(err)})")
     result.error = " ".join(result.error.split("\n")).strip()
+    result.failure_warnings = list(getattr(err, "log_warnings", []))  # errors.warnings_kept
     result.traceback = "".join(traceback.format_exception(err))
     return result
 

@@ -369,16 +369,10 @@ def read_points(agent_dir: UPath, key: str) -> Sweep:
     return Sweep(xyz, intensity, field, header.data == "binary")
 
 
-def read_png_size(path: UPath) -> tuple[int, int] | None:
-    """(width, height) of a PNG from its header, or None if it is missing or not a PNG."""
-    try:
-        with path.open("rb") as f:
-            head = f.read(64)
-        if not head.startswith(PNG_SIGNATURE):
-            return None
-        return PIL.Image.open(io.BytesIO(head)).size
-    except (OSError, PIL.UnidentifiedImageError):
-        return None
+def png_size(data: bytes) -> tuple[int, int]:
+    """(width, height) of a PNG read by :func:`read_png`, from its header."""
+    with PIL.Image.open(io.BytesIO(data[:64]), formats=["PNG"]) as image:
+        return image.size
 
 
 def key_timestamps_us(keys: list[str], fixed_delta_seconds: float) -> np.ndarray:

@@ -73,6 +73,34 @@ def open_sequence(sequence_json: UPath, poses_instance: str = DEFAULT_INSTANCE) 
     return OpenSequence(SequenceLoaderV4(reader, poses_component_group_name=poses_instance), reader)
 
 
+#: The components whose instances are sensors: each needs at least one frame to open.
+SENSOR_COMPONENTS = ("cameras", "lidars", "radars")
+
+
+def open_failure(sequence_json: UPath, err: Exception) -> str:
+    """Why ``SequenceLoaderV4`` could not open a sequence, in one line: the component instance (and
+    its store) that is empty or malformed when one is, else the library's exception."""
+    raised = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+    try:
+        reader = SequenceComponentGroupsReader([UPath(sequence_json)])
+        # the library has no public per-store access; its readers fail on the first bad instance
+        stores = reader._component_stores.values()
+        found = []
+        for root, path in stores:
+            for component in SENSOR_COMPONENTS:
+                for instance, group in (root.get(component) or {}).items():
+                    frames = group.get("frames")
+                    count = None if frames is None else len(frames.attrs.get("frames_timestamps_us", []))
+                    if not count:
+                        what = "no frames group" if frames is None else "zero frames (an empty sensor)"
+                        found.append(f"{component}/{instance} in {UPath(path).name}: {what}")
+    except Exception as inner:  # noqa: BLE001 - the stores themselves do not open: that is the finding
+        return f"{raised} (the component stores do not open either: {type(inner).__name__}: {inner})"
+    if not found:
+        return raised
+    return f"{'; '.join(found)} (the library raised {raised})"
+
+
 def read_manifest(manifest_path: UPath) -> ScenarioManifest:
     return ScenarioManifest.from_dict(json.loads(UPath(manifest_path).read_text()))
 

@@ -22,6 +22,7 @@ from ncore_convert.validate.readback import (
     OpenSequence,
     box_point_counts,
     boxes_at,
+    open_failure,
     open_sequence,
     sample_frames,
     world_global_edge,
@@ -307,11 +308,7 @@ def validate_sequence(
     try:
         sequence = open_sequence(sequence_json)
     except Exception as err:  # noqa: BLE001 - any failure to open is the finding
-        report.add(
-            "opens with SequenceLoaderV4",
-            False,
-            f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}",
-        )
+        report.add("opens with SequenceLoaderV4", False, open_failure(sequence_json, err))
         return report
     loader = sequence.loader
     report.add(

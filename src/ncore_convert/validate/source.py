@@ -65,6 +65,20 @@ def _accounted(report: Report, what: str, converted: int, skipped: dict[str, str
     )
 
 
+def _left_out(report: Report, sensor_id: str, record: dict, paths: list[UPath]) -> None:
+    """A sensor the converter left out for unreadable frames declares every source file it has
+    (``contract.SENSORS_NOT_WRITTEN``); one left out for another reason (no calibration) is reported."""
+    declared = {UPath(f).name for f in record.get("files", {})}
+    present = [p.name for p in paths if p.exists()]
+    undeclared = [name for name in present if name not in declared] if declared else []
+    report.add(
+        f"source: {sensor_id} not written, every file declared",
+        not undeclared,
+        f"{record.get('reason')}: {len(present) - len(undeclared)} of {len(present)} source files declared"
+        + (f", not {undeclared[:3]}" if undeclared else ""),
+    )
+
+
 def _stored_points(loader: SequenceLoaderV4, lidar_id: str) -> int:
     lidar = loader.get_lidar_sensor(lidar_id)
     return sum(lidar.get_frame_ray_bundle_count(i) for i in range(lidar.frames_count))
@@ -140,7 +154,9 @@ def _boxes_as_annotated(report: Report, cuboids: CuboidColumns, annotations: av2
             zip(annotations.track_uuids, floor_us(annotations.timestamps_ns).tolist(), strict=True)
         )
     }
-    rows = np.array([row_of.get(k, -1) for k in zip(cuboids.track_id, cuboids.timestamp_us.tolist(), strict=True)])
+    rows = np.array(
+        [row_of.get(k, -1) for k in zip(cuboids.track_id, cuboids.timestamp_us.tolist(), strict=True)], dtype=np.int64
+    )
     found = rows >= 0
     T = annotations.T_object_ego[rows[found]]
     R_box_rig = Rotation.from_euler("xyz", cuboids.rot_rad[found]).as_matrix() if found.any() else np.zeros((0, 3, 3))
@@ -225,11 +241,15 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
             for a, ks in keys.items()
         }
     sensor_meta = sequence.sensor_meta()
+    left_out = meta.get(contract.SENSORS_NOT_WRITTEN) or {}
     for agent in agents:
         prefix = contract.agent_prefix(agent) if prefixed else ""
         agent_dir = scenario_dir / agent
         lidar_id = prefix + ocd.LIDAR
-        if lidar_id in loader.lidar_ids:
+        read_keys = [k for k in keys[agent] if _vehicle_ids(str(agent_dir), k) is not None]  # readable YAMLs
+        if lidar_id in left_out:
+            _left_out(report, lidar_id, left_out[lidar_id], [ocd.pcd_path(agent_dir, k) for k in read_keys])
+        elif lidar_id in loader.lidar_ids:
             lidar = loader.get_lidar_sensor(lidar_id)
             skipped = sensor_meta[lidar_id].get(contract.SKIPPED_FRAMES, {})
             _accounted(report, f"{lidar_id} frames", lidar.frames_count, skipped, len(keys[agent]))
@@ -250,6 +270,9 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
                 skipped = sensor_meta[prefix + camera].get(contract.SKIPPED_FRAMES, {})
                 converted = loader.get_camera_sensor(prefix + camera).frames_count
                 _accounted(report, f"{prefix}{camera} images", converted, skipped, len(keys[agent]))
+            elif prefix + camera in left_out:
+                paths = [ocd.camera_path(agent_dir, k, index) for k in read_keys]
+                _left_out(report, prefix + camera, left_out[prefix + camera], paths)
             elif _camera_selected(options, camera):
                 if images := sum(ocd.camera_path(agent_dir, k, index).exists() for k in keys[agent]):
                     report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")

@@ -68,6 +68,7 @@ def convert_and_validate(task, sequence_dir: UPath, log_id: str, *, source_root:
         raise ValidationFailed(
             f"validation: {len(record['failed'])} of {record['checks']} checks failed, first: {record['failed'][0]}",
             record,
+            summary.warnings,
         )
     summary.validation = record
     return summary

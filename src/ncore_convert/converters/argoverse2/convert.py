@@ -22,6 +22,7 @@ from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, s
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Tally
+from ncore_convert.errors import warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
@@ -301,18 +302,19 @@ def _write_camera(
 def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress: Callable[[int], None]) -> JobResult:
     """Write the jobs of one independent part (see :func:`log_jobs`) with one writer; runs in a worker."""
     result = JobResult()
-    writer = _open_writer(plan, output_dir, base=BASE_JOB in jobs)
-    for job in jobs:
-        if job.base:
-            _write_base(plan, writer, result, progress)
-        elif not job.sensor_ids:
-            _write_depth_labels(plan, writer, job, result)
-        elif job.sensor_ids == tuple(plan.lidar_ids):
-            _write_lidars(plan, writer, job, result, progress)
-        else:
-            (cam,) = job.sensor_ids
-            _write_camera(plan, writer, cam, result, progress)
-    result.meta = writer.finalize(with_meta=plan.options.sequence_meta)
+    with warnings_kept(result.warnings):
+        writer = _open_writer(plan, output_dir, base=BASE_JOB in jobs)
+        for job in jobs:
+            if job.base:
+                _write_base(plan, writer, result, progress)
+            elif not job.sensor_ids:
+                _write_depth_labels(plan, writer, job, result)
+            elif job.sensor_ids == tuple(plan.lidar_ids):
+                _write_lidars(plan, writer, job, result, progress)
+            else:
+                (cam,) = job.sensor_ids
+                _write_camera(plan, writer, cam, result, progress)
+        result.meta = writer.finalize(with_meta=plan.options.sequence_meta)
     return result
 
 
@@ -388,7 +390,8 @@ def convert_log(
     output_dir.mkdir(parents=True, exist_ok=True)
     longest_first = sorted(range(len(parts)), key=lambda i: -parts[i].cost_s)
     calls = [(write_part, (plan, output_dir, parts[i].jobs)) for i in longest_first]
-    done = pool.run(calls, progress) if pool else run_inline(calls, progress)
+    with warnings_kept(plan.warnings):
+        done = pool.run(calls, progress) if pool else run_inline(calls, progress)
     results = [done[longest_first.index(i)] for i in range(len(parts))]
 
     if options.sequence_meta:

@@ -22,7 +22,7 @@ from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerTiming, calibrate_lidars
 from ncore_convert.converters.argoverse2.masks import EgoMask, plan_ego_masks
 from ncore_convert.converters.common import ConsumerOptions, select_sensors
-from ncore_convert.errors import SourceError, UsageError
+from ncore_convert.errors import SourceError, UsageError, warnings_kept
 from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.files import require_folder
@@ -276,8 +276,20 @@ def plan_log(
     root_dir: UPath, log_id: str, options: Argoverse2Options, run_jobs: Callable[[list[Job]], list] | None = None
 ) -> LogPlan:
     """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split);
-    ``run_jobs`` runs the ego-mask estimates (``plan_ego_masks``), in the background of the rest."""
+    ``run_jobs`` runs the ego-mask estimates (``plan_ego_masks``), in the background of the rest.
+    An error raised here carries the warnings so far (``errors.warnings_kept``)."""
     warnings: list[str] = []
+    with warnings_kept(warnings):
+        return _plan_log(root_dir, log_id, options, run_jobs, warnings)
+
+
+def _plan_log(
+    root_dir: UPath,
+    log_id: str,
+    options: Argoverse2Options,
+    run_jobs: Callable[[list[Job]], list] | None,
+    warnings: list[str],
+) -> LogPlan:
     log_dir = options.log_dir(root_dir, log_id)
     require_folder(log_dir, "log directory")
     lidar_ids = select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
@@ -302,6 +314,11 @@ def plan_log(
     window_us = _window(options, inputs, camera_ids, lidar_ids)
     if window_us is not None:
         inputs = _clipped(inputs, window_us)
+        if lidar_ids and not len(inputs.sweep_timestamps_ns):
+            raise UsageError(
+                f"{log_dir}: the clip window [{window_us[0]}, {window_us[1]}] us ({(window_us[1] - window_us[0]) / 1e6:.3f}"
+                " s) holds no lidar sweep (one every 100 ms); widen --duration-sec, or convert no lidar (--no-lidars)"
+            )
         camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings, " in the clip window")
     if "depth" in options.camera_labels and camera_ids and not lidar_ids:
         warnings.append(

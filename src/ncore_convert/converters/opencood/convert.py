@@ -20,7 +20,7 @@ from ncore_convert.converters.opencood.labels import TickLabeller
 from ncore_convert.converters.opencood.noise import instance_meta
 from ncore_convert.converters.opencood.plan import plan_scenario
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, OpenCoodOptions, ScenarioPlan
-from ncore_convert.errors import SourceError
+from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
 from ncore_convert.transforms import carla
@@ -87,7 +87,7 @@ class Names:
         return f"{self.prefix}{sensor_id}"
 
 
-def _generic_meta(plan: ScenarioPlan, agent_ids: list[str], world_global_meta: dict) -> dict:
+def _generic_meta(plan: ScenarioPlan, agent_ids: list[str], names: dict[str, Names], world_global_meta: dict) -> dict:
     meta = {
         contract.SOURCE_DATASET: plan.options.dataset,
         contract.OPENCOOD_SPLIT: plan.options.split,
@@ -99,6 +99,11 @@ def _generic_meta(plan: ScenarioPlan, agent_ids: list[str], world_global_meta: d
         contract.WORLD_GLOBAL: world_global_meta,
         "noise_settings": {s.name: s.as_dict() for s in plan.options.noise},
         contract.CONVERTER: contract.converter_meta(_options_meta(plan.options)),
+        contract.SENSORS_NOT_WRITTEN: {
+            names[a].sensor(sensor): record
+            for a in agent_ids
+            for sensor, record in plan.agents[a].sensors_not_written.items()
+        },
     }
     if plan.window_us is not None:
         meta[contract.CLIP] = consumer.clip_meta(plan.options, plan.window_us)
@@ -359,6 +364,13 @@ def _write_sensors(
 def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id: str, progress: Progress) -> Counts:
     """One sequence holding ``agent_ids`` (one agent, or all of them prefixed), written by one writer."""
     counts = Counts()
+    with warnings_kept(counts.warnings):
+        return _write_sequence(plan, agent_ids, out_dir, sequence_id, progress, counts)
+
+
+def _write_sequence(
+    plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id: str, progress: Progress, counts: Counts
+) -> Counts:
     agents = [plan.agents[a] for a in agent_ids]
     prefixed = len(agent_ids) > 1 or plan.options.layout == "scenario"
     names = {a.agent_id: Names(contract.agent_prefix(a.agent_id) if prefixed else "") for a in agents}
@@ -379,7 +391,7 @@ def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id
         output_dir=out_dir,
         sequence_id=sequence_id,
         interval_us=interval_us,
-        generic_meta_data=_generic_meta(plan, agent_ids, world_global_meta),
+        generic_meta_data=_generic_meta(plan, agent_ids, names, world_global_meta),
         camera_ids=[names[a.agent_id].sensor(c) for a in agents for c in a.camera_ids],
         lidar_ids=[names[a.agent_id].sensor(s) for a in agents for s in a.lidar_ids],
         store_type=plan.options.store_type,
@@ -424,7 +436,7 @@ def _manifest_agent(plan: ScenarioPlan, agent_id: str) -> ManifestAgent:
     agent = plan.agents.get(agent_id)
     base = {"agent_id": int(agent_id), "kind": src.agent_kind(agent_id), "opencood_ego": agent_id == plan.ego}
     if agent is None:
-        return ManifestAgent(**base, written=False)
+        return ManifestAgent(**base, written=False, not_written=plan.agents_not_written.get(agent_id))
     scenario_layout = plan.options.layout == "scenario"
     return ManifestAgent(
         **base,
@@ -433,6 +445,7 @@ def _manifest_agent(plan: ScenarioPlan, agent_id: str) -> ManifestAgent:
         sensors=agent.lidar_ids + agent.camera_ids,
         sequence=None if scenario_layout else f"{agent_id}/{plan.sequence_id(agent_id)}.json",
         frame_prefix=contract.agent_prefix(agent_id) if scenario_layout else None,
+        not_written=agent.sensors_not_written or None,
     )
 
 
@@ -484,7 +497,8 @@ def convert_scenario(
     else:
         longest_first = sorted(plan.agents, key=lambda a: -plan.agents[a].n_frames)
         calls = [(write_agent, (plan, a, output_dir)) for a in longest_first]
-    results = pool.run(calls, progress) if pool else run_inline(calls, progress)
+    with warnings_kept(plan.warnings):
+        results = pool.run(calls, progress) if pool else run_inline(calls, progress)
     write_scenario_manifest(output_dir, manifest(plan))
     summary = ScenarioSummary(scenario=scenario, agents=list(plan.agents), warnings=list(plan.warnings))
     for result in results:

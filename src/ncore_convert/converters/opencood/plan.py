@@ -14,6 +14,7 @@ Frames (docs/opv2v-v2xset.md):
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 from upath import UPath
@@ -22,7 +23,7 @@ from ncore_convert.converters import consumer
 from ncore_convert.converters.common import select_sensors
 from ncore_convert.converters.opencood.noise import AgentNoise, opencood_loaded, plan_noise
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, Boxes, OpenCoodOptions, ScenarioPlan
-from ncore_convert.errors import SourceError, UsageError
+from ncore_convert.errors import SourceError, UsageError, warnings_kept
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.files import require_folder
 from ncore_convert.transforms import carla, carla_lidar, labels
@@ -67,6 +68,33 @@ def _read_frames(
     return frames
 
 
+def _first_readable(reads: list) -> tuple[object | None, dict[str, str]]:
+    """The first of a sensor's frames that reads (``reads``: a call per frame, in frame order), and
+    the damaged ones before it (file -> cause); (None, every file's cause) when none reads. A
+    healthy sensor costs one read."""
+    damaged = {}
+    for read in reads:
+        try:
+            return read(), damaged
+        except SourceError as err:
+            damaged[err.path] = err.cause
+    return None, damaged
+
+
+def _left_out(agent_dir: UPath, sensor: str, what: str, damaged: dict[str, str], warnings: list[str]) -> dict:
+    """A sensor none of whose frames reads: one warning naming the files and their causes; its
+    ``sensors_not_written`` record."""
+    files = "; ".join(f"{path}: {cause}" for path, cause in list(damaged.items())[:5])
+    more = f" and {len(damaged) - 5} more" if len(damaged) > 5 else ""
+    warnings.append(f"{agent_dir}: {sensor}: no readable {what} of {len(damaged)} ({files}{more}); sensor not written")
+    return {"reason": f"no readable {what}", "files": damaged}
+
+
+def _unread_yamls(agent_dir: UPath, skipped: dict[str, str]) -> dict:
+    """The ``not_written`` record of an agent none of whose frame YAMLs reads."""
+    return {"reason": "no readable frame YAML", "files": {str(src.yaml_path(agent_dir, k)): c for k, c in skipped.items()}}
+
+
 def _mount(name: str, samples: np.ndarray, mounts: dict, warnings: list[str], where: UPath) -> np.ndarray:
     T, moved_m, moved_deg = rigid_mean(samples)
     mounts[name] = {
@@ -103,17 +131,24 @@ def plan_agent(
     T_rig_world_global = T_lidar_world_global @ invert_se3(T_lidar_rig)
     lidar_ids = select_sensors(options.lidar_ids, (src.LIDAR,), "lidar")
     T_sensor_rig = {src.LIDAR: T_lidar_rig}
-    intrinsics, camera_index = {}, {}
+    intrinsics, camera_index, not_written = {}, {}, {}
+    if lidar_ids:  # a lidar is written only if one of its frames reads
+        first, damaged = _first_readable([partial(src.read_points, agent_dir, key) for key in keys])
+        if first is None:
+            not_written[src.LIDAR] = _left_out(agent_dir, src.LIDAR, "lidar frame", damaged, warnings)
+            lidar_ids = []
     for cam in select_sensors(options.camera_ids, src.CAMERAS, "camera"):
         index = src.CAMERAS.index(cam)
         with_cam = [i for i, f in enumerate(frames) if index in f.camera_cords]
-        size = next((s for i in with_cam if (s := src.read_png_size(src.camera_path(agent_dir, keys[i], index)))), None)
-        if not with_cam or size is None:
-            warnings.append(
-                f"{agent_dir}: no {'calibration' if not with_cam else 'readable image'} for camera{index}"
-                f" ({cam}); camera not written"
-            )
+        if not with_cam:
+            warnings.append(f"{agent_dir}: no calibration for camera{index} ({cam}); camera not written")
+            not_written[cam] = {"reason": f"no frame YAML calibrates camera{index}", "files": {}}
             continue
+        first, damaged = _first_readable([partial(src.read_png, agent_dir, keys[i], index) for i in with_cam])
+        if first is None:
+            not_written[cam] = _left_out(agent_dir, f"camera{index} ({cam})", "image", damaged, warnings)
+            continue
+        size = src.png_size(first)
         T_camera_world_global = carla.opencv_camera_pose(np.array([frames[i].camera_cords[index] for i in with_cam]))
         T_sensor_rig[cam] = _mount(
             cam, invert_se3(T_rig_world_global[with_cam]) @ T_camera_world_global, mounts, warnings, agent_dir
@@ -140,6 +175,7 @@ def plan_agent(
         lidar_ids=lidar_ids,
         mounts=mounts,
         skipped_keys=dict(skipped_keys or {}),
+        sensors_not_written=not_written,
         cameras=cameras,
         speed_mps=np.array([f.ego_speed_kmh / 3.6 for f in frames]),
     )
@@ -190,7 +226,14 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
 
 
 def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> ScenarioPlan:
-    """Read a scenario's YAMLs once; decide every agent's trajectory, calibration and the labels."""
+    """Read a scenario's YAMLs once; decide every agent's trajectory, calibration and the labels. An
+    error raised here carries the warnings so far (``errors.warnings_kept``)."""
+    warnings: list[str] = []
+    with warnings_kept(warnings):
+        return _plan_scenario(root_dir, scenario, options, warnings)
+
+
+def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, warnings: list[str]) -> ScenarioPlan:
     scenario_dir = options.scenario_dir(root_dir, scenario)
     require_folder(scenario_dir, "scenario folder")
     protocol = src.read_protocol(scenario_dir)
@@ -200,7 +243,6 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     all_keys = sorted(set().union(*keys.values()), key=int)
     if not all_keys:
         raise SourceError(scenario_dir, "no frame YAMLs (<key>.yaml) in any agent folder")
-    warnings: list[str] = []
     if protocol.text is None:
         warnings.append(
             f"{src.protocol_path(scenario_dir)}: not found; CARLA tick {dt_s} s assumed (OPV2V and"
@@ -226,6 +268,19 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
     if not frames:
         raise SourceError(scenario_dir, "no agent has a readable frame")
     agents = {a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a]) for a, f in frames.items()}
+    left_out = {a: {"agent": _unread_yamls(scenario_dir / a, skipped_keys[a])} for a in folders if a not in frames}
+    for agent_id, agent in list(agents.items()):
+        if agent.sensors_not_written and not agent.lidar_ids and not agent.camera_ids:
+            warnings.append(f"{scenario_dir / agent_id}: no sensor with a readable frame; agent not written")
+            left_out[agent_id] = agent.sensors_not_written
+            del agents[agent_id]
+    if not agents:
+        damaged = {f: c for record in left_out.values() for r in record.values() for f, c in r["files"].items()}
+        listed = "; ".join(f"{f}: {c}" for f, c in list(damaged.items())[:5])
+        more = f" and {len(damaged) - 5} more" if len(damaged) > 5 else ""
+        raise SourceError(
+            next(iter(damaged), scenario_dir), f"no agent has a sensor with a readable frame (damaged: {listed}{more})"
+        )
     agents = {a: _with_lidar_model(agent, protocol, options, scenario, warnings) for a, agent in agents.items()}
     ego = src.opencood_ego(folders)
     ego_times_us = src.key_timestamps_us(keys[ego], dt_s)
@@ -257,6 +312,7 @@ def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> S
         protocol_text=protocol.text,
         warnings=warnings,
         noise=noise,
+        agents_not_written=left_out,
     )
     try:
         window_us = consumer.clip_window(options, [a.timestamps_us for a in agents.values()])
@@ -401,7 +457,7 @@ def _clipped(plan: ScenarioPlan, window_us: tuple[int, int], scenario_dir: UPath
     """The plan cut to the frames whose tick lies in ``window_us``: every agent's frames, the labels
     and each noise setting's per-frame data (planned on the whole scenario, so the draws are those of
     the uncut scenario). Agents left with fewer than 2 frames are not written (a warning)."""
-    agents, warnings = {}, list(plan.warnings)
+    agents, warnings, left_out = {}, list(plan.warnings), dict(plan.agents_not_written)
 
     def inside(key: str) -> bool:
         return bool(in_window(src.key_timestamps_us([key], plan.fixed_delta_seconds), window_us)[0])
@@ -410,6 +466,7 @@ def _clipped(plan: ScenarioPlan, window_us: tuple[int, int], scenario_dir: UPath
         keep = in_window(agent.timestamps_us, window_us)
         if not keep.any():
             warnings.append(f"{scenario_dir / agent_id}: no frame in the clip window; agent not written")
+            left_out[agent_id] = {"agent": {"reason": "no frame in the clip window", "files": {}}}
             continue
         rows = np.flatnonzero(keep)
         kept_keys = [agent.keys[i] for i in rows]
@@ -447,6 +504,7 @@ def _clipped(plan: ScenarioPlan, window_us: tuple[int, int], scenario_dir: UPath
         noise=noise,
         boxes=boxes,
         window_us=window_us,
+        agents_not_written=left_out,
         ego_keys=[k for k, keep in zip(plan.ego_keys, ego_keep, strict=True) if keep],
     )
 

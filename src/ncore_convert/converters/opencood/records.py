@@ -69,6 +69,8 @@ class AgentPlan:
     lidar_ids: list[str]
     mounts: dict[str, dict]
     skipped_keys: dict[str, str] = field(default_factory=dict)  #: frame key -> why its YAML was unreadable
+    #: sensor id -> why it is not written, {"reason", "files": {file: cause}} (``contract.SENSORS_NOT_WRITTEN``)
+    sensors_not_written: dict[str, dict] = field(default_factory=dict)
     cameras: dict[str, consumer.CameraSpec] = field(default_factory=dict)
     lidar_model: SpinningLidarModel | None = None  #: the CARLA lidar's structured model (None: raw rays only)
     lidar_model_meta: dict = field(default_factory=dict)  #: how it was derived, or why there is none
@@ -128,6 +130,9 @@ class ScenarioPlan:
     warnings: list[str]
     noise: dict[str, dict[str, AgentNoise]]  #: setting name -> agent id -> perturbations
     window_us: tuple[int, int] | None = None  #: the clip window (inclusive µs), None for the whole scenario
+    #: agent id -> what was left out and why, ``{"agent" or sensor id: {"reason", "files"}}``, for the
+    #: agents not written
+    agents_not_written: dict[str, dict] = field(default_factory=dict)
     cuboid_labels: consumer.CuboidLabels | None = None  #: class names, label source, dynamic tracks
     dynamic_boxes: DynamicBoxes | None = None  #: the dynamic tracks' boxes in world_global
 
