@@ -18,7 +18,7 @@ import yaml
 from upath import UPath
 
 from ncore_convert.errors import SourceError
-from ncore_convert.sources.files import PNG_SIGNATURE, list_folders, png_defect, read_bytes
+from ncore_convert.sources.files import list_folders, png_defect, read_bytes
 from ncore_convert.sources.pcd import read_pcd_with_header, red_from_rgb
 
 SPLITS = {

@@ -315,9 +315,10 @@ def _plan_log(
     if window_us is not None:
         inputs = _clipped(inputs, window_us)
         if lidar_ids and not len(inputs.sweep_timestamps_ns):
+            seconds = (window_us[1] - window_us[0]) / 1e6
             raise UsageError(
-                f"{log_dir}: the clip window [{window_us[0]}, {window_us[1]}] us ({(window_us[1] - window_us[0]) / 1e6:.3f}"
-                " s) holds no lidar sweep (one every 100 ms); widen --duration-sec, or convert no lidar (--no-lidars)"
+                f"{log_dir}: the clip window [{window_us[0]}, {window_us[1]}] us ({seconds:.3f} s) holds no lidar"
+                " sweep (one every 100 ms); widen --duration-sec, or convert no lidar (--no-lidars)"
             )
         camera_ids, lidar_ids = _with_frames(inputs, camera_ids, lidar_ids, warnings, " in the clip window")
     if "depth" in options.camera_labels and camera_ids and not lidar_ids:

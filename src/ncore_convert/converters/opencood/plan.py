@@ -92,7 +92,8 @@ def _left_out(agent_dir: UPath, sensor: str, what: str, damaged: dict[str, str],
 
 def _unread_yamls(agent_dir: UPath, skipped: dict[str, str]) -> dict:
     """The ``not_written`` record of an agent none of whose frame YAMLs reads."""
-    return {"reason": "no readable frame YAML", "files": {str(src.yaml_path(agent_dir, k)): c for k, c in skipped.items()}}
+    files = {str(src.yaml_path(agent_dir, key)): cause for key, cause in skipped.items()}
+    return {"reason": "no readable frame YAML", "files": files}
 
 
 def _mount(name: str, samples: np.ndarray, mounts: dict, warnings: list[str], where: UPath) -> np.ndarray:
