@@ -11,6 +11,7 @@ found by the command in ``DATASET_PACKAGES``. The tool commands (:mod:`ncore_con
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from dataclasses import asdict, dataclass
 from functools import partial
@@ -245,7 +246,8 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
     build the dataset's options (with the group's sensor selection)."""
     root, out = obj.require_paths()
     with obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
-        from ncore_convert.run.runner import report_name, run_logs, shard_logs
+        from ncore_convert.run.report import report_name
+        from ncore_convert.run.runner import RunInterrupted, run_logs, shard_logs
         from ncore_convert.validate.tree import convert_and_validate
 
         dataset = _dataset(command)
@@ -261,6 +263,7 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
             task = partial(convert_and_validate, task, source_root=root)
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
+        interrupted = None
         try:
             results = run_logs(
                 out,
@@ -277,13 +280,30 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
             )
         except OSError as err:  # the output storage itself fails (full, read-only): not even the report is kept
             raise click.ClickException(f"{out}: {err.strerror or err}; run stopped") from None
+        except RunInterrupted as stop:
+            interrupted, results = stop, stop.results
+    click.echo(_counts(results) + f"; output and {report_name(obj.shard)} in {out}")
+    if interrupted is not None:
+        click.echo(f"{interrupted.signal_name}: run stopped; the report lists every log it published (exit 130)")
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)  # at once: a log being planned in a thread of this process is abandoned, not awaited
     failed = sum(not r.ok for r in results)
-    skipped = sum(r.skipped for r in results)
-    click.echo(
-        f"{len(results) - failed - skipped} converted, {skipped} skipped, {failed} failed;"
-        f" output and {report_name(obj.shard)} in {out}"
-    )
     sys.exit(2 if any(r.usage_error for r in results) else 1 if failed else 0)
+
+
+def _counts(results: list) -> str:
+    """The run's last line: converted, skipped, failed, and the logs left to other runs or abandoned."""
+    left = sum(r.elsewhere is not None for r in results)
+    abandoned = sum(r.abandoned for r in results)
+    failed = sum(not r.ok and not r.abandoned for r in results)
+    skipped = sum(r.skipped for r in results)
+    converted = len(results) - failed - skipped - left - abandoned
+    return (
+        f"{converted} converted, {skipped} skipped, {failed} failed"
+        + (f", {left} left to other runs on this output" if left else "")
+        + (f", {abandoned} abandoned" if abandoned else "")
+    )
 
 
 def _convert_opencood(obj: GroupOptions, dataset: str, split: str, scenarios: tuple[str, ...], **options):

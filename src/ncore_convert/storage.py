@@ -38,6 +38,17 @@ def _fsync(path: str, flags: int) -> None:
         os.close(fd)
 
 
+def precondition_failed(err: Exception) -> bool:
+    """An object store refused a conditional write (HTTP 412 or 409; s3fs raises FileExistsError for
+    a refused create and an OSError caused by the client's error otherwise)."""
+    if isinstance(err, FileExistsError):
+        return True
+    response = getattr(err.__cause__, "response", None) or {}
+    code = response.get("Error", {}).get("Code")
+    status = response.get("ResponseMetadata", {}).get("HTTPStatusCode")
+    return code in ("PreconditionFailed", "ConditionalRequestConflict") or status in (409, 412)
+
+
 def remove_tree(path: UPath) -> None:
     """Delete a file tree, local or remote, if it exists."""
     if path.exists():

@@ -9,17 +9,19 @@ from __future__ import annotations
 import queue
 import socket
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from functools import partial
 from typing import Literal
 
 from upath import UPath
 
 from ncore_convert.run.pool import JobPool, Progress
-from ncore_convert.run.runner import LogResult, LogTask, Summary, convert_one
+from ncore_convert.run.runner import LogResult, LogTask, RunControl, Summary, convert_one
 
 #: Where logs run (``--executor``): this machine's worker processes, or an existing Ray cluster.
 ExecutorKind = Literal["local", "ray"]
+#: How often the loops that wait for logs look at the run's stop signal (seconds).
+POLL_S = 0.25
 
 
 def _log_as_one_job(task: LogTask, sequence_dir: UPath, log_id: str, progress: Progress) -> Summary:
@@ -50,10 +52,18 @@ class LocalExecutor:
         return self
 
     def __exit__(self, *exc) -> None:
+        if self._abandoned:
+            return  # the workers are killed; joining them could wait on a half-sent message
         self.pool.close()
 
+    _abandoned = False
+
+    def abandon(self) -> None:
+        self._abandoned = True
+        self.pool.abandon()
+
     def results(
-        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool
+        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool, control: RunControl
     ) -> Iterator[LogResult]:
         by_log = len(log_ids) >= self.pool.workers
         convert = partial(_one_worker_per_log if by_log else _workers_share_log, self.pool, task)
@@ -62,16 +72,28 @@ class LocalExecutor:
         for row in range(1, in_flight + 1):
             rows.put(row)
 
-        def one(log_id: str) -> LogResult:
+        def one(log_id: str) -> LogResult | None:
+            if control.stop.is_set():
+                return None
+            if (why := control.gate(log_id)) is not None:
+                return LogResult(log_id, True, elsewhere=why)
             row = rows.get()
             try:
-                return convert_one(output_root, log_id, convert, show_progress, bar_position=row)
+                return convert_one(output_root, log_id, convert, show_progress, bar_position=row, control=control)
             finally:
                 rows.put(row)
 
-        with ThreadPoolExecutor(max_workers=in_flight) as threads:
-            for future in as_completed([threads.submit(one, log_id) for log_id in log_ids]):
-                yield future.result()
+        threads = ThreadPoolExecutor(max_workers=in_flight)
+        pending = {threads.submit(one, log_id) for log_id in log_ids}
+        try:
+            while pending and not control.stop.is_set():
+                done, pending = wait(pending, timeout=POLL_S, return_when=FIRST_COMPLETED)
+                for future in done:
+                    if (result := future.result()) is not None:
+                        yield result
+        finally:
+            # stopped: the threads still in flight end when their workers are killed (abandon)
+            threads.shutdown(wait=not control.stop.is_set(), cancel_futures=True)
 
 
 def _convert_on_node(task: LogTask, output_root: UPath, log_id: str) -> LogResult:
@@ -115,15 +137,31 @@ class RayExecutor:
     def __exit__(self, *exc) -> None:
         self._ray.shutdown()
 
+    def abandon(self) -> None:
+        pass  # results() cancels the tasks still running when it returns
+
     def results(
-        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool
+        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool, control: RunControl
     ) -> Iterator[LogResult]:
+        """Submit as many logs as the cluster has CPUs, each claimed (``control.gate``) when it is
+        submitted, so that runs sharing the output split the logs; more as they finish."""
         ray = self._ray
         remote = ray.remote(num_cpus=1, max_retries=2)(_convert_on_node)
-        pending = {remote.remote(task, output_root, log_id): log_id for log_id in log_ids}
+        capacity = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        waiting, pending = list(log_ids), {}
         try:
-            while pending:
-                done, _ = ray.wait(list(pending), num_returns=1)
+            while (waiting or pending) and not control.stop.is_set():
+                while waiting and len(pending) < capacity:
+                    log_id = waiting.pop(0)
+                    if (why := control.gate(log_id)) is not None:
+                        yield LogResult(log_id, True, elsewhere=why)
+                    else:
+                        pending[remote.remote(task, output_root, log_id)] = log_id
+                if not pending:
+                    continue
+                done, _ = ray.wait(list(pending), num_returns=1, timeout=POLL_S)
+                if not done:
+                    continue
                 log_id = pending.pop(done[0])
                 try:
                     yield ray.get(done[0])

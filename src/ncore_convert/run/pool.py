@@ -16,6 +16,7 @@ import itertools
 import multiprocessing as mp
 import multiprocessing.forkserver
 import os
+import signal
 import threading
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -65,6 +66,10 @@ class Progress:
 def _init_worker(queue) -> None:
     global _progress_queue
     _progress_queue = queue
+    # Ctrl-C reaches the whole process group: the parent alone decides (it abandons the jobs in
+    # flight and kills the workers), so a worker never dies half-way through a message
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
 
 
 def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> tuple[Any, int, list[int]]:
@@ -178,6 +183,16 @@ class JobPool:
 
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
+
+    def abandon(self) -> None:
+        """Kill the workers now (their jobs are abandoned) and shut the pool down without waiting."""
+        with self._lock:
+            executor = self._executor
+        # the workers as ProcessPoolExecutor keeps them; there is no public handle
+        for process in list((getattr(executor, "_processes", None) or {}).values()):
+            with contextlib.suppress(OSError, AttributeError):
+                process.kill()
+        executor.shutdown(wait=False, cancel_futures=True)
 
     def run(self, jobs: Sequence[Job], progress: Progress | None = None) -> list[Any]:
         """Run all jobs; return their results in job order.

@@ -1,25 +1,30 @@
 """Runs per-log conversion tasks: atomic output directories, progress, per-log error isolation,
-resumable runs and a run report.
+resumable runs, runs that share an output folder, interruption, and a run report.
 
 Each log is written into ``<output>/.<log_id>.partial``, flushed to disk, and renamed to
 ``<output>/<log_id>`` only once complete, so an interrupted run (or a power loss) never leaves a
-sequence that looks finished. ``<output>/conversion-report.json`` is rewritten atomically after
-every log; a rerun skips the logs it records as converted by the same converter version with the
-same options.
+sequence that looks finished. Before it writes a log, a run claims it (``run/claims.py``), so that
+several runs on one output folder split the logs between them. ``<output>/conversion-report.json``
+(``run/report.py``) is merged after every log; a rerun skips the logs it records as converted by the
+same converter version with the same options. SIGINT or SIGTERM stops a run within seconds: it
+starts no new log, abandons the logs in flight (nothing is published after the signal), records the
+logs it did publish, and raises :class:`RunInterrupted`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
-import json
+import os
 import re
 import shutil
+import signal
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
-from datetime import UTC, datetime
+from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 from tqdm import tqdm
@@ -27,8 +32,10 @@ from upath import UPath
 
 from ncore_convert.contract import SAFE_NAME
 from ncore_convert.errors import SourceError, UsageError, ValidationFailed
+from ncore_convert.run.claims import Claims
 from ncore_convert.run.pool import Progress
-from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
+from ncore_convert.run.report import REPORT_NAME, RunReport, now_iso
+from ncore_convert.storage import is_local, publish, remove_tree
 
 
 class Summary(Protocol):
@@ -47,14 +54,8 @@ LogTask = Callable[..., Summary]
 ConvertFn = Callable[[UPath, str, Progress], Summary]
 
 
-REPORT_NAME = "conversion-report.json"
 #: Write errors that mean the output storage is full (or a file may not grow): no space, quota, size limit.
 OUTPUT_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-
-
-def report_name(shard: tuple[int, int] | None) -> str:
-    """The run report's file name; each shard of an array job keeps its own report."""
-    return REPORT_NAME if shard is None else f"conversion-report-shard-{shard[0]}-of-{shard[1]}.json"
 
 
 def shard_logs(log_ids: list[str], shard: tuple[int, int] | None) -> list[str]:
@@ -80,6 +81,8 @@ class LogResult:
     validation: dict | None = None  #: of a log that failed validation (a converted log's is in its summary)
     traceback: str | None = None  #: of a failure, also from a worker process (printed with --verbose)
     usage_error: bool = False  #: failed because an option cannot apply to this log (the command exits 2)
+    elsewhere: str | None = None  #: left to another run on the output folder, and why (not recorded)
+    abandoned: bool = False  #: stopped unfinished by an interruption (not recorded; its .partial stays)
     failure_warnings: list[str] | None = None  #: the warnings a failed log gave before it failed
 
     @property
@@ -97,14 +100,50 @@ def _origin(err: BaseException) -> str:
     return f"{where.filename}:{where.lineno}"
 
 
+class Abandoned(Exception):
+    """A log stopped unfinished: the run was interrupted, or another run took its claim over."""
+
+
+@dataclass
+class RunControl:
+    """What the logs of a run share on this machine: the stop signal, the claims, and the lock under
+    which a log is published (an interruption takes it, so nothing is published after the signal).
+
+    ``gate(log_id)``: called just before a log starts; None to convert it, else why this run leaves
+    it to another (held by a live run, or converted by one meanwhile).
+    """
+
+    claims: Claims | None = None
+    gate: Callable[[str], str | None] = lambda log_id: None
+    stop: threading.Event = field(default_factory=threading.Event)
+    publish_lock: threading.Lock = field(default_factory=threading.Lock)
+    published: dict[str, LogResult] = field(default_factory=dict)  #: every log published, by id
+
+    @contextlib.contextmanager
+    def publishing(self, log_id: str):
+        """Hold the publish lock; Abandoned if the run was stopped or lost the log's claim."""
+        with self.publish_lock:
+            if self.stop.is_set():
+                raise Abandoned("the run was interrupted")
+            if self.claims is not None and not self.claims.holds(log_id):
+                raise Abandoned("another run took its claim over")
+            yield
+
+
 def convert_one(
-    output_root: UPath, log_id: str, convert: ConvertFn, show_progress: bool = True, bar_position: int = 0
+    output_root: UPath,
+    log_id: str,
+    convert: ConvertFn,
+    show_progress: bool = True,
+    bar_position: int = 0,
+    control: RunControl | None = None,
 ) -> LogResult:
     """Convert one log atomically; errors are caught and returned as a one-line message.
 
     The log is written to ``<output_root>/.<log_id>.partial`` (on a local output) or to a local
     staging folder (on an object store), and moved into ``<output_root>/<log_id>`` only once
-    complete (see :func:`~ncore_convert.storage.publish`).
+    complete (see :func:`~ncore_convert.storage.publish`), under ``control``'s publish lock. A log
+    the run abandons keeps its ``.partial`` folder, which the next run removes.
     """
     started = time.perf_counter()
     if not SAFE_NAME.match(log_id):  # sources check the names they list; this guards every other caller
@@ -121,17 +160,26 @@ def convert_one(
         dynamic_ncols=True,
         position=bar_position,
     )
+    keep_work = False
     try:
         summary = convert(work, log_id, Progress(bar.update, lambda n: bar.reset(total=n)))
-        publish(work, final)
-        result = LogResult(log_id, True, summary=summary)
+        with control.publishing(log_id) if control is not None else contextlib.nullcontext():
+            publish(work, final)
+            result = LogResult(log_id, True, summary=summary)
+            if control is not None:
+                control.published[log_id] = result
+    except (Abandoned, KeyboardInterrupt) as err:
+        result, keep_work = LogResult(log_id, False, error=f"abandoned: {err}", abandoned=True), True
     except Exception as err:  # noqa: BLE001 - one log's failure must not stop the others
+        keep_work = control is not None and control.stop.is_set()  # failed because the run stops
         result = _failure(log_id, err, final)
+        result.abandoned = keep_work
     finally:
         bar.close()
-        remove_tree(work)
-        if staging is not None:
-            shutil.rmtree(staging, ignore_errors=True)
+        if not keep_work:
+            remove_tree(work)
+            if staging is not None:
+                shutil.rmtree(staging, ignore_errors=True)
     result.seconds = time.perf_counter() - started
     return result
 
@@ -166,70 +214,71 @@ def tree_bytes(path: UPath) -> int:
     return int(path.fs.du(path.path, total=True))
 
 
-class RunReport:
-    """``<output>/conversion-report.json``: per log status, seconds, bytes, warnings and errors.
-
-    Entries of logs not touched by this run are kept, so the report describes the whole output
-    folder. It is rewritten atomically (temporary file + rename) after every log.
-    """
-
-    def __init__(self, output_root: UPath, fingerprint: dict, name: str = REPORT_NAME) -> None:
-        self.path = output_root / name
-        self.fingerprint = json.loads(json.dumps(fingerprint))  # as it reads back (tuples become lists)
-        self.logs: dict[str, dict] = {}
-        if self.path.exists():
-            try:
-                self.logs = json.loads(self.path.read_text()).get("logs", {})
-            except (json.JSONDecodeError, AttributeError):
-                self.logs = {}  # unreadable: nothing is skipped, everything is redone
-
-    def previous(self, log_id: str) -> dict | None:
-        return self.logs.get(log_id)
-
-    def is_done(self, log_id: str, output_root: UPath) -> bool:
-        entry = self.logs.get(log_id) or {}
-        return (
-            entry.get("status") in ("ok", "skipped")
-            and entry.get("fingerprint") == self.fingerprint
-            and (output_root / log_id).is_dir()
-        )
-
-    def record(self, result: LogResult, input_bytes: int, output_bytes: int) -> None:
-        entry = {
-            "status": "skipped" if result.skipped else ("ok" if result.ok else "failed"),
-            "seconds": round(result.seconds, 3),
-            "input_bytes": input_bytes,
-            "output_bytes": output_bytes,
-            "warnings": result.warnings,
-            "error": None if result.ok else {"file": result.error_file, "reason": result.error},
-            "validation": result.summary.validation if result.summary is not None else result.validation,
-            "fingerprint": self.fingerprint,
-            "finished": datetime.now(UTC).isoformat(timespec="seconds"),
-        }
-        if result.skipped:  # keep what the converting run measured
-            entry.update({k: self.logs[result.log_id].get(k) for k in ("seconds", "warnings", "validation")})
-        self.logs[result.log_id] = entry
-        self._write()
-
-    def _write(self) -> None:
-        text = json.dumps({"converter": self.fingerprint, "logs": self.logs}, indent=2)
-        if not is_local(self.path):  # an object is replaced atomically when it is written
-            self.path.write_text(text)
-            return
-        tmp = self.path.parent / f".{self.path.name}.tmp"
-        tmp.write_text(text)
-        flush_to_disk(tmp)
-        tmp.rename(self.path)
-
-
 class Executor(Protocol):
     """Where per-log tasks run (see :mod:`ncore_convert.run.executors`)."""
 
     def results(
-        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool
+        self, task: LogTask, output_root: UPath, log_ids: list[str], show_progress: bool, control: RunControl
     ) -> Iterator[LogResult]:
-        """Convert the logs (each with :func:`convert_one`); yield their results as they finish."""
+        """Convert the logs (each with :func:`convert_one`, after ``control.gate``); yield their
+        results as they finish; return soon after ``control.stop`` is set."""
         ...
+
+    def abandon(self) -> None:
+        """Stop the work in flight at once (kill the worker processes, cancel the tasks)."""
+        ...
+
+
+class RunInterrupted(Exception):
+    """SIGINT or SIGTERM stopped the run; ``results``: the logs it finished (published or failed)."""
+
+    def __init__(self, signal_name: str, results: list[LogResult]) -> None:
+        super().__init__(signal_name)
+        self.signal_name = signal_name
+        self.results = results
+
+
+#: The signals that stop a run (Ctrl-C; what Slurm and Kubernetes send before they kill).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def _stopped_by_signals(stop: threading.Event, received: list[str]):
+    """While the block runs, the first SIGINT/SIGTERM sets ``stop`` (the run ends its logs in flight
+    and records what it published); a second one ends the process at once (exit 130). Only in the
+    main thread, where Python delivers signals."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame) -> None:
+        if stop.is_set():
+            os._exit(130)
+        received.append(signal.Signals(signum).name)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def _entry(result: LogResult, input_bytes: int, output_bytes: int, previous: dict | None) -> dict:
+    """A log's report entry (the fingerprint and finish time are added by the report)."""
+    entry = {
+        "status": "skipped" if result.skipped else ("ok" if result.ok else "failed"),
+        "seconds": round(result.seconds, 3),
+        "input_bytes": input_bytes,
+        "output_bytes": output_bytes,
+        "warnings": result.warnings,
+        "error": None if result.ok else {"file": result.error_file, "reason": result.error},
+        "validation": result.summary.validation if result.summary is not None else result.validation,
+    }
+    if result.skipped:  # keep what the converting run measured
+        entry.update({k: (previous or {}).get(k) for k in ("seconds", "warnings", "validation")})
+    return entry
 
 
 def run_logs(
@@ -248,58 +297,112 @@ def run_logs(
     """Convert logs on ``executor``; print a one-line summary (or error) per log; keep the report;
     show an overall bar (done, failed, skipped, ETA) above the executor's per-log bars.
 
+    Each log is claimed before it starts (:class:`~ncore_convert.run.claims.Claims`): a log another
+    live run holds, or that one converted since this run started, is left to it (``elsewhere``).
+    SIGINT/SIGTERM: see :func:`_stopped_by_signals`; the run then raises :class:`RunInterrupted`.
+
     Args:
         fingerprint: converter name, version and options; a log converted with the same
             fingerprint is skipped in ``resume`` mode.
         mode: ``resume`` skips logs already converted with this fingerprint; ``overwrite`` redoes
             every log; ``retry-failed`` redoes only the logs the last run reported as failed.
         input_dir: a log's source folder (for the input bytes in the report).
-        report_file: the report's name in ``output_root`` (one per shard, see :func:`report_name`).
+        report_file: the report's name in ``output_root`` (one per shard, see ``run.report.report_name``).
         verbose: print the traceback of each failed log under its one-line error.
     """
     output_root.mkdir(parents=True, exist_ok=True)
+    started = now_iso()
     report = RunReport(output_root, fingerprint or {}, report_file)
     log_ids = list(log_ids)
     overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
     counts = {"ok": 0, "failed": 0, "skipped": 0}
     results: list[LogResult] = []
+    recorded: set[str] = set()
 
-    def finish(result: LogResult, lines: list[str]) -> None:
-        input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
-        output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
+    def say(lines: list[str]) -> None:
         with tqdm.external_write_mode():  # messages above the bars
             for line in lines:
                 echo(line)
-        report.record(result, input_bytes, output_bytes)
-        counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
+
+    def finish(result: LogResult, lines: list[str]) -> None:
+        say(lines)
+        if result.elsewhere is None and not result.abandoned:
+            input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
+            output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
+            report.record(result.log_id, _entry(result, input_bytes, output_bytes, report.previous(result.log_id)))
+            recorded.add(result.log_id)
+            counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
+        claims.release(result.log_id)  # after the report holds it: another run re-reads it
         overall.set_postfix(counts, refresh=False)
         overall.update(1)
         results.append(result)
 
-    todo = []
-    for log_id in log_ids:
-        if mode == "retry-failed" and (report.previous(log_id) or {}).get("status") != "failed":
-            with tqdm.external_write_mode():
-                echo(f"skip  {log_id}: not a failure of the last run")
-            overall.update(1)  # its report entry stays as it was
-        elif mode == "resume" and report.is_done(log_id, output_root):
-            finish(
-                LogResult(log_id, True, skipped=True),
-                [f"skip  {log_id}: already converted with the same converter version and options"],
-            )
-        else:
-            todo.append(log_id)
-    if todo:
-        for result in executor.results(task, output_root, todo, show_progress):
-            if result.ok:
-                lines = [f"ok    {result.summary.line()}"] + [f"      warning: {w}" for w in result.warnings]
-                if (validation := result.summary.validation) is not None:
-                    lines.append(f"      validated: {validation['checks']} checks passed")
+    def gate(log_id: str) -> str | None:
+        holder = claims.acquire(log_id)
+        if holder is not None:
+            return f"being converted by another run ({holder.describe()})"
+        report.refresh()
+        if report.is_done(log_id, output_root, since=None if mode == "resume" else started):
+            claims.release(log_id)
+            return "converted by another run meanwhile"
+        return None
+
+    received: list[str] = []
+    with Claims(output_root) as claims:
+        todo = []
+        for log_id in log_ids:
+            if mode == "retry-failed" and (report.previous(log_id) or {}).get("status") != "failed":
+                say([f"skip  {log_id}: not a failure of the last run"])
+                overall.update(1)  # its report entry stays as it was
+            elif mode == "resume" and report.is_done(log_id, output_root):
+                finish(
+                    LogResult(log_id, True, skipped=True),
+                    [f"skip  {log_id}: already converted with the same converter version and options"],
+                )
             else:
-                lines = [f"FAIL  {result.log_id}: {result.error}"]
-                if verbose and result.traceback:
-                    lines.append(result.traceback.rstrip())
-            finish(result, lines)
+                todo.append(log_id)
+        control = RunControl(claims, gate)
+        with _stopped_by_signals(control.stop, received):
+            for result in executor.results(task, output_root, todo, show_progress, control) if todo else ():
+                if control.stop.is_set() and not result.ok:  # it failed because the run stops
+                    result.abandoned = True
+                finish(result, _lines(result, verbose))
+                if control.stop.is_set():
+                    break
+            if control.stop.is_set():
+                _interrupted(executor, control, received, recorded, finish, say, verbose)
     overall.close()
+    if received:
+        raise RunInterrupted(received[0], _in_order(results, log_ids))
+    return _in_order(results, log_ids)
+
+
+def _lines(result: LogResult, verbose: bool) -> list[str]:
+    """What the run prints of a finished log."""
+    if result.elsewhere is not None:
+        return [f"left  {result.log_id}: {result.elsewhere}"]
+    if result.abandoned:
+        return [f"stop  {result.log_id}: abandoned unfinished (its .partial folder is removed by the next run)"]
+    if not result.ok:
+        lines = [f"FAIL  {result.log_id}: {result.error}"]
+        return lines + ([result.traceback.rstrip()] if verbose and result.traceback else [])
+    lines = [f"ok    {result.summary.line()}"] + [f"      warning: {w}" for w in result.warnings]
+    if (validation := result.summary.validation) is not None:
+        lines.append(f"      validated: {validation['checks']} checks passed")
+    return lines
+
+
+def _interrupted(executor, control: RunControl, received, recorded, finish, say, verbose) -> None:
+    """After the signal: stop the work in flight, then record every log published before it."""
+    name = received[0] if received else "interrupted"
+    say([f"{name}: stopping; no new log starts, the logs in flight are abandoned"])
+    with control.publish_lock:  # a publish under way ends first; none starts after
+        published = [r for log_id, r in control.published.items() if log_id not in recorded]
+    executor.abandon()
+    for result in published:
+        finish(result, _lines(result, verbose))
+
+
+def _in_order(results: list[LogResult], log_ids: list[str]) -> list[LogResult]:
     order = {log_id: i for i, log_id in enumerate(log_ids)}
     return sorted(results, key=lambda r: order[r.log_id])  # in the order asked for

@@ -1,0 +1,130 @@
+"""``<output>/conversion-report.json``: per log status, seconds, bytes, warnings and errors, shared by
+every run on the output folder.
+
+A run merges its entries into the report as it finds it, never writes back what it read at its
+start, so runs that share an output folder (see :mod:`~ncore_convert.run.claims`) keep each other's
+entries. On a file system the merge holds an advisory lock (``flock`` on ``.<report>.lock``) and
+replaces the file atomically (a temporary file of its own, renamed); on object storage it is a
+write conditional on the ETag it read, retried when another run wrote in between.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import time
+import uuid
+from datetime import UTC, datetime
+
+from upath import UPath
+
+from ncore_convert.storage import flush_to_disk, is_local, precondition_failed
+
+REPORT_NAME = "conversion-report.json"
+#: Conditional writes of the report on object storage tried before giving up.
+MERGE_ATTEMPTS = 20
+
+
+def report_name(shard: tuple[int, int] | None) -> str:
+    """The run report's file name; each shard of an array job keeps its own report."""
+    return REPORT_NAME if shard is None else f"conversion-report-shard-{shard[0]}-of-{shard[1]}.json"
+
+
+def now_iso() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+class RunReport:
+    """The report of an output folder: entries of logs not touched by this run are kept, so the
+    report describes the whole folder. Every :meth:`record` merges into the stored report."""
+
+    def __init__(self, output_root: UPath, fingerprint: dict, name: str = REPORT_NAME) -> None:
+        self.path = output_root / name
+        self.fingerprint = json.loads(json.dumps(fingerprint))  # as it reads back (tuples become lists)
+        self.logs: dict[str, dict] = self._read()[0]
+
+    def previous(self, log_id: str) -> dict | None:
+        return self.logs.get(log_id)
+
+    def is_done(self, log_id: str, output_root: UPath, since: str | None = None) -> bool:
+        """Converted (or skipped) with this fingerprint and still there; with ``since`` (ISO time),
+        only if that entry was finished at or after it."""
+        entry = self.logs.get(log_id) or {}
+        return (
+            entry.get("status") in ("ok", "skipped")
+            and entry.get("fingerprint") == self.fingerprint
+            and (since is None or (entry.get("finished") or "") >= since)
+            and (output_root / log_id).is_dir()
+        )
+
+    def refresh(self) -> None:
+        """Read the stored report again (other runs may have recorded logs since)."""
+        self.logs = self._read()[0]
+
+    def record(self, log_id: str, entry: dict) -> None:
+        """Merge one log's entry into the stored report (the fingerprint is added here)."""
+        self._merge({log_id: {**entry, "fingerprint": self.fingerprint, "finished": now_iso()}})
+
+    # --- storage ---
+    def _read(self) -> tuple[dict[str, dict], str | None]:
+        """The stored entries and, on object storage, the ETag they were read at (an unreadable
+        report reads as empty: nothing is skipped, everything is redone)."""
+        for _ in range(MERGE_ATTEMPTS):
+            try:
+                etag = self._etag()
+                text = self.path.read_text()
+                if etag != self._etag():  # changed while read: read again
+                    continue
+            except FileNotFoundError:
+                return {}, None
+            try:
+                logs = json.loads(text).get("logs", {})
+            except (json.JSONDecodeError, AttributeError):
+                logs = {}
+            return (logs if isinstance(logs, dict) else {}), etag
+        return {}, None
+
+    def _etag(self) -> str | None:
+        if is_local(self.path):
+            return None
+        self.path.fs.invalidate_cache(self.path.path)
+        return self.path.fs.info(self.path.path).get("ETag")
+
+    def _text(self, logs: dict[str, dict]) -> str:
+        return json.dumps({"converter": self.fingerprint, "logs": logs}, indent=2)
+
+    def _merge(self, updates: dict[str, dict]) -> None:
+        if is_local(self.path):
+            with self._locked():
+                logs = {**self._read()[0], **updates}
+                tmp = self.path.parent / f".{self.path.name}.{uuid.uuid4().hex[:8]}.tmp"
+                tmp.write_text(self._text(logs))
+                flush_to_disk(tmp)
+                tmp.rename(self.path)
+            self.logs = logs
+            return
+        for attempt in range(MERGE_ATTEMPTS):
+            logs, etag = self._read()
+            logs = {**logs, **updates}
+            condition = {"IfMatch": etag} if etag else {"mode": "create"}
+            try:
+                self.path.fs.pipe_file(self.path.path, self._text(logs).encode(), **condition)
+            except OSError as err:
+                if not precondition_failed(err):
+                    raise
+                time.sleep(0.05 * (attempt + 1))  # another run wrote in between: merge again
+                continue
+            self.logs = logs
+            return
+        raise OSError(f"{self.path}: could not merge the report ({MERGE_ATTEMPTS} conditional writes refused)")
+
+    @contextlib.contextmanager
+    def _locked(self):
+        lock = os.open(os.path.join(self.path.parent.path, f".{self.path.name}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(lock)
