@@ -130,6 +130,8 @@ def export_opencood_command(obj, scenario, out_dir, poses):
         except ValueError as err:
             raise click.UsageError(str(err)) from None
     click.echo(f"wrote {counts.line(folder)}")
+    for line in counts.left_out:
+        click.echo(f"left out: {line}")
 
 
 @click.command("evaluate-lidar-model")

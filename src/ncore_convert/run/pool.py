@@ -67,9 +67,28 @@ def _init_worker(queue) -> None:
     global _progress_queue
     _progress_queue = queue
     # Ctrl-C reaches the whole process group: the parent alone decides (it abandons the jobs in
-    # flight and kills the workers), so a worker never dies half-way through a message
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_IGN)
+    # flight and kills the workers). SIGTERM keeps its default: the pool ends its workers with it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent()
+
+
+def _die_with_parent() -> None:
+    """Linux: this process is killed (SIGKILL) when its parent ends. A worker's parent is the fork
+    server, and the fork server's the run (see ``_FORK_SERVER``): so a run killed with SIGKILL leaves
+    no worker writing into a log's ``.partial`` folder, which the next run may be writing again.
+    (The kernel watches the thread that started the process: pools start in the main thread.)"""
+    with contextlib.suppress(OSError, AttributeError):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
+#: Set (to the run's pid) in the environment the fork server starts with: the fork server imports
+#: this module first (its preload), finds the mark and ties its life to the run's.
+_FORK_SERVER = "NCORE_CONVERT_FORK_SERVER_OF"
+if os.environ.get(_FORK_SERVER) == str(os.getppid()):
+    _die_with_parent()
 
 
 def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> tuple[Any, int, list[int]]:
@@ -131,8 +150,10 @@ class JobPool:
             raise ValueError("workers must be >= 1")
         self.workers = workers
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(list(preload))
-        with _environment(WORKER_ENVIRONMENT):  # the fork server (and so every worker) inherits it
+        ctx.set_forkserver_preload([__name__, *preload])
+        # the fork server (and so every worker) inherits the environment
+        os.environ.pop(_FORK_SERVER, None)  # inherited from another run's worker: this run's mark wins
+        with _environment({**WORKER_ENVIRONMENT, _FORK_SERVER: str(os.getpid())}):
             multiprocessing.forkserver.ensure_running()
         self._ctx = ctx
         self._progress: dict[int, Progress] = {}

@@ -48,14 +48,12 @@ class RunReport:
     def previous(self, log_id: str) -> dict | None:
         return self.logs.get(log_id)
 
-    def is_done(self, log_id: str, output_root: UPath, since: str | None = None) -> bool:
-        """Converted (or skipped) with this fingerprint and still there; with ``since`` (ISO time),
-        only if that entry was finished at or after it."""
+    def is_done(self, log_id: str, output_root: UPath) -> bool:
+        """Converted (or skipped) with this fingerprint and still there."""
         entry = self.logs.get(log_id) or {}
         return (
             entry.get("status") in ("ok", "skipped")
             and entry.get("fingerprint") == self.fingerprint
-            and (since is None or (entry.get("finished") or "") >= since)
             and (output_root / log_id).is_dir()
         )
 
@@ -122,9 +120,16 @@ class RunReport:
 
     @contextlib.contextmanager
     def _locked(self):
-        lock = os.open(os.path.join(self.path.parent.path, f".{self.path.name}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
+        """An exclusive ``flock`` on the output folder itself (no lock file is left), or on
+        ``.<report>.lock`` where a folder cannot be locked (some network file systems)."""
+        fd = os.open(self.path.parent.path, os.O_RDONLY | os.O_DIRECTORY)
         try:
-            fcntl.flock(lock, fcntl.LOCK_EX)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError:
+            os.close(fd)
+            fd = os.open(os.path.join(self.path.parent.path, f".{self.path.name}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
             yield
         finally:
-            os.close(lock)
+            os.close(fd)

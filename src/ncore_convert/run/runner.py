@@ -34,7 +34,7 @@ from ncore_convert.contract import SAFE_NAME
 from ncore_convert.errors import SourceError, UsageError, ValidationFailed
 from ncore_convert.run.claims import Claims
 from ncore_convert.run.pool import Progress
-from ncore_convert.run.report import REPORT_NAME, RunReport, now_iso
+from ncore_convert.run.report import REPORT_NAME, RunReport
 from ncore_convert.storage import is_local, publish, remove_tree
 
 
@@ -311,8 +311,8 @@ def run_logs(
         verbose: print the traceback of each failed log under its one-line error.
     """
     output_root.mkdir(parents=True, exist_ok=True)
-    started = now_iso()
     report = RunReport(output_root, fingerprint or {}, report_file)
+    at_start = dict(report.logs)
     log_ids = list(log_ids)
     overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
     counts = {"ok": 0, "failed": 0, "skipped": 0}
@@ -342,7 +342,8 @@ def run_logs(
         if holder is not None:
             return f"being converted by another run ({holder.describe()})"
         report.refresh()
-        if report.is_done(log_id, output_root, since=None if mode == "resume" else started):
+        changed = report.previous(log_id) != at_start.get(log_id)  # another run recorded it since
+        if report.is_done(log_id, output_root) and (mode == "resume" or changed):
             claims.release(log_id)
             return "converted by another run meanwhile"
         return None

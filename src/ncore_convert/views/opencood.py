@@ -95,6 +95,25 @@ class OpenCoodScenario:
         """The written agents' folder names, in the manifest's order."""
         return [str(a.agent_id) for a in self.manifest.agents if a.written]
 
+    def has_lidar(self, agent_id: str) -> bool:
+        """Whether the agent's lidar was written (the conversion leaves out a lidar none of whose
+        frames read)."""
+        return self._name(agent_id, LIDAR) in self._sequence(agent_id).loader.lidar_ids
+
+    def left_out(self) -> list[str]:
+        """What the conversion left out of the scenario and why, a line per agent or sensor (the
+        manifest's ``not_written``)."""
+        lines = []
+        for agent in self.manifest.agents:
+            for sensor, record in (agent.not_written or {}).items():
+                files = record.get("files") or {}
+                example = f"; {len(files)} file(s): {next(iter(files))}, ..." if files else ""
+                what = "the agent" if sensor == "agent" else sensor
+                lines.append(f"agent {agent.agent_id}: {what} not written ({record.get('reason')}{example})")
+            if not agent.written and not agent.not_written:
+                lines.append(f"agent {agent.agent_id}: not written")
+        return lines
+
     def keys(self, agent_id: str) -> list[str]:
         """The agent's frame keys (6-digit CARLA frame counters) that have a lidar frame."""
         return list(self._lidar_keys(agent_id))

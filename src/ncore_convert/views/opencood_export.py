@@ -6,7 +6,9 @@ so that unmodified OpenCOOD code trains on it:
 <out>/<scenario>/<agent_id>/<key>.yaml | <key>.pcd | <key>_camera<k>.png
 ```
 
-Everything comes from :class:`~ncore_convert.views.opencood.OpenCoodScenario`. The PCDs are
+Everything comes from :class:`~ncore_convert.views.opencood.OpenCoodScenario`. What the
+conversion left out (an unreadable sensor, an agent) is left out here too and listed in
+``ExportCounts.left_out``; an agent whose lidar was not written is not exported. The PCDs are
 Open3D-style ASCII with the intensity in the red byte of ``rgb``; the YAMLs and PNGs are the stored
 ones as they were, except that with a noise setting each YAML is rewritten with that setting's
 ``lidar_pose`` (switch OpenCOOD's own ``wild_setting`` off then, or the noise is applied twice).
@@ -16,7 +18,7 @@ The scenario is written to ``<out>/.<scenario>.partial`` and renamed into place 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import yaml
@@ -33,6 +35,7 @@ class ExportCounts:
     frames: int = 0
     points: int = 0
     images: int = 0
+    left_out: list[str] = field(default_factory=list)  #: what is not in the export, and why, a line each
 
     def line(self, scenario_dir: UPath) -> str:
         return f"{scenario_dir}: {self.agents} agents, {self.frames} frames, {self.points} points, {self.images} images"
@@ -51,8 +54,11 @@ def export_opencood(
     work.mkdir(parents=True)
     if view.protocol_text is not None:  # a scenario without one gets none back
         (work / "data_protocol.yaml").write_text(view.protocol_text)
-    counts = ExportCounts()
+    counts = ExportCounts(left_out=view.left_out())
     for agent_id in view.agent_ids:
+        if not view.has_lidar(agent_id):  # OpenCOOD reads an agent-frame by its PCD
+            counts.left_out.append(f"agent {agent_id}: not exported: OpenCOOD reads each agent-frame by its PCD")
+            continue
         agent_dir = work / agent_id
         agent_dir.mkdir()
         counts.agents += 1
