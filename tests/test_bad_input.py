@@ -20,7 +20,7 @@ import shutil
 import signal
 from collections.abc import Callable
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
@@ -45,10 +45,11 @@ CAMERAS = ("ring_front_center", "ring_side_left")
 
 @dataclass(frozen=True)
 class Case:
-    dataset: str  #: "av2", "real" (the real AV2 sample), "tbv" or "opv2v"
+    dataset: str  #: "av2", "real" (the real AV2 sample), "tbv", "opv2v" or "one-tick" (a V2XSet tick)
     damage: Callable[[Path], Path]  #: damages the log (or scenario) folder, returns the file at fault
-    outcome: str  #: "fail" or "warn"
+    outcome: str  #: "fail", "usage" (fails as a usage error: the options cannot apply) or "warn"
     cause: str
+    options: dict = field(default_factory=dict)  #: conversion options of the case (a clip window)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -239,6 +240,29 @@ def _pcd_nan_agent(scenario: Path) -> Path:
     return _agents(scenario)[0]
 
 
+def _cut(path: Path, fraction: float) -> Path:
+    """Keep the first ``fraction`` of a file (the real V2XSet case: a PCD cut to its first 30,000 bytes)."""
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * fraction)])
+    return path
+
+
+def _every(scenario: Path, pattern: str, agent: int = 0) -> Path:
+    """Garble every file of one agent matching ``pattern``; the first of them."""
+    paths = sorted(_agents(scenario)[agent].glob(pattern))
+    for path in paths:
+        _garble(path)
+    return paths[0]
+
+
+def _every_agent_frame(scenario: Path) -> Path:
+    """Every agent's only PCD and PNGs damaged: no agent has a sensor left; the first file named."""
+    for folder in _agents(scenario):
+        for path in [*folder.glob("*.pcd"), *folder.glob("*.png")]:
+            _cut(path, 0.3)
+    return _frame(scenario, ".pcd", agent=0, key=0)
+
+
 def _yaml_without_lidar_pose(scenario: Path) -> Path:
     return _edit_text(_frame(scenario, ".yaml"), lambda t: re.sub(r"(?m)^lidar_pose:", "lidar_pos:", t))
 
@@ -343,6 +367,37 @@ CASES: dict[str, Case] = {
         "opv2v", _pcd_intensity_255, "warn", "PCD intensity 255.0 outside [0, 1] (CARLA's ray-cast intensity)"
     ),
     "empty-scenario-folder": Case("opv2v", _empty, "fail", "empty scenario folder"),
+    "one-tick-truncated-pcd": Case(
+        "one-tick", lambda s: _cut(_frame(s, ".pcd", agent=1, key=0), 0.3), "warn", "no readable lidar frame of 1"
+    ),
+    "one-tick-truncated-png": Case(
+        "one-tick", lambda s: _cut(_frame(s, "_camera0.png", agent=2, key=0), 0.3), "warn", "no readable image of 1"
+    ),
+    "camera-every-png-corrupt": Case(
+        "opv2v", lambda s: _every(s, "*_camera1.png"), "warn", "no readable image of 4 (" + "{at_fault}: not a PNG"
+    ),
+    "agent-every-pcd-unreadable": Case(
+        "opv2v", lambda s: _every(s, "*.pcd", agent=1), "warn", "lidar_top: no readable lidar frame of 4"
+    ),
+    "every-agent-frame-damaged": Case(
+        "one-tick", _every_agent_frame, "fail", "no agent has a sensor with a readable frame"
+    ),
+    "clip-window-0.01s": Case(
+        "av2", lambda log: log, "usage", "holds no lidar sweep", {"seek_sec": 0.0, "duration_sec": 0.01}
+    ),
+    "clip-window-0.03s": Case(
+        "av2", lambda log: log, "usage", "holds no lidar sweep", {"seek_sec": 0.0, "duration_sec": 0.03}
+    ),
+    "real-clip-window-between-sweeps": Case(
+        "real", lambda log: log, "usage", "holds no lidar sweep", {"seek_sec": 0.03, "duration_sec": 0.01}
+    ),
+    "clip-window-camera-without-frame": Case(
+        "av2",
+        lambda log: log / "sensors" / "cameras",
+        "warn",
+        f"no images for {CAMERAS[0]} in the clip window; cameras not written",
+        {"seek_sec": 0.06, "duration_sec": 0.15},
+    ),
 }
 UNREADABLE = {"unreadable-file", "unreadable-pcd"}
 
@@ -360,18 +415,22 @@ def bases(tmp_path_factory, av2_sample_root) -> dict[str, tuple[Path, str]]:
     tbv_log = write_log(UPath(tmp / "tbv"), SynthConfig(seconds=0.5, seed=12, camera_fps=0, tbv=True)).log_id
     config = synth_opencood.SynthConfig(dataset="opv2v", frames=4, cavs=2, lidar_columns=64, seed=13)
     scenario = synth_opencood.write_scenario(UPath(tmp / "opv2v" / config.split), config).scenario
+    # the real V2XSet case of issue 50: three agents (two vehicles, an RSU), one tick
+    config = synth_opencood.SynthConfig(dataset="v2xset", frames=1, cavs=2, infrastructure=1, lidar_columns=64, seed=14)
+    tick = synth_opencood.write_scenario(UPath(tmp / "one-tick" / config.split), config).scenario
     return {
         "av2": (tmp / "av2", av2_log),
         "real": (av2_sample_root, AV2_SAMPLE_LOG),
         "tbv": (tmp / "tbv", tbv_log),
         "opv2v": (tmp / "opv2v", scenario),
+        "one-tick": (tmp / "one-tick", tick),
     }
 
 
 def source_folder(dataset: str, root: Path, name: str) -> Path:
-    return {"av2": root / "val" / name, "real": root / "val" / name, "tbv": root / name, "opv2v": root / "test" / name}[
-        dataset
-    ]
+    if dataset in ("opv2v", "one-tick"):
+        return root / "test" / name
+    return {"av2": root / "val" / name, "real": root / "val" / name, "tbv": root / name}[dataset]
 
 
 #: Option sets the corpus runs with: the defaults, and every consumer option away from its default
@@ -388,11 +447,11 @@ OPTION_SETS = {
 }
 
 
-def task_for(dataset: str, root: Path, option_set: str = "default"):
+def task_for(dataset: str, root: Path, option_set: str = "default", case_options: dict | None = None):
     """The per-log task, as the CLI builds it (sensor selection kept small for speed)."""
-    extra = OPTION_SETS[option_set]
-    if dataset == "opv2v":
-        options = OpenCoodOptions(dataset="opv2v", split="test", **extra)
+    extra = {**OPTION_SETS[option_set], **(case_options or {})}
+    if dataset in ("opv2v", "one-tick"):
+        options = OpenCoodOptions(dataset="opv2v" if dataset == "opv2v" else "v2xset", split="test", **extra)
         return partial(convert_scenario, UPath(root), options=options)
     if dataset == "tbv":
         options = Argoverse2Options(None, **extra)
@@ -401,8 +460,8 @@ def task_for(dataset: str, root: Path, option_set: str = "default"):
     return partial(convert_log, UPath(root), options=options)
 
 
-def convert(dataset: str, root: Path, name: str, out: Path, option_set: str = "default"):
-    task = partial(convert_and_validate, task_for(dataset, root, option_set), source_root=UPath(root))
+def convert(dataset: str, root: Path, name: str, out: Path, option_set: str = "default", case_options=None):
+    task = partial(convert_and_validate, task_for(dataset, root, option_set, case_options), source_root=UPath(root))
     return convert_one(UPath(out), name, lambda work, log_id, progress: task(work, log_id, progress=progress), False)
 
 
@@ -438,23 +497,27 @@ def test_damaged_input_has_its_specified_outcome(case_id, option_set, bases, tmp
             result = convert(case.dataset, root, name, out, option_set)
         at_fault = out / name  # the output that could not be written
     else:
-        result = convert(case.dataset, root, name, out, option_set)
-    if case.outcome == "fail":
+        result = convert(case.dataset, root, name, out, option_set, case.options)
+    cause = case.cause.format(at_fault=at_fault)
+    if case.outcome in ("fail", "usage"):
         assert not result.ok, f"{case_id}: converted, expected a failure"
-        assert "\n" not in result.error and case.cause in result.error and str(at_fault) in result.error, result.error
+        assert "\n" not in result.error and cause in result.error and str(at_fault) in result.error, result.error
+        assert result.usage_error == (case.outcome == "usage"), result.error
         assert list(out.iterdir()) == [], "a failed log leaves nothing in the output folder"
+        assert result.error_file in (None, str(at_fault)) or case.outcome == "usage", result.error_file
     else:
         assert result.ok, f"{case_id}: {result.error}"
         assert result.summary.validation["ok"], result.summary.validation["failed"]
-        named = [w for w in result.warnings if w.startswith(str(at_fault)) and case.cause in w]
-        assert named, f"{case_id}: no warning naming {at_fault} with {case.cause!r} in {result.warnings}"
+        named = [w for w in result.warnings if str(at_fault) in w and cause in w]
+        assert named, f"{case_id}: no warning naming {at_fault} with {cause!r} in {result.warnings}"
         assert (out / name).is_dir()
 
 
 def test_readme_table_lists_every_case():
     """docs/damaged-input.md's table has exactly one row per corpus case, with its outcome."""
     text = (REPO / "docs" / "damaged-input.md").read_text()
-    rows = re.findall(r"^\| `([a-z0-9-]+)` \|[^|]*\| (fails|converts, warns) \|", text, flags=re.M)
+    rows = re.findall(r"^\| `([a-z0-9.-]+)` \|[^|]*\| (fails|usage error|converts, warns) \|", text, flags=re.M)
     assert sorted(r[0] for r in rows) == sorted(CASES)
+    names = {"fail": "fails", "usage": "usage error", "warn": "converts, warns"}
     for case_id, outcome in rows:
-        assert outcome == {"fail": "fails", "warn": "converts, warns"}[CASES[case_id].outcome], case_id
+        assert outcome == names[CASES[case_id].outcome], case_id
