@@ -1,10 +1,13 @@
 """Object storage: read a log from a bucket and write its sequence to a bucket on a real
-S3-compatible server (moto's server mode on 127.0.0.1), through fsspec/s3fs."""
+S3-compatible server (moto's server mode on 127.0.0.1), through fsspec/s3fs; and runs that share a
+bucket output (claims and the report by conditional writes)."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import socket
 import subprocess
 import time
@@ -101,3 +104,58 @@ def test_a_log_in_a_bucket_converts_into_a_bucket_as_it_does_locally(s3_env, tmp
 def test_a_missing_bucket_prefix_is_a_usage_error(s3_env, tmp_path):
     result = convert(s3_env, "s3://no-such-bucket/av2", str(tmp_path / "out"))
     assert result.returncode == 2 and "--root-dir s3://no-such-bucket/av2: directory not found" in result.stderr
+
+
+def _ok_logs(output: str) -> list[str]:
+    return re.findall(r"^ok    ([0-9a-f-]+):", output, flags=re.M)
+
+
+@pytest.fixture(scope="module")
+def three_logs(tmp_path_factory):
+    """Three small local logs (0.3 s, images of one camera) for runs that share a bucket output."""
+    root = tmp_path_factory.mktemp("s3-shared")
+    cameras = ("ring_front_center",)
+    configs = [SynthConfig(seconds=0.3, seed=s, camera_fps=10, pictures=2, image_cameras=cameras) for s in (43, 44, 45)]
+    return root, sorted(write_log(UPath(root / "val"), config).log_id for config in configs)
+
+
+def test_runs_sharing_a_bucket_output_convert_every_log_once(s3_env, three_logs):
+    """Two runs started together on one s3:// output: claims by conditional writes (If-None-Match),
+    the report merged by writes conditional on its ETag."""
+    import s3fs
+
+    root, ids = three_logs
+    s3fs.S3FileSystem().mkdir("shared")
+    command = av2_command(root, "s3://shared/v4", "--workers", "1")
+    procs = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=s3_env) for _ in range(2)]
+    outputs = [p.communicate(timeout=600)[0] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outputs
+    assert sorted(log for output in outputs for log in _ok_logs(output)) == ids, outputs
+    fs = s3fs.S3FileSystem()
+    logs = json.loads(fs.cat_file("shared/v4/conversion-report.json"))["logs"]
+    assert {k: v["status"] for k, v in logs.items()} == dict.fromkeys(ids, "ok")
+    assert sorted(Path(p).name for p in fs.ls("shared/v4")) == sorted([*ids, "conversion-report.json"])
+
+
+def test_a_run_killed_while_it_holds_a_bucket_claim_is_taken_over(s3_env, three_logs):
+    import s3fs
+
+    root, ids = three_logs
+    fs = s3fs.S3FileSystem()
+    fs.mkdir("killed")
+    proc = subprocess.Popen(av2_command(root, "s3://killed/v4", "--workers", "1"), env=s3_env)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        fs.invalidate_cache()
+        if fs.exists("killed/v4") and [p for p in fs.ls("killed/v4") if p.endswith(".claim")]:
+            break
+        time.sleep(0.05)
+    else:
+        pytest.fail("no claim object appeared")
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    rerun = convert(s3_env, str(root), "s3://killed/v4")
+    assert rerun.returncode == 0, rerun.stdout + rerun.stderr
+    assert len(_ok_logs(rerun.stdout)) + rerun.stdout.count("skip  ") == len(ids)
+    fs.invalidate_cache()
+    assert sorted(Path(p).name for p in fs.ls("killed/v4")) == sorted([*ids, "conversion-report.json"])
