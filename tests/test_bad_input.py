@@ -505,6 +505,9 @@ def test_damaged_input_has_its_specified_outcome(case_id, option_set, bases, tmp
         assert result.usage_error == (case.outcome == "usage"), result.error
         assert list(out.iterdir()) == [], "a failed log leaves nothing in the output folder"
         assert result.error_file in (None, str(at_fault)) or case.outcome == "usage", result.error_file
+        if case_id == "every-agent-frame-damaged":  # a failed log keeps its warnings (the report's)
+            assert sum("sensor not written" in w for w in result.warnings) == 3 * 5, result.warnings
+            assert sum(w.endswith("no sensor with a readable frame; agent not written") for w in result.warnings) == 3
     else:
         assert result.ok, f"{case_id}: {result.error}"
         assert result.summary.validation["ok"], result.summary.validation["failed"]
@@ -521,3 +524,40 @@ def test_readme_table_lists_every_case():
     names = {"fail": "fails", "usage": "usage error", "warn": "converts, warns"}
     for case_id, outcome in rows:
         assert outcome == names[CASES[case_id].outcome], case_id
+
+
+def test_export_writes_back_what_was_converted_and_says_what_was_left_out(bases, tmp_path):
+    """The one-tick V2XSet scenario with one vehicle's PCD and the other's front PNG cut short:
+    ``export-opencood`` writes every converted file back as it was, leaves out the damaged ones
+    and the agent without a lidar (OpenCOOD reads each agent-frame by its PCD), and says so."""
+    from click.testing import CliRunner
+
+    from ncore_convert.cli import cli
+
+    base_root, name = bases["one-tick"]
+    root = tmp_path / "root"
+    folder = source_folder("one-tick", root, name)
+    shutil.copytree(source_folder("one-tick", base_root, name), folder)
+    agents = [a.name for a in _agents(folder)]
+    pcd = _cut(_frame(folder, ".pcd", agent=1, key=0), 0.3)
+    png = _cut(_frame(folder, "_camera0.png", agent=2, key=0), 0.3)
+    out = tmp_path / "out"
+    out.mkdir()
+    result = convert("one-tick", root, name, out)
+    assert result.ok and result.summary.validation["ok"], result.error
+    export = tmp_path / "export"
+    run = CliRunner().invoke(cli, ["export-opencood", str(out / name / "scenario.json"), "--out", str(export)])
+    assert run.exit_code == 0, run.output
+    assert (
+        f"left out: agent {agents[1]}: lidar_top not written (no readable lidar frame; 1 file(s): {pcd}" in run.output
+    )
+    assert f"left out: agent {agents[2]}: camera_front not written (no readable image; 1 file(s): {png}" in run.output
+    assert f"left out: agent {agents[1]}: not exported" in run.output
+    written = export / name
+    assert sorted(p.name for p in written.iterdir()) == sorted(["data_protocol.yaml", agents[0], agents[2]])
+    for agent in (agents[0], agents[2]):
+        source = {p.name: p for p in (folder / agent).iterdir() if p != png}
+        assert sorted(p.name for p in (written / agent).iterdir()) == sorted(source), agent
+        for file_name, path in source.items():
+            if not file_name.endswith(".pcd"):  # PNGs and YAMLs come back byte for byte
+                assert (written / agent / file_name).read_bytes() == path.read_bytes(), file_name

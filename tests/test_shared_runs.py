@@ -29,6 +29,7 @@ from upath import UPath
 from ncore_convert.run import claims as claims_module
 from ncore_convert.run.claims import Claims, Holder, claim_path
 from ncore_convert.run.report import RunReport
+from ncore_convert.run.runner import LogResult
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
 # ------------------------------------------------------------------------------------------------
@@ -114,7 +115,7 @@ def test_concurrent_report_merges_keep_every_entry(tmp_path):
 
     def record(i: int) -> None:
         for n in range(40):
-            reports[i].record(f"log-{i}-{n}", {"status": "ok"})
+            reports[i].record(LogResult(f"log-{i}-{n}", True), 0, 0)
 
     threads = [threading.Thread(target=record, args=(i,)) for i in range(2)]
     for t in threads:

@@ -17,7 +17,8 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
-from ncore_convert.run.runner import RunReport, convert_one
+from ncore_convert.run.report import RunReport
+from ncore_convert.run.runner import convert_one
 from ncore_convert.synth.argoverse2 import SynthConfig
 from ncore_convert.synth.opencood import SynthConfig as OpenCoodConfig
 from ncore_convert.synth.opencood import write_dataset
@@ -115,6 +116,23 @@ def test_a_listed_frame_without_data_is_unreadable(directory_log, tmp_path):
 
     failures = corrupt(directory_log, tmp_path, drop_data)
     assert list(failures) == ["lidar down_lidar: frames readable"], failures
+
+
+def test_a_sensor_with_no_frame_is_named_not_the_librarys_exception(directory_log, tmp_path):
+    """NCore's loader cannot open a sensor component with zero frames (an IndexError deep inside it):
+    the check names the component and its store, then the library's exception."""
+
+    def empty_lidar(group):
+        frames = group["lidars/down_lidar/frames"]
+        for key in frame_keys(group, "down_lidar"):
+            del frames[key]
+        frames.attrs["frames_timestamps_us"] = []
+
+    failures = corrupt(directory_log, tmp_path, empty_lidar)
+    assert list(failures) == ["opens with SequenceLoaderV4"], failures
+    detail = failures["opens with SequenceLoaderV4"]
+    assert detail.startswith("lidars/down_lidar in ") and "zero frames (an empty sensor)" in detail, detail
+    assert "(the library raised IndexError" in detail
 
 
 def test_a_non_unit_direction_is_caught(directory_log, tmp_path):

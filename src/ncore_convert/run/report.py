@@ -61,9 +61,23 @@ class RunReport:
         """Read the stored report again (other runs may have recorded logs since)."""
         self.logs = self._read()[0]
 
-    def record(self, log_id: str, entry: dict) -> None:
-        """Merge one log's entry into the stored report (the fingerprint is added here)."""
-        self._merge({log_id: {**entry, "fingerprint": self.fingerprint, "finished": now_iso()}})
+    def record(self, result, input_bytes: int, output_bytes: int) -> None:
+        """Merge the entry of one log's result (a ``runner.LogResult``) into the stored report."""
+        entry = {
+            "status": "skipped" if result.skipped else ("ok" if result.ok else "failed"),
+            "seconds": round(result.seconds, 3),
+            "input_bytes": input_bytes,
+            "output_bytes": output_bytes,
+            "warnings": result.warnings,
+            "error": None if result.ok else {"file": result.error_file, "reason": result.error},
+            "validation": result.summary.validation if result.summary is not None else result.validation,
+            "fingerprint": self.fingerprint,
+            "finished": now_iso(),
+        }
+        if result.skipped:  # keep what the converting run measured
+            previous = self.logs.get(result.log_id) or {}
+            entry.update({k: previous.get(k) for k in ("seconds", "warnings", "validation")})
+        self._merge({result.log_id: entry})
 
     # --- storage ---
     def _read(self) -> tuple[dict[str, dict], str | None]:

@@ -265,22 +265,6 @@ def _stopped_by_signals(stop: threading.Event, received: list[str]):
             signal.signal(sig, old)
 
 
-def _entry(result: LogResult, input_bytes: int, output_bytes: int, previous: dict | None) -> dict:
-    """A log's report entry (the fingerprint and finish time are added by the report)."""
-    entry = {
-        "status": "skipped" if result.skipped else ("ok" if result.ok else "failed"),
-        "seconds": round(result.seconds, 3),
-        "input_bytes": input_bytes,
-        "output_bytes": output_bytes,
-        "warnings": result.warnings,
-        "error": None if result.ok else {"file": result.error_file, "reason": result.error},
-        "validation": result.summary.validation if result.summary is not None else result.validation,
-    }
-    if result.skipped:  # keep what the converting run measured
-        entry.update({k: (previous or {}).get(k) for k in ("seconds", "warnings", "validation")})
-    return entry
-
-
 def run_logs(
     output_root: UPath,
     log_ids: Iterable[str],
@@ -329,7 +313,7 @@ def run_logs(
         if result.elsewhere is None and not result.abandoned:
             input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
             output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
-            report.record(result.log_id, _entry(result, input_bytes, output_bytes, report.previous(result.log_id)))
+            report.record(result, input_bytes, output_bytes)
             recorded.add(result.log_id)
             counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
         claims.release(result.log_id)  # after the report holds it: another run re-reads it
