@@ -154,6 +154,8 @@ def report_logs(out: Path) -> dict[str, str]:
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_a_signal_stops_the_run_at_once_and_the_report_lists_what_it_published(four_logs, tmp_path, signum):
+    """Issue 50's acceptance: the run exits 130 within 3 s of the signal (a functional bound, 10x
+    what it takes; a run that finished its logs in flight first would take seconds more)."""
     root, ids = four_logs
     out = tmp_path / "out"
     proc = subprocess.Popen(
@@ -176,7 +178,8 @@ def test_a_signal_stops_the_run_at_once_and_the_report_lists_what_it_published(f
     assert elapsed_s <= 3.0, f"exited {elapsed_s:.2f} s after the signal"
     done = published(out)
     assert 0 < len(done) < len(ids), f"the signal came too late to test: {done}"
-    assert all(t < 0.2 for t in seen.values()), f"published after the signal: {seen}"  # a rename under way ends
+    # the signal is handled a moment after kill() returns; a publish (a rename) may land in between
+    assert all(t < 0.5 for t in seen.values()), f"published after the signal: {seen}"
     assert report_logs(out) == dict.fromkeys(done, "ok"), output
     assert f"{signal.Signals(signum).name}: run stopped" in output
     assert not list(out.glob(".*.claim")), "the abandoned logs' claims are released"

@@ -35,7 +35,7 @@ from ncore_convert.errors import SourceError, UsageError, ValidationFailed
 from ncore_convert.run.claims import Claims
 from ncore_convert.run.pool import Progress
 from ncore_convert.run.report import REPORT_NAME, RunReport
-from ncore_convert.storage import is_local, publish, remove_tree
+from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
 
 
 class Summary(Protocol):
@@ -163,6 +163,7 @@ def convert_one(
     keep_work = False
     try:
         summary = convert(work, log_id, Progress(bar.update, lambda n: bar.reset(total=n)))
+        flush_to_disk(work)  # the slow part of publishing, before the lock: under it, a rename
         with control.publishing(log_id) if control is not None else contextlib.nullcontext():
             publish(work, final)
             result = LogResult(log_id, True, summary=summary)
