@@ -163,7 +163,8 @@ def convert_one(
     keep_work = False
     try:
         summary = convert(work, log_id, Progress(bar.update, lambda n: bar.reset(total=n)))
-        flush_to_disk(work)  # the slow part of publishing, before the lock: under it, a rename
+        if staging is None:
+            flush_to_disk(work)  # the slow part of publishing, before the lock: under it, a rename
         with control.publishing(log_id) if control is not None else contextlib.nullcontext():
             publish(work, final)
             result = LogResult(log_id, True, summary=summary)
