@@ -1,7 +1,7 @@
 """Runs per-log conversion tasks: atomic output directories, progress, per-log error isolation,
 resumable runs, runs that share an output folder, interruption, and a run report.
 
-Each log is written into ``<output>/.<log_id>.partial``, flushed to disk, and renamed to
+Each log is written into ``<output>/.<log_id>.<run_id>.partial``, flushed to disk, and renamed to
 ``<output>/<log_id>`` only once complete, so an interrupted run (or a power loss) never leaves a
 sequence that looks finished. Before it writes a log, a run claims it (``run/claims.py``), so that
 several runs on one output folder split the logs between them. ``<output>/conversion-report.json``
@@ -140,17 +140,23 @@ def convert_one(
 ) -> LogResult:
     """Convert one log atomically; errors are caught and returned as a one-line message.
 
-    The log is written to ``<output_root>/.<log_id>.partial`` (on a local output) or to a local
-    staging folder (on an object store), and moved into ``<output_root>/<log_id>`` only once
-    complete (see :func:`~ncore_convert.storage.publish`), under ``control``'s publish lock. A log
-    the run abandons keeps its ``.partial`` folder, which the next run removes.
+    The log is written to ``<output_root>/.<log_id>.<run_id>.partial`` (on a local output; the run's
+    own folder, so that a run whose claim was taken over never writes where the new holder does;
+    ``.<log_id>.partial`` without ``control``) or to a local staging folder (on an object store),
+    and moved into ``<output_root>/<log_id>`` only once complete (see
+    :func:`~ncore_convert.storage.publish`), under ``control``'s publish lock. A log the run
+    abandons keeps its ``.partial`` folder; the next run to convert the log removes every one.
     """
     started = time.perf_counter()
     if not SAFE_NAME.match(log_id):  # sources check the names they list; this guards every other caller
         return LogResult(log_id, False, error=f"{log_id!r} is not a safe output folder name; nothing written")
     final = output_root / log_id
     staging = None if is_local(output_root) else tempfile.mkdtemp(prefix=f"ncore-convert-{log_id[:40]}-")
-    work = output_root / f".{log_id}.partial" if staging is None else UPath(staging) / log_id
+    run_tag = f".{control.claims.me.run_id}" if control is not None and control.claims is not None else ""
+    work = output_root / f".{log_id}{run_tag}.partial" if staging is None else UPath(staging) / log_id
+    if staging is None:  # this run holds the log: unfinished folders of earlier runs go
+        for old in _partials(output_root, log_id):
+            remove_tree(old)
     remove_tree(work)
     bar = tqdm(
         desc=log_id[:36],
@@ -184,6 +190,15 @@ def convert_one(
                 shutil.rmtree(staging, ignore_errors=True)
     result.seconds = time.perf_counter() - started
     return result
+
+
+def _partials(output_root: UPath, log_id: str) -> list[UPath]:
+    """The unfinished folders of a log in a local output: ``.<log_id>.partial`` and
+    ``.<log_id>.<run_id>.partial`` (run ids: 12 hex digits), never another log's."""
+    pattern = re.compile(rf"^\.{re.escape(log_id)}(\.[0-9a-f]{{12}})?\.partial$")
+    if not output_root.is_dir():
+        return []
+    return [output_root / e.name for e in os.scandir(output_root.path) if e.is_dir() and pattern.match(e.name)]
 
 
 def _failure(log_id: str, err: Exception, output: UPath) -> LogResult:
