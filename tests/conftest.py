@@ -32,6 +32,7 @@ SLOW_FIRST = (
     "test_bad_input",
     "test_dynamic_tracks",
     "test_resume",
+    "test_shared_runs",
     "test_ray",
     "test_fuzz_readers",
     "test_presets",
