@@ -119,22 +119,24 @@ def three_logs(tmp_path_factory):
     return root, sorted(write_log(UPath(root / "val"), config).log_id for config in configs)
 
 
-def test_runs_sharing_a_bucket_output_convert_every_log_once(s3_env, three_logs):
-    """Two runs started together on one s3:// output: claims by conditional writes (If-None-Match),
-    the report merged by writes conditional on its ETag."""
+@pytest.mark.parametrize("runs", [2, 3])
+def test_runs_sharing_a_bucket_output_convert_every_log_once(s3_env, three_logs, runs):
+    """Two and three runs started together on one s3:// output: claims by conditional writes
+    (If-None-Match), the report merged by writes conditional on its ETag."""
     import s3fs
 
     root, ids = three_logs
-    s3fs.S3FileSystem().mkdir("shared")
-    command = av2_command(root, "s3://shared/v4", "--workers", "1")
-    procs = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=s3_env) for _ in range(2)]
+    bucket = f"shared-{runs}"
+    s3fs.S3FileSystem().mkdir(bucket)
+    command = av2_command(root, f"s3://{bucket}/v4", "--workers", "1")
+    procs = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=s3_env) for _ in range(runs)]
     outputs = [p.communicate(timeout=600)[0] for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], outputs
+    assert [p.returncode for p in procs] == [0] * runs, outputs
     assert sorted(log for output in outputs for log in _ok_logs(output)) == ids, outputs
     fs = s3fs.S3FileSystem()
-    logs = json.loads(fs.cat_file("shared/v4/conversion-report.json"))["logs"]
+    logs = json.loads(fs.cat_file(f"{bucket}/v4/conversion-report.json"))["logs"]
     assert {k: v["status"] for k, v in logs.items()} == dict.fromkeys(ids, "ok")
-    assert sorted(Path(p).name for p in fs.ls("shared/v4")) == sorted([*ids, "conversion-report.json"])
+    assert sorted(Path(p).name for p in fs.ls(f"{bucket}/v4")) == sorted([*ids, "conversion-report.json"])
 
 
 def test_a_run_killed_while_it_holds_a_bucket_claim_is_taken_over(s3_env, three_logs):
