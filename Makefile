@@ -46,6 +46,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_consumers.py
 	$(PY) bench/bench_speed.py
 	$(PY) bench/bench_floor.py
+	$(PY) bench/bench_shared_runs.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info

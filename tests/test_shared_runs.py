@@ -18,6 +18,8 @@ import os
 import re
 import signal
 import subprocess
+import sys
+import textwrap
 import threading
 import time
 from pathlib import Path
@@ -125,6 +127,28 @@ def test_concurrent_report_merges_keep_every_entry(tmp_path):
     logs = json.loads((tmp_path / "conversion-report.json").read_text())["logs"]
     assert sorted(logs) == sorted(f"log-{i}-{n}" for i in range(2) for n in range(40))
     assert [p.name for p in tmp_path.iterdir()] == ["conversion-report.json"], "no temporary or lock file left"
+
+
+def test_the_first_signal_asks_the_run_to_stop_and_a_second_ends_it_at_once():
+    """The run's signal handler, in a process of its own: SIGINT sets the stop flag (the run then
+    abandons its logs in flight and records what it published); SIGTERM after it ends the process
+    at once with 130, whatever the process was doing."""
+    code = textwrap.dedent(
+        """
+        import os, signal, threading, time
+        from ncore_convert.run.runner import _stopped_by_signals
+        stop, received = threading.Event(), []
+        with _stopped_by_signals(stop, received):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)
+            print("stop" if stop.is_set() and received == ["SIGINT"] else "no stop", flush=True)
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(60)
+        print("not ended", flush=True)
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=50)
+    assert proc.returncode == 130 and proc.stdout == "stop\n", proc.stdout + proc.stderr
 
 
 # ------------------------------------------------------------------------------------------------
