@@ -17,6 +17,7 @@ import multiprocessing as mp
 import multiprocessing.forkserver
 import os
 import signal
+import sys
 import threading
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -83,6 +84,11 @@ def _die_with_parent() -> None:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
+
+#: A run stopped by a signal ends with ``os._exit`` (``run/runner.py``): multiprocessing's resource
+#: tracker then unlinks the killed pool's semaphores itself, as it is there to do, and warns about
+#: each one. To a user who pressed Ctrl-C that is noise: the tracker starts with this filter.
+_QUIET_TRACKER = "ignore:resource_tracker:UserWarning"
 
 #: Set (to the run's pid) in the environment the fork server starts with: the fork server imports
 #: this module first (its preload), finds the mark and ties its life to the run's.
@@ -152,6 +158,8 @@ class JobPool:
         ctx = mp.get_context("forkserver")
         ctx.set_forkserver_preload([__name__, *preload])
         # the fork server (and so every worker) inherits the environment
+        if _QUIET_TRACKER not in sys.warnoptions:  # read when the resource tracker starts, just below
+            sys.warnoptions.append(_QUIET_TRACKER)
         os.environ.pop(_FORK_SERVER, None)  # inherited from another run's worker: this run's mark wins
         with _environment({**WORKER_ENVIRONMENT, _FORK_SERVER: str(os.getpid())}):
             multiprocessing.forkserver.ensure_running()

@@ -57,6 +57,12 @@ class RunReport:
             and (output_root / log_id).is_dir()
         )
 
+    def ensure(self) -> None:
+        """Write the report if there is none yet, so that a run that records nothing (stopped
+        before its first log) still leaves the report its last line names."""
+        if not self.path.exists():
+            self._merge({})
+
     def refresh(self) -> None:
         """Read the stored report again (other runs may have recorded logs since)."""
         self.logs = self._read()[0]

@@ -313,6 +313,7 @@ def run_logs(
     """
     output_root.mkdir(parents=True, exist_ok=True)
     report = RunReport(output_root, fingerprint or {}, report_file)
+    report.ensure()
     at_start = dict(report.logs)
     log_ids = list(log_ids)
     overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
