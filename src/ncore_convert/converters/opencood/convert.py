@@ -99,12 +99,10 @@ def _generic_meta(plan: ScenarioPlan, agent_ids: list[str], names: dict[str, Nam
         contract.WORLD_GLOBAL: world_global_meta,
         "noise_settings": {s.name: s.as_dict() for s in plan.options.noise},
         contract.CONVERTER: contract.converter_meta(_options_meta(plan.options)),
-        contract.SENSORS_NOT_WRITTEN: {
-            names[a].sensor(sensor): record
-            for a in agent_ids
-            for sensor, record in plan.agents[a].sensors_not_written.items()
-        },
     }
+    left_out = {names[a].sensor(s): why for a in agent_ids for s, why in plan.agents[a].sensors_not_written.items()}
+    if left_out:  # only then: a healthy scenario's sequences stay as they were
+        meta[contract.SENSORS_NOT_WRITTEN] = left_out
     if plan.window_us is not None:
         meta[contract.CLIP] = consumer.clip_meta(plan.options, plan.window_us)
     return meta
