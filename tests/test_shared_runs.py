@@ -256,3 +256,20 @@ def test_a_run_killed_while_it_holds_a_claim_is_taken_over(four_logs, tmp_path):
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     assert sorted(_ok_lines(rerun.stdout)) == ids
     assert report_logs(out) == dict.fromkeys(ids, "ok") and not list(out.glob(".*"))
+
+
+def test_claims_work_on_a_file_system_without_hard_links(tmp_path, monkeypatch):
+    """Some FUSE and SMB mounts refuse ``link``: the claim is then created with O_EXCL, as atomically."""
+
+    def no_links(src, dst):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(claims_module.os, "link", no_links)
+    a, b = Claims(UPath(tmp_path)), Claims(UPath(tmp_path))
+    try:
+        assert a.acquire("log") is None and b.acquire("log") == a.me
+        a.release("log")
+        assert b.acquire("log") is None
+    finally:
+        a.close()
+        b.close()

@@ -218,6 +218,8 @@ class Claims:
                 return None
             except FileExistsError:
                 return False
+            except OSError:  # a file system without hard links (some FUSE and SMB mounts)
+                return self._create_exclusive(path)
             finally:
                 os.unlink(tmp)
         try:
@@ -226,6 +228,17 @@ class Claims:
             if precondition_failed(err):
                 return False
             raise
+
+    def _create_exclusive(self, path: UPath) -> None | bool:
+        """``O_CREAT | O_EXCL``: atomic on local file systems and NFSv3+; a reader may see the claim
+        empty for a moment, which counts as held until it is stale (see :meth:`_read`)."""
+        try:
+            fd = os.open(path.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            return False
+        with os.fdopen(fd, "wb") as f:
+            f.write(self._text())
+        return None
 
     def _write(self, path: UPath, token: str | None, create: bool = False) -> str | None:
         """Write this run's claim to an object: created only if absent, or replaced only if its ETag
