@@ -517,7 +517,7 @@ def test_mask_pngs_read_back_as_the_library_decodes_them(top):
 
     import PIL.Image
 
-    from ncore_convert.writer import _png
+    from ncore_convert.writer.labels import _png
 
     instance = np.zeros((30, 40), np.uint16)
     instance[5:9, 3:7], instance[20:25, 30:38] = 1, top

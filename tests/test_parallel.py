@@ -14,7 +14,7 @@ from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.run.pool import JobPool, Progress
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-from ncore_convert.writer import BASE_JOB, WriteJob, independent_parts
+from ncore_convert.writer.parts import BASE_JOB, WriteJob, independent_parts
 
 PRELOAD = ["ncore_convert.converters.argoverse2"]
 

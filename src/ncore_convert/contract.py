@@ -1,7 +1,7 @@
 """The names the writer side writes and the read side reads back: one definition for both.
 
 Converters put these keys and files into a sequence; ``validate``, ``preview`` and the CLI find
-them again. Nothing here reads or writes files; see ``writer.py`` for where they are written.
+them again. Nothing here reads or writes files; see ``writer/`` for where they are written.
 """
 
 from __future__ import annotations

@@ -28,14 +28,8 @@ from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
 from ncore_convert.transforms.lidar_frames import LidarCounts, PointData, dynamic_flag_note, lidar_frame, rgb_note
 from ncore_convert.transforms.timebase import floor_us
-from ncore_convert.writer import (
-    BASE_JOB,
-    Cuboids,
-    SequenceWriter,
-    WriteJob,
-    independent_parts,
-    write_sequence_meta,
-)
+from ncore_convert.writer import Cuboids, SequenceWriter, write_sequence_meta
+from ncore_convert.writer.parts import BASE_JOB, WriteJob, independent_parts
 
 
 @dataclass

@@ -138,3 +138,17 @@ class ScenarioPlan:
 
     def sequence_id(self, agent_id: str) -> str:
         return f"{self.scenario}_agent{agent_id}"
+
+
+@dataclass(frozen=True)
+class Names:
+    """Frame and sensor names of one agent in a sequence (prefixed in the scenario layout)."""
+
+    prefix: str = ""
+
+    @property
+    def rig(self) -> str:
+        return f"{self.prefix}rig"
+
+    def sensor(self, sensor_id: str) -> str:
+        return f"{self.prefix}{sensor_id}"

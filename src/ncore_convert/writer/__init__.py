@@ -1,4 +1,5 @@
-"""The one place that talks to the nvidia-ncore V4 writer.
+"""The one place that talks to the nvidia-ncore V4 writer (this package; ``labels.py``: how camera
+labels are stored).
 
 Converters hand over plain numpy arrays and Python values; this module builds the NCore types,
 registers the components under their default instance names, and writes the sequence-meta JSON and
@@ -9,7 +10,6 @@ readers look up again are defined in :mod:`ncore_convert.contract`.
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -30,21 +30,15 @@ from ncore.data.v4 import (
 from ncore.impl.common.transformations import HalfClosedInterval
 from ncore.impl.data.types import (
     BBox3,
-    CameraLabelDescriptor,
     CuboidTrackObservation,
     FThetaCameraModelParameters,
     IdealPinholeCameraModelParameters,
-    LabelEncoding,
-    LabelSchema,
     LabelSource,
-    LabelType,
     OpenCVPinholeCameraModelParameters,
-    QuantizationParams,
     RowOffsetStructuredSpinningLidarModelParameters,
     ShutterType,
 )
 from ncore.impl.data.v4.components import SequenceMeta
-from ncore.impl.data.v4.types import ComponentGroupAssignments
 from upath import UPath
 
 from ncore_convert.contract import (
@@ -63,6 +57,8 @@ from ncore_convert.storage import flush_to_disk
 from ncore_convert.transforms.camera_models import FThetaFit, Pinhole
 from ncore_convert.transforms.lidar import RayBundle
 from ncore_convert.transforms.lidar_model import SpinningLidarModel
+from ncore_convert.writer.labels import CameraLabelStream, label_descriptor
+from ncore_convert.writer.parts import component_groups
 
 
 @dataclass(frozen=True)
@@ -137,61 +133,6 @@ class LidarStream(_SensorStream):
         )
 
 
-#: How depth labels are stored: RAW, quantized to whole millimetres in uint32 (no range cap; 0 stays
-#: 0 = no measurement). The zero pixels compress to almost nothing (Blosc lz4 with bit shuffling,
-#: the library's choice). The library quantizes through ``intermediate_dtype``: float32 here (a
-#: fifth of float64's time on a full picture; the error of a value at most 0.52 mm instead of 0.5
-#: at 250 m). Readers de-quantize through float64 (the field is not stored).
-DEPTH_QUANTIZATION = QuantizationParams(
-    quantized_dtype=np.dtype("uint32"), scale=0.001, offset=0.0, intermediate_dtype=np.dtype("float32")
-)
-
-
-#: How mask labels are stored: PNG (``IMAGE_ENCODED``), the library decoding them through PIL.
-#: ``mask.dynamic`` is a 1-bit PNG (read back as uint8 0/1); ``segmentation.instance`` a grey PNG,
-#: 8-bit when the label's indices allow, else 16-bit (read back as uint16: up to 65,535 instances
-#: per sequence). zlib level 1: a third of level 6's time.
-PNG_COMPRESS_LEVEL = 1
-#: What each kind's component metadata says of its storage.
-LABEL_STORAGE = {
-    "depth": "RAW, uint32 millimetres (NCore quantization scale 0.001: error <= 0.52 mm)",
-    "dynamic": "PNG (IMAGE_ENCODED), 1-bit: read back as uint8 0/1",
-    "instance": "PNG (IMAGE_ENCODED), grey, 8-bit where every index is below 256, else 16-bit: read back as uint16",
-}
-_PNG_LABELS = {
-    "dynamic": (LabelType.MASK_DYNAMIC, np.dtype("uint8")),
-    "instance": (LabelType.SEGMENTATION_INSTANCE, np.dtype("uint16")),
-}
-
-
-def _label_descriptor(kind: str, camera_id: str, source: str) -> CameraLabelDescriptor:
-    """The NCore descriptor of one ``contract.CAMERA_LABEL_KINDS`` label of ``camera_id``."""
-    if kind == "depth":
-        label_type = LabelType.DEPTH_Z_M
-        schema = LabelSchema(dtype=np.dtype("float32"), encoding=LabelEncoding.RAW, quantization=DEPTH_QUANTIZATION)
-    elif kind in _PNG_LABELS:
-        label_type, dtype = _PNG_LABELS[kind]
-        schema = LabelSchema(dtype=dtype, encoding=LabelEncoding.IMAGE_ENCODED, encoded_format="png")
-    else:
-        raise ValueError(f"unknown camera label kind {kind!r}")
-    return CameraLabelDescriptor(
-        camera_id=camera_id, label_type=label_type, label_schema=schema, label_source=LabelSource[source]
-    )
-
-
-def _png(data: np.ndarray, kind: str) -> bytes:
-    """A mask label as PNG bytes: 1-bit for ``dynamic`` (``data`` bool or 0/1); for ``instance``
-    (``data`` uint16) 8-bit grey when every index is below 256, else 16-bit (both read back as the
-    same uint16 values; 8 bits take two thirds of the time)."""
-    if kind == "dynamic":
-        image = PIL.Image.fromarray(data.astype(bool))
-    else:
-        image = PIL.Image.fromarray(data.astype(np.uint8 if int(data.max(initial=0)) < 256 else np.uint16))
-    out = io.BytesIO()
-    image.save(out, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
-    return out.getvalue()
-
-
 def camera_model_parameters(pinhole: Pinhole, model: CameraModel, ftheta: FThetaFit | None = None):
     """NCore's camera model parameters of a global-shutter camera (see :meth:`SequenceWriter.store_camera`)."""
     common = {"resolution": np.array(pinhole.resolution_px, dtype=np.uint64), "shutter_type": ShutterType.GLOBAL}
@@ -222,79 +163,6 @@ def camera_model_parameters(pinhole: Pinhole, model: CameraModel, ftheta: FTheta
     return params
 
 
-class CameraLabelStream:
-    """The labels of one kind for one camera, one per camera frame."""
-
-    def __init__(self, writer: CameraLabelsComponent.Writer, kind: str) -> None:
-        self._writer = writer
-        self._kind = kind
-
-    def store_label(self, data: np.ndarray, timestamp_us: int, generic_meta_data: dict | None = None) -> None:
-        """Store the label of the camera frame ending at ``timestamp_us``, [height,width]: float32
-        metres for ``depth`` (0 = none); bool for ``dynamic``; uint16 instance indices for
-        ``instance`` (0 = none). The masks are PNG-encoded here."""
-        stored = data if self._kind == "depth" else _png(data, self._kind)
-        self._writer.store_label(stored, int(timestamp_us), generic_meta_data or {})
-
-    def set_meta(self, generic_meta_data: dict) -> None:
-        """Replace the component-level metadata (the generator and its parameters; the storage is
-        added here)."""
-        self._writer.set_generic_data({}, {**generic_meta_data, "storage": LABEL_STORAGE[self._kind]})
-
-
-@dataclass(frozen=True)
-class WriteJob:
-    """One writing job: the base components (poses, intrinsics, masks, cuboids), or the frames of
-    the sensors ``sensor_ids`` and the camera labels ``label_ids`` (component instance names)."""
-
-    sensor_ids: tuple[str, ...] = ()
-    base: bool = False
-    label_ids: tuple[str, ...] = ()
-
-
-BASE_JOB = WriteJob(base=True)
-
-
-def independent_parts(
-    jobs: list[WriteJob], camera_ids: list[str], lidar_ids: list[str], profile: Profile, label_ids: list[str] = ()
-) -> list[list[int]]:
-    """Group jobs so that no two groups write to the same component store.
-
-    Returns:
-        lists of job indices; each list can be written by its own :class:`SequenceWriter` (and
-        process). With ``profile="default"`` everything shares one store, so there is one group.
-    """
-    groups = _component_groups(camera_ids, lidar_ids, profile, label_ids)
-    base_groups = {
-        groups.poses_component_group,
-        groups.intrinsics_component_group,
-        groups.masks_component_group,
-        groups.cuboid_track_observations_component_group,
-    }
-    sensor_group = {**groups.camera_component_groups, **groups.lidar_component_groups}
-    parts: list[tuple[set, list[int]]] = []
-    for index, job in enumerate(jobs):
-        touched = set(base_groups) if job.base else {sensor_group.get(sensor) for sensor in job.sensor_ids}
-        touched |= {groups.camera_labels_component_groups.get(label) for label in job.label_ids}
-        overlapping = [part for part in parts if part[0] & touched]
-        merged = (touched.union(*(p[0] for p in overlapping)), sorted([index] + [i for p in overlapping for i in p[1]]))
-        parts = [part for part in parts if not part[0] & touched] + [merged]
-    return sorted((indices for _, indices in parts), key=lambda indices: indices[0])
-
-
-def _component_groups(
-    camera_ids: list[str], lidar_ids: list[str], profile: Profile, label_ids: list[str] = ()
-) -> ComponentGroupAssignments:
-    return ComponentGroupAssignments.create(
-        camera_ids=camera_ids,
-        lidar_ids=lidar_ids,
-        radar_ids=[],
-        point_clouds_ids=[],
-        camera_labels_ids=list(label_ids),
-        profile=profile,
-    )
-
-
 def _observations(cuboids: Cuboids, source: LabelSource) -> Iterator[CuboidTrackObservation]:
     for i in range(len(cuboids)):
         ts = int(cuboids.timestamps_us[i])
@@ -317,8 +185,8 @@ class SequenceWriter:
     """Writes the component stores of one NCore V4 sequence, or a disjoint part of them.
 
     Files: ``<output_dir>/<sequence_id>.ncore4*.zarr[.itar]``. Several writers with the same
-    sequence arguments may write different jobs (see :func:`independent_parts`), e.g. one per
-    process; :func:`write_sequence_meta` joins their parts into ``<sequence_id>.json``.
+    sequence arguments may write different jobs (see ``writer.parts.independent_parts``), e.g. one
+    per process; :func:`write_sequence_meta` joins their parts into ``<sequence_id>.json``.
     With ``base=True`` the writer owns the poses, intrinsics, masks and cuboids components, which
     are always written (empty masks and cuboids when there are none).
     """
@@ -348,7 +216,7 @@ class SequenceWriter:
             label_ids: all camera labels of the sequence (``contract.camera_label_id``; they fix
                 the store layout too).
         """
-        self._groups = _component_groups(camera_ids, lidar_ids, profile, label_ids)
+        self._groups = component_groups(camera_ids, lidar_ids, profile, label_ids)
         self._writer = SequenceComponentGroupsWriter(
             output_dir_path=output_dir,
             store_base_name=sequence_id,
@@ -499,7 +367,7 @@ class SequenceWriter:
             label_id,
             self._groups.camera_labels_component_groups.get(label_id),
             generic_meta_data,
-            descriptor=_label_descriptor(kind, camera_id, source),
+            descriptor=label_descriptor(kind, camera_id, source),
         )
         return CameraLabelStream(writer, kind)
 
