@@ -58,17 +58,19 @@ def remove_tree(path: UPath) -> None:
             path.fs.rm(path.path, recursive=True)
 
 
-def publish(work: UPath, final: UPath) -> None:
+def publish(work: UPath, final: UPath, flushed: bool = False) -> None:
     """Move a finished sequence folder into place, replacing any previous ``final``.
 
-    Local: flushed to disk, then renamed (atomic within one file system). Object store (``work``
+    Local: flushed to disk (unless the caller did, ``flushed``), then renamed (atomic within one
+    file system). Object store (``work``
     is a local staging folder): the files are uploaded, the folder's top-level files (the
     sequence meta ``<log_id>.json`` that readers open first) last; an upload that fails removes
     what it wrote. Either way ``final`` never looks complete before it is.
     """
     remove_tree(final)
     if is_local(final):
-        flush_to_disk(work)
+        if not flushed:
+            flush_to_disk(work)
         work.rename(final)
         _fsync(final.parent.path, os.O_RDONLY | os.O_DIRECTORY)  # the rename itself (not the siblings)
         return

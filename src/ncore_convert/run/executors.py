@@ -47,6 +47,7 @@ class LocalExecutor:
 
     def __init__(self, pool: JobPool) -> None:
         self.pool = pool
+        self._abandoned = False  #: the workers were killed (a stopped run): nothing to join
 
     def __enter__(self) -> LocalExecutor:
         return self
@@ -55,8 +56,6 @@ class LocalExecutor:
         if self._abandoned:
             return  # the workers are killed; joining them could wait on a half-sent message
         self.pool.close()
-
-    _abandoned = False
 
     def abandon(self) -> None:
         self._abandoned = True

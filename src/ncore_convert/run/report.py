@@ -3,9 +3,10 @@ every run on the output folder.
 
 A run merges its entries into the report as it finds it, never writes back what it read at its
 start, so runs that share an output folder (see :mod:`~ncore_convert.run.claims`) keep each other's
-entries. On a file system the merge holds an advisory lock (``flock`` on ``.<report>.lock``) and
-replaces the file atomically (a temporary file of its own, renamed); on object storage it is a
-write conditional on the ETag it read, retried when another run wrote in between.
+entries. On a file system the merge holds an advisory lock (``flock`` on the output folder, or on
+``.<report>.lock`` where a folder cannot be locked) and replaces the file atomically (a temporary
+file of its own, renamed); on object storage it is a write conditional on the ETag it read,
+retried when another run wrote in between.
 """
 
 from __future__ import annotations

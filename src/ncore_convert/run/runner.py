@@ -172,7 +172,7 @@ def convert_one(
         if staging is None:
             flush_to_disk(work)  # the slow part of publishing, before the lock: under it, a rename
         with control.publishing(log_id) if control is not None else contextlib.nullcontext():
-            publish(work, final)
+            publish(work, final, flushed=staging is None)
             result = LogResult(log_id, True, summary=summary)
             if control is not None:
                 control.published[log_id] = result
@@ -319,7 +319,6 @@ def run_logs(
     overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
     counts = {"ok": 0, "failed": 0, "skipped": 0}
     results: list[LogResult] = []
-    recorded: set[str] = set()
 
     def say(lines: list[str]) -> None:
         with tqdm.external_write_mode():  # messages above the bars
@@ -332,7 +331,6 @@ def run_logs(
             input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
             output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
             report.record(result, input_bytes, output_bytes)
-            recorded.add(result.log_id)
             counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
         claims.release(result.log_id)  # after the report holds it: another run re-reads it
         overall.set_postfix(counts, refresh=False)
@@ -372,8 +370,14 @@ def run_logs(
                 finish(result, _lines(result, verbose))
                 if control.stop.is_set():
                     break
-            if control.stop.is_set():
-                _interrupted(executor, control, received, recorded, finish, say, verbose)
+            if control.stop.is_set():  # stop the work in flight, then record what was published before it
+                say([f"{received[0]}: stopping; no new log starts, the logs in flight are abandoned"])
+                with control.publish_lock:  # a publish under way ends first; none starts after
+                    finished = {r.log_id for r in results}
+                    published = [r for log_id, r in control.published.items() if log_id not in finished]
+                executor.abandon()
+                for result in published:
+                    finish(result, _lines(result, verbose))
     overall.close()
     if received:
         raise RunInterrupted(received[0], _in_order(results, log_ids))
@@ -393,17 +397,6 @@ def _lines(result: LogResult, verbose: bool) -> list[str]:
     if (validation := result.summary.validation) is not None:
         lines.append(f"      validated: {validation['checks']} checks passed")
     return lines
-
-
-def _interrupted(executor, control: RunControl, received, recorded, finish, say, verbose) -> None:
-    """After the signal: stop the work in flight, then record every log published before it."""
-    name = received[0] if received else "interrupted"
-    say([f"{name}: stopping; no new log starts, the logs in flight are abandoned"])
-    with control.publish_lock:  # a publish under way ends first; none starts after
-        published = [r for log_id, r in control.published.items() if log_id not in recorded]
-    executor.abandon()
-    for result in published:
-        finish(result, _lines(result, verbose))
 
 
 def _in_order(results: list[LogResult], log_ids: list[str]) -> list[LogResult]:

@@ -41,8 +41,14 @@ MOUNT_TOLERANCE = (0.02, 0.2)  # metres, degrees
 LABEL_TOLERANCE_M = 0.05
 
 
-def _keys_text(keys: list[str]) -> str:
-    return ", ".join(keys[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
+def _keys_text(keys: list[str], sep: str = ", ") -> str:
+    """The first five items joined, and how many more there are."""
+    return sep.join(keys[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
+
+
+def _files_text(damaged: dict[str, str]) -> str:
+    """``file: cause`` of the first five damaged files, and how many more there are."""
+    return _keys_text([f"{path}: {cause}" for path, cause in damaged.items()], sep="; ")
 
 
 def _read_frames(
@@ -75,9 +81,8 @@ def _first_readable(reads: list) -> tuple[object | None, dict[str, str]]:
 def _left_out(agent_dir: UPath, sensor: str, what: str, damaged: dict[str, str], warnings: list[str]) -> dict:
     """A sensor none of whose frames reads: one warning naming the files and their causes; its
     ``sensors_not_written`` record."""
-    files = "; ".join(f"{path}: {cause}" for path, cause in list(damaged.items())[:5])
-    more = f" and {len(damaged) - 5} more" if len(damaged) > 5 else ""
-    warnings.append(f"{agent_dir}: {sensor}: no readable {what} of {len(damaged)} ({files}{more}); sensor not written")
+    files = _files_text(damaged)
+    warnings.append(f"{agent_dir}: {sensor}: no readable {what} of {len(damaged)} ({files}); sensor not written")
     return {"reason": f"no readable {what}", "files": damaged}
 
 
@@ -268,10 +273,9 @@ def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, war
             del agents[agent_id]
     if not agents:
         damaged = {f: c for record in left_out.values() for r in record.values() for f, c in r["files"].items()}
-        listed = "; ".join(f"{f}: {c}" for f, c in list(damaged.items())[:5])
-        more = f" and {len(damaged) - 5} more" if len(damaged) > 5 else ""
         raise SourceError(
-            next(iter(damaged), scenario_dir), f"no agent has a sensor with a readable frame (damaged: {listed}{more})"
+            next(iter(damaged), scenario_dir),
+            f"no agent has a sensor with a readable frame (damaged: {_files_text(damaged)})",
         )
     agents = {a: with_lidar_model(agent, protocol, options, scenario, warnings) for a, agent in agents.items()}
     ego = src.opencood_ego(folders)
