@@ -273,3 +273,13 @@ def test_claims_work_on_a_file_system_without_hard_links(tmp_path, monkeypatch):
     finally:
         a.close()
         b.close()
+
+
+def test_a_claim_taken_as_the_run_stops_is_given_up_at_once(tmp_path):
+    """A worker thread that was starting a log as the run stopped claims it after the claims were
+    closed: the claim is removed again, and the log is not started (a leaked claim would hold the
+    log for a dead run until a rerun on this host takes it over)."""
+    claims = Claims(UPath(tmp_path))
+    claims.close()
+    assert claims.acquire("late") == claims.me
+    assert not claim_path(UPath(tmp_path), "late").exists() and not claims.holds("late")

@@ -96,8 +96,12 @@ class Claims:
         self.close()
 
     def close(self) -> None:
-        self._closed.set()
-        for log_id in list(self._held):
+        """Stop the heartbeat and release every claim held; a claim taken after this (a thread
+        that was starting a log as the run stopped) is given up at once (:meth:`_took`)."""
+        with self._lock:
+            self._closed.set()
+            held = list(self._held)
+        for log_id in held:
             self.release(log_id)
 
     # --- the run's side ---
@@ -143,11 +147,17 @@ class Claims:
             if found is not None and found[0] == self.me and (is_local(path) or found[2] == token):
                 path.unlink()
 
-    def _took(self, log_id: str, token: str | None) -> None:
+    def _took(self, log_id: str, token: str | None) -> Holder | None:
+        """Record a claim this run now holds (None); once the claims are closed, remove it again and
+        answer as if held (``self.me``): the run is ending and starts no log."""
         with self._lock:
-            self._held[log_id] = token
-            self._lost.discard(log_id)
-        return None
+            if not self._closed.is_set():
+                self._held[log_id] = token
+                self._lost.discard(log_id)
+                return None
+        with contextlib.suppress(OSError):
+            claim_path(self.root, log_id).unlink()
+        return self.me
 
     def _beat(self) -> None:
         while not self._closed.wait(HEARTBEAT_S):
