@@ -120,7 +120,7 @@ def child_convert(root: str, out: str, log_id: str, workers: int, cameras: bool,
         subprocess.run(["sync"], check=True)
         wall = time.perf_counter() - t
         stop.set()
-    figures = {"wall_s": wall, "sweeps": s.sweeps, "images": s.images, "points": s.points}
+    figures = {"wall_s": wall, "sweeps": s.frames, "images": s.images, "points": s.points}
     figures.update(lidar_s=s.lidar_seconds, camera_s=s.camera_seconds, peak_rss_mb=peak[0] / 2**20)
     figures.update(cpu_s=sum(cpu.values()) - cpu_before, model_s=s.lidar_model_seconds)
     print(json.dumps(figures))

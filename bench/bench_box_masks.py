@@ -20,10 +20,11 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2.plan import camera_pinhole
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms.boxes import in_box
-from ncore_convert.transforms.camera_labels import box_index
+from ncore_convert.sources import argoverse2_annotations as av2_annotations
+from ncore_convert.transforms.camera.labels import box_index
+from ncore_convert.transforms.camera.visibility import CameraView
 from ncore_convert.transforms.geometry import invert_se3
-from ncore_convert.transforms.visibility import CameraView
+from ncore_convert.transforms.objects.boxes import in_box
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "av2-sample"
 LOG_ID = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
@@ -35,7 +36,7 @@ def ratios(log: UPath) -> list[tuple[str, float, float]]:
     it whole with at least 50 of its points."""
     intrinsics, T_sensor_ego = av2.read_intrinsics(log), av2.read_sensor_extrinsics(log)
     cams = [CameraView(c, 0, invert_se3(T_sensor_ego[c]), camera_pinhole(intrinsics[c])) for c in av2.RING_CAMERAS]
-    boxes = av2.read_annotations(log)
+    boxes = av2_annotations.read_annotations(log)
     out = []
     for ts in av2.list_sweep_timestamps_ns(log):
         points = av2.read_sweep(log, int(ts)).xyz_ego_m.astype(np.float64)

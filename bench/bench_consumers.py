@@ -40,7 +40,7 @@ CAMERAS = {  # name: (fx, fy, width, height), principal point at the image centr
 
 
 def bench_fit(repeat: int) -> None:
-    from ncore_convert.transforms.camera_models import Pinhole, fit_ftheta
+    from ncore_convert.transforms.camera.models import Pinhole, fit_ftheta
 
     print(f"f-theta fit per camera (medians of {repeat})", flush=True)
     for name, (fx, fy, width, height) in CAMERAS.items():
@@ -80,7 +80,7 @@ def speed_rule_ids(observations, classes: list[str]) -> set[str]:
     """The rule before issue 26, restated here only for the comparison: dynamic when the class always
     is, or when the speed of the box centres (median over 5 observations, 2 s baseline) exceeds
     1 km/h anywhere; never for always-static classes."""
-    from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, ALWAYS_STATIC
+    from ncore_convert.transforms.objects.classes import ALWAYS_DYNAMIC, ALWAYS_STATIC
 
     ids = np.asarray(observations.track_ids)
     out = set()
@@ -109,13 +109,14 @@ def speed_rule_ids(observations, classes: list[str]) -> set[str]:
 def bench_dynamic_flag(root: Path, log_id: str, repeat: int) -> None:
     """Per log, the track decision (this rule with its static poses, and the speed rule before it);
     per sweep, reading and ray bundles beside dynamic_flag with either rule's dynamic tracks."""
+    from ncore_convert.transforms.lidar.rays.frames import lidar_frame, point_data
+
     from ncore_convert.converters.argoverse2.lidar import sweep_frame, sweep_times_ns
     from ncore_convert.converters.argoverse2.plan import Argoverse2Options, plan_log
     from ncore_convert.sources import argoverse2 as av2
-    from ncore_convert.transforms import dynamic
     from ncore_convert.transforms.geometry import transform_points
-    from ncore_convert.transforms.labels import AV2_TO_NCORE
-    from ncore_convert.transforms.lidar_frames import lidar_frame, point_data
+    from ncore_convert.transforms.objects import dynamic
+    from ncore_convert.transforms.objects.classes import AV2_TO_NCORE
 
     plan = plan_log(UPath(root), log_id, Argoverse2Options(split="val", camera_ids=()))
     traj, annotations = plan.T_rig_world, plan.inputs.annotations
@@ -206,7 +207,7 @@ def bench_lidar_rgb(root: Path, log_id: str, work: Path, repeat: int) -> None:
     decoding images one at a time and ``DECODE_THREADS`` at a time, interleaved; the colouring's own
     time from the run's counters."""
     from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
-    from ncore_convert.transforms import point_colours
+    from ncore_convert.transforms.camera import colours as point_colours
 
     threads = point_colours.DECODE_THREADS
     seconds: dict[int, list[float]] = {0: [], 1: [], threads: []}  # 0: --no-lidar-rgb
@@ -248,7 +249,7 @@ def bench_ego_masks(work: Path, repeat: int) -> None:
     from ncore_convert.run.pool import JobPool
     from ncore_convert.sources import argoverse2 as av2
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-    from ncore_convert.transforms.ego_mask import EgoBox
+    from ncore_convert.transforms.camera.ego_mask import EgoBox
 
     root = work / "consumers-av2-15s-realistic-body-32-pictures"  # as many distinct pictures as are sampled
     log_id = cached(

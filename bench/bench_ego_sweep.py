@@ -117,7 +117,7 @@ def _run(case: Case, keep: str | None = None) -> list[dict]:
     from ncore_convert.converters.argoverse2 import masks as planning
     from ncore_convert.converters.argoverse2.plan import camera_pinhole
     from ncore_convert.sources import argoverse2 as av2
-    from ncore_convert.transforms.ego_mask import EgoBox
+    from ncore_convert.transforms.camera.ego_mask import EgoBox
 
     with tempfile.TemporaryDirectory() as tmp:
         log_dir, synth_config, true_masks = _log(case, keep or tmp)
@@ -163,7 +163,7 @@ def _run(case: Case, keep: str | None = None) -> list[dict]:
 
 def _without_agreement(planning, log_dir, camera: str, *inputs):
     """The camera's estimate with the split-log agreement not asked."""
-    from ncore_convert.transforms.ego_mask import EgoBox
+    from ncore_convert.transforms.camera.ego_mask import EgoBox
 
     return planning._estimate(log_dir, camera, *inputs, EgoBox(), require_agreement=False)
 

@@ -8,7 +8,7 @@
 3. Per real OPV2V frame (``../shared/data/opv2v-lidar-sample``, ~56k points): the PCD parse beside
    the lidar model's element assignment (nearest laser, nearest azimuth column), and their ratio;
    the rays as the nearest float32 direction and distance beside the bit-exact ones
-   (``transforms.lidar.exact_rays``), and the model measured from 3 frames' points (issue 38).
+   (``transforms.lidar.rays.rays.exact_rays``), and the model measured from 3 frames' points (issue 38).
 
 4. Reading back (issue 29): agent-frames per second through the OpenCOOD view of the converted
    scenario (``views.opencood``: the lidar points, the frame's YAML and its camera PNGs) beside
@@ -111,11 +111,12 @@ def model_cost(repeat: int) -> None:
     assignment; and per agent, measuring the model from 3 frames' points (issue 38)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from conftest import find_opv2v_sample
+    from ncore_convert.transforms.lidar.rays.rays import exact_rays
     from test_carla_lidar import README_PROTOCOL
 
     from ncore_convert.sources.pcd import read_pcd
-    from ncore_convert.transforms import carla, carla_lidar
-    from ncore_convert.transforms.lidar import exact_rays
+    from ncore_convert.transforms import carla
+    from ncore_convert.transforms.lidar.rays import carla as carla_lidar
 
     spec = carla_lidar.CarlaLidarSpec.from_protocol(README_PROTOCOL, 0.05)
     model = carla_lidar.model(spec, np.pi)

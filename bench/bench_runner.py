@@ -136,7 +136,7 @@ def child_memory(root: str, out: str, workers: int, tbv: bool) -> None:
         executor.pool.run([(_ready, ())] * workers)
         wall, results = run_dataset(executor, Path(root), Path(out), tbv)
         workers_peak = max(_vm_hwm_bytes(pid) for pid in process_tree(os.getpid()) if pid != os.getpid())
-    sweeps = sum(r.summary.sweeps for r in results)
+    sweeps = sum(r.summary.frames for r in results)
     lidar_ms = 1e3 * sum(r.summary.lidar_seconds for r in results) / max(1, sweeps)
     figures = {"worker_mb": workers_peak / 2**20, "main_mb": _vm_hwm_bytes(os.getpid()) / 2**20, "s": wall}
     print(json.dumps({**figures, "lidar_ms_per_sweep": lidar_ms}))

@@ -115,6 +115,60 @@ def layer_violations(graph: dict[str, set[str]], top: str) -> list[str]:
     return out
 
 
+#: ``transforms/`` by subject, in the order they may import each other: the shared modules loose at
+#: the top (geometry, time base, noise, ...), then each subpackage, which may import only the shared
+#: modules and the subpackages before it.
+TRANSFORM_SUBJECTS = ("objects", "camera", "lidar")
+MAX_LOOSE_TRANSFORMS = 6  #: modules loose at the top of transforms/ (the shared ones)
+
+
+def transform_rank(module: str, top: str) -> int | None:
+    """0 for a shared module of ``transforms/``, 1 + its index in ``TRANSFORM_SUBJECTS`` for one in a
+    subject's subpackage, None outside ``transforms/`` (or for the package itself)."""
+    if not module.startswith(f"{top}.transforms."):
+        return None
+    subject = module.split(".")[2]
+    return TRANSFORM_SUBJECTS.index(subject) + 1 if subject in TRANSFORM_SUBJECTS else 0
+
+
+def transform_layer_violations(graph: dict[str, set[str]], top: str) -> list[str]:
+    """Imports inside ``transforms/`` against the subject order (``TRANSFORM_SUBJECTS``)."""
+    out = []
+    for module, imported in graph.items():
+        rank = transform_rank(module, top)
+        if rank is None:
+            continue
+        for m in sorted(imported):
+            other = transform_rank(m, top)
+            if other is not None and other > rank:
+                out.append(f"{module} imports {m}")
+    return out
+
+
+def loose_transforms(root: Path) -> list[str]:
+    """The modules at the top of ``transforms/`` (not in a subject's subpackage), ``__init__`` aside."""
+    return sorted(p.stem for p in (root / "transforms").glob("*.py") if p.stem != "__init__")
+
+
+MAX_MODULE_LINES = 450
+#: why a module over the limit is split, not excused (the message of the size rule)
+SPLIT_ADVICE = (
+    "split it where its subjects part (one algorithm, one reader, one stage per module), as writer/ and"
+    " converters/*/inputs.py were; do not raise the limit or list the module as an exception: a module"
+    " this long is read by scrolling, and what it mixes is imported together"
+)
+
+
+def oversized_modules(root: Path, limit: int = MAX_MODULE_LINES) -> dict[str, int]:
+    """Modules of the package at ``root`` longer than ``limit`` lines: module -> lines."""
+    out = {}
+    for path in sorted(root.rglob("*.py")):
+        lines = len(path.read_text().splitlines())
+        if lines > limit:
+            out[module_name(root, path)] = lines
+    return out
+
+
 def ncore_writer_users(trees: dict[str, ast.Module]) -> set[str]:
     """Modules that import an NCore writer class or use a component's ``.Writer``."""
     users = set()
@@ -212,6 +266,98 @@ def own_geometry(trees: dict[str, ast.Module], owners: tuple[str, ...]) -> dict[
     return out
 
 
+#: the box-geometry kernel: the only module that writes a slab test or a box's corner table
+BOX_KERNEL = "ncore_convert.transforms.objects.boxes"
+MIN_LIKE, MAX_LIKE = {"fmin", "minimum", "min", "nanmin"}, {"fmax", "maximum", "max", "nanmax"}
+CORNER_NAMES = {"CORNER_SIGNS", "BOX_EDGES"}
+
+
+def _call_name(node: ast.Call) -> str | None:
+    func = node.func
+    return func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else None
+
+
+def _pairs(scope: ast.AST, names: set[str]) -> dict[frozenset[str], int]:
+    """The unordered argument pairs (as source dumps) of the calls to ``names`` in ``scope`` -> a line."""
+    out = {}
+    for node in ast.walk(scope):
+        if isinstance(node, ast.Call) and _call_name(node) in names and len(node.args) >= 2:
+            out.setdefault(frozenset(ast.dump(a) for a in node.args[:2]), node.lineno)
+    return out
+
+
+def _is_sign_pair(node: ast.expr) -> bool:
+    """A literal pair of opposite numbers, ``(-1, 1)`` or ``[-0.5, 0.5]``: one axis of a corner table."""
+    if not isinstance(node, ast.Tuple | ast.List) or len(node.elts) != 2:
+        return False
+    try:
+        a, b = (ast.literal_eval(e) for e in node.elts)
+    except ValueError:
+        return False
+    return isinstance(a, int | float) and isinstance(b, int | float) and a == -b != 0
+
+
+def own_box_geometry(trees: dict[str, ast.Module]) -> dict[str, set[str]]:
+    """Modules other than the kernel (``BOX_KERNEL``) that write a slab test (in one function, the
+    min and the max of the same two ray parameters: where a ray enters and leaves a slab) or a box's
+    corner table (three nested loops over a sign pair, ``product(..., repeat=3)``, or the kernel's
+    own tables by name), with the line of each."""
+    out: dict[str, set[str]] = {}
+    for name, tree in trees.items():
+        if name == BOX_KERNEL:
+            continue
+        scopes = [n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)] + [tree]
+        for scope in scopes:
+            lows, highs = _pairs(scope, MIN_LIKE), _pairs(scope, MAX_LIKE)
+            for pair in lows.keys() & highs.keys():
+                out.setdefault(name, set()).add(f"slab test at line {min(lows[pair], highs[pair])}")
+        for node in ast.walk(tree):
+            if isinstance(node, ast.comprehension | ast.GeneratorExp | ast.ListComp):
+                generators = getattr(node, "generators", [])
+                if sum(_is_sign_pair(g.iter) for g in generators) >= 3:
+                    out.setdefault(name, set()).add(f"corner table at line {node.lineno}")
+            if isinstance(node, ast.Call) and _call_name(node) == "product":
+                if any(k.arg == "repeat" and getattr(k.value, "value", None) == 3 for k in node.keywords):
+                    out.setdefault(name, set()).add(f"corner table at line {node.lineno}")
+            ident = getattr(node, "id", None) or (node.attr if isinstance(node, ast.Attribute) else None)
+            if ident in CORNER_NAMES or (isinstance(node, ast.alias) and node.name in CORNER_NAMES):
+                out.setdefault(name, set()).add(f"corner table at line {getattr(node, 'lineno', 0)}")
+    return out
+
+
+def calls_to(trees: dict[str, ast.Module], name: str, keyword: str | None = None) -> dict[str, int]:
+    """Modules that call ``name`` (a function, method or class; with ``keyword`` among the call's
+    keywords, if given) -> how many times."""
+    out: dict[str, int] = {}
+    for module, tree in trees.items():
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and _call_name(node) == name:
+                if keyword is None or any(k.arg == keyword for k in node.keywords):
+                    out[module] = out.get(module, 0) + 1
+    return out
+
+
+def counter_classes(trees: dict[str, ast.Module]) -> set[str]:
+    """Modules that define a counter: a class deriving from ``Tally`` directly."""
+    return {
+        module
+        for module, tree in trees.items()
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ClassDef) and any(getattr(b, "id", None) == "Tally" for b in node.bases)
+    }
+
+
+def one_site_per_converter(found: dict[str, int]) -> dict[str, int]:
+    """Of ``calls_to``'s answer, the converter packages (``converters.<dataset>``) that make the call
+    in more than one place: dataset -> call sites."""
+    sites: dict[str, int] = {}
+    for module, n in found.items():
+        parts = module.split(".")
+        if parts[1:2] == ["converters"] and len(parts) > 3:
+            sites[parts[2]] = sites.get(parts[2], 0) + n
+    return {dataset: n for dataset, n in sites.items() if n > 1}
+
+
 @pytest.fixture(scope="module")
 def project():
     return import_graph(PACKAGE)
@@ -227,6 +373,23 @@ def test_layers_import_only_downstream(project):
     assert layer_violations(graph, "ncore_convert") == []
 
 
+def test_transforms_import_by_subject(project):
+    """The shared transforms import no subject; objects (the box kernel) no camera or lidar code; the
+    camera no lidar code; the lidar may use all of them."""
+    graph, _ = project
+    assert transform_layer_violations(graph, "ncore_convert") == []
+
+
+def test_transforms_are_grouped_by_subject():
+    loose = loose_transforms(PACKAGE)
+    assert len(loose) <= MAX_LOOSE_TRANSFORMS, f"{len(loose)} modules loose in transforms/: {loose}"
+
+
+def test_no_module_is_over_the_size_limit():
+    too_long = oversized_modules(PACKAGE)
+    assert too_long == {}, f"modules over {MAX_MODULE_LINES} lines: {too_long}; {SPLIT_ADVICE}"
+
+
 def test_only_the_writer_talks_to_the_ncore_writer(project):
     _, trees = project
     assert {m for m in ncore_writer_users(trees) if not under(m, "ncore_convert.writer")} == set()
@@ -239,7 +402,9 @@ def test_only_readback_opens_sequences(project):
 
 def test_av2_transform_names_stay_in_the_av2_reader(project):
     _, trees = project
-    assert set(av2_transform_names(trees)) == {"ncore_convert.sources.argoverse2"}
+    readers = ("ncore_convert.sources.argoverse2", "ncore_convert.sources.argoverse2_annotations")
+    found = set(av2_transform_names(trees))
+    assert found and found - set(readers) == set()
 
 
 def test_the_conversion_never_imports_torch(project):
@@ -256,6 +421,27 @@ def test_projection_and_box_tests_live_in_the_kernel(project):
     _, trees = project
     found = own_geometry(trees, ("ncore_convert",))
     assert {module for module in found if not under(module, "ncore_convert.transforms")} == set()
+
+
+def test_box_geometry_lives_in_one_kernel(project):
+    """Corners, near-plane cuts, the slab test and points in boxes are written once, in
+    ``transforms/objects/boxes.py``; every other module calls it."""
+    _, trees = project
+    assert own_box_geometry(trees) == {}
+
+
+def test_shared_steps_are_written_once(project):
+    """What both converters do is one helper: a dataset builds its camera views in one place (the
+    lidar colours and the labels share them; ``ColourFrame.of`` adds the picture), every lidar frame
+    is stored through ``converters.common.LidarStore``, the counters are ``converters.common.Counts``,
+    and the read side takes every pose from ``validate.poses``."""
+    _, trees = project
+    assert one_site_per_converter(calls_to(trees, "CameraView")) == {}
+    assert set(calls_to(trees, "ColourFrame")) == set()
+    stores = {m for m in calls_to(trees, "store_frame", "model_element") if not under(m, "ncore_convert.writer")}
+    assert stores == {"ncore_convert.converters.common"}
+    assert counter_classes(trees) == {"ncore_convert.converters.common"}
+    assert set(calls_to(trees, "evaluate_poses")) == {"ncore_convert.validate.poses"}
 
 
 def test_the_checks_find_known_violations(tmp_path):
@@ -285,6 +471,28 @@ def test_the_checks_find_known_violations(tmp_path):
             "u = fx * xyz[:, 0] / xyz[:, 2] + cx\ninside = np.all(np.abs(local) <= half, axis=1)\n"
             "near = (np.abs(p - c) <= r).all(axis=1)\nt = (g - o[:, 2]) / d[:, 2]\n"
         ),
+        # a slab test, a corner table, the kernel's table by name, and transforms importing upwards
+        "converters/slab.py": (
+            "def enter(o, d, lo, hi):\n    t1, t2 = (lo - o) / d, (hi - o) / d\n"
+            "    return np.fmax(np.fmin(t1, t2), 0), np.fmin(np.fmax(t1, t2), 9)\n"
+        ),
+        "validate/corners.py": (
+            "signs = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]\n"
+            "from ncore_convert.transforms.objects.boxes import CORNER_SIGNS\n"
+        ),
+        "transforms/objects/__init__.py": "",
+        "transforms/objects/box.py": "from ncore_convert.transforms.camera import view\n",
+        "transforms/camera/__init__.py": "",
+        "transforms/camera/view.py": "x = [min(a, b) for a in (0, 1)]\ny = max(a, c)\n",
+        "transforms/noise.py": "from ncore_convert.transforms.camera.view import x\n",
+        # a second camera view, a lidar stored by hand, a counter of its own, a pose read directly
+        "converters/ds/__init__.py": "",
+        "converters/ds/colour.py": "v = CameraView(cam, t, T, pinhole)\nf = ColourFrame(cam, t, T, p, load_rgb=g)\n",
+        "converters/ds/labels.py": (
+            "v = CameraView(cam, t, T, pinhole)\nlidar.store_frame(rays, meta, model_element=m)\n"
+            "class Counts(Tally):\n    frames: int = 0\n"
+        ),
+        "validate/look.py": "T = loader.pose_graph.evaluate_poses('rig', 'world', t)\n",
     }
     for rel, text in files.items():
         (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -304,6 +512,23 @@ def test_the_checks_find_known_violations(tmp_path):
     assert loader_constructors(trees) == {"ncore_convert.validate.check"}
     assert av2_transform_names(trees) == {"ncore_convert.transforms.geo": {"city_SE3_ego"}}
     assert torch_importers(trees) == {"ncore_convert.converters.c"}
+    assert one_site_per_converter(calls_to(trees, "CameraView")) == {"ds": 2}
+    assert set(calls_to(trees, "ColourFrame")) == {"ncore_convert.converters.ds.colour"}
+    assert set(calls_to(trees, "store_frame", "model_element")) == {"ncore_convert.converters.ds.labels"}
+    assert counter_classes(trees) == {"ncore_convert.converters.ds.labels"}
+    assert set(calls_to(trees, "evaluate_poses")) == {"ncore_convert.validate.look"}
+    assert own_box_geometry(trees) == {
+        "ncore_convert.converters.slab": {"slab test at line 3"},
+        "ncore_convert.validate.corners": {"corner table at line 1", "corner table at line 2"},
+    }
+    assert sorted(transform_layer_violations(graph, "ncore_convert")) == [
+        "ncore_convert.transforms.noise imports ncore_convert.transforms.camera.view",
+        "ncore_convert.transforms.objects.box imports ncore_convert.transforms.camera.view",
+    ]
+    assert loose_transforms(pkg) == ["geo", "noise"]
+    (pkg / "converters" / "long.py").write_text("x = 1\n" * (MAX_MODULE_LINES + 1))
+    (pkg / "converters" / "at_limit.py").write_text("x = 1\n" * MAX_MODULE_LINES)
+    assert oversized_modules(pkg) == {"ncore_convert.converters.long": MAX_MODULE_LINES + 1}
     assert own_geometry(trees, ("ncore_convert.converters",)) == {
         "ncore_convert.converters.d": {"projection at line 1", "box test at line 2", "box test at line 3"}
     }

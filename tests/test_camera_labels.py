@@ -1,10 +1,10 @@
-"""Depth labels (``transforms.camera_labels.depth_z``) against the generator's truth.
+"""Depth labels (``transforms.camera.labels.depth_z``) against the generator's truth.
 
 One world: the synthetic AV2 scene (ground, buildings, parked and moving cars, pedestrians). A
 VLP-32C on the roof fires one 100 ms sweep through it (``synth.argoverse2.simulate_unit``); a
 camera 1.6 m ahead of and 0.5 m below the lidar, at its own time inside the sweep, labels the
 sweep's points. The truth of a labelled pixel is the ray cast from the camera through the pixel's
-centre at the frame's time (``synth.scene.cast_rays``): the surface the camera really sees there.
+centre at the frame's time (``synth.raycast.cast_rays``): the surface the camera really sees there.
 """
 
 from __future__ import annotations
@@ -18,13 +18,14 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.synth.argoverse2 import R_EGO_CAM_FORWARD, SynthConfig, simulate_unit, write_log
-from ncore_convert.synth.scene import cast_rays, make_scene
-from ncore_convert.transforms.camera_labels import DYNAMIC_DT_US, box_index, depth_z
-from ncore_convert.transforms.camera_models import Pinhole
-from ncore_convert.transforms.dynamic import HOLD_S
+from ncore_convert.synth.raycast import cast_rays
+from ncore_convert.synth.scene import make_scene
+from ncore_convert.transforms.camera.labels import DYNAMIC_DT_US, box_index, depth_z
+from ncore_convert.transforms.camera.models import Pinhole
+from ncore_convert.transforms.camera.visibility import CameraView
 from ncore_convert.transforms.geometry import invert_se3
-from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, AV2_TO_NCORE
-from ncore_convert.transforms.visibility import CameraView
+from ncore_convert.transforms.objects.classes import ALWAYS_DYNAMIC, AV2_TO_NCORE
+from ncore_convert.transforms.objects.dynamic import HOLD_S
 from ncore_convert.validate.sequence import validate_sequence
 
 T0_NS = 1_000_000_000
@@ -539,13 +540,14 @@ def test_real_av2_vehicles_own_points_fall_in_their_box_pictures(av2_sample_root
     the converter's pixel convention: a wrong rotation, axis order or principal point fails it."""
     from ncore_convert.converters.argoverse2.plan import camera_pinhole
     from ncore_convert.sources import argoverse2 as av2
-    from ncore_convert.transforms.boxes import in_box
+    from ncore_convert.sources import argoverse2_annotations as av2_annotations
+    from ncore_convert.transforms.objects.boxes import in_box
 
     log = av2.log_dir(UPath(av2_sample_root), "val", "7fab2350-7eaf-3b7e-a39d-6937a4c1bede")
     intrinsics, T_sensor_ego, boxes = (
         av2.read_intrinsics(log),
         av2.read_sensor_extrinsics(log),
-        av2.read_annotations(log),
+        av2_annotations.read_annotations(log),
     )
     shares = []
     for ts in av2.list_sweep_timestamps_ns(log):
@@ -577,7 +579,7 @@ def test_the_mask_box_check_projects_pinholes_and_the_converters_ftheta():
     run)."""
     from dataclasses import replace
 
-    from ncore_convert.transforms.camera_models import FTheta, fit_ftheta
+    from ncore_convert.transforms.camera.models import FTheta, fit_ftheta
     from ncore_convert.validate.labels import stored_camera
     from ncore_convert.writer import camera_model_parameters
 

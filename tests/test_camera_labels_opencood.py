@@ -1,7 +1,7 @@
 """OPV2V / V2XSet camera labels (``--camera-labels depth,dynamic,instance``, ``GT_SYNTHETIC``).
 
 The truth: the synthetic scenario's own scene (the tick's vehicles, pillars and buildings) ray-cast
-from each camera at the tick (``synth.scene.cast_rays``), and the raw PCD points projected into the
+from each camera at the tick (``synth.raycast.cast_rays``), and the raw PCD points projected into the
 pictures as OpenCOOD does it (the YAML's ``extrinsic``: lidar -> camera, UE4 axes; its ``intrinsic``
 K), independently of the converter's own poses and projection. The real OPV2V frames take a
 synthetic agent's place for that last check.
@@ -23,7 +23,7 @@ from upath import UPath
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.sources.opencood import load_yaml
 from ncore_convert.synth import opencood as synth
-from ncore_convert.synth.scene import cast_rays
+from ncore_convert.synth.raycast import cast_rays
 from ncore_convert.validate.sequence import validate_sequence
 
 KINDS = ("depth", "dynamic", "instance")

@@ -17,8 +17,9 @@ from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.evaluate import evaluate_lidar_model
 from ncore_convert.sources.pcd import read_pcd, red_from_rgb, write_pcd
 from ncore_convert.synth import opencood as synth
-from ncore_convert.transforms import carla, carla_lidar
-from ncore_convert.transforms.lidar_model import angle_between_rad
+from ncore_convert.transforms import carla
+from ncore_convert.transforms.lidar import carla as carla_lidar
+from ncore_convert.transforms.lidar.model import angle_between_rad
 from ncore_convert.validate.sequence import validate_sequence
 
 #: The example protocol of the sample's README (a real OPV2V data_protocol.yaml's CAV lidar).

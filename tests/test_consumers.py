@@ -42,15 +42,15 @@ from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.sources.argoverse2 import read_intrinsics
 from ncore_convert.synth import opencood as synth_opencood
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-from ncore_convert.transforms import dynamic
-from ncore_convert.transforms.dynamic import (
+from ncore_convert.transforms.objects import dynamic
+from ncore_convert.transforms.objects.classes import AV2_TO_NCORE
+from ncore_convert.transforms.objects.dynamic import (
     TrackObservations,
     box_motion,
     classify_tracks,
     static_pose,
     track_motion,
 )
-from ncore_convert.transforms.labels import AV2_TO_NCORE
 from ncore_convert.validate.readback import world_points
 from ncore_convert.validate.sequence import validate_sequence
 

@@ -22,10 +22,10 @@ from ncore_convert import contract
 from ncore_convert.converters.argoverse2 import Argoverse2Options
 from ncore_convert.synth.argoverse2 import SynthConfig, annotated_boxes
 from ncore_convert.synth.scene import Box, make_scene
-from ncore_convert.transforms import dynamic
-from ncore_convert.transforms.dynamic import TrackObservations, classify_tracks
 from ncore_convert.transforms.geometry import invert_se3
-from ncore_convert.transforms.labels import AV2_TO_NCORE
+from ncore_convert.transforms.objects import dynamic
+from ncore_convert.transforms.objects.classes import AV2_TO_NCORE
+from ncore_convert.transforms.objects.dynamic import TrackObservations, classify_tracks
 
 MOVES_M = 4.0 - 1e-6  #: a truly moving track moved at least this far while annotated (the creeper: 4 m)
 UNITS = ("up_lidar", "down_lidar")

@@ -25,7 +25,7 @@ from ncore_convert.converters.argoverse2 import masks as ego_mask_planning
 from ncore_convert.converters.argoverse2.plan import camera_pinhole
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.synth.ego import EGO_CAMERAS
-from ncore_convert.transforms import ego_mask
+from ncore_convert.transforms.camera import ego_mask
 from ncore_convert.validate.report import Report
 from ncore_convert.validate.sequence import _check_ego_mask, validate_sequence
 

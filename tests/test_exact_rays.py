@@ -1,4 +1,4 @@
-"""Issue 38: rays that give the source's float32 points back bit for bit (``transforms.lidar.exact_rays``).
+"""Issue 38: rays that give the source's float32 points back bit for bit (``transforms.lidar.rays.exact_rays``).
 
 NCore stores a float32 unit direction and a float32 distance; a reader multiplies them (float32). The
 truth here is the input itself: every point's product must be its own bits, except the listed ones,
@@ -15,7 +15,7 @@ from hypothesis.extra.numpy import arrays
 from upath import UPath
 
 from ncore_convert.sources.pcd import read_pcd
-from ncore_convert.transforms.lidar import exact_rays, ray_bundle
+from ncore_convert.transforms.lidar.rays import exact_rays, ray_bundle
 
 
 def check(xyz: np.ndarray, max_inexact_share: float) -> np.ndarray:

@@ -25,6 +25,7 @@ from upath import UPath
 
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import argoverse2_annotations as av2_annotations
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.pcd import read_pcd, read_pcd_header
 
@@ -240,7 +241,7 @@ AV2_READERS = {
     "sweep": lambda log, stamp: av2.read_sweep(log, stamp),
     "TbV sweep": lambda log, stamp: av2.read_sweep(log, stamp, with_offsets=False),
     "poses": lambda log, stamp: av2.read_ego_poses(log),
-    "annotations": lambda log, stamp: av2.read_annotations(log),
+    "annotations": lambda log, stamp: av2_annotations.read_annotations(log),
 }
 
 

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
 from ncore_convert.transforms.geometry import Trajectory, invert_se3, se3_from_quat_wxyz, transform_points
-from ncore_convert.transforms.lidar import (
+from ncore_convert.transforms.lidar.rays import (
     MIN_RANGE_M,
     beam_elevation_spread_rad,
     decide_unit_split,

@@ -15,7 +15,7 @@ from ncore_convert.cli import cli
 from ncore_convert.converters.argoverse2 import Argoverse2Options
 from ncore_convert.evaluate import evaluate_lidar_model
 from ncore_convert.synth.argoverse2 import UNIT_SPIN, SynthConfig
-from ncore_convert.transforms import vlp32c
+from ncore_convert.transforms.lidar import vlp32c
 
 UNITS = ("up_lidar", "down_lidar")
 
@@ -62,7 +62,7 @@ def test_a_single_sweep_log_gets_a_model(tmp_path):
     converted = synth_and_convert(
         tmp_path, SynthConfig(seconds=0.1, seed=4, camera_fps=0), Argoverse2Options(split="val", camera_ids=())
     )
-    assert converted.summary.sweeps == 1
+    assert converted.summary.frames == 1
     for unit in UNITS:
         assert evaluate_lidar_model(converted.loader, unit).far_mean_deg <= 0.008
 
@@ -103,7 +103,7 @@ def test_evaluate_command_fails_clearly_without_a_model(tmp_path):
 
 
 def test_column_time_remap_unwraps_and_recovers_phase_and_rate():
-    from ncore_convert.transforms.lidar_model import column_time_remap
+    from ncore_convert.transforms.lidar.model import column_time_remap
 
     rng = np.random.default_rng(3)
     n, rate = 28_928, 28_928 * 10.02  # columns per second of a slightly fast spin

@@ -16,6 +16,7 @@ from ncore_convert.contract import MAP_GROUND_HEIGHT, MAP_META, MAP_VECTOR_JSON
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import argoverse2_map as av2_map
 
 
 def stored_map(loader) -> tuple[bytes, np.ndarray, dict]:
@@ -36,7 +37,7 @@ def ground_height_at(raster: np.ndarray, sim2: dict, xy_city_m: np.ndarray) -> n
 
 
 def test_real_map_round_trips_exactly(real_log, av2_sample_root):
-    source = av2.read_log_map(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
+    source = av2_map.read_log_map(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
     vector, raster, meta = stored_map(real_log.loader)
     assert vector == source.vector_map_json and json.loads(vector) == json.loads(source.vector_map_json)
     assert raster.dtype == np.float16 and raster.shape == (785, 880)
@@ -56,7 +57,7 @@ def test_real_map_sits_under_the_converted_trajectory(real_log, av2_sample_root)
     ego_global = (T_world_global @ T_rig_world.astype(np.float64))[:, :3, 3]
     height = ego_global[:, 2] - ground_height_at(raster, meta["img_Sim2_city"], ego_global[:, :2])
     _, T_ego_city = av2.read_ego_poses(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
-    source = av2.read_log_map(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
+    source = av2_map.read_log_map(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
     xyz = T_ego_city[:, :3, 3]
     source_height = xyz[:, 2] - ground_height_at(source.ground_height_m, source.img_Sim2_city, xyz[:, :2])
     assert np.isfinite(height).mean() > 0.95
@@ -92,7 +93,7 @@ def test_bad_map_files_are_named_in_the_error(av2_sample_root, tmp_path, damage,
         path.chmod(0o644)
     damage(log_dir / "map")
     with pytest.raises(SourceError, match="map") as err:
-        av2.read_log_map(UPath(log_dir))
+        av2_map.read_log_map(UPath(log_dir))
     assert cause in str(err.value)
 
 
@@ -100,7 +101,10 @@ def test_synthetic_map_files_match_the_real_format(av2_sample_root, tmp_path):
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     truth = write_log(UPath(tmp_path), SynthConfig(seconds=0.3, seed=3, camera_fps=0, tbv=True))
-    synth, real = av2.read_log_map(truth.log_dir), av2.read_log_map(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG))
+    synth, real = (
+        av2_map.read_log_map(truth.log_dir),
+        av2_map.read_log_map(UPath(av2_sample_root / "val" / AV2_SAMPLE_LOG)),
+    )
     synth_vector, real_vector = json.loads(synth.vector_map_json), json.loads(real.vector_map_json)
     assert list(synth_vector) == list(real_vector)
     for kind in real_vector:

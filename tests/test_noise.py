@@ -21,7 +21,8 @@ from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.noise_config import check_unique, make_setting, read_noise_config
-from ncore_convert.synth.opencood import ScenarioTruth, SynthConfig, carla_pose_matrix, write_dataset
+from ncore_convert.synth.carla import carla_pose_matrix
+from ncore_convert.synth.opencood import ScenarioTruth, SynthConfig, write_dataset
 from ncore_convert.transforms import noise
 from ncore_convert.transforms.noise import NoiseSetting
 

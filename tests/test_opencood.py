@@ -21,14 +21,8 @@ from upath import UPath
 from ncore_convert.converters.opencood import OpenCoodOptions, ScenarioSummary, convert_scenario
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import opencood as src
-from ncore_convert.synth.opencood import (
-    PILLAR_DIMS_M,
-    ScenarioTruth,
-    SynthConfig,
-    carla_pose_matrix,
-    carla_rotation,
-    write_dataset,
-)
+from ncore_convert.synth.carla import PILLAR_DIMS_M, carla_pose_matrix, carla_rotation
+from ncore_convert.synth.opencood import ScenarioTruth, SynthConfig, write_dataset
 
 #: 80 ms between dumped frames: timestamps must come from the keys and data_protocol.yaml, not 100 ms
 CONFIG = SynthConfig(

@@ -55,8 +55,8 @@ def test_two_processes_write_the_same_bytes_as_one(camera_root, pool, tmp_path):
         assert one[name] == two[name], name
     expected_frames = len(truth.sweeps) + truth.n_images
     assert inline_frames == parallel_frames == expected_frames
-    assert (inline.sweeps, inline.images, inline.cuboids, inline.points) == (
-        parallel.sweeps,
+    assert (inline.frames, inline.images, inline.cuboids, inline.points) == (
+        parallel.frames,
         parallel.images,
         parallel.cuboids,
         parallel.points,

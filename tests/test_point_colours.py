@@ -1,5 +1,5 @@
 """Per-point lidar colours (issue 27) on an analytic scene: one world that both the camera and the
-lidar see, ray-cast exactly (``synth.scene.cast_rays``), so every point's true colour is known.
+lidar see, ray-cast exactly (``synth.raycast.cast_rays``), so every point's true colour is known.
 
 The scene: a checkered ground (5 m squares, two colours), a wall, a parked car in front of it and a
 car driving across. The lidar sits 1.2 m left of and 0.6 m above the camera, so it sees parts of
@@ -11,9 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ncore_convert.synth.scene import Box, EgoMotion, Scene, cast_rays
-from ncore_convert.transforms.camera_models import Pinhole
-from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, FILL_RGB, ColourFrame, point_colours
+from ncore_convert.synth.raycast import cast_rays
+from ncore_convert.synth.scene import Box, EgoMotion, Scene
+from ncore_convert.transforms.camera.colours import DYNAMIC_DT_US, FILL_RGB, ColourFrame, point_colours
+from ncore_convert.transforms.camera.models import Pinhole
 
 GROUND_Z = 0.0
 WIDTH, HEIGHT, FOCAL = 720, 540, 450.0
@@ -174,7 +175,7 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
     (``ColourFrame.solids``) tells that the wall behind it is hidden."""
     from dataclasses import replace
 
-    from ncore_convert.synth.scene import render, surface_rgb
+    from ncore_convert.synth.raycast import render, surface_rgb
 
     camera_m, lidar_m = np.array([0.0, 0.0, 1.0]), np.array([-3.0, 0.0, 2.2])
     car = _box((3.2, 0.0, 0.75), (4.0, 1.9, 1.5))
@@ -242,7 +243,7 @@ def test_av2_lidar_rgb_on_a_rendered_world(tmp_path):
     from ncore_convert.converters.argoverse2 import Argoverse2Options
     from ncore_convert.sources.argoverse2 import read_intrinsics
     from ncore_convert.synth.argoverse2 import SynthConfig
-    from ncore_convert.synth.scene import box_colours, surface_rgb
+    from ncore_convert.synth.raycast import box_colours, surface_rgb
 
     config = SynthConfig(seconds=1.0, seed=5, camera_fps=10, world="render", keep_truth=True)
     run = synth_and_convert(tmp_path, config, Argoverse2Options(split="val", lidar_rgb=True, ego_masks="none"))

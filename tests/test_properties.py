@@ -31,7 +31,7 @@ from ncore_convert.transforms.geometry import (
     se3_from_quat_wxyz,
     transform_points,
 )
-from ncore_convert.transforms.lidar import decompensate
+from ncore_convert.transforms.lidar.rays import decompensate
 
 PROPERTY = settings(max_examples=300, deadline=None)
 
@@ -190,7 +190,7 @@ cloud_coords = st.one_of(
 def test_the_point_grid_finds_exactly_the_points_within_reach(xyz, centre, reach, seed):
     """``PointGrid.near`` returns every row within ``reach`` of the centre on all three axes and no
     other: the brute-force test over all points (a few centres on points of the cloud itself)."""
-    from ncore_convert.transforms.boxes import PointGrid
+    from ncore_convert.transforms.objects.boxes import PointGrid
 
     grid = PointGrid(xyz)
     rng = np.random.default_rng(seed)

@@ -1,4 +1,4 @@
-"""The synthetic generator's ray caster (``synth.scene.cast_rays``), which culls by azimuth and by each
+"""The synthetic generator's ray caster (``synth.raycast.cast_rays``), which culls by azimuth and by each
 box's bounding sphere before the exact slab test, against a brute-force reference that tests every
 ray against the ground and every box: the same first hit for any scene, from one shared origin (a
 camera) and from many (a moving lidar), with boxes that move during the rays' times."""
@@ -9,7 +9,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ncore_convert.synth.scene import Box, Scene, cast_rays
+from ncore_convert.synth.raycast import cast_rays
+from ncore_convert.synth.scene import Box, Scene
 
 MAX_RANGE_M = 80.0
 GROUND_Z_M = -0.3

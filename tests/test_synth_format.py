@@ -11,7 +11,7 @@ from conftest import AV2_SAMPLE_LOG
 
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth import ego
-from ncore_convert.transforms import vlp32c
+from ncore_convert.transforms.lidar import vlp32c
 
 TABLES = [
     "city_SE3_egovehicle.feather",

@@ -17,6 +17,7 @@ from upath import UPath
 from ncore_convert import contract
 from ncore_convert.cli import cli
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import argoverse2_map as av2_map
 
 
 def assert_timing_accuracy(errors_ms: np.ndarray) -> None:
@@ -156,7 +157,7 @@ def test_synthetic_tbv_map_round_trips_exactly(synth_tbv):
     from test_maps import stored_map
 
     truth, summary, loader = synth_tbv
-    source = av2.read_log_map(truth.log_dir)
+    source = av2_map.read_log_map(truth.log_dir)
     vector, raster, meta = stored_map(loader)
     assert summary.maps == 1 and vector == source.vector_map_json
     assert raster.tobytes() == source.ground_height_m.tobytes() and np.isnan(raster).any()

@@ -27,7 +27,7 @@ from ncore_convert.contract import (
 from ncore_convert.converters.common import PRESET_DEFAULTS
 from ncore_convert.errors import SourceError
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
-from ncore_convert.transforms.ego_mask import EgoBox
+from ncore_convert.transforms.camera.ego_mask import EgoBox
 from ncore_convert.transforms.noise import ASYNC_MODES, DOFS, MODELS, PROCESSES
 
 

@@ -74,7 +74,7 @@ EGO_MASK_MAX_FRACTION = 0.5
 DYNAMIC_FLAG = "dynamic_flag"  #: int8 [N]: 1 = the point lies in a dynamic track's box grown by 0.5 m
 LIDAR_RGB = "rgb"  #: uint8 [N,3]: the point's colour from the cameras (3DGRUT's ``lidar_color_generic_data_name``)
 #: uint32 [K], present when K > 0: the rays whose float32 ``direction * distance`` is not the source file's point
-#: (OpenCOOD: the few with no unit direction and distance that multiply to it; transforms.lidar.exact_rays)
+#: (OpenCOOD: the few with no unit direction and distance that multiply to it; transforms.lidar.rays.exact_rays)
 SOURCE_XYZ_INDEX = "source_xyz_index"
 #: float32 [K,3]: those rays' points as the source file has them, in the (right-handed) sensor frame, metres
 SOURCE_XYZ = "source_xyz"

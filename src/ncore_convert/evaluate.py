@@ -12,7 +12,7 @@ import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import RowOffsetStructuredSpinningLidarModelParameters
 
-from ncore_convert.transforms.lidar_model import SpinningLidarModel, angle_between_rad
+from ncore_convert.transforms.lidar.model import SpinningLidarModel, angle_between_rad
 
 
 @dataclass

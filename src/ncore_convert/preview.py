@@ -26,12 +26,12 @@ from upath import UPath
 from ncore_convert.contract import DEFAULT_INSTANCE, EGO_MASK
 from ncore_convert.validate.coregister import scenario_lidars
 from ncore_convert.validate.cuboids import CuboidColumns, read_cuboids
+from ncore_convert.validate.poses import sensor_poses
 from ncore_convert.validate.readback import (
     box_corners_world,
     boxes_at,
     open_sequence,
     read_manifest,
-    sensor_poses,
     world_points,
 )
 
@@ -84,7 +84,7 @@ def project_into_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xy
     camera = loader.get_camera_sensor(camera_id)
     model = camera_model_from_parameters(camera.model_parameters, device="cpu", dtype=torch.float64)
     frame_us = camera.frames_timestamps_us[frame].astype(np.uint64)  # (start, end)
-    T_camera_world = loader.pose_graph.evaluate_poses(camera_id, "world", frame_us).astype(np.float64)
+    T_camera_world = sensor_poses(loader, camera_id, "world", frame_us)
     T_world_camera = np.linalg.inv(T_camera_world)  # NCore's projection takes world -> sensor poses
     in_front = np.einsum("ij,nj->ni", T_world_camera[1, :3, :3], xyz_world_m)[:, 2] + T_world_camera[1, 2, 3] > 0.1
     candidates = np.flatnonzero(in_front)
@@ -107,7 +107,7 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
     image = camera.get_frame_image_array(frame)
     pixels, index = project_into_camera(loader, camera_id, frame, xyz_world_m)
     frame_us = camera.frames_timestamps_us[frame].astype(np.uint64)
-    centre = loader.pose_graph.evaluate_poses(camera_id, "world", frame_us[1:])[0][:3, 3]
+    centre = sensor_poses(loader, camera_id, "world", frame_us[1:])[0][:3, 3]
     range_m = np.linalg.norm(xyz_world_m[index] - centre, axis=1)
     height, width = image.shape[:2]
     fig = Figure(figsize=(12, 12 * height / width + 0.6), dpi=DPI)
@@ -228,11 +228,11 @@ def _footprint(corners: np.ndarray) -> np.ndarray:
 def draw_bev(loader: SequenceLoaderV4, cuboids: CuboidColumns, t_us: int, xyz: np.ndarray, png: UPath) -> None:
     """Bird's-eye view of ``world`` around the ego at ``t_us``: the lidar points (world, float64 [N,3])
     by height, the cuboids of that sweep, the ego trajectory."""
-    T_rig_world = loader.pose_graph.evaluate_poses("rig", "world", np.array([t_us], dtype=np.uint64))[0]
+    T_rig_world = sensor_poses(loader, "rig", "world", np.array([t_us]))[0]
     pose_times = np.unique(
         np.concatenate([loader.get_lidar_sensor(s).frames_timestamps_us[:, 1] for s in loader.lidar_ids])
     )
-    trajectory = loader.pose_graph.evaluate_poses("rig", "world", pose_times.astype(np.uint64))[:, :2, 3]
+    trajectory = sensor_poses(loader, "rig", "world", pose_times)[:, :2, 3]
     near = np.all(np.abs(xyz[:, :2] - T_rig_world[:2, 3]) < BEV_HALF_SIZE_M, axis=1)
     fig = Figure(figsize=(10, 9.4), dpi=DPI)
     ax = fig.add_axes((0.08, 0.06, 0.78, 0.86))

@@ -4,12 +4,13 @@ counters of a conversion."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from upath import UPath
 
 from ncore_convert.contract import PRESETS, CameraModel, ClassNames, CuboidLabelSource, Preset, WorldGlobalMode
+from ncore_convert.transforms.lidar.frames import LidarCounts, StoredRays
 
 
 @dataclass(frozen=True)
@@ -93,3 +94,57 @@ class Tally:
         counted = next(c for c in type(self).__mro__ if Tally in c.__bases__)
         for f in fields(counted):
             setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+
+@dataclass
+class Counts(Tally):
+    """What a conversion, or one writer part of it, produced; both datasets' summaries derive from
+    it. Seconds are per-process path times."""
+
+    frames: int = 0  #: lidar frames (AV2: sweeps; OPV2V/V2XSet: every agent's frames)
+    points: int = 0
+    points_not_stored: int = 0
+    images: int = 0
+    cuboids: int = 0
+    maps: int = 0
+    lidar_seconds: float = 0.0  #: read + decompensate + write of all lidar frames
+    dynamic_flag_seconds: float = 0.0  #: of which: dynamic_flag of every frame
+    colour_seconds: float = 0.0  #: of which: per-point rgb of every frame (decoding included)
+    camera_seconds: float = 0.0  #: read + write of all images
+    camera_labels: int = 0  #: camera labels written (``--camera-labels``)
+    label_seconds: float = 0.0  #: making and storing the camera labels
+    warnings: list[str] = field(default_factory=list)
+
+
+class LidarStore:
+    """One lidar's stream as every converter fills it: each frame stored with its metadata, model
+    elements and generic data, and counted; at the end, the lidar's figures in its metadata and in
+    the conversion's :class:`Counts`, and a warning for the points not stored.
+
+    Args:
+        stream: the writer's lidar stream (``SequenceWriter.add_lidar``).
+        coloured: the points are coloured (``--lidar-rgb`` with cameras): the metadata gets the
+            coloured-point count.
+    """
+
+    def __init__(self, stream, coloured: bool) -> None:
+        self.stream, self.coloured, self.tally = stream, coloured, LidarCounts()
+
+    def store(self, frame: StoredRays, frame_meta: dict, generic_data: dict | None = None) -> None:
+        """Store one frame (``generic_data`` default: the frame's own) and count it."""
+        self.tally.add(frame)
+        generic = frame.generic if generic_data is None else generic_data
+        self.stream.store_frame(frame.rays, frame_meta, model_element=frame.model_elements, generic_data=generic)
+
+    def finish(self, meta: dict, counts: Counts, where: str, kept: str = "") -> None:
+        """Set the lidar's last metadata (``meta`` and the coloured-point count), add its figures to
+        ``counts``, and warn of its points not stored (``where``: the lidar or its folder; ``kept``:
+        where they are kept instead, if anywhere)."""
+        self.stream.set_meta({**meta, **({"rgb_coloured_points": self.tally.coloured} if self.coloured else {})})
+        counts.points += self.tally.stored
+        counts.points_not_stored += self.tally.not_stored
+        if self.tally.not_stored:
+            counts.warnings.append(
+                f"{where}: {self.tally.not_stored} lidar points at zero range or with non-finite coordinates"
+                f" not stored as rays{f' ({kept})' if kept else ''}"
+            )

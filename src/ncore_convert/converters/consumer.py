@@ -11,9 +11,9 @@ import numpy as np
 from ncore_convert import contract
 from ncore_convert.contract import CameraModel, ClassNames, CuboidLabelSource, WorldGlobalMode
 from ncore_convert.converters.common import ConsumerOptions
-from ncore_convert.transforms import dynamic, labels
-from ncore_convert.transforms.camera_models import FThetaFit, Pinhole, fit_ftheta
+from ncore_convert.transforms.camera.models import FThetaFit, Pinhole, fit_ftheta
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
+from ncore_convert.transforms.objects import classes, dynamic
 from ncore_convert.transforms.timebase import clip_window_us
 
 
@@ -131,11 +131,11 @@ def _motion_meta(
     )
     return {
         contract.DYNAMIC_TRACKS: {t: m.as_meta() for t, m in motion.items() if m.dynamic},
-        "dynamic_rule": f"class always dynamic ({', '.join(sorted(labels.ALWAYS_DYNAMIC))}); else {speeds}the box"
+        "dynamic_rule": f"class always dynamic ({', '.join(sorted(classes.ALWAYS_DYNAMIC))}); else {speeds}the box"
         f" centres (median over {dynamic.MEDIAN_WINDOW} observations) moved: net displacement between the medians"
         f" of the first and last {dynamic.END_WINDOW_S:g} s (a quarter of a track shorter than 2 s) >"
         f" {dynamic.NET_DYNAMIC_M:g} m, or a centre more than {dynamic.DEVIATION_DYNAMIC_M:g} m from the track's"
-        f" median centre; never: {', '.join(sorted(labels.ALWAYS_STATIC))}",
+        f" median centre; never: {', '.join(sorted(classes.ALWAYS_STATIC))}",
         contract.STATIC_POSES: {
             "frame": frame,
             "convention": "the median box of each static track's observations, as NCore's BBox3: centroid (m),"
@@ -170,8 +170,8 @@ def cuboid_labels(
         source_classes: per observation [M]; table: source class -> NCore class.
         where: the source file or folder, for the warning.
     """
-    written, ncore, unmapped = labels.output_classes(source_classes, table, class_names)
-    source = labels.label_source(label_source_option, dataset_label_source)
+    written, ncore, unmapped = classes.output_classes(source_classes, table, class_names)
+    source = classes.label_source(label_source_option, dataset_label_source)
     warnings = []
     if unmapped:
         warnings.append(f"{where}: categories without an NCore class name kept as they are: {', '.join(unmapped)}")

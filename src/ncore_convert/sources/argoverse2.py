@@ -5,7 +5,7 @@ Layout: ``<root>/<split>/<log_id>/`` with feather tables (read with pyarrow), li
 Frames follow av2: ``city_SE3_ego`` maps ego points to the city frame, ``ego_SE3_sensor`` maps
 sensor points to the ego frame. Quaternions are scalar-first (qw, qx, qy, qz). The readers return
 them under the project's ``T_a_b`` names (``T_ego_city``, ``T_sensor_ego``, ``T_object_ego``), so av2's
-``x_SE3_y`` names stay in this module.
+``x_SE3_y`` names stay in the AV2 readers (this module, :mod:`.argoverse2_annotations`).
 
 Every reader raises :class:`SourceError` naming the file and the cause on bad input.
 """
@@ -13,7 +13,6 @@ Every reader raises :class:`SourceError` naming the file and the cause on bad in
 from __future__ import annotations
 
 import io
-import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,7 +94,7 @@ def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None)
     return table
 
 
-def _column(table: pa.Table, name: str) -> np.ndarray:
+def column(table: pa.Table, name: str) -> np.ndarray:
     return table.column(name).to_numpy()
 
 
@@ -111,11 +110,11 @@ def _fill_from_chunks(out: np.ndarray, column: pa.ChunkedArray) -> None:
         row += n
 
 
-def _poses_from_table(path: UPath, table: pa.Table) -> np.ndarray:
+def poses_from_table(path: UPath, table: pa.Table) -> np.ndarray:
     """SE(3) [N,4,4] from the quaternion and translation columns; SourceError naming the first
     row that is not a pose (non-finite values or a zero quaternion)."""
-    quat = np.stack([_column(table, c) for c in POSE_COLUMNS[:4]], axis=1)
-    t = np.stack([_column(table, c) for c in POSE_COLUMNS[4:]], axis=1)
+    quat = np.stack([column(table, c) for c in POSE_COLUMNS[:4]], axis=1)
+    t = np.stack([column(table, c) for c in POSE_COLUMNS[4:]], axis=1)
     finite = np.isfinite(quat).all(axis=1) & np.isfinite(t).all(axis=1)
     with np.errstate(over="ignore"):
         norm = np.linalg.norm(np.where(finite[:, None], quat, 0.0), axis=1)
@@ -234,9 +233,9 @@ def read_ego_poses(log_dir: UPath) -> tuple[np.ndarray, np.ndarray]:
     table = read_table(path, POSES_SCHEMA)
     if table.num_rows < 2:
         raise SourceError(path, f"needs at least 2 poses, has {table.num_rows}")
-    timestamps_ns = _column(table, "timestamp_ns")
+    timestamps_ns = column(table, "timestamp_ns")
     _check_increasing(path, timestamps_ns)
-    return timestamps_ns, _poses_from_table(path, table)
+    return timestamps_ns, poses_from_table(path, table)
 
 
 def _check_increasing(path: UPath, timestamps_ns: np.ndarray) -> None:
@@ -259,7 +258,7 @@ def read_sensor_extrinsics(log_dir: UPath) -> dict[str, np.ndarray]:
     table = read_table(path, EXTRINSICS_SCHEMA)
     names = table.column("sensor_name").to_pylist()
     _check_sensor_names(path, names)
-    return dict(zip(names, _poses_from_table(path, table), strict=True))
+    return dict(zip(names, poses_from_table(path, table), strict=True))
 
 
 def _check_sensor_names(path: UPath, names: list[str]) -> None:
@@ -343,13 +342,13 @@ def read_sweep(log_dir: UPath, timestamp_ns: int, with_offsets: bool = True) -> 
     xyz = np.empty((table.num_rows, 3), dtype=np.float32, order="F")
     for k, c in enumerate(("x", "y", "z")):
         _fill_from_chunks(xyz[:, k], table.column(c))
-    laser_number = _column(table, "laser_number")
+    laser_number = column(table, "laser_number")
     if laser_number.size and laser_number.max() > 63:
         raise SourceError(path, f"laser_number {int(laser_number.max())} outside 0..63")
-    offset_ns = _column(table, "offset_ns") if with_offsets else None
+    offset_ns = column(table, "offset_ns") if with_offsets else None
     if offset_ns is not None and offset_ns.size and offset_ns.min() < 0:
         raise SourceError(path, f"negative offset_ns {int(offset_ns.min())}")
-    return Sweep(timestamp_ns, xyz, _column(table, "intensity"), laser_number, offset_ns, path)
+    return Sweep(timestamp_ns, xyz, column(table, "intensity"), laser_number, offset_ns, path)
 
 
 def count_sweep_points(log_dir: UPath, timestamp_ns: int) -> int:
@@ -360,160 +359,7 @@ def count_sweep_points(log_dir: UPath, timestamp_ns: int) -> int:
 def read_sweep_offset_range_ns(log_dir: UPath, timestamp_ns: int) -> tuple[int, int]:
     """(min, max) of a sweep's ``offset_ns`` column without reading the points."""
     path = sweep_path(log_dir, timestamp_ns)
-    offsets = _column(read_table(path, LIDAR_SCHEMA, columns=["offset_ns"]), "offset_ns")
+    offsets = column(read_table(path, LIDAR_SCHEMA, columns=["offset_ns"]), "offset_ns")
     if offsets.size == 0:
         return 0, 0
     return int(offsets.min()), int(offsets.max())
-
-
-@dataclass(frozen=True)
-class Annotations:
-    """Cuboid annotations (columnar), each in the ego frame at its sweep ``timestamps_ns``.
-
-    Attributes:
-        timestamps_ns: int64 [M]; track_uuids, categories: lists of str [M].
-        dims_m: (length, width, height) along the object x, y, z axes, float64 [M,3].
-        T_object_ego: float64 [M,4,4] (av2's ``ego_SE3_object``), box centre and orientation in the
-            ego frame: maps box-frame points to the ego frame.
-    """
-
-    timestamps_ns: np.ndarray
-    track_uuids: list[str]
-    categories: list[str]
-    dims_m: np.ndarray
-    T_object_ego: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.timestamps_ns)
-
-    def subset(self, keep: np.ndarray) -> Annotations:
-        """The rows where ``keep`` (bool [M]) is true."""
-        rows = np.flatnonzero(keep)
-        return Annotations(
-            timestamps_ns=self.timestamps_ns[rows],
-            track_uuids=[self.track_uuids[i] for i in rows],
-            categories=[self.categories[i] for i in rows],
-            dims_m=self.dims_m[rows],
-            T_object_ego=self.T_object_ego[rows],
-        )
-
-
-def read_annotations(log_dir: UPath) -> Annotations | None:
-    """Annotations from ``annotations.feather``, or None when the log has none (test split, TbV)."""
-    path = log_dir / "annotations.feather"
-    if not path.exists():
-        return None
-    names = [n for n in ANNOTATIONS_SCHEMA.names if n != "num_interior_pts"]
-    table = read_table(path, ANNOTATIONS_SCHEMA, columns=names)
-    dims = np.stack([_column(table, c) for c in ("length_m", "width_m", "height_m")], axis=1)
-    if np.any(~np.isfinite(dims)) or np.any(dims <= 0):
-        raise SourceError(path, "cuboid with non-finite or non-positive dimensions")
-    ego_SE3_object = _poses_from_table(path, table)
-    timestamps_ns = _column(table, "timestamp_ns")
-    track_uuids = table.column("track_uuid").to_pylist()
-    seen: set[tuple[int, str]] = set()
-    for row, key in enumerate(zip(timestamps_ns.tolist(), track_uuids, strict=True)):
-        if key in seen:
-            raise SourceError(path, f"row {row}: track {key[1]} annotated twice at timestamp_ns {key[0]}")
-        seen.add(key)
-    return Annotations(
-        timestamps_ns=timestamps_ns,
-        track_uuids=track_uuids,
-        categories=table.column("category").to_pylist(),
-        dims_m=dims,
-        T_object_ego=ego_SE3_object,
-    )
-
-
-@dataclass(frozen=True)
-class InteriorPoints:
-    """``num_interior_pts`` of each annotation row: how many sweep points AV2 found inside the box.
-
-    Attributes:
-        timestamps_ns: int64 [M]; track_uuids: list of str [M]; counts: int64 [M].
-    """
-
-    timestamps_ns: np.ndarray
-    track_uuids: list[str]
-    counts: np.ndarray
-
-    def subset(self, keep: np.ndarray) -> InteriorPoints:
-        """The rows where ``keep`` (bool [M]) is true."""
-        rows = np.flatnonzero(keep)
-        return InteriorPoints(self.timestamps_ns[rows], [self.track_uuids[i] for i in rows], self.counts[rows])
-
-
-def read_interior_points(log_dir: UPath) -> InteriorPoints | None:
-    """The annotations' point counts, or None when the log has no ``annotations.feather``."""
-    path = log_dir / "annotations.feather"
-    if not path.exists():
-        return None
-    table = read_table(path, ANNOTATIONS_SCHEMA, columns=["timestamp_ns", "track_uuid", "num_interior_pts"])
-    return InteriorPoints(
-        _column(table, "timestamp_ns"), table.column("track_uuid").to_pylist(), _column(table, "num_interior_pts")
-    )
-
-
-# ----------------------------------------------------------------------------------------------
-# HD map (AV2 Sensor and TbV share the format)
-# ----------------------------------------------------------------------------------------------
-
-VECTOR_MAP_KEYS = ("pedestrian_crossings", "lane_segments", "drivable_areas")
-
-
-@dataclass(frozen=True)
-class LogMap:
-    """A log's HD map files as stored, all in the city frame.
-
-    Attributes:
-        vector_map_json: bytes of ``log_map_archive_*.json`` (lane segments, drivable areas,
-            pedestrian crossings; points in city metres).
-        ground_height_m: ``*_ground_height_surface____*.npy``, float16 [H,W], city z in metres,
-            NaN outside the region of interest.
-        img_Sim2_city: ``*___img_Sim2_city.json``: {"R": [4] row-major 2x2, "t": [2], "s": float};
-            p_img = s * (R @ p_city_xy + t); raster cell = (row, col) = (int(p_img.y), int(p_img.x)).
-        file_names: the three file names (vector map, raster, Sim(2)), which carry the city code.
-    """
-
-    vector_map_json: bytes
-    ground_height_m: np.ndarray
-    img_Sim2_city: dict
-    file_names: tuple[str, str, str]
-
-
-def _one(map_dir: UPath, pattern: str) -> UPath:
-    found = sorted(map_dir.glob(pattern))
-    if len(found) != 1:
-        raise SourceError(map_dir, f"expected exactly one {pattern}, found {len(found)}")
-    return found[0]
-
-
-def read_log_map(log_dir: UPath) -> LogMap | None:
-    """The log's HD map (None when the log has no ``map`` folder). Raises SourceError on bad files."""
-    map_dir = log_dir / "map"
-    if not map_dir.is_dir():
-        return None
-    vector_path = _one(map_dir, "log_map_archive_*.json")
-    raster_path = _one(map_dir, "*_ground_height_surface____*.npy")
-    sim2_path = _one(map_dir, "*___img_Sim2_city.json")
-    vector_json = vector_path.read_bytes()
-    try:
-        vector = json.loads(vector_json)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise SourceError(vector_path, f"not JSON ({err})") from None
-    if not isinstance(vector, dict) or any(key not in vector for key in VECTOR_MAP_KEYS):
-        raise SourceError(vector_path, f"a vector map needs the keys {list(VECTOR_MAP_KEYS)}")
-    try:
-        raster = np.load(io.BytesIO(raster_path.read_bytes()), allow_pickle=False)
-    except (ValueError, OSError) as err:
-        raise SourceError(raster_path, f"not a .npy array ({err})") from None
-    if raster.dtype != np.float16 or raster.ndim != 2:
-        raise SourceError(raster_path, f"expected a 2-D float16 raster, got {raster.dtype} {raster.shape}")
-    try:
-        sim2 = json.loads(sim2_path.read_bytes())
-        ok = len(sim2["R"]) == 4 and len(sim2["t"]) == 2 and float(sim2["s"]) > 0
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
-        raise SourceError(sim2_path, f"not a Sim(2) JSON with R, t, s ({err})") from None
-    if not ok:
-        raise SourceError(sim2_path, "Sim(2) needs R with 4 values, t with 2 and s > 0")
-    return LogMap(vector_json, raster, sim2, (vector_path.name, raster_path.name, sim2_path.name))

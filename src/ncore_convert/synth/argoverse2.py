@@ -12,28 +12,25 @@ A TbV log (``SynthConfig.tbv``) has TbV's differences: a TbV-style log id, no of
 
 from __future__ import annotations
 
-import io
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 
 import numpy as np
-import PIL.Image
 import pyarrow as pa
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.synth.ego import EGO_CAMERAS, N_PICTURES, true_mask
-from ncore_convert.synth.ego import pictures as ego_pictures
+from ncore_convert.synth.av2_config import MAX_RANGE_M, SweepTruth, SynthConfig, SynthTruth
+from ncore_convert.synth.av2_images import write_images
+from ncore_convert.synth.ego import EGO_CAMERAS, true_mask
 from ncore_convert.synth.feather import write_feather_table
 from ncore_convert.synth.maps import write_map
-from ncore_convert.synth.scene import Box, Scene, box_colours, cast_rays, make_scene, render
-from ncore_convert.transforms import vlp32c
-from ncore_convert.transforms.boxes import PointGrid, in_box
-from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.synth.raycast import cast_rays
+from ncore_convert.synth.scene import Box, Scene, make_scene
 from ncore_convert.transforms.geometry import invert_se3, quat_wxyz_from_se3, se3_from_quat_wxyz, transform_points
+from ncore_convert.transforms.lidar import vlp32c
+from ncore_convert.transforms.objects.boxes import PointGrid, points_in_box
 
-MAX_RANGE_M = 200.0
 TBV_LIDAR_SCHEMA = pa.schema([f for f in av2.LIDAR_SCHEMA if f.name != "offset_ns"])
 SWEEP_PERIOD_NS = 100_000_000
 TRAFFIC_STREAM = 1  #: the scene's traffic and annotation jitter draw from their own stream of the seed
@@ -66,89 +63,6 @@ LIDAR_MOUNTS = {
 }
 #: OpenCV camera axes in the ego frame for a forward-looking camera (columns: cam x, y, z).
 R_EGO_CAM_FORWARD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-@dataclass(frozen=True)
-class SynthConfig:
-    seconds: float = 2.0
-    seed: int = 0
-    swap_lidar_halves: bool = False
-    camera_fps: float = 20.0
-    keep_truth: bool = False
-    tbv: bool = False  #: write a TbV log (see the module docstring)
-    #: a TbV log with an annotations.feather all the same (TbV has none): the converter's handling of one
-    tbv_annotations: bool = False
-    #: the first part of the log (a fraction, 0..1) in which the cameras' world stands still (the
-    #: car parked): every image there is the same picture but for the body's lighting
-    parked_fraction: float = 0.0
-    #: how the ego body is rendered: ``realistic`` (reflections, lighting, markings, glare,
-    #: camouflaged silhouette), ``easy`` (still paint under ±5 % light) or ``glossy`` (realistic,
-    #: with strong reflections); see ``synth.ego``
-    ego_body: str = "realistic"
-    #: the cameras' light: ``day``, or ``night`` (a dark world lit by moving lamps); see ``synth.ego``
-    light: str = "day"
-    #: moving shadows across the pictures (body included); see ``synth.ego``
-    shadows: bool = False
-    #: distinct pictures per camera that its images cycle through (the ego-mask tests and sweep use
-    #: 32, as many as the estimator samples)
-    pictures: int = N_PICTURES
-    #: write the images of these cameras only (None: all; every camera is calibrated either way)
-    image_cameras: tuple[str, ...] | None = None
-    #: write the lidar sweeps and annotations (False: cameras, poses and calibration only, as the
-    #: ego-mask sweep benchmark needs)
-    sweeps: bool = True
-    #: the cameras' pictures: ``pattern`` (a few textured pictures per camera, cycled: cheap) or
-    #: ``render`` (each picture ray-cast from the scene the lidar sees at its own time, flat-shaded,
-    #: the ego body painted flat: one world, ~0.2 s per picture)
-    world: str = "pattern"
-
-    @property
-    def cameras(self) -> tuple[str, ...]:
-        return av2.RING_CAMERAS if self.tbv else av2.CAMERAS
-
-
-@dataclass
-class SweepTruth:
-    """Simulated raw returns of one sweep, in the feather file's row order.
-
-    Attributes:
-        unit: 0 for up_lidar, 1 for down_lidar, int8 [N]; laser_number: as written, uint8 [N].
-        direction_sensor: unit ray directions in the unit's own frame at firing time, float64 [N,3].
-        distance_m: true range, float64 [N].
-        time_ns: absolute firing time, int64 [N].
-        box_index: the scene box each return hit (index into ``scene.boxes``), -1 for the ground, int64 [N].
-    """
-
-    timestamp_ns: int
-    offset_ns: np.ndarray
-    unit: np.ndarray | None = None
-    laser_number: np.ndarray | None = None
-    direction_sensor: np.ndarray | None = None
-    distance_m: np.ndarray | None = None
-    time_ns: np.ndarray | None = None
-    box_index: np.ndarray | None = None
-
-
-@dataclass
-class SynthTruth:
-    log_dir: UPath
-    log_id: str
-    t0_ns: int
-    scene: Scene
-    T_sensor_ego: dict[str, np.ndarray]
-    sweeps: list[SweepTruth] = field(default_factory=list)
-    image_paths: list[UPath] = field(default_factory=list)
-    n_cuboids: int = 0
-    ego_masks: dict[str, np.ndarray] = field(default_factory=dict)  #: camera -> true ego pixels, bool [H,W]
-    #: camera -> (focal length, cx, cy) in px, AV2's convention (pixel centres at integers)
-    intrinsics: dict[str, tuple[float, float, float]] = field(default_factory=dict)
-
-    @property
-    def n_images(self) -> int:
-        return len(self.image_paths)
-
-    def T_ego_city(self, timestamps_ns: np.ndarray) -> np.ndarray:
-        return self.scene.ego.T_ego_city((np.asarray(timestamps_ns) - self.t0_ns) * 1e-9)
 
 
 def _pose_columns(T: np.ndarray) -> dict[str, np.ndarray]:
@@ -202,48 +116,6 @@ def camera_trigger_phases_ns(T_sensor_ego: dict[str, np.ndarray], cameras: tuple
             phases.append(int(round(crossing_s * 1e9)) + CAMERA_TRIGGER_DELAY_NS)
         out[cam] = np.sort(np.array(phases, dtype=np.int64))
     return out
-
-
-def _unique_jpeg(template: bytes, comment: str) -> bytes:
-    """Make a template unique per frame by inserting a JPEG comment (COM) segment after SOI."""
-    payload = comment.encode()
-    return template[:2] + b"\xff\xfe" + (len(payload) + 2).to_bytes(2, "big") + payload + template[2:]
-
-
-RENDER_STEP = 4  #: rendered pictures are ray-cast at 1/4 of their size, each ray's colour over 4x4 pixels
-BODY_RGB = (60, 60, 70)  #: the ego body in rendered pictures
-
-
-def _write_rendered_images(truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, config: SynthConfig) -> None:
-    """Every camera's pictures rendered from the scene at their own times (``world="render"``),
-    with the ego body painted flat where the camera sees it."""
-    step = max(1, int(round(20.0 / config.camera_fps)))
-    box_rgb = box_colours(truth.scene)
-    for cam, stamps in cam_ns.items():
-        _, width, height = cams[cam]
-        for i, ts in enumerate(stamps[::step]):
-            t_s = (int(ts) - truth.t0_ns) * 1e-9
-            T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
-            f, cx, cy = truth.intrinsics[cam]  # AV2's principal point: pixel centres at integers
-            rgb, _ = render(
-                truth.scene,
-                box_rgb,
-                T_camera_city,
-                Pinhole((f, f), (cx + 0.5, cy + 0.5), (width, height)),
-                RENDER_STEP,
-                t_s,
-                MAX_RANGE_M,
-                with_index=False,
-            )
-            if cam in truth.ego_masks:
-                rgb[truth.ego_masks[cam]] = BODY_RGB
-            path = av2.image_path(truth.log_dir, cam, int(ts))
-            if i == 0:
-                path.parent.mkdir(parents=True, exist_ok=True)
-            out = io.BytesIO()
-            PIL.Image.fromarray(rgb).save(out, format="JPEG", quality=92)
-            path.write_bytes(out.getvalue())
-            truth.image_paths.append(path)
 
 
 def simulate_unit(
@@ -367,7 +239,7 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     if config.sweeps:
         _write_sweeps(truth, sweep_ns, config)
     if config.camera_fps > 0:
-        _write_images(truth, cam_ns, cams, rng, config)
+        write_images(truth, cam_ns, cams, rng, config)
     return truth
 
 
@@ -440,8 +312,7 @@ def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, T_city_ego: np.nd
     """Annotation rows (:func:`annotated_boxes`), with num_interior_pts from the stored cloud."""
     points = PointGrid(xyz_ego)
     for box, T_box_ego in annotated_boxes(truth.scene, (ts - truth.t0_ns) * 1e-9, T_city_ego):
-        near = points.near(T_box_ego[:3, 3], np.linalg.norm(box.dims_m) / 2)  # no point further is inside
-        inside = in_box(xyz_ego[near], T_box_ego[:3, 3], T_box_ego[:3, :3], box.dims_m / 2)
+        inside = points_in_box(points, T_box_ego[:3, 3], T_box_ego[:3, :3], box.dims_m / 2)
         pose = _pose_columns(T_box_ego[None])
         rows["timestamp_ns"].append(ts)
         rows["track_uuid"].append(box.track_uuid)
@@ -450,62 +321,4 @@ def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, T_city_ego: np.nd
             rows[name].append(float(value))
         for name, value in pose.items():
             rows[name].append(float(value[0]))
-        rows["num_interior_pts"].append(int(inside.sum()))
-
-
-def _write_images(
-    truth: SynthTruth, cam_ns: dict[str, np.ndarray], cams: dict, rng: np.random.Generator, config: SynthConfig
-) -> None:
-    """Every camera's images: a few pictures per camera (``synth.ego.pictures``: the world changing,
-    the ego body where the camera sees it) cycled in order, each made unique by a JPEG comment; in
-    the parked part of the log (``config.parked_fraction``) always the first picture."""
-    if config.image_cameras is not None:
-        cam_ns = {cam: stamps for cam, stamps in cam_ns.items() if cam in config.image_cameras}
-    if config.world == "render":
-        _write_rendered_images(truth, cam_ns, cams, config)
-        return
-    parked_all = config.parked_fraction >= 1.0
-    parked_until_ns = truth.t0_ns + int(config.parked_fraction * config.seconds * 1e9)
-    step = max(1, int(round(20.0 / config.camera_fps)))
-    # as many pictures as a camera shows (at most config.pictures); cameras without the body share them per size
-    count = {cam: min(config.pictures, len(stamps[::step])) for cam, stamps in cam_ns.items()}
-    shared_count: dict[tuple[int, int], int] = {}
-    for cam in cam_ns:
-        if cam not in truth.ego_masks:
-            size = tuple(cams[cam][1:])
-            shared_count[size] = max(shared_count.get(size, 0), count[cam])
-    shared: dict[tuple[int, int], list[bytes]] = {}
-    for cam, stamps in cam_ns.items():
-        _, width, height = cams[cam]
-        if cam in truth.ego_masks:
-            variants = ego_pictures(
-                rng,
-                width,
-                height,
-                truth.ego_masks[cam],
-                parked_all,
-                config.ego_body,
-                count[cam],
-                config.light,
-                config.shadows,
-            )
-        else:
-            if (width, height) not in shared:
-                shared[(width, height)] = ego_pictures(
-                    rng,
-                    width,
-                    height,
-                    None,
-                    parked_all,
-                    count=shared_count[(width, height)],
-                    light=config.light,
-                    shadows=config.shadows,
-                )
-            variants = shared[(width, height)]
-        for i, ts in enumerate(stamps[::step]):
-            path = av2.image_path(truth.log_dir, cam, int(ts))
-            if i == 0:
-                path.parent.mkdir(parents=True, exist_ok=True)
-            picture = 0 if ts < parked_until_ns else i % len(variants)
-            path.write_bytes(_unique_jpeg(variants[picture], f"{cam} {ts}"))
-            truth.image_paths.append(path)
+        rows["num_interior_pts"].append(len(inside))

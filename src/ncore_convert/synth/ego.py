@@ -39,7 +39,7 @@ import PIL.ImageFilter
 import PIL.ImageFont
 import pyarrow as pa
 
-from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.camera.models import Pinhole
 
 #: The cameras that see the ego body.
 EGO_CAMERAS = ("ring_front_center", "ring_rear_left", "ring_rear_right", "stereo_front_left", "stereo_front_right")

@@ -18,23 +18,30 @@ a marker: the truth keeps where its centre projects.
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import PIL.Image
 import yaml
-from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.pcd import write_pcd
-from ncore_convert.synth.scene import BUILDING_RGB, Box, Scene, cast_rays, own_colour, render, surface_rgb
-from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.synth.carla import (
+    FOCAL_PX,
+    HEIGHT,
+    PILLAR_DIMS_M,
+    PILLAR_RGB,
+    WIDTH,
+    carla_pose_list,
+    carla_pose_matrix,
+    carla_rotation,
+    project_ue4,
+    render_png,
+    shows_around,
+)
+from ncore_convert.synth.raycast import BUILDING_RGB, cast_rays, own_colour, surface_rgb
+from ncore_convert.synth.scene import Box, Scene
 
-WIDTH, HEIGHT, FOV_DEG = 800, 600, 100.0
-FOCAL_PX = float(WIDTH / (2.0 * np.tan(np.radians(FOV_DEG / 2))))
-PINHOLE = Pinhole((FOCAL_PX, FOCAL_PX), (WIDTH / 2, HEIGHT / 2), (WIDTH, HEIGHT))  #: CARLA's: centred, square pixels
 LIDAR_CHANNELS, UPPER_FOV_DEG, LOWER_FOV_DEG, LIDAR_RANGE_M = 64, 2.0, -25.0, 120.0
 #: The infrastructure units' lidar (V2XSet): channels, upper_fov, lower_fov; its own protocol block.
 RSU_LIDAR = (32, 0.0, -40.0)
@@ -44,42 +51,7 @@ RSU_LIDAR_HEIGHT_M = 4.5
 #: OpenCDA camera mounts (vehicle frame): x, y, z (m), yaw (deg); pitch 0 on a CAV, -35° on an RSU.
 CAMERA_MOUNTS = ((2.5, 0.0, 1.0, 0.0), (0.0, 0.3, 1.8, 100.0), (0.0, -0.3, 1.8, -100.0), (-2.0, 0.0, 1.5, 180.0))
 RSU_CAMERA_PITCH_DEG = -35.0
-PILLAR_DIMS_M = (0.8, 0.8, 4.0)
-PILLAR_RGB = (255, 0, 0)  #: the pillars' colour: where one's centre projects, its face is the marker
-RENDER_STEP = 2  #: cameras are ray-cast at half their resolution, each ray's colour repeated over 2x2 pixels
-#: UE4 camera axes (x forward, y right, z up) of the OpenCV ones (x right, y down, z forward)
-T_UE4_OPENCV = np.array([[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-RENDER_RANGE_M = 300.0
 CAV_CLEARANCE_M = 7.0  #: along the lane, no other vehicle's centre comes nearer a CAV's than this
-
-
-def carla_rotation(angles_deg: np.ndarray) -> np.ndarray:
-    """CARLA rotation matrices of (roll, yaw, pitch) degrees [...,3]: Rz(yaw)·Ry(-pitch)·Rx(-roll)."""
-    a = np.asarray(angles_deg, dtype=np.float64)
-    return Rotation.from_euler("ZYX", np.stack([a[..., 1], -a[..., 2], -a[..., 0]], axis=-1), degrees=True).as_matrix()
-
-
-def carla_pose_matrix(pose: np.ndarray) -> np.ndarray:
-    """[x, y, z, roll, yaw, pitch] -> 4x4 T_x_world in CARLA's (left-handed) world."""
-    T = np.eye(4)
-    T[:3, :3] = carla_rotation(np.asarray(pose[3:6]))
-    T[:3, 3] = pose[:3]
-    return T
-
-
-def carla_pose_list(T: np.ndarray) -> list[float]:
-    """4x4 CARLA T_x_world -> [x, y, z, roll, yaw, pitch] (degrees)."""
-    yaw, neg_pitch, neg_roll = Rotation.from_matrix(T[:3, :3]).as_euler("ZYX", degrees=True)
-    return [float(v) for v in (*T[:3, 3], -neg_roll, yaw, -neg_pitch)]
-
-
-def project_ue4(T_cam_world: np.ndarray, xyz_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """CARLA camera projection of world points [M,3]: pixel (u, v) [M,2] (pixel-corner convention,
-    principal point at the image centre) and whether each is in front of the camera [M]."""
-    p = (xyz_world - T_cam_world[:3, 3]) @ T_cam_world[:3, :3]  # UE4 camera axes
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack(PINHOLE.project(np.stack([p[:, 1], -p[:, 2], p[:, 0]], axis=1)), axis=1)  # OpenCV axes
-    return uv, p[:, 0] > 0.5
 
 
 @dataclass(frozen=True)
@@ -117,7 +89,7 @@ class SynthConfig:
 class AgentTruth:
     """Per frame key: CARLA lidar pose [6], the actor id hit by each stored point (-1 ground,
     -2 pillar, -3 building), the stored intensity (uint8), the true colour of each point's surface
-    (:func:`synth.scene.surface_rgb`, uint8 [N,3]) and the marker pixels {camera index: {pillar index:
+    (:func:`synth.raycast.surface_rgb`, uint8 [N,3]) and the marker pixels {camera index: {pillar index:
     (u, v)}}: where each pillar's centre projects, if the picture shows that pillar there.
     Point arrays only with ``keep_truth``."""
 
@@ -242,31 +214,6 @@ def _clear_of_cavs(others: list[_Actor], cavs: list[_Actor], span_s: float) -> l
         )
 
     return [replace(act, lane_m=-1.75) if act.speed_mps and through_a_cav(act) else act for act in others]
-
-
-def _render_png(scene: Scene, box_rgb: np.ndarray, T_cam_world: np.ndarray) -> tuple[bytes, np.ndarray]:
-    """An 800x600 PNG of ``scene`` from the CARLA camera ``T_cam_world`` (UE4 axes), flat-shaded with
-    the boxes' colours ``box_rgb`` (:func:`synth.scene.render`), and what each pixel shows, int
-    [600,800] (a scene box index, -1 ground, ``SKY``)."""
-    image, shows = render(
-        scene,
-        box_rgb,
-        T_cam_world @ T_UE4_OPENCV,
-        PINHOLE,
-        RENDER_STEP,
-        max_range_m=RENDER_RANGE_M,
-        ground_z_m=0.0,
-    )
-    out = io.BytesIO()
-    PIL.Image.fromarray(image).save(out, format="PNG", compress_level=1)
-    return out.getvalue(), shows
-
-
-def _shows_around(shows: np.ndarray, uv_px: np.ndarray, box: int) -> bool:
-    """Whether the pixel at ``uv_px`` (u, v) and the 8 around it show scene box ``box`` (``shows``:
-    a picture's box index per pixel)."""
-    c, r = int(np.floor(uv_px[0])), int(np.floor(uv_px[1]))
-    return bool(np.all(shows[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] == box))
 
 
 def _yaml(data: dict) -> bytes:
@@ -464,10 +411,10 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             for index_cam, (mx, my, mz, yaw) in enumerate(CAMERA_MOUNTS if config.cameras else ()):
                 T_cam_world = T_base_world @ carla_pose_matrix(np.array([mx, my, mz, 0.0, yaw, pitch]))
                 uv, front = project_ue4(T_cam_world, truth.pillars_m)
-                png, shows = _render_png(scene, box_rgb, T_cam_world)
+                png, shows = render_png(scene, box_rgb, T_cam_world)
                 (scenario_dir / agent_id / f"{key}_camera{index_cam}.png").write_bytes(png)
                 inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < WIDTH) & (uv[:, 1] >= 0) & (uv[:, 1] < HEIGHT)
-                visible = [p for p in np.flatnonzero(inside) if _shows_around(shows, uv[p], len(boxes) + p)]
+                visible = [p for p in np.flatnonzero(inside) if shows_around(shows, uv[p], len(boxes) + p)]
                 markers[index_cam] = {int(p): (float(uv[p, 0]), float(uv[p, 1])) for p in visible}
                 extrinsic = np.linalg.inv(T_cam_world) @ T_lidar_world
                 frame[f"camera{index_cam}"] = {

@@ -28,7 +28,8 @@ from ncore.impl.data.types import CuboidTrackObservation, LabelSource
 from ncore.impl.data.v4.components import ComponentReader
 
 from ncore_convert.contract import DEFAULT_INSTANCE
-from ncore_convert.transforms.dynamic import by_track
+from ncore_convert.transforms.objects.dynamic import by_track
+from ncore_convert.validate.poses import sensor_poses
 from ncore_convert.validate.report import Report
 
 #: observations decoded by the library besides every track's first and last (a stride over the rest)
@@ -242,7 +243,7 @@ def _check_reference_frames(report: Report, loader: SequenceLoaderV4, columns: C
             continue
         t_us = np.unique(columns.reference_frame_timestamp_us[rows]).astype(np.uint64)
         try:
-            loader.pose_graph.evaluate_poses(frame_id, "world", t_us)
+            sensor_poses(loader, frame_id, "world", t_us)
         except (ValueError, KeyError, AssertionError) as err:
             bad.append(f"{frame_id!r}: poses do not cover its times ({type(err).__name__})")
     frames = sorted(map(str, set(columns.reference_frame_id)))

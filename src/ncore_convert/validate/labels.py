@@ -8,11 +8,12 @@ import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import LabelCategory
 
-from ncore_convert.transforms.boxes import BOX_EDGES
-from ncore_convert.transforms.camera_models import FTheta, Pinhole
-from ncore_convert.transforms.dynamic import HOLD_S
+from ncore_convert.transforms.camera.models import FTheta, Pinhole
+from ncore_convert.transforms.objects.boxes import box_edges, near_plane_crossings
+from ncore_convert.transforms.objects.dynamic import HOLD_S
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.cuboids import CuboidColumns
+from ncore_convert.validate.poses import sensor_poses
 from ncore_convert.validate.readback import box_corners_world
 from ncore_convert.validate.report import Report
 
@@ -129,7 +130,7 @@ def _outside_boxes(
         groups = {1: dynamic if dynamic is not None else sorted(set(held.track_id.tolist()))}
     allowed = {k: np.zeros(data.shape[:2], bool) for k in groups}
     end_us = np.array([ts], dtype=np.uint64)
-    T_world_camera = np.linalg.inv(loader.pose_graph.evaluate_poses(camera_id, "world", end_us)[0].astype(np.float64))
+    T_world_camera = np.linalg.inv(sensor_poses(loader, camera_id, "world", end_us)[0])
     for k, tracks in groups.items():
         rows = np.flatnonzero(np.isin(held.track_id, tracks))
         if not len(rows):
@@ -197,12 +198,10 @@ def _in_front(corners_world_m: np.ndarray, T_world_camera: np.ndarray) -> tuple[
     (float64 [P,3]), and the box each point outlines, int [P]. The picture of a box lies within the
     rectangle of these points' projections (to the sampling, for a camera that bends edges)."""
     xyz = corners_world_m @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]  # [B,8,3] camera frame
-    start, end = xyz[:, BOX_EDGES[:, 0]], xyz[:, BOX_EDGES[:, 1]]
+    start, end = box_edges(xyz)
     along = start[:, :, None] + EDGE_SAMPLES[None, None, :, None] * (end - start)[:, :, None]  # [B,12,S,3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        f = (CUT_Z_M - start[..., 2]) / (end[..., 2] - start[..., 2])
-        crossing = (f > 0) & (f < 1)
-        points = np.concatenate([along[along[..., 2] > CUT_Z_M], (start + f[..., None] * (end - start))[crossing]])
+    on_plane, crossing = near_plane_crossings(xyz, CUT_Z_M)
+    points = np.concatenate([along[along[..., 2] > CUT_Z_M], on_plane[crossing]])
     owner = np.concatenate([np.nonzero(along[..., 2] > CUT_Z_M)[0], np.nonzero(crossing)[0]])
     return points, owner
 

@@ -2,8 +2,8 @@
 the default instance names unless asked otherwise), ``scenario.json``, and the geometry the checks
 and pictures need from them (points and boxes in ``world``).
 
-Transforms follow the house rule: ``T_a_b`` maps points from frame ``a`` to frame ``b``; NCore's
-``pose_graph.evaluate_poses(a, b, t)`` returns exactly that.
+Transforms follow the house rule: ``T_a_b`` maps points from frame ``a`` to frame ``b``; every pose
+comes from :mod:`.poses`, the one place that evaluates NCore's pose graph.
 """
 
 from __future__ import annotations
@@ -22,10 +22,11 @@ from ncore.impl.common.transformations import is_within_3d_bboxes
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
-from ncore_convert.contract import DEFAULT_INSTANCE, WORLD_GLOBAL, ScenarioManifest
-from ncore_convert.transforms.boxes import CORNER_SIGNS, PointGrid
+from ncore_convert.contract import DEFAULT_INSTANCE, ScenarioManifest
+from ncore_convert.transforms.objects.boxes import PointGrid, box_corners
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.cuboids import CuboidColumns
+from ncore_convert.validate.poses import sensor_poses
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
 SAMPLED_FRAMES = 5
@@ -121,29 +122,6 @@ def boxes_at(cuboids: CuboidColumns, t0_us: int, t1_us: int) -> CuboidColumns:
     return cuboids.rows(inside & (t_us == t_us[inside].min()))
 
 
-def world_global_edge(loader: SequenceLoaderV4) -> np.ndarray:
-    """The stored static ``world -> world_global`` edge, float64 [4,4]."""
-    return loader.pose_graph.evaluate_poses("world", "world_global", np.zeros(1, dtype=np.uint64))[0].astype(np.float64)
-
-
-def T_world_dataset_global(loader: SequenceLoaderV4) -> np.ndarray:
-    """world -> the dataset's global frame, float64 [4,4]: the ``world -> world_global`` edge, which
-    consumers read, unless ``--world-global-mode`` stored something else there (identity, or no edge);
-    then the sequence metadata's record of it."""
-    record = loader.generic_meta_data.get(WORLD_GLOBAL)
-    if isinstance(record, dict) and record.get("mode", "localized") != "localized":
-        return np.asarray(record["T_world_dataset_global"], dtype=np.float64)
-    return world_global_edge(loader)
-
-
-def sensor_poses(loader: SequenceLoaderV4, sensor_id: str, target: str, timestamps_us: np.ndarray) -> np.ndarray:
-    """``T_sensor_target`` at ``timestamps_us`` (uint64 [T]), float64 [T,4,4]; ``target`` ``world``, or
-    ``world_global`` meaning the dataset's global frame (:func:`T_world_dataset_global`)."""
-    t_us = np.asarray(timestamps_us, dtype=np.uint64)
-    T_sensor_world = loader.pose_graph.evaluate_poses(sensor_id, "world", t_us).astype(np.float64)
-    return T_world_dataset_global(loader)[None] @ T_sensor_world if target == "world_global" else T_sensor_world
-
-
 def world_points(
     loader: SequenceLoaderV4, lidar_id: str, frame: int, target: str = "world"
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -163,7 +141,7 @@ def world_points(
 
 def _T_reference_world(loader: SequenceLoaderV4, frame_id: str, t_us: int) -> np.ndarray:
     """A reference frame -> ``world`` at ``t_us``, float64 [4,4]."""
-    return loader.pose_graph.evaluate_poses(frame_id, "world", np.array([t_us], dtype=np.uint64))[0].astype(np.float64)
+    return sensor_poses(loader, frame_id, "world", np.array([t_us]))[0]
 
 
 def box_point_counts(
@@ -197,9 +175,8 @@ def box_point_counts(
 
 def box_corners_world(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
     """The 8 corners of each box in ``world``, float64 [B,8,3]."""
-    xyz_box = CORNER_SIGNS[None] * boxes.dim_m[:, None, :] / 2
     R_box_ref = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix()
-    xyz_ref = np.einsum("bij,bkj->bki", R_box_ref, xyz_box) + boxes.centroid_m[:, None, :]
+    xyz_ref = box_corners(R_box_ref, boxes.centroid_m, boxes.dim_m / 2)
     out = np.empty_like(xyz_ref)
     for k, (frame_id, t_us) in enumerate(
         zip(boxes.reference_frame_id, boxes.reference_frame_timestamp_us.tolist(), strict=True)

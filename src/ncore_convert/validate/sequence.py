@@ -18,6 +18,7 @@ from upath import UPath
 from ncore_convert import contract
 from ncore_convert.validate.cuboids import CuboidColumns, check_cuboids, read_cuboids
 from ncore_convert.validate.labels import check_camera_labels, held_boxes
+from ncore_convert.validate.poses import sensor_poses, world_global_edge
 from ncore_convert.validate.readback import (
     OpenSequence,
     box_point_counts,
@@ -25,7 +26,6 @@ from ncore_convert.validate.readback import (
     open_failure,
     open_sequence,
     sample_frames,
-    world_global_edge,
 )
 from ncore_convert.validate.report import Report
 from ncore_convert.validate.source import compare_with_source
@@ -67,7 +67,7 @@ def _within_sequence(report: Report, name: str, frames_us: np.ndarray, interval)
 
 def _covered(loader: SequenceLoaderV4, sensor_id: str, timestamps_us: np.ndarray) -> bool:
     try:
-        loader.pose_graph.evaluate_poses(sensor_id, "world", np.asarray(timestamps_us, dtype=np.uint64))
+        sensor_poses(loader, sensor_id, "world", timestamps_us)
     except (ValueError, KeyError, AssertionError):
         return False
     return True

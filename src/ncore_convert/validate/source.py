@@ -19,6 +19,7 @@ from upath import UPath
 from ncore_convert import contract
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import argoverse2_annotations as av2_annotations
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.pcd import read_pcd_header
 from ncore_convert.transforms.timebase import floor_us, in_window
@@ -131,12 +132,12 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
             _count(report, f"{camera} images", loader.get_camera_sensor(camera).frames_count, images)
         elif images and _camera_selected(options, camera):
             report.add(f"source: {camera} images", False, f"0 converted, {images} in the source")
-    interior = av2.read_interior_points(log_dir)
+    interior = av2_annotations.read_interior_points(log_dir)
     if interior is not None and window_us is not None:
         interior = interior.subset(in_window(floor_us(interior.timestamps_ns), window_us))
     _count(report, "cuboids", len(cuboids), 0 if interior is None else len(interior.counts))
     if interior is not None:
-        annotations = av2.read_annotations(log_dir)
+        annotations = av2_annotations.read_annotations(log_dir)
         if window_us is not None:
             annotations = annotations.subset(in_window(floor_us(annotations.timestamps_ns), window_us))
         _boxes_as_annotated(report, cuboids, annotations)
@@ -144,7 +145,7 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
         _interior_points(report, sequence, cuboids, interior)
 
 
-def _boxes_as_annotated(report: Report, cuboids: CuboidColumns, annotations: av2.Annotations) -> None:
+def _boxes_as_annotated(report: Report, cuboids: CuboidColumns, annotations: av2_annotations.Annotations) -> None:
     """Every observation is its annotation row (same track, the row's µs-floored time), in the rig
     frame at that time (AV2's ego frame): the same centre, size and rotation within
     ``BOX_TOLERANCE``."""
@@ -181,7 +182,7 @@ def _boxes_as_annotated(report: Report, cuboids: CuboidColumns, annotations: av2
 
 
 def _interior_points(
-    report: Report, sequence: OpenSequence, cuboids: CuboidColumns, interior: av2.InteriorPoints
+    report: Report, sequence: OpenSequence, cuboids: CuboidColumns, interior: av2_annotations.InteriorPoints
 ) -> None:
     """On sampled sweeps: the converted points inside each box (both lidars, motion-compensated with
     the per-point times) equal AV2's ``num_interior_pts``, within INTERIOR_TOLERANCE."""

@@ -48,7 +48,8 @@ from ncore_convert.contract import (
 )
 from ncore_convert.sources.opencood import CAMERAS, LIDAR, opencood_order, parse_yaml
 from ncore_convert.transforms import carla
-from ncore_convert.validate.readback import OpenSequence, open_sequence, read_manifest, sensor_poses
+from ncore_convert.validate.poses import sensor_poses
+from ncore_convert.validate.readback import OpenSequence, open_sequence, read_manifest
 
 
 @dataclass

@@ -54,9 +54,9 @@ from ncore_convert.contract import (
     camera_label_id,
 )
 from ncore_convert.storage import flush_to_disk
-from ncore_convert.transforms.camera_models import FThetaFit, Pinhole
-from ncore_convert.transforms.lidar import RayBundle
-from ncore_convert.transforms.lidar_model import SpinningLidarModel
+from ncore_convert.transforms.camera.models import FThetaFit, Pinhole
+from ncore_convert.transforms.lidar.model import SpinningLidarModel
+from ncore_convert.transforms.lidar.rays import RayBundle
 from ncore_convert.writer.labels import CameraLabelStream, label_descriptor
 from ncore_convert.writer.parts import component_groups
 

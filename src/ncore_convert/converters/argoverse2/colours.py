@@ -1,13 +1,12 @@
 """Per-point ``rgb`` of AV2 and TbV lidar frames (``--lidar-rgb``): the camera frames around each sweep,
 with the cameras' poses at their own times, their ego masks and the annotated boxes at their times
 (solid occluders), handed to
-:func:`ncore_convert.transforms.point_colours.point_colours`. Images are decoded in colour at the
+:func:`ncore_convert.transforms.camera.colours.point_colours`. Images are decoded in colour at the
 ego-mask estimator's reduction (2048 px -> 512 px), only when a point takes its colour from them,
 and once per log (a small cache carries them to the next sweep)."""
 
 from __future__ import annotations
 
-import dataclasses
 from functools import lru_cache
 
 import numpy as np
@@ -16,7 +15,7 @@ from ncore_convert.converters.argoverse2.masks import reduced_size, reduction
 from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.converters.argoverse2.views import camera_views, usable_pixels
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms.point_colours import DYNAMIC_DT_US, ColourFrame, point_colours
+from ncore_convert.transforms.camera.colours import DYNAMIC_DT_US, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 
 #: Camera frames this far (µs) beyond a sweep's first and last point are candidates: a 20 Hz
@@ -24,7 +23,7 @@ from ncore_convert.transforms.timebase import NS_PER_US
 FRAME_MARGIN_US = 30_000
 
 
-#: Which pixel a point's ``rgb`` is (``lidar_frames.rgb_note``).
+#: Which pixel a point's ``rgb`` is (``transforms.lidar.frames.point_data_notes``).
 COLOURS_TAKEN_FROM = (
     "camera pixel it projects to in the frame nearest its own time (occlusion by a depth buffer of the sweep's"
     " points and by the annotated boxes, never from ego pixels, points on dynamic tracks only from a frame within"
@@ -57,8 +56,7 @@ class SweepColours:
             picked = stamps_ns[lo:hi]
             views = camera_views(self._plan, cam, picked, pinhole, usable)
             for ts, view in zip(picked.tolist(), views, strict=True):
-                fields = {f.name: getattr(view, f.name) for f in dataclasses.fields(view)}
-                out.append(ColourFrame(**fields, load_rgb=lambda cam=cam, ts=ts: self._decode(cam, ts)))
+                out.append(ColourFrame.of(view, lambda cam=cam, ts=ts: self._decode(cam, ts)))
         return out
 
     def colours(

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from upath import UPath
@@ -21,34 +21,17 @@ from ncore_convert.converters.argoverse2.labels import BoxLabeller, DepthLabelle
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
-from ncore_convert.converters.common import Tally
+from ncore_convert.converters.common import Counts, LidarStore
 from ncore_convert.errors import warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import argoverse2_annotations as av2_annotations
+from ncore_convert.sources import argoverse2_map as av2_map
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
-from ncore_convert.transforms.lidar_frames import LidarCounts, PointData, dynamic_flag_note, lidar_frame, rgb_note
+from ncore_convert.transforms.lidar.frames import PointData, lidar_frame, point_data_notes
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import Cuboids, SequenceWriter, write_sequence_meta
 from ncore_convert.writer.parts import BASE_JOB, WriteJob, independent_parts
-
-
-@dataclass
-class Counts(Tally):
-    """What a conversion, or one writer part of it, produced. Seconds are per-process path times."""
-
-    sweeps: int = 0
-    points: int = 0
-    points_not_stored: int = 0
-    images: int = 0
-    cuboids: int = 0
-    maps: int = 0
-    lidar_seconds: float = 0.0  #: read + decompensate + write of all sweeps
-    dynamic_flag_seconds: float = 0.0  #: of which: dynamic_flag of every frame
-    colour_seconds: float = 0.0  #: of which: per-point rgb of every frame (decoding included)
-    camera_seconds: float = 0.0  #: read + write of all images
-    camera_labels: int = 0  #: camera labels written (``--camera-labels``)
-    label_seconds: float = 0.0  #: making and storing the camera labels (depth-label and camera jobs)
-    warnings: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -62,7 +45,7 @@ class LogSummary(Counts):
 
     def line(self) -> str:
         return (
-            f"{self.log_id}: {self.sweeps} sweeps, {self.points} points"
+            f"{self.log_id}: {self.frames} sweeps, {self.points} points"
             f" ({self.points_not_stored} not representable), {self.images} images,"
             f" {self.cuboids} cuboids, {'an HD map' if self.maps else 'no HD map'}"
             + (f", {self.camera_labels} camera labels" if self.camera_labels else "")
@@ -78,7 +61,7 @@ class JobResult(Counts):
     meta: object = None
 
 
-def annotation_cuboids(annotations: av2.Annotations, class_ids: list[str]) -> Cuboids:
+def annotation_cuboids(annotations: av2_annotations.Annotations, class_ids: list[str]) -> Cuboids:
     """AV2 cuboids (ego frame at the sweep time) as rig-frame observations with full xyz-Euler rotation,
     named ``class_ids`` [M]."""
     return Cuboids(
@@ -148,7 +131,7 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
 
 def _store_map(log_dir: UPath, writer: SequenceWriter, result: JobResult) -> None:
     """The log's HD map, as stored, in the city frame (= world_global), or a warning without one."""
-    log_map = av2.read_log_map(log_dir)
+    log_map = av2_map.read_log_map(log_dir)
     if log_map is None:
         result.warnings.append(f"{log_dir / 'map'}: no map folder; no HD map written")
         return
@@ -194,12 +177,20 @@ def _write_lidars(
     calibration = plan.lidar_calibration
     colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
     depth = DepthLabeller(plan, writer, _depth_cameras(plan, job)) if job.label_ids else None
-    flag_meta = {contract.DYNAMIC_FLAG: _dynamic_flag_note(plan), contract.LIDAR_RGB: _rgb_note(plan)}
+    flag_meta = point_data_notes(
+        plan.dynamic_boxes,
+        "TbV has no cuboids" if plan.options.tbv else "the log has no annotations",
+        plan.options.lidar_rgb,
+        bool(plan.camera_ids),
+        COLOURS_TAKEN_FROM,
+    )
     lidars = {  # one metadata dict per lidar: the writer updates it in place
-        unit: writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta})
+        unit: LidarStore(
+            writer.add_lidar(unit, {**lidar_meta(calibration, unit, plan.options.lidar_model_source), **flag_meta}),
+            colours is not None,
+        )
         for unit in plan.lidar_ids
     }
-    counts = {unit: LidarCounts() for unit in lidars}
     for sweep_ns, units, data in _sweeps(plan, colours):
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
@@ -207,7 +198,6 @@ def _write_lidars(
             depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
-            counts[unit].add(unit_rays)
             frame_meta = {
                 "av2_sweep_timestamp_ns": sweep_ns,
                 "points_zero_range": rays.n_zero_range,
@@ -215,26 +205,18 @@ def _write_lidars(
             }
             if unit_rays.column_time_remap:
                 frame_meta["model_column_time_remap"] = unit_rays.column_time_remap
-            lidars[unit].store_frame(
-                rays, frame_meta, model_element=unit_rays.model_elements, generic_data=unit_rays.generic
-            )
-        result.sweeps += 1
+            lidars[unit].store(unit_rays, frame_meta)
+        result.frames += 1
         progress(1)
     if depth is not None:
         _finish_depth(depth, result)
-    for unit, stream in lidars.items():
-        unit_counts = counts[unit]
-        result.points += unit_counts.stored
-        result.points_not_stored += unit_counts.not_stored
+    for unit, store in lidars.items():
+        tally = store.tally
         figures = {
-            "source_points": unit_counts.stored + unit_counts.not_stored,
-            contract.POINTS_NOT_STORED: {"zero_range": unit_counts.zero_range, "non_finite": unit_counts.non_finite},
+            "source_points": tally.stored + tally.not_stored,
+            contract.POINTS_NOT_STORED: {"zero_range": tally.zero_range, "non_finite": tally.non_finite},
         }
-        stream.set_meta(figures if colours is None else {**figures, "rgb_coloured_points": unit_counts.coloured})
-    if result.points_not_stored:
-        result.warnings.append(
-            f"{result.points_not_stored} lidar points with zero range or non-finite coordinates not stored"
-        )
+        store.finish(figures, result, unit)
     result.lidar_seconds = time.perf_counter() - started
 
 
@@ -257,18 +239,6 @@ def _write_depth_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, re
     for _, _, data in _sweeps(plan, None):
         depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
     _finish_depth(depth, result)
-
-
-def _rgb_note(plan: LogPlan) -> str:
-    """What the lidar metadata says of ``rgb`` (written, or why not)."""
-    return rgb_note(plan.options.lidar_rgb, bool(plan.camera_ids), COLOURS_TAKEN_FROM)
-
-
-def _dynamic_flag_note(plan: LogPlan) -> str:
-    """What the lidar metadata says of ``dynamic_flag`` (written, or why not)."""
-    if plan.dynamic_boxes is not None:
-        return dynamic_flag_note(len(plan.dynamic_boxes))
-    return "not written: " + ("TbV has no cuboids" if plan.options.tbv else "the log has no annotations")
 
 
 def _write_camera(

@@ -13,8 +13,9 @@ from upath import UPath
 
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms import lidar_timing
+from ncore_convert.sources import argoverse2_annotations as av2_annotations
 from ncore_convert.transforms.geometry import Trajectory, invert_se3
+from ncore_convert.transforms.lidar import timing as lidar_timing
 from ncore_convert.transforms.timebase import NS_PER_US, ceil_us, floor_us
 
 #: Sensor data may reach this far (µs) beyond the pose table, or across a gap in it; further fails.
@@ -32,7 +33,7 @@ class LogInputs:
     intrinsics: dict[str, av2.CameraIntrinsics]
     sweep_timestamps_ns: np.ndarray
     image_timestamps_ns: dict[str, np.ndarray]
-    annotations: av2.Annotations | None
+    annotations: av2_annotations.Annotations | None
 
 
 def read_log_inputs(
@@ -48,7 +49,7 @@ def read_log_inputs(
         intrinsics=intrinsics if intrinsics is not None else av2.read_intrinsics(log_dir),
         sweep_timestamps_ns=av2.list_sweep_timestamps_ns(log_dir),
         image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam) for cam in camera_ids},
-        annotations=av2.read_annotations(log_dir),
+        annotations=av2_annotations.read_annotations(log_dir),
     )
 
 

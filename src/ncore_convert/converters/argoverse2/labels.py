@@ -1,12 +1,12 @@
 """AV2 / TbV camera labels (``--camera-labels``), one per camera frame and kind.
 
 Depth (:class:`DepthLabeller`): ``depth.z@<camera>``, from the lidar points of the sweep nearest the
-frame in time (:func:`ncore_convert.transforms.camera_labels.depth_z`), written by depth-label
+frame in time (:func:`ncore_convert.transforms.camera.labels.depth_z`), written by depth-label
 jobs of a few cameras each as they stream the sweeps (``convert.log_jobs``).
 
 Boxes (:class:`BoxLabeller`): ``mask.dynamic@<camera>`` and ``segmentation.instance@<camera>``, from
 which annotated box each pixel shows at the frame's time
-(:func:`ncore_convert.transforms.camera_labels.box_index`), written by the camera's own writing job.
+(:func:`ncore_convert.transforms.camera.labels.box_index`), written by the camera's own writing job.
 
 A frame belongs to the sweep whose middle (the median time of its points) is nearest its own time:
 each sweep's frames are labelled once the next sweep's middle is known, so two sweeps are held at
@@ -32,10 +32,10 @@ import numpy as np
 from ncore_convert import contract
 from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.converters.argoverse2.views import LABEL_SLACK_M, camera_views, usable_pixels
-from ncore_convert.transforms import camera_labels
-from ncore_convert.transforms.dynamic import HOLD_S
+from ncore_convert.transforms.camera import labels as camera_labels
+from ncore_convert.transforms.camera.visibility import VIEW_MARGIN, in_view
+from ncore_convert.transforms.objects.dynamic import HOLD_S
 from ncore_convert.transforms.timebase import NS_PER_US, floor_us
-from ncore_convert.transforms.visibility import VIEW_MARGIN, in_view
 from ncore_convert.writer import CameraLabelStream, SequenceWriter
 
 #: What each depth label's component metadata says of how it was made.
@@ -141,7 +141,7 @@ BOX_GENERATOR = {
 }
 #: ``mask.dynamic``: which boxes count.
 DYNAMIC_RULE = (
-    "1 where the box shown is a dynamic track's (transforms.dynamic: moved beyond annotation noise, or an"
+    "1 where the box shown is a dynamic track's (transforms.objects.dynamic: moved beyond annotation noise, or an"
     " always-dynamic class); 0 elsewhere"
 )
 

@@ -16,9 +16,12 @@ from upath import UPath
 
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.transforms import lidar_timing, vlp32c
 from ncore_convert.transforms.geometry import Trajectory
-from ncore_convert.transforms.lidar import (
+from ncore_convert.transforms.lidar import timing as lidar_timing
+from ncore_convert.transforms.lidar import vlp32c
+from ncore_convert.transforms.lidar.frames import LidarFrame, LidarGeometry
+from ncore_convert.transforms.lidar.model import SpinningLidarModel, column_time_remap, derive_model
+from ncore_convert.transforms.lidar.rays import (
     MIN_RANGE_M,
     RayBundle,
     UnitSplit,
@@ -26,8 +29,6 @@ from ncore_convert.transforms.lidar import (
     decide_unit_split,
     decompensate,
 )
-from ncore_convert.transforms.lidar_frames import LidarFrame, LidarGeometry
-from ncore_convert.transforms.lidar_model import SpinningLidarModel, column_time_remap, derive_model
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.transforms.timebase import NS_PER_US
 

@@ -1,5 +1,5 @@
 """Argoverse 2 / TbV ego masks, per log (``--ego-masks estimate|none|DIR``): estimated from a sample
-of each camera's own images (:mod:`ncore_convert.transforms.ego_mask`), or the user's PNGs.
+of each camera's own images (:mod:`ncore_convert.transforms.camera.ego_mask`), or the user's PNGs.
 
 The plan carries each estimate at reduced resolution (small to ship to the writing workers); the
 base job upsamples it and stores it as the camera's mask named ``ego`` (``contract.EGO_MASK``).
@@ -21,8 +21,8 @@ from upath import UPath
 from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.masks import read_mask_folder
-from ncore_convert.transforms import ego_mask
-from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.camera import ego_mask
+from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.sampling import spread_indices
 
 #: Images decoded per camera that must see the body, spread evenly over the log (or clip window):

@@ -27,11 +27,12 @@ from ncore_convert.errors import SourceError, UsageError, warnings_kept
 from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.files import require_folder
-from ncore_convert.transforms import labels, lidar_timing
-from ncore_convert.transforms.camera_models import Pinhole
-from ncore_convert.transforms.dynamic import DynamicBoxes, SolidBoxes, TrackObservations
-from ncore_convert.transforms.ego_mask import EgoBox
+from ncore_convert.transforms.camera.ego_mask import EgoBox
+from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.geometry import Trajectory
+from ncore_convert.transforms.lidar import timing as lidar_timing
+from ncore_convert.transforms.objects import classes
+from ncore_convert.transforms.objects.dynamic import DynamicBoxes, SolidBoxes, TrackObservations
 from ncore_convert.transforms.timebase import WindowError, floor_us, in_window
 
 #: Below this margin the unit decision is reported as a warning.
@@ -43,7 +44,7 @@ class Argoverse2Options(ConsumerOptions):
     """Options of the ``argoverse2-v4`` and ``tbv-v4`` commands (sensor selection: None = all available).
 
     ``split`` is the AV2 Sensor split folder; None for TbV, whose logs sit directly under the root
-    and have no per-point times (they are reconstructed, see :mod:`ncore_convert.transforms.lidar_timing`).
+    and have no per-point times (they are reconstructed, see :mod:`ncore_convert.transforms.lidar.timing`).
     """
 
     split: str | None
@@ -361,7 +362,7 @@ def _cuboid_labels(
     cuboid_labels = consumer.cuboid_labels(
         observations,
         annotations.categories,
-        labels.AV2_TO_NCORE,
+        classes.AV2_TO_NCORE,
         options.class_names,
         options.cuboid_label_source,
         "EXTERNAL",

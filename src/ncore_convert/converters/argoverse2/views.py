@@ -1,4 +1,4 @@
-"""AV2 / TbV camera frames as :class:`~ncore_convert.transforms.visibility.CameraView`: each
+"""AV2 / TbV camera frames as :class:`~ncore_convert.transforms.camera.visibility.CameraView`: each
 camera's pose at the frame's own time, its ego mask and the annotated boxes at that time as solid
 occluders. Lidar colours and camera labels all take their frames from here."""
 
@@ -8,10 +8,10 @@ import numpy as np
 import PIL.Image
 
 from ncore_convert.converters.argoverse2.plan import LogPlan
-from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.camera.models import Pinhole
+from ncore_convert.transforms.camera.visibility import CameraView
 from ncore_convert.transforms.geometry import invert_se3
 from ncore_convert.transforms.timebase import NS_PER_US
-from ncore_convert.transforms.visibility import CameraView
 
 #: How far an annotated box may be off its object: a parked car's annotations wander 0.1-1.4 m on the
 #: real sample, and their median (the static box) is nearer; a box does not hide points this close to it.

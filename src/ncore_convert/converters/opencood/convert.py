@@ -14,8 +14,8 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters import consumer
-from ncore_convert.converters.common import Tally
-from ncore_convert.converters.opencood.labels import TickLabeller
+from ncore_convert.converters.common import Counts, LidarStore
+from ncore_convert.converters.opencood.labels import TickLabeller, camera_view, tick_boxes
 from ncore_convert.converters.opencood.meta import generic_meta, manifest
 from ncore_convert.converters.opencood.noise import instance_meta
 from ncore_convert.converters.opencood.plan import plan_scenario
@@ -24,35 +24,21 @@ from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
 from ncore_convert.transforms import carla
-from ncore_convert.transforms.carla_lidar import assign_elements
+from ncore_convert.transforms.camera.colours import ColourFrame, point_colours
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3
-from ncore_convert.transforms.lidar import RayBundle
-from ncore_convert.transforms.lidar_frames import (
-    LidarCounts,
+from ncore_convert.transforms.lidar.carla import assign_elements
+from ncore_convert.transforms.lidar.frames import (
     LidarFrame,
     LidarGeometry,
-    dynamic_flag_note,
     lidar_frame,
-    rgb_note,
+    point_data_notes,
 )
-from ncore_convert.transforms.point_colours import ColourFrame, point_colours
+from ncore_convert.transforms.lidar.rays import RayBundle
 from ncore_convert.transforms.timebase import NS_PER_US
 from ncore_convert.writer import Cuboids, SequenceWriter, write_scenario_manifest, write_sequence_meta
 
 #: What world_global is in the dataset (``--world-global-mode localized``).
 DATASET_GLOBAL = "the CARLA map frame made right-handed: (x, y, z)_world_global = (x, -y, z)_carla"
-
-
-@dataclass
-class Counts(Tally):
-    frames: int = 0  #: lidar frames
-    points: int = 0
-    points_not_stored: int = 0
-    images: int = 0
-    cuboids: int = 0
-    camera_labels: int = 0  #: camera labels written (``--camera-labels``)
-    label_seconds: float = 0.0  #: making and storing them
-    warnings: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -126,7 +112,7 @@ def _write_base(
         writer.store_lidar_model(names.sensor(src.LIDAR), agent.lidar_model)
 
 
-#: Which pixel a point's ``rgb`` is (``lidar_frames.rgb_note``).
+#: Which pixel a point's ``rgb`` is (``transforms.lidar.frames.point_data_notes``).
 COLOURS_TAKEN_FROM = (
     "pixel it projects to in the agent's own cameras at the same tick (occlusion by a depth buffer of the frame's"
     " points and by the tick's labelled vehicles)"
@@ -138,28 +124,15 @@ def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t
     point and picture of a CARLA tick is taken at the tick, and so are the tick's labelled vehicles
     (the agent's own excepted), solid occluders. An unreadable image is left out (the camera stream
     reports it)."""
-    boxes = plan.boxes.get(key)
-    solids = None
-    if boxes is not None:
-        others = boxes.actor_ids != int(agent.agent_id)
-        solids = (boxes.T_box_world_global[others], boxes.dims_m[others] / 2.0)
+    _, T_box, half = tick_boxes(plan, agent, key)
     out = []
     for cam in agent.camera_ids:
         try:
             data = src.read_png(agent.agent_dir, key, agent.camera_index[cam])
         except SourceError:
             continue
-        T_camera_world_global = agent.T_rig_world_global[frame] @ agent.T_sensor_rig[cam]
-        out.append(
-            ColourFrame(
-                cam,
-                t_us,
-                invert_se3(T_camera_world_global),
-                agent.cameras[cam].pinhole,
-                solids=solids,
-                load_rgb=lambda data=data: src.decode_png_rgb(data),
-            )
-        )
+        view = camera_view(agent, frame, t_us, cam, T_box, half)
+        out.append(ColourFrame.of(view, lambda data=data: src.decode_png_rgb(data)))
     return out
 
 
@@ -216,8 +189,13 @@ def _write_sensors(
             **agent.lidar_model_meta,
             "point_timing": "CARLA ray-cast lidar: every point of a frame is measured at the frame's tick",
             "mounting": agent.mounts[src.LIDAR],
-            contract.DYNAMIC_FLAG: dynamic_flag_note(len(plan.dynamic_boxes)),
-            contract.LIDAR_RGB: rgb_note(plan.options.lidar_rgb, bool(agent.camera_ids), COLOURS_TAKEN_FROM),
+            **point_data_notes(
+                plan.dynamic_boxes,
+                "no labelled vehicles",
+                plan.options.lidar_rgb,
+                bool(agent.camera_ids),
+                COLOURS_TAKEN_FROM,
+            ),
         }
         T_lidar_rig = agent.T_sensor_rig[src.LIDAR]
         # CARLA's points are in the lidar's frame at the tick already: the source's exact float32 values
@@ -226,8 +204,9 @@ def _write_sensors(
             exact=True,
             elements=None if model is None else lambda rays, rows: (assign_elements(model, rays.direction), {}),
         )
-        lidar = writer.add_lidar(names.sensor(src.LIDAR), meta)
-        tally = LidarCounts()
+        lidar = LidarStore(
+            writer.add_lidar(names.sensor(src.LIDAR), meta), plan.options.lidar_rgb and bool(agent.camera_ids)
+        )
         skipped = dict(agent.skipped_keys)
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
@@ -263,34 +242,24 @@ def _write_sensors(
             }
             if contract.LIDAR_RGB in own.generic:
                 generic[contract.LIDAR_RGB] = own.generic[contract.LIDAR_RGB]
-            tally.add(own)
-            lidar.store_frame(
-                rays,
+            lidar.store(
+                own,
                 {
                     contract.CARLA_FRAME: int(key),
                     contract.POINTS_NOT_STORED: rays.n_zero_range + rays.n_non_finite,
                     contract.OPENCOOD_YAML: yaml_text,
                     contract.PCD_LAYOUT: sweep.layout,
                 },
-                model_element=own.model_elements,
-                generic_data=generic,
+                generic,
             )
             counts.frames += 1
             progress(1)
-        lidar.set_meta(
-            {
-                **meta,
-                contract.SKIPPED_FRAMES: skipped,
-                **({"rgb_coloured_points": tally.coloured} if plan.options.lidar_rgb and agent.camera_ids else {}),
-            }
+        lidar.finish(
+            {**meta, contract.SKIPPED_FRAMES: skipped},
+            counts,
+            str(agent.agent_dir),
+            "kept in their frames' generic data for the OpenCOOD read-back",
         )
-        counts.points += tally.stored
-        counts.points_not_stored += tally.not_stored
-        if tally.not_stored:
-            counts.warnings.append(
-                f"{agent.agent_dir}: {tally.not_stored} lidar points at zero range or with non-finite coordinates"
-                " not stored as rays (kept in their frames' generic data for the OpenCOOD read-back)"
-            )
     for cam in agent.camera_ids:
         index = agent.camera_index[cam]
         meta = {

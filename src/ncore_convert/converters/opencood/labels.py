@@ -4,12 +4,12 @@ CARLA takes every point and picture of a tick at the tick, so a camera frame's l
 its own tick:
 
 - ``depth.z@<camera>``: the agent's own lidar points of the tick
-  (:func:`ncore_convert.transforms.camera_labels.depth_z`), the tick's other labelled vehicles as
+  (:func:`ncore_convert.transforms.camera.labels.depth_z`), the tick's other labelled vehicles as
   solid occluders; written as each lidar frame streams past. A tick whose lidar frame is unreadable
   gets an empty label that says why.
 - ``mask.dynamic@<camera>``, ``segmentation.instance@<camera>``: the tick's merged labelled vehicles
   (the agent's own excepted), which one each pixel shows
-  (:func:`ncore_convert.transforms.camera_labels.box_index`); written with each image.
+  (:func:`ncore_convert.transforms.camera.labels.box_index`); written with each image.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ import numpy as np
 
 from ncore_convert import contract
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, ScenarioPlan
-from ncore_convert.transforms import camera_labels
+from ncore_convert.transforms.camera import labels as camera_labels
+from ncore_convert.transforms.camera.visibility import CameraView
 from ncore_convert.transforms.geometry import invert_se3
-from ncore_convert.transforms.visibility import CameraView
 from ncore_convert.writer import CameraLabelStream, SequenceWriter
 
 #: The component metadata of each kind: how the labels were made.
@@ -42,7 +42,7 @@ GENERATOR = {
     },
 }
 DYNAMIC_RULE = (
-    "1 where the box shown is a dynamic track's (transforms.dynamic: CARLA's speed above 1 km/h); 0 elsewhere"
+    "1 where the box shown is a dynamic track's (transforms.objects.dynamic: CARLA's speed above 1 km/h); 0 elsewhere"
 )
 
 
@@ -60,6 +60,25 @@ def instance_table(plan: ScenarioPlan) -> tuple[dict[int, int], dict[str, dict]]
         for actor, k in index.items()
     }
     return index, table
+
+
+def tick_boxes(plan: ScenarioPlan, agent: AgentPlan, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The labelled vehicles of tick ``key`` but the agent's own (CARLA takes every point and picture
+    of a tick at the tick, so are they): actor ids [K], box -> world_global [K,4,4], half sizes
+    [K,3] (m). The one list of a tick's occluders: labels and lidar colours both use it."""
+    boxes = plan.boxes.get(key)
+    if boxes is None:
+        return np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 3))
+    others = boxes.actor_ids != (int(agent.agent_id) if agent.kind == "cav" else -1)
+    return boxes.actor_ids[others], boxes.T_box_world_global[others], boxes.dims_m[others] / 2.0
+
+
+def camera_view(agent: AgentPlan, frame: int, t_us: int, cam: str, T_box: np.ndarray, half: np.ndarray) -> CameraView:
+    """Camera ``cam`` of ``agent`` at tick frame index ``frame`` (``t_us``), with the tick's boxes
+    (:func:`tick_boxes`: box -> world_global [K,4,4], half sizes [K,3]) as occluders; fixed frame
+    ``world_global``."""
+    T_camera_world_global = agent.T_rig_world_global[frame] @ agent.T_sensor_rig[cam]
+    return CameraView(cam, t_us, invert_se3(T_camera_world_global), agent.cameras[cam].pinhole, solids=(T_box, half))
 
 
 class TickLabeller:
@@ -92,27 +111,12 @@ class TickLabeller:
     def kinds(self) -> set[str]:
         return {kind for kind, _ in self._streams}
 
-    def _boxes(self, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The tick's labelled vehicles but the agent's own: actor ids [K], box -> world_global [K,4,4],
-        half sizes [K,3] (m)."""
-        boxes = self._plan.boxes.get(key)
-        if boxes is None:
-            return np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 3))
-        others = boxes.actor_ids != (int(self._agent.agent_id) if self._agent.kind == "cav" else -1)
-        return boxes.actor_ids[others], boxes.T_box_world_global[others], boxes.dims_m[others] / 2.0
-
-    def _view(self, frame: int, t_us: int, cam: str, T_box: np.ndarray, half: np.ndarray) -> CameraView:
-        """Camera ``cam`` at tick frame ``frame`` with the tick's boxes (:meth:`_boxes`) as occluders."""
-        T_camera_world_global = self._agent.T_rig_world_global[frame] @ self._agent.T_sensor_rig[cam]
-        pinhole = self._agent.cameras[cam].pinhole
-        return CameraView(cam, t_us, invert_se3(T_camera_world_global), pinhole, solids=(T_box, half))
-
     def store_depth(self, frame: int, key: str, t_us: int, cameras: list[str], points, why_none: str = "") -> None:
         """The depth labels of ``cameras`` (those with a picture) at tick ``key`` (frame index
         ``frame``, ``t_us``) from ``points`` (``lidar_frames.PointData`` of the tick; None: the lidar
         frame is unreadable, ``why_none`` says why)."""
         started = time.perf_counter()
-        _, T_box, half = self._boxes(key)
+        _, T_box, half = tick_boxes(self._plan, self._agent, key)
         for cam in cameras:
             if ("depth", cam) not in self._streams:
                 continue
@@ -120,7 +124,7 @@ class TickLabeller:
                 width, height = self._agent.cameras[cam].pinhole.resolution_px
                 depth, meta = np.zeros((height, width), np.float32), {"no_measurement": why_none}
             else:
-                view = self._view(frame, t_us, cam, T_box, half)
+                view = camera_view(self._agent, frame, t_us, cam, T_box, half)
                 depth = camera_labels.depth_z(view, points.xyz_fixed_m, points.timestamps_us, points.dynamic)
                 meta = {contract.CARLA_FRAME: int(key)}
             self._streams["depth", cam].store_label(depth, t_us, meta)
@@ -130,8 +134,8 @@ class TickLabeller:
     def store_boxes(self, frame: int, key: str, t_us: int, cam: str) -> None:
         """The box labels of camera ``cam`` at tick ``key`` (frame index ``frame``, ``t_us``)."""
         started = time.perf_counter()
-        actors, T_box, half = self._boxes(key)
-        picture = camera_labels.box_index(self._view(frame, t_us, cam, T_box, half), T_box, half)
+        actors, T_box, half = tick_boxes(self._plan, self._agent, key)
+        picture = camera_labels.box_index(camera_view(self._agent, frame, t_us, cam, T_box, half), T_box, half)
         instance_of_box = np.array([self._index[int(a)] for a in actors], dtype=np.int64)
         dynamic_of_box = np.array([str(a) in self._plan.cuboid_labels.dynamic for a in actors], dtype=bool)
         instance, dynamic, shown = camera_labels.box_labels(picture, instance_of_box, dynamic_of_box)

@@ -11,8 +11,9 @@ import numpy as np
 from ncore_convert.converters.opencood.records import AgentPlan, OpenCoodOptions
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import opencood as src
-from ncore_convert.transforms import carla, carla_lidar
-from ncore_convert.transforms.lidar import MIN_RANGE_M
+from ncore_convert.transforms import carla
+from ncore_convert.transforms.lidar import carla as carla_lidar
+from ncore_convert.transforms.lidar.rays import MIN_RANGE_M
 from ncore_convert.transforms.sampling import spread_indices
 
 #: Frames per agent checked against its protocol lidar block.

@@ -27,10 +27,11 @@ from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, 
 from ncore_convert.errors import SourceError, UsageError, warnings_kept
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.files import require_folder
-from ncore_convert.transforms import carla, labels
-from ncore_convert.transforms.camera_models import Pinhole
-from ncore_convert.transforms.dynamic import DynamicBoxes, TrackObservations
+from ncore_convert.transforms import carla
+from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.geometry import invert_se3, rigid_mean
+from ncore_convert.transforms.objects import classes
+from ncore_convert.transforms.objects.dynamic import DynamicBoxes, TrackObservations
 from ncore_convert.transforms.timebase import WindowError, in_window
 
 #: A sensor's mounting, re-measured every frame, may move this much before it is reported.
@@ -410,7 +411,7 @@ def _with_labels(plan: ScenarioPlan, scenario_dir: UPath) -> ScenarioPlan:
     cuboid_labels = consumer.cuboid_labels(
         observations,
         [VEHICLE_CLASS] * len(track_ids),
-        labels.OPENCOOD_TO_NCORE,
+        classes.OPENCOOD_TO_NCORE,
         plan.options.class_names,
         plan.options.cuboid_label_source,
         "GT_SYNTHETIC",

@@ -14,10 +14,10 @@ from ncore_convert.converters import consumer
 from ncore_convert.converters.common import ConsumerOptions
 from ncore_convert.converters.opencood.noise import AgentNoise
 from ncore_convert.sources import opencood as src
-from ncore_convert.transforms.dynamic import DynamicBoxes
 from ncore_convert.transforms.geometry import ONE_TICK_STEP_US, one_tick_trajectory
-from ncore_convert.transforms.lidar_model import SpinningLidarModel
+from ncore_convert.transforms.lidar.model import SpinningLidarModel
 from ncore_convert.transforms.noise import NoiseSetting
+from ncore_convert.transforms.objects.dynamic import DynamicBoxes
 
 #: The source class of every OPV2V / V2XSet label (the YAMLs list vehicles only).
 VEHICLE_CLASS = "vehicle"

@@ -39,9 +39,9 @@ from functools import cached_property
 
 import numpy as np
 
-from ncore_convert.transforms.boxes import PointGrid, in_box
 from ncore_convert.transforms.geometry import sorted_run_starts
-from ncore_convert.transforms.labels import ALWAYS_DYNAMIC, ALWAYS_STATIC
+from ncore_convert.transforms.objects.boxes import PointGrid, in_box
+from ncore_convert.transforms.objects.classes import ALWAYS_DYNAMIC, ALWAYS_STATIC
 
 DYNAMIC_SPEED_MPS = 1.0 / 3.6  #: 1 km/h, for measured speeds
 NET_DYNAMIC_M = 3.0  #: net displacement beyond any parked car's jitter (real sample: <= 1.8 m)

@@ -70,8 +70,9 @@ import numpy as np
 import PIL.Image
 from scipy import ndimage
 
-from ncore_convert.transforms.camera_models import Pinhole
-from ncore_convert.transforms.ego_cues import Cues, change_energy, cues, mirror_folds, persistent_edges
+from ncore_convert.transforms.camera.ego_cues import Cues, change_energy, cues, mirror_folds, persistent_edges
+from ncore_convert.transforms.camera.models import Pinhole
+from ncore_convert.transforms.objects.boxes import slab_span
 
 MIN_WORLD_STD = 4.0  #: grey levels: below this, the world did not move enough to tell the body from it
 MIN_FRACTION = 0.005  #: of the image: a smaller region is not a car body
@@ -173,13 +174,7 @@ class EgoMaskEstimate:
 
 def _rays_hit_box(origin: np.ndarray, directions: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Whether rays from ``origin`` [3] along ``directions`` [...,3] (ego frame) hit the box [lo, hi]."""
-    near = np.zeros(directions.shape[:-1])  # the slab test, one axis at a time
-    far = np.full(directions.shape[:-1], np.inf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for k in range(3):
-            t1, t2 = (lo[k] - origin[k]) / directions[..., k], (hi[k] - origin[k]) / directions[..., k]
-            np.fmax(near, np.minimum(t1, t2), out=near)  # fmax/fmin skip the NaN of a ray in a slab's plane
-            np.fmin(far, np.maximum(t1, t2), out=far)
+    near, far = slab_span(origin, np.moveaxis(directions, -1, 0), lo, hi, 0.0)
     return far >= near
 
 

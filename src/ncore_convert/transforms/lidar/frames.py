@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ncore_convert.contract import DYNAMIC_FLAG, LIDAR_RGB
-from ncore_convert.transforms.dynamic import BOX_MARGIN_M, DynamicBoxes, dynamic_flags
+from ncore_convert.transforms.camera.colours import FILL_RGB
 from ncore_convert.transforms.geometry import transform_points
-from ncore_convert.transforms.lidar import RayBundle, ray_bundle
-from ncore_convert.transforms.point_colours import FILL_RGB
+from ncore_convert.transforms.lidar.rays import RayBundle, ray_bundle
+from ncore_convert.transforms.objects.dynamic import BOX_MARGIN_M, DynamicBoxes, dynamic_flags
 from ncore_convert.transforms.timebase import floor_us
 
 #: ``(xyz_fixed_m [N,3], timestamps_us int64 [N], dynamic bool [N]) -> (rgb uint8 [N,3], coloured bool [N])``
@@ -197,22 +197,31 @@ class LidarCounts:
         return self.zero_range + self.non_finite
 
 
-def dynamic_flag_note(n_dynamic_tracks: int) -> str:
-    """What a lidar's metadata says of the ``dynamic_flag`` written on its frames."""
-    return (
-        f"written: int8 per point, 1 = inside one of {n_dynamic_tracks} dynamic tracks' boxes grown by"
-        f" {BOX_MARGIN_M:g} m at the point's own time (cuboids metadata: dynamic_tracks, dynamic_rule)"
-    )
+def point_data_notes(
+    boxes: DynamicBoxes | None, why_no_boxes: str, lidar_rgb: bool, cameras: bool, taken_from: str
+) -> dict[str, str]:
+    """What a lidar's metadata says of the per-point data :func:`lidar_frame` writes on its frames,
+    given what the frames get (the same ``boxes``; colours when ``lidar_rgb`` and ``cameras``):
 
-
-def rgb_note(lidar_rgb: bool, cameras: bool, taken_from: str) -> str:
-    """What a lidar's metadata says of ``rgb``: written (``taken_from``: the pixel of which camera
-    frame, and what occludes it), or why not (``--lidar-rgb`` off, no ``cameras`` converted)."""
+    - ``dynamic_flag``: written from the dynamic tracks' boxes, or why not (``why_no_boxes``: the
+      dataset's reason when ``boxes`` is None);
+    - ``rgb``: written (``taken_from``: the pixel of which camera frame, and what occludes it), or why
+      not (``--lidar-rgb`` off, no cameras converted).
+    """
+    if boxes is None:
+        flags = f"not written: {why_no_boxes}"
+    else:
+        flags = (
+            f"written: int8 per point, 1 = inside one of {len(boxes)} dynamic tracks' boxes grown by"
+            f" {BOX_MARGIN_M:g} m at the point's own time (cuboids metadata: dynamic_tracks, dynamic_rule)"
+        )
     if not lidar_rgb:
-        return "not written (--lidar-rgb is off)"
-    if not cameras:
-        return "not written: no cameras converted"
-    return (
-        f"written: uint8 [N,3] per point, the colour of the {taken_from}; {list(FILL_RGB)} where no camera sees it"
-        " (rgb_coloured_points counts the others)"
-    )
+        rgb = "not written (--lidar-rgb is off)"
+    elif not cameras:
+        rgb = "not written: no cameras converted"
+    else:
+        rgb = (
+            f"written: uint8 [N,3] per point, the colour of the {taken_from}; {list(FILL_RGB)} where no camera"
+            " sees it (rgb_coloured_points counts the others)"
+        )
+    return {DYNAMIC_FLAG: flags, LIDAR_RGB: rgb}

@@ -1,4 +1,4 @@
-"""The ego-mask estimator's per-pixel cues (:mod:`ncore_convert.transforms.ego_mask`, steps 3-5): from
+"""The ego-mask estimator's per-pixel cues (:mod:`ncore_convert.transforms.camera.ego_mask`, steps 3-5): from
 greyscale frames sampled across a log, at reduced resolution, the sums a silhouette is found from:
 persistent edge orientation, mirror folds (glossy paint reflects the world just above it, flipped)
 and fine-change energy with each frame's lighting divided out. Sums over frames, so that the cues

@@ -1,4 +1,14 @@
-"""Box geometry shared by every box test: the corner table and the edges between corners."""
+"""The box-geometry kernel: every oriented-box computation of the project is written here once.
+
+- :func:`box_corners`: a box's 8 corners (``CORNER_SIGNS`` order) and :func:`box_edges` its 12 edges;
+- :func:`near_plane_crossings`: where the edges cross a camera's near plane (a box partly behind
+  the camera is pictured by its corners ahead and these crossings);
+- :func:`slab_span`: where rays enter and leave a box (the slab test), vectorised over rays;
+- :class:`PointGrid`, :func:`in_box` and :func:`points_in_box`: which points lie in a box.
+
+Boxes are given by their rotation ``R_box_frame`` (box axes -> frame), centre and half sizes in
+metres; rays by their origin and direction in the box's own axes.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +20,60 @@ CORNER_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-
 BOX_EDGES = np.array(
     [(i, j) for i in range(8) for j in range(i + 1, 8) if np.sum(CORNER_SIGNS[i] != CORNER_SIGNS[j]) == 1]
 )
+
+
+def box_corners(R_box_frame: np.ndarray, centre_m: np.ndarray, half_m: np.ndarray) -> np.ndarray:
+    """The corners of boxes in their frame, float64 [K,8,3] (``CORNER_SIGNS`` order).
+
+    Args:
+        R_box_frame: box axes -> frame, [K,3,3]; centre_m: [K,3]; half_m: half sizes, [K,3] (m).
+    """
+    return np.einsum("kij,kcj->kci", R_box_frame, CORNER_SIGNS[None] * half_m[:, None]) + centre_m[:, None]
+
+
+def box_edges(corners_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The start and end of each box's 12 edges (``BOX_EDGES``), [K,12,3] each, from its corners [K,8,3]."""
+    return corners_m[:, BOX_EDGES[:, 0]], corners_m[:, BOX_EDGES[:, 1]]
+
+
+def near_plane_crossings(corners_m: np.ndarray, near_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where each box's edges cross the plane z = ``near_m`` of a camera (corners in the camera frame,
+    z forward, [K,8,3]): the points on the plane, float64 [K,12,3], and which edges cross it (their
+    ends on either side, not touching it), bool [K,12]; the points of the other edges are meaningless."""
+    start, end = box_edges(corners_m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = (near_m - start[..., 2]) / (end[..., 2] - start[..., 2])
+        return start + f[..., None] * (end - start), (f > 0) & (f < 1)
+
+
+def slab_span(origin_m, directions, lo_m, hi_m, enter_from: float = -np.inf, dtype=np.float64):
+    """Where rays enter and leave the box ``lo_m`` <= p <= ``hi_m`` (the slab test): the ray
+    parameters ``enter`` and ``leave`` (a ray's point is origin + s * direction, s in units of its
+    direction's length) between which the ray is inside every axis's slab. A ray meets the box where
+    ``enter <= leave``; ``enter_from`` = 0 counts only what lies ahead of the origin.
+
+    Each argument is taken axis by axis, ``arg[k]`` for k = 0, 1, 2 (``np.moveaxis(a, -1, 0)`` of an
+    array [...,3]), in the box's axes and metres:
+
+    Args:
+        origin_m: the rays' origins: per axis a scalar or an array broadcastable to the rays' shape.
+        directions: the rays' directions, per axis an array of (or broadcastable to) the rays' shape;
+            a direction 0 along an axis (the ray parallel to its slab) is handled.
+        lo_m, hi_m: the box's lowest and highest corner, per axis a scalar (or an array as origin_m).
+        dtype: of the results (the accumulation; each ray parameter is computed in its inputs' type).
+
+    Returns:
+        enter, leave: [rays' shape] each.
+    """
+    shape = np.broadcast_shapes(*(np.shape(directions[k]) for k in range(3)))
+    enter, leave = np.full(shape, enter_from, dtype), np.full(shape, np.inf, dtype)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k in range(3):
+            inverse = 1.0 / directions[k]
+            t_lo, t_hi = (lo_m[k] - origin_m[k]) * inverse, (hi_m[k] - origin_m[k]) * inverse
+            np.fmax(enter, np.fmin(t_lo, t_hi), out=enter)  # fmax/fmin skip the NaN of a ray in a slab's plane
+            np.fmin(leave, np.fmax(t_lo, t_hi), out=leave)
+    return enter, leave
 
 
 #: Side of the grid columns points are bucketed into (metres; wider where the points spread over more
@@ -98,3 +162,15 @@ def in_box(xyz_m: np.ndarray, centre_m: np.ndarray, R_box_frame: np.ndarray, hal
     offset = xyz_m - centre_m
     local = offset @ R_box_frame if R_box_frame.ndim == 2 else np.einsum("nji,nj->ni", R_box_frame, offset)
     return np.all(np.abs(local) <= half_m, axis=1)
+
+
+def points_in_box(points: PointGrid, centre_m: np.ndarray, R_box_frame: np.ndarray, half_m: np.ndarray) -> np.ndarray:
+    """The rows of ``points`` inside one box (faces included), int [K]: the grid's columns the box
+    can reach, then :func:`in_box`.
+
+    Args:
+        centre_m: [3]; R_box_frame: box axes -> frame [3,3]; half_m: half sizes [3]; frame and
+            metres of ``points``.
+    """
+    near = points.near(centre_m, float(np.linalg.norm(half_m)))  # no point further is inside
+    return near[in_box(points.xyz_m[near], centre_m, R_box_frame, half_m)]

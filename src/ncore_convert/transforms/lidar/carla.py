@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncore_convert.transforms.lidar_model import SpinningLidarModel, circular_mean, wrap_angle
+from ncore_convert.transforms.lidar.model import SpinningLidarModel, circular_mean, wrap_angle
 
 #: Keys of a ``sensing.perception.lidar`` block the model needs.
 PROTOCOL_KEYS = ("channels", "upper_fov", "lower_fov", "rotation_frequency", "points_per_second")

@@ -25,9 +25,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ncore_convert.transforms import vlp32c
 from ncore_convert.transforms.geometry import Trajectory
-from ncore_convert.transforms.lidar import decompensate
+from ncore_convert.transforms.lidar import vlp32c
+from ncore_convert.transforms.lidar.rays import decompensate
 
 PERIOD_NS = 100_000_000  #: trigger grid and nominal revolution
 PERIOD_MS = PERIOD_NS / 1e6

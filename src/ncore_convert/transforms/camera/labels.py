@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncore_convert.transforms.visibility import CameraView, box_pictures, visible_pixels
+from ncore_convert.transforms.camera.visibility import CameraView, box_pictures, visible_pixels
+from ncore_convert.transforms.objects.boxes import slab_span
 
 #: A point on a moving object labels only a frame this close to its own time (µs): at 15 m/s the
 #: object moves 7.5 cm in that time.
@@ -100,15 +101,8 @@ def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> 
         M = T_box_world[k, :3, :3].T @ R_camera_world  # camera axes -> box axes
         x = ((np.arange(c0, c1) + 0.5 - cx) / fx).astype(np.float32)
         y = ((np.arange(r0, r1) + 0.5 - cy) / fy).astype(np.float32)
-        enter = np.zeros((r1 - r0, c1 - c0), np.float32)
-        leave = np.full((r1 - r0, c1 - c0), np.inf, np.float32)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for axis in range(3):
-                step = (M[axis, 2] + M[axis, 0] * x)[None, :] + (M[axis, 1] * y)[:, None]  # [rows,cols]
-                low = (-half_m[k, axis] - pictures.origin_m[k, axis]) / step
-                high = (half_m[k, axis] - pictures.origin_m[k, axis]) / step
-                np.fmax(enter, np.fmin(low, high), out=enter)
-                np.fmin(leave, np.fmax(low, high), out=leave)
+        steps = [(M[axis, 2] + M[axis, 0] * x)[None, :] + (M[axis, 1] * y)[:, None] for axis in range(3)]  # [rows,cols]
+        enter, leave = slab_span(pictures.origin_m[k], steps, -half_m[k], half_m[k], 0.0, np.float32)
         window = nearest_m[r0:r1, c0:c1]
         hit = (enter <= leave) & (enter < window)
         window[hit] = enter[hit]

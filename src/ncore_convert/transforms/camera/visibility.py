@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncore_convert.transforms.boxes import BOX_EDGES, CORNER_SIGNS
-from ncore_convert.transforms.camera_models import Pinhole
+from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.objects.boxes import box_corners, near_plane_crossings, slab_span
 
 CELL_RAD = np.radians(1.0)  #: depth-buffer cell, as an angle of view: its height; its width is half that
 DEPTH_TOLERANCE = 0.05  #: a point this far behind (relative) its cell's nearest point is still visible ...
@@ -114,12 +114,9 @@ def box_pictures(frame: CameraView, T_box_world: np.ndarray, half_m: np.ndarray)
     camera_m = invert_se3(frame.T_world_camera)[:3, 3]
     R_all, t_all = T_box_world[:, :3, :3], T_box_world[:, :3, 3]
     origin_all = np.einsum("kji,kj->ki", R_all, camera_m - t_all)
-    corners = np.einsum("kij,kcj->kci", R_all, CORNER_SIGNS[None] * half_m[:, None]) + t_all[:, None]
-    corners = corners @ R_wc.T + t_wc  # [K,8,3] in the camera frame
-    start, end = corners[:, BOX_EDGES[:, 0]], corners[:, BOX_EDGES[:, 1]]  # [K,12,3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        f = (MIN_DEPTH_M - start[..., 2]) / (end[..., 2] - start[..., 2])
-        crossing = np.where(((f > 0) & (f < 1))[..., None], start + f[..., None] * (end - start), np.nan)
+    corners = box_corners(R_all, t_all, half_m) @ R_wc.T + t_wc  # [K,8,3] in the camera frame
+    on_plane, crosses = near_plane_crossings(corners, MIN_DEPTH_M)
+    crossing = np.where(crosses[..., None], on_plane, np.nan)
     points = np.concatenate([np.where(corners[..., 2:] >= MIN_DEPTH_M, corners, np.nan), crossing], axis=1)
     w, h = frame.pinhole.resolution_px
     with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
@@ -164,10 +161,7 @@ def _behind_solids(frame: CameraView, xyz_world_m: np.ndarray, cols: np.ndarray,
             near, local = near[away], local[away]
         distance_m = np.linalg.norm(xyz_world_m[near] - camera_m, axis=1)
         step = local - origin  # the line of sight in the box frame, as a fraction of its length
-        with np.errstate(divide="ignore", invalid="ignore"):
-            low, high = (-half_m - origin) / step, (half_m - origin) / step
-        enter = np.nanmax(np.fmin(low, high), axis=1)
-        leave = np.nanmin(np.fmax(low, high), axis=1)
+        enter, leave = slab_span(origin, step.T, -half_m, half_m)
         allowed_m = distance_m * (1.0 - DEPTH_TOLERANCE) - DEPTH_TOLERANCE_M  # an entry nearer than this hides
         hidden[near[(enter <= leave) & (enter > 0) & (enter * distance_m < allowed_m)]] = True
     return hidden

@@ -24,11 +24,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from ncore_convert.transforms.visibility import VIEW_MARGIN, CameraView, in_view, visible_pixels
+from ncore_convert.transforms.camera.visibility import VIEW_MARGIN, CameraView, in_view, visible_pixels
 
 FILL_RGB = (128, 128, 128)  #: the colour of a point no camera sees: neutral grey
 DYNAMIC_DT_US = 5_000  #: a point on a moving object takes colour only from a frame this close in time
@@ -46,6 +46,11 @@ class ColourFrame(CameraView):
     """
 
     load_rgb: Callable[[], np.ndarray] = field(kw_only=True)
+
+    @classmethod
+    def of(cls, view: CameraView, load_rgb: Callable[[], np.ndarray]) -> ColourFrame:
+        """``view`` with its picture's loader."""
+        return cls(**{f.name: getattr(view, f.name) for f in fields(view)}, load_rgb=load_rgb)
 
 
 def point_colours(
