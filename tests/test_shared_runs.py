@@ -129,6 +129,28 @@ def test_concurrent_report_merges_keep_every_entry(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["conversion-report.json"], "no temporary or lock file left"
 
 
+def test_a_report_replaced_while_it_is_read_is_read_again(monkeypatch):
+    """On object storage, another run may replace the report between reading its ETag and its bytes:
+    s3fs then raises ``FileExpired`` (an OSError, EBUSY). The read starts again; it does not stop the
+    run (CI saw one of two runs sharing a bucket exit with it)."""
+    import errno
+
+    root = UPath("memory://report-race")
+    (root / "conversion-report.json").write_text(json.dumps({"logs": {"a": {"status": "ok"}}}))
+    calls = {"n": 0}
+    read_text = type(root).read_text
+
+    def replaced_once(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise OSError(errno.EBUSY, "The remote file ... and Etag ... no longer exists.")
+        return read_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(type(root), "read_text", replaced_once)
+    report = RunReport(root, {"name": "test"})
+    assert report.logs == {"a": {"status": "ok"}} and calls["n"] == 2
+
+
 def test_the_first_signal_asks_the_run_to_stop_and_a_second_ends_it_at_once():
     """The run's signal handler, in a process of its own: SIGINT sets the stop flag (the run then
     abandons its logs in flight and records what it published); SIGTERM after it ends the process

@@ -12,6 +12,7 @@ retried when another run wrote in between.
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
@@ -98,6 +99,10 @@ class RunReport:
                     continue
             except FileNotFoundError:
                 return {}, None
+            except OSError as err:  # s3fs's FileExpired (EBUSY): another run replaced it while read
+                if err.errno != errno.EBUSY:
+                    raise
+                continue
             try:
                 logs = json.loads(text).get("logs", {})
             except (json.JSONDecodeError, AttributeError):
