@@ -22,6 +22,7 @@ from upath import UPath
 
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.sources.opencood import load_yaml
+from ncore_convert.synth import carla as synth_carla
 from ncore_convert.synth import opencood as synth
 from ncore_convert.synth.raycast import cast_rays
 from ncore_convert.validate.sequence import validate_sequence
@@ -64,8 +65,8 @@ def _camera_rays(truth, agent_id: str, key: str, index: int, u: np.ndarray, v: n
     """The rays through image points (``u``, ``v``, px, NCore's corner convention) of camera
     ``index`` at tick ``key``: origins and unit directions in the CARLA world [K,3], and the length
     of each OpenCV ray (z = 1) [K]."""
-    T = truth.agents[agent_id].T_cam_world[key][index] @ synth.T_UE4_OPENCV
-    (fx, fy), (cx, cy) = synth.PINHOLE.focal_length_px, synth.PINHOLE.principal_point_px
+    T = truth.agents[agent_id].T_cam_world[key][index] @ synth_carla.T_UE4_OPENCV
+    (fx, fy), (cx, cy) = synth_carla.PINHOLE.focal_length_px, synth_carla.PINHOLE.principal_point_px
     d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1) @ T[:3, :3].T
     norm = np.linalg.norm(d, axis=1)
     return np.broadcast_to(T[:3, 3], d.shape), d / norm[:, None], norm
@@ -156,7 +157,7 @@ def _opencood_pixels(agent_dir: Path, key: str, index: int) -> tuple[np.ndarray,
     u = np.concatenate([u, u + EDGE_PX, u - EDGE_PX, u, u])
     v = np.concatenate([v, v, v, v + EDGE_PX, v - EDGE_PX])
     z = np.tile(z[ahead], 5)
-    inside = (u >= 0) & (u < synth.WIDTH) & (v >= 0) & (v < synth.HEIGHT)
+    inside = (u >= 0) & (u < synth_carla.WIDTH) & (v >= 0) & (v < synth_carla.HEIGHT)
     return u[inside].astype(np.int64), v[inside].astype(np.int64), z[inside]
 
 
@@ -167,7 +168,7 @@ def _visible_point_pixels(truth, agent_id: str, key: str, index: int, scene, dep
     origins, d, norm = _camera_rays(truth, agent_id, key, index, cols + 0.5, lines + 0.5)
     first_m, _, _ = cast_rays(origins, d, np.zeros(len(cols)), scene, 500.0, ground_z_m=0.0)
     seen = first_m / norm >= z_m - 0.05 * np.maximum(1.0, z_m / 10.0)  # the pixel centre's ray, not the point's
-    pixels = np.unique(lines[seen] * synth.WIDTH + cols[seen])
+    pixels = np.unique(lines[seen] * synth_carla.WIDTH + cols[seen])
     return depth.reshape(-1)[pixels] > 0
 
 
@@ -182,7 +183,7 @@ def _held_out(truth, out: Path, agent_id: str) -> tuple[int, int, int]:
             labels = _labels(loader, cam, LabelType.DEPTH_Z_M)
             depth = labels.get_label(int(labels.label_timestamps_us[truth.keys.index(key)])).get_data()
             cols, lines, z_m = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
-            pixel = lines * synth.WIDTH + cols
+            pixel = lines * synth_carla.WIDTH + cols
             label = depth.reshape(-1)[pixel]
             near = np.abs(z_m - label) <= 0.02
             set_pixels = np.flatnonzero(depth.reshape(-1))
@@ -236,7 +237,7 @@ def test_box_labels_show_the_vehicles_the_camera_sees(labelled):
                 t_us = int(instances.label_timestamps_us[truth.keys.index(key)])
                 ours = instances.get_label(t_us).get_data()[::2, ::2]
                 ours_dynamic = _labels(loader, cam, LabelType.MASK_DYNAMIC).get_label(t_us).get_data()[::2, ::2] > 0
-                v, u = np.mgrid[0 : synth.HEIGHT : 2, 0 : synth.WIDTH : 2] + 0.5
+                v, u = np.mgrid[0 : synth_carla.HEIGHT : 2, 0 : synth_carla.WIDTH : 2] + 0.5
                 origins, d, _ = _camera_rays(truth, agent_id, key, index, u.reshape(-1), v.reshape(-1))
                 hit_m, _, box = cast_rays(origins, d, np.zeros(len(d)), scene, 500.0, ground_z_m=0.0)
                 actor = np.r_[actor_of_box, -1][np.where(np.isfinite(hit_m), box, -1)].reshape(u.shape)
