@@ -25,19 +25,22 @@ REPO = Path(__file__).resolve().parents[1]
 #: whole files to the workers in this order, then the rest: the long ones start first, so no worker
 #: is left with one at the end. A stale list costs balance, never a test.
 SLOW_FIRST = (
-    "test_validate",
     "test_ego_masks",
-    "test_consumers",
-    "test_determinism",
+    "test_validate",
     "test_bad_input",
-    "test_dynamic_tracks",
-    "test_resume",
+    "test_determinism",
+    "test_consumers",
     "test_shared_runs",
+    "test_dynamic_tracks",
+    "test_camera_labels",
     "test_ray",
-    "test_fuzz_readers",
-    "test_presets",
-    "test_point_colours",
     "test_opencood_view",
+    "test_s3",
+    "test_fuzz_readers",
+    "test_resume",
+    "test_point_colours",
+    "test_presets",
+    "test_camera_labels_opencood",
 )
 #: Tests whose cases each build their own data and are slow: each case goes to whichever worker is
 #: free, instead of staying with its file.
@@ -202,7 +205,7 @@ def shared_by_workers(tmp_path_factory, name: str, make: Callable[[Path], Conver
 @pytest.fixture(scope="session")
 def synth_log(tmp_path_factory) -> Converted:
     """A 1 s synthetic log with images at 20 fps, converted with default options (one per test run)."""
-    config = SynthConfig(seconds=1.0, seed=1, keep_truth=True)
+    config = SynthConfig(seconds=1.0, seed=1, keep_truth=True, pictures=2)
     return shared_by_workers(tmp_path_factory, "synth", lambda folder: synth_and_convert(folder, config))
 
 

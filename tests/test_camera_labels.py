@@ -190,7 +190,7 @@ LABEL_CAMERAS = ("ring_front_center", "ring_side_left")
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory) -> Converted:
     """A 1 s synthetic log (10 fps cameras), two cameras, converted with every camera label."""
-    config = SynthConfig(seconds=1.0, seed=21, camera_fps=10, keep_truth=True, image_cameras=LABEL_CAMERAS)
+    config = SynthConfig(seconds=1.0, seed=21, camera_fps=10, keep_truth=True, image_cameras=LABEL_CAMERAS, pictures=2)
     options = Argoverse2Options(
         split="val", camera_ids=LABEL_CAMERAS, camera_labels=("depth", "dynamic", "instance"), ego_masks="none"
     )
@@ -390,7 +390,7 @@ def test_tbv_depth_labels_use_only_points_near_the_frame(tmp_path):
     cam = "ring_front_center"
     truth = write_log(
         UPath(tmp_path / "src"),
-        SynthConfig(seconds=1.0, seed=22, camera_fps=10, tbv=True, keep_truth=True, image_cameras=(cam,)),
+        SynthConfig(seconds=1.0, seed=22, camera_fps=10, tbv=True, keep_truth=True, image_cameras=(cam,), pictures=2),
     )
     options = Argoverse2Options(split=None, camera_ids=(cam,), camera_labels=("depth",), ego_masks="none")
     summary = convert_log(UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.log_id, options)

@@ -410,7 +410,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 
 def test_av2_clip_window(tmp_path):
     root, out = tmp_path / "src", tmp_path / "clip"
-    truth = write_log(UPath(root / "val"), SynthConfig(seconds=2.0, seed=7, camera_fps=5))
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=2.0, seed=7, camera_fps=5, pictures=2))
     done = _cli(
         "--root-dir",
         str(root),

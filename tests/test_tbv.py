@@ -106,7 +106,9 @@ def synth_tbv(tmp_path_factory):
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
     tmp = tmp_path_factory.mktemp("tbv-synth")
-    truth = write_log(UPath(tmp / "root"), SynthConfig(seconds=1.0, seed=5, camera_fps=10, keep_truth=True, tbv=True))
+    truth = write_log(
+        UPath(tmp / "root"), SynthConfig(seconds=1.0, seed=5, camera_fps=10, keep_truth=True, tbv=True, pictures=2)
+    )
     summary = convert_log(UPath(tmp / "root"), UPath(tmp / "out" / truth.log_id), truth.log_id, Argoverse2Options(None))
     return truth, summary, open_sequence(tmp / "out" / truth.log_id, truth.log_id)
 

@@ -157,25 +157,6 @@ def test_validate_passes_on_the_synthetic_and_real_conversions(synth_log, real_l
         assert any(n.endswith("cuboids hold points") for n in names)
 
 
-@pytest.mark.parametrize("layout", ["agents", "scenario"])
-def test_validate_passes_on_opv2v_and_v2xset_conversions(tmp_path, layout):
-    config = OpenCoodConfig(dataset="v2xset", frames=4, seed=6, cavs=2, infrastructure=True, lidar_columns=90)
-    (truth,) = write_dataset(UPath(tmp_path / "src"), config)
-    out = tmp_path / "out" / truth.scenario
-    convert_scenario(
-        UPath(tmp_path / "src"),
-        UPath(out),
-        truth.scenario,
-        OpenCoodOptions(dataset="v2xset", split=config.split, layout=layout),
-    )
-    sequences = find_sequences(UPath(tmp_path / "out"))
-    assert len(sequences) == (len(truth.agents) if layout == "agents" else 1)
-    for meta in sequences:
-        report = validate_sequence(meta)
-        assert report.ok, failed(report)
-        assert json.loads(json.dumps(report.to_dict()))["ok"] is True
-
-
 def test_the_validate_command_prints_failures_writes_json_and_exits_non_zero(directory_log, tmp_path):
     from click.testing import CliRunner
 
@@ -378,17 +359,35 @@ def test_a_source_image_the_sequence_lacks_is_reported(synth_log, tmp_path):
 
 @pytest.fixture(scope="module")
 def v2x_directory(tmp_path_factory):
-    """A V2XSet scenario (2 CAVs and an RSU, 4 frames), one directory store per agent sequence."""
+    """A V2XSet scenario (2 CAVs and an RSU, 4 frames) built once and converted three ways: one
+    directory store per agent sequence (``out``: the stores the tests below edit), and with the
+    default store in both layouts (``agents``, ``scenario``)."""
     tmp = tmp_path_factory.mktemp("coreg")
     config = OpenCoodConfig(dataset="v2xset", frames=4, seed=6, cavs=2, infrastructure=True, lidar_columns=360)
     (truth,) = write_dataset(UPath(tmp / "src"), config)
-    convert_scenario(
-        UPath(tmp / "src"),
-        UPath(tmp / "out" / truth.scenario),
-        truth.scenario,
-        OpenCoodOptions(dataset="v2xset", split=config.split, store_type="directory", profile="default"),
-    )
+    for folder, options in (
+        ("out", {"store_type": "directory", "profile": "default"}),
+        ("agents", {"layout": "agents"}),
+        ("scenario", {"layout": "scenario"}),
+    ):
+        convert_scenario(
+            UPath(tmp / "src"),
+            UPath(tmp / folder / truth.scenario),
+            truth.scenario,
+            OpenCoodOptions(dataset="v2xset", split=config.split, **options),
+        )
     return truth, tmp
+
+
+@pytest.mark.parametrize("layout", ["agents", "scenario"])
+def test_validate_passes_on_v2xset_conversions(v2x_directory, layout):
+    truth, tmp = v2x_directory
+    sequences = find_sequences(UPath(tmp / layout))
+    assert len(sequences) == (len(truth.agents) if layout == "agents" else 1)
+    for meta in sequences:
+        report = validate_sequence(meta)
+        assert report.ok, failed(report)
+        assert json.loads(json.dumps(report.to_dict()))["ok"] is True
 
 
 def _move_world_global(seq_dir: Path, T_fix: np.ndarray) -> None:
@@ -421,16 +420,9 @@ def test_a_misregistered_agent_fails_co_registration(v2x_directory, tmp_path, er
     assert list(bad) == [f"co-registration: agent {moved['agent_id']} on agent {manifest['ego']['agent_id']}"], bad
 
 
-def test_co_registration_passes_in_both_layouts_and_is_in_the_tree_report(v2x_directory, tmp_path):
+def test_co_registration_passes_in_both_layouts_and_is_in_the_tree_report(v2x_directory):
     truth, tmp = v2x_directory
-    out = tmp_path / "scenario-layout"
-    convert_scenario(
-        UPath(tmp / "src"),
-        UPath(out / truth.scenario),
-        truth.scenario,
-        OpenCoodOptions(dataset="v2xset", split="test", layout="scenario"),
-    )
-    for root in (tmp / "out", out):
+    for root in (tmp / "out", tmp / "scenario"):
         reports = validate_tree(UPath(root), UPath(tmp / "src"))
         assert all(r.ok for r in reports), [failed(r) for r in reports]
         (coreg,) = [r for r in reports if r.sequence.endswith("scenario.json")]
