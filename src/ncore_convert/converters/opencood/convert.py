@@ -183,6 +183,7 @@ def _write_sensors(
     tick, box labels with the image)."""
     depth = labeller is not None and "depth" in labeller.kinds
     if agent.lidar_ids:
+        coloured = bool(plan.options.lidar_rgb and agent.camera_ids)  # its points get rgb
         meta = {
             "agent_id": agent.agent_id,
             "carla_lidar": plan.lidar_specs[agent.agent_id],
@@ -204,9 +205,7 @@ def _write_sensors(
             exact=True,
             elements=None if model is None else lambda rays, rows: (assign_elements(model, rays.direction), {}),
         )
-        lidar = LidarStore(
-            writer.add_lidar(names.sensor(src.LIDAR), meta), plan.options.lidar_rgb and bool(agent.camera_ids)
-        )
+        lidar = LidarStore(writer.add_lidar(names.sensor(src.LIDAR), meta), coloured)
         skipped = dict(agent.skipped_keys)
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
@@ -229,7 +228,7 @@ def _write_sensors(
                 agent.T_rig_world_global[frame] @ T_lidar_rig,
             )
             colouring = None
-            if plan.options.lidar_rgb and agent.camera_ids:
+            if coloured:
                 colouring = partial(point_colours, frames=_colour_frames(plan, agent, frame, key, int(t_us)))
             stored, points = lidar_frame(lidar_frame_in, {src.LIDAR: geometry}, plan.dynamic_boxes, colouring)
             if depth:

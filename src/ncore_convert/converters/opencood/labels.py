@@ -63,9 +63,9 @@ def instance_table(plan: ScenarioPlan) -> tuple[dict[int, int], dict[str, dict]]
 
 
 def tick_boxes(plan: ScenarioPlan, agent: AgentPlan, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The labelled vehicles of tick ``key`` but the agent's own (CARLA takes every point and picture
-    of a tick at the tick, so are they): actor ids [K], box -> world_global [K,4,4], half sizes
-    [K,3] (m). The one list of a tick's occluders: labels and lidar colours both use it."""
+    """The labelled vehicles of tick ``key`` but the agent's own, where they are at the tick (CARLA
+    takes every point and picture of a tick at the tick): actor ids [K], box -> world_global [K,4,4],
+    half sizes [K,3] (m). The one list of a tick's occluders: labels and lidar colours both use it."""
     boxes = plan.boxes.get(key)
     if boxes is None:
         return np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 3))
