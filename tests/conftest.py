@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import pickle
 import socket
+import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -12,10 +13,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from filelock import FileLock
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from upath import UPath
 
+from ncore_convert.cli import cli
 from ncore_convert.converters.argoverse2 import Argoverse2Options, LogSummary, convert_log
 from ncore_convert.synth.argoverse2 import SynthConfig, SynthTruth, write_log
 from ncore_convert.transforms.geometry import Trajectory, invert_se3, transform_points
@@ -134,6 +137,16 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    """``ncore-convert ARGS`` in this process (click's runner), as a finished process: its exit code,
+    stdout and stderr. Tests that need a process of their own (signals, kills, determinism across
+    processes, terminal detection) start the installed command instead (:data:`BIN`)."""
+    result = CliRunner().invoke(cli, list(args))
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        raise result.exception
+    return subprocess.CompletedProcess(list(args), result.exit_code, result.stdout, result.stderr)
 
 
 def av2_command(root, out, *group_options) -> list[str]:

@@ -422,12 +422,16 @@ UNREADABLE = {"unreadable-file", "unreadable-pcd"}
 def bases(tmp_path_factory, av2_sample_root) -> dict[str, tuple[Path, str]]:
     """One small intact dataset per converter, and the real sample: {dataset: (root, log id or scenario)}."""
     tmp = tmp_path_factory.mktemp("corpus")
-    av2_log = write_log(UPath(tmp / "av2" / "val"), SynthConfig(seconds=0.3, seed=11, camera_fps=5)).log_id
+    av2_log = write_log(
+        UPath(tmp / "av2" / "val"), SynthConfig(seconds=0.3, seed=11, camera_fps=5, camera_scale=4)
+    ).log_id
     tbv_log = write_log(UPath(tmp / "tbv"), SynthConfig(seconds=0.5, seed=12, camera_fps=0, tbv=True)).log_id
-    config = synth_opencood.SynthConfig(dataset="opv2v", frames=4, cavs=2, lidar_columns=64, seed=13)
+    config = synth_opencood.SynthConfig(dataset="opv2v", frames=4, cavs=2, lidar_columns=64, seed=13, render_step=8)
     scenario = synth_opencood.write_scenario(UPath(tmp / "opv2v" / config.split), config).scenario
     # the real V2XSet case of issue 50: three agents (two vehicles, an RSU), one tick
-    config = synth_opencood.SynthConfig(dataset="v2xset", frames=1, cavs=2, infrastructure=1, lidar_columns=64, seed=14)
+    config = synth_opencood.SynthConfig(
+        dataset="v2xset", frames=1, cavs=2, infrastructure=1, lidar_columns=64, seed=14, render_step=8
+    )
     tick = synth_opencood.write_scenario(UPath(tmp / "one-tick" / config.split), config).scenario
     return {
         "av2": (tmp / "av2", av2_log),

@@ -339,7 +339,7 @@ def nine_camera_plan(tmp_path_factory):
     from ncore_convert.converters.argoverse2.plan import plan_log
 
     root = tmp_path_factory.mktemp("nine")
-    truth = write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=23, camera_fps=5))
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=23, camera_fps=5, camera_scale=4))
 
     def plan(kinds):
         options = Argoverse2Options(split="val", camera_labels=kinds, ego_masks="none")
@@ -390,7 +390,16 @@ def test_tbv_depth_labels_use_only_points_near_the_frame(tmp_path):
     cam = "ring_front_center"
     truth = write_log(
         UPath(tmp_path / "src"),
-        SynthConfig(seconds=1.0, seed=22, camera_fps=10, tbv=True, keep_truth=True, image_cameras=(cam,), pictures=2),
+        SynthConfig(
+            seconds=1.0,
+            seed=22,
+            camera_fps=10,
+            tbv=True,
+            keep_truth=True,
+            image_cameras=(cam,),
+            pictures=2,
+            camera_scale=2,
+        ),
     )
     options = Argoverse2Options(split=None, camera_ids=(cam,), camera_labels=("depth",), ego_masks="none")
     summary = convert_log(UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.log_id, options)

@@ -207,7 +207,7 @@ def test_real_opv2v_frames_every_depth_pixel_is_the_nearest_raw_point_there(tmp_
     """The five real OPV2V frames in a synthetic agent's place: every labelled depth pixel is the
     nearest raw point projecting there within 2 cm (OpenCOOD's projection), and the sequence
     validates."""
-    config = synth.SynthConfig(dataset="opv2v", frames=5, seed=7, cavs=1, first_key=70, key_step=2)
+    config = synth.SynthConfig(dataset="opv2v", frames=5, seed=7, cavs=1, first_key=70, key_step=2, render_step=8)
     truth, _, out = _convert(tmp_path, config, real_pcds=True)
     (agent_id,) = truth.agents
     labelled_px, missing, not_nearest = _held_out(truth, out, agent_id)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import BIN, Converted, component_meta, convert_synthetic, open_sequence, synth_and_convert
+from conftest import Converted, component_meta, convert_synthetic, open_sequence, run_cli, synth_and_convert
 from ncore.data.v4 import (
     CameraSensorComponent,
     CuboidsComponent,
@@ -93,7 +93,9 @@ class Cooperative:
 @pytest.fixture(scope="module")
 def opv2v(tmp_path_factory) -> Cooperative:
     tmp = tmp_path_factory.mktemp("consumers-opv2v")
-    config = synth_opencood.SynthConfig(dataset="opv2v", frames=6, seed=6, lidar_columns=360, keep_truth=True)
+    config = synth_opencood.SynthConfig(
+        dataset="opv2v", frames=6, seed=6, lidar_columns=360, keep_truth=True, render_step=8
+    )
     (truth,) = synth_opencood.write_dataset(UPath(tmp / "src"), config)
     runs = {
         "default": {},
@@ -405,12 +407,12 @@ def test_tbv_writes_no_dynamic_flag_and_says_so(tbv):
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(BIN / "ncore-convert"), "--no-progress", *args], capture_output=True, text=True)
+    return run_cli("--no-progress", *args)
 
 
 def test_av2_clip_window(tmp_path):
     root, out = tmp_path / "src", tmp_path / "clip"
-    truth = write_log(UPath(root / "val"), SynthConfig(seconds=2.0, seed=7, camera_fps=5, pictures=2))
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=2.0, seed=7, camera_fps=5, pictures=2, camera_scale=4))
     done = _cli(
         "--root-dir",
         str(root),
@@ -474,7 +476,7 @@ def _image_times_us(truth) -> list[int]:
 
 
 def test_opv2v_clip_window_cuts_frames_labels_and_noise(tmp_path):
-    config = synth_opencood.SynthConfig(dataset="opv2v", frames=10, seed=8, lidar_columns=64)
+    config = synth_opencood.SynthConfig(dataset="opv2v", frames=10, seed=8, lidar_columns=64, render_step=8)
     (truth,) = synth_opencood.write_dataset(UPath(tmp_path / "src"), config)
     done = _cli(
         "--root-dir",

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import PIL.Image
 import pytest
-from conftest import BIN, Converted, component_meta, open_sequence, synth_and_convert
+from conftest import Converted, component_meta, open_sequence, run_cli, synth_and_convert
 from ncore.data.v4 import CameraSensorComponent
 from upath import UPath
 
@@ -90,7 +90,9 @@ def test_estimated_masks_match_the_true_body(dataset, av2, tbv):
 
 
 def test_a_parked_log_falls_back_to_no_masks_with_a_warning(tmp_path):
-    run = synth_and_convert(tmp_path, SynthConfig(seconds=1.0, seed=33, camera_fps=20, parked_fraction=1.0))
+    run = synth_and_convert(
+        tmp_path, SynthConfig(seconds=1.0, seed=33, camera_fps=20, parked_fraction=1.0, camera_scale=4)
+    )
     assert _masks(run.loader) == {}
     warning = [w for w in run.summary.warnings if "ego masks not estimated (too little motion)" in w]
     assert len(warning) == 1 and all(cam in warning[0] for cam in EGO_CAMERAS)
@@ -169,8 +171,7 @@ def test_no_masks_with_none(tmp_path, av2):
 
 
 def _cli(root: Path, out: Path, *args: str) -> subprocess.CompletedProcess:
-    command = [
-        str(BIN / "ncore-convert"),
+    return run_cli(
         "--no-progress",
         "--no-lidars",
         "--root-dir",
@@ -181,8 +182,7 @@ def _cli(root: Path, out: Path, *args: str) -> subprocess.CompletedProcess:
         "--split",
         "val",
         *args,
-    ]
-    return subprocess.run(command, capture_output=True, text=True)
+    )
 
 
 def test_user_masks_round_trip_bit_exactly_and_bad_ones_are_rejected(tmp_path, av2):

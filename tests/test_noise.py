@@ -375,7 +375,7 @@ def test_flags_make_the_same_setting_as_the_file(tmp_path):
 
 # --- converted scenarios -----------------------------------------------------------------------
 
-CONFIG = SynthConfig(dataset="v2xset", frames=8, seed=11, cavs=3, infrastructure=True, lidar_columns=90)
+CONFIG = SynthConfig(dataset="v2xset", frames=8, seed=11, cavs=3, infrastructure=True, lidar_columns=90, render_step=8)
 #: The converted opencood settings, as a user writes them in the wild_setting block.
 WILD = {"opencood_test": OPENCOOD_CASES[0], "opencood_real": {**OPENCOOD_CASES[6], "async_overhead": 300}}
 SETTINGS = (

@@ -59,7 +59,9 @@ def one_tick(tmp_path_factory):
     data_protocol.yaml from another run that says 64 channels."""
     tmp = tmp_path_factory.mktemp("one-tick")
     lidar = {"lidar_channels": 32, "lidar_columns": 1563, "lidar_noise_stddev": 0.02, "lidar_dropoff_rate": 0.1}
-    config = synth.SynthConfig(dataset="v2xset", frames=1, seed=11, cavs=3, protocol_lidar=(("channels", 64),), **lidar)
+    config = synth.SynthConfig(
+        dataset="v2xset", frames=1, seed=11, cavs=3, protocol_lidar=(("channels", 64),), render_step=8, **lidar
+    )
     (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
     return tmp, truth, convert_both_layouts(tmp, truth, noise=(NOISE,))
 
@@ -116,7 +118,7 @@ def test_noise_settings_on_one_tick(one_tick):
 def test_an_agent_with_one_tick_beside_agents_with_more(tmp_path):
     """An OPV2V CAV with a single tick beside a 3-tick one: written in both layouts, nothing dropped, its
     sequence (or rig) spans its tick only, and the scenario round-trips."""
-    config = synth.SynthConfig(dataset="opv2v", frames=3, seed=12, lidar_columns=256)
+    config = synth.SynthConfig(dataset="opv2v", frames=3, seed=12, lidar_columns=256, render_step=8)
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     short = next(a for a in truth.agents if int(a) > 0)
     for key in truth.keys[:1] + truth.keys[2:]:

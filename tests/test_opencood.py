@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import BIN
+from conftest import run_cli
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from ncore.impl.common.transformations import is_within_3d_bboxes
 from ncore.impl.sensors.camera import camera_model_from_parameters
@@ -266,17 +265,16 @@ def test_damaged_frames_are_skipped_and_reported_by_the_cli(tmp_path):
     """A frame missing for one agent, a missing and a corrupt camera file: the scenario converts,
     the rest is kept, and each skip is a warning naming the file in the run report."""
     out = tmp_path / "out"
-    cli = str(BIN / "ncore-convert")
-    synth = [cli, "synth", "opv2v", "--out", str(tmp_path / "src"), "--frames", "4", "--cavs", "3"]
-    subprocess.run([*synth, "--lidar-columns", "64", "--seed", "5"], check=True, capture_output=True)
+    synth = ["synth", "opv2v", "--out", str(tmp_path / "src"), "--frames", "4", "--cavs", "3"]
+    assert run_cli(*synth, "--lidar-columns", "64", "--seed", "5", "--render-step", "8").returncode == 0
     (scenario_dir,) = (tmp_path / "src" / "test").iterdir()
     a, b, c = sorted((p.name for p in scenario_dir.iterdir() if p.is_dir()), key=int)
     keys = sorted(p.stem for p in (scenario_dir / a).glob("*.yaml"))
     (scenario_dir / a / f"{keys[1]}.yaml").unlink()
     (scenario_dir / b / f"{keys[2]}_camera1.png").unlink()
     (scenario_dir / c / f"{keys[0]}_camera3.png").write_bytes(b"not a png")
-    convert = [cli, "--no-progress", "--root-dir", str(tmp_path / "src"), "--output-dir", str(out), "opv2v-v4"]
-    run = subprocess.run([*convert, "--split", "test"], capture_output=True, text=True)
+    convert = ["--no-progress", "--root-dir", str(tmp_path / "src"), "--output-dir", str(out), "opv2v-v4"]
+    run = run_cli(*convert, "--split", "test")
     assert run.returncode == 0, run.stdout + run.stderr
     entry = json.loads((out / "conversion-report.json").read_text())["logs"][scenario_dir.name]
     assert entry["status"] == "ok"
@@ -291,7 +289,7 @@ def test_damaged_frames_are_skipped_and_reported_by_the_cli(tmp_path):
     manifest = json.loads((out / scenario_dir.name / "scenario.json").read_text())
     assert manifest["dataset"] == "opv2v" and len(manifest["agents"]) == 3
     # an unknown scenario is a usage error
-    bad = subprocess.run([*convert, "--split", "test", "--scenario", "nope"], capture_output=True, text=True)
+    bad = run_cli(*convert, "--split", "test", "--scenario", "nope")
     assert bad.returncode == 2 and "scenario(s) not found" in bad.stderr
     shutil.rmtree(out)
 

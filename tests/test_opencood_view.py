@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import BIN, find_opv2v_sample
+from conftest import BIN, find_opv2v_sample, run_cli
 from ncore.data.v4 import PosesComponent
 from upath import UPath
 
@@ -60,7 +60,7 @@ def assert_same_pose(got: np.ndarray, yaml_pose: list[float]) -> None:
 def convert(tmp: Path, dataset: str, layouts=("agents",), frames: int = 3, seed: int = 5):
     """A synthetic scenario with ``NOISE`` stored, converted in each of ``layouts``:
     (truth, {layout: scenario.json})."""
-    config = synth.SynthConfig(dataset=dataset, frames=frames, seed=seed)
+    config = synth.SynthConfig(dataset=dataset, frames=frames, seed=seed, render_step=8)
     (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
     outs = {}
     for layout in layouts:
@@ -107,7 +107,7 @@ def test_unknown_agents_keys_and_settings_are_named(v2xset):
 def test_the_real_opv2v_frames_read_back_as_the_pcd_reader_reads_them(tmp_path):
     """The five real frames put in a synthetic agent's place (their keys 000070-000078): every point
     back in file order, to float32 precision, through the view and through the export."""
-    config = synth.SynthConfig(dataset="opv2v", frames=5, seed=7, cavs=1, first_key=70, key_step=2)
+    config = synth.SynthConfig(dataset="opv2v", frames=5, seed=7, cavs=1, first_key=70, key_step=2, render_step=8)
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     (agent_id,) = truth.agents
     real = sorted(find_opv2v_sample().glob("*.pcd"))
@@ -144,12 +144,7 @@ def test_raw_to_ncore_to_raw_is_exact(tmp_path, dataset, layout, v2xset):
     data_protocol.yaml byte for byte, every point equal to float32 precision in file order with its
     intensity byte."""
     truth, manifests = v2xset if dataset == "v2xset" else convert(tmp_path / "conv", dataset)
-    result = subprocess.run(
-        [str(BIN / "ncore-convert"), "export-opencood", str(manifests[layout]), "--out", str(tmp_path / "export")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    result = run_cli("export-opencood", str(manifests[layout]), "--out", str(tmp_path / "export"))
     assert result.returncode == 0, result.stderr
     exported = tmp_path / "export" / truth.scenario
     assert f"wrote {exported}: {len(truth.agents)} agents" in result.stdout
@@ -255,12 +250,7 @@ def test_export_usage_errors_are_one_line_and_write_nothing(tmp_path, v2xset):
         ([str(sequence)], "expected a scenario.json"),
         ([str(manifests["agents"]), "--poses", "nope"], "no noise setting 'nope' (stored: wild)"),
     ):
-        result = subprocess.run(
-            [str(BIN / "ncore-convert"), "export-opencood", *args, "--out", str(tmp_path / "x")],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        result = run_cli("export-opencood", *args, "--out", str(tmp_path / "x"))
         assert result.returncode == 2 and message in result.stderr, result.stderr
         assert "Traceback" not in result.stderr and not (tmp_path / "x").exists()
 
@@ -299,7 +289,9 @@ def test_pcd_layouts_and_points_that_are_not_rays_round_trip_as_they_came(tmp_pa
     and points at zero range, -0.0 and NaN coordinates (no direction, so not rays) in one frame: the
     export writes each PCD back in its own layout, every point in place and bit for bit (NaNs and
     signed zeros too), binary files byte for byte."""
-    config = synth.SynthConfig(dataset="opv2v", frames=2, seed=9, cavs=2, lidar_columns=256, grid_share=0.01)
+    config = synth.SynthConfig(
+        dataset="opv2v", frames=2, seed=9, cavs=2, lidar_columns=256, grid_share=0.01, render_step=8
+    )
     (truth,) = synth.write_dataset(UPath(tmp_path / "src"), config)
     pcds = sorted(Path(truth.scenario_dir).glob("*/*.pcd"))
     assert len(pcds) == len(LAYOUTS)

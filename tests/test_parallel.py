@@ -23,7 +23,7 @@ PRELOAD = ["ncore_convert.converters.argoverse2"]
 def camera_root(tmp_path_factory):
     """A 0.3 s synthetic log with images at 10 fps."""
     root = tmp_path_factory.mktemp("parallel")
-    truth = write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=11, camera_fps=10))
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=11, camera_fps=10, camera_scale=4))
     return root, truth
 
 

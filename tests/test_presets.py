@@ -46,7 +46,7 @@ GETS_INTRINSICS_3DGUT = (OpenCVPinholeCameraModel, OpenCVFisheyeCameraModel, FTh
 @pytest.fixture(scope="module")
 def source(tmp_path_factory):
     root = tmp_path_factory.mktemp("presets")
-    truth = write_log(UPath(root / "src" / "val"), SynthConfig(seconds=1.0, seed=9, camera_fps=2))
+    truth = write_log(UPath(root / "src" / "val"), SynthConfig(seconds=1.0, seed=9, camera_fps=2, camera_scale=4))
     return root, truth
 
 
@@ -258,7 +258,9 @@ def test_opv2v_lidar_rgb_carries_the_true_colours(tmp_path):
 def test_tbv_lidars_are_coloured_too(tmp_path):
     """TbV (no per-point time in the source: the reconstructed one is used; no cuboids): the 3DGRT
     preset colours both units, as 3DGRUT reads them."""
-    truth = write_log(UPath(tmp_path / "src"), SynthConfig(seconds=1.0, seed=4, camera_fps=10, tbv=True, pictures=2))
+    truth = write_log(
+        UPath(tmp_path / "src"), SynthConfig(seconds=1.0, seed=4, camera_fps=10, tbv=True, pictures=2, camera_scale=2)
+    )
     args = [
         "--no-progress",
         "--no-validate",

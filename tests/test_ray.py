@@ -44,7 +44,10 @@ def ray_address():
 def three_logs(tmp_path_factory):
     """Three short synthetic logs with images; the third has a corrupt JPEG."""
     root = tmp_path_factory.mktemp("ray")
-    truths = [write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=s, camera_fps=5)) for s in (31, 32, 33)]
+    truths = [
+        write_log(UPath(root / "val"), SynthConfig(seconds=0.3, seed=s, camera_fps=5, camera_scale=4))
+        for s in (31, 32, 33)
+    ]
     log_dir = UPath(truths[2].log_dir)
     bad = av2.image_path(log_dir, "ring_rear_left", int(av2.list_image_timestamps_ns(log_dir, "ring_rear_left")[0]))
     bad.write_bytes(b"not a jpeg")

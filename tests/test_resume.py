@@ -127,7 +127,7 @@ def test_a_run_killed_mid_log_is_completed_by_the_rerun(tmp_path):
     from conftest import av2_command, open_sequence
 
     root = tmp_path / "root"
-    truth = write_log(UPath(root / "val"), SynthConfig(seconds=1.0, seed=23, camera_fps=20, pictures=2))
+    truth = write_log(UPath(root / "val"), SynthConfig(seconds=1.0, seed=23, camera_fps=20, pictures=2, camera_scale=4))
     out = tmp_path / "out"
     proc = subprocess.Popen(
         av2_command(root, out, "--workers", "2"), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True

@@ -65,7 +65,7 @@ def test_a_log_in_a_bucket_converts_into_a_bucket_as_it_does_locally(s3_env, tmp
     import s3fs
     from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 
-    truth = write_log(UPath(tmp_path / "src" / "val"), SynthConfig(seconds=0.3, seed=41, camera_fps=5))
+    truth = write_log(UPath(tmp_path / "src" / "val"), SynthConfig(seconds=0.3, seed=41, camera_fps=5, camera_scale=4))
     fs = s3fs.S3FileSystem()
     fs.mkdir("datasets")
     fs.mkdir("converted")
@@ -115,7 +115,10 @@ def three_logs(tmp_path_factory):
     """Three small local logs (0.3 s, images of one camera) for runs that share a bucket output."""
     root = tmp_path_factory.mktemp("s3-shared")
     cameras = ("ring_front_center",)
-    configs = [SynthConfig(seconds=0.3, seed=s, camera_fps=10, pictures=2, image_cameras=cameras) for s in (43, 44, 45)]
+    configs = [
+        SynthConfig(seconds=0.3, seed=s, camera_fps=10, pictures=2, image_cameras=cameras, camera_scale=4)
+        for s in (43, 44, 45)
+    ]
     return root, sorted(write_log(UPath(root / "val"), config).log_id for config in configs)
 
 

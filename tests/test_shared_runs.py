@@ -184,7 +184,8 @@ def four_logs(tmp_path_factory):
     root = tmp_path_factory.mktemp("shared")
     cameras = ("ring_front_center", "ring_side_left")
     configs = [
-        SynthConfig(seconds=0.5, seed=s, camera_fps=10, pictures=2, image_cameras=cameras) for s in range(23, 27)
+        SynthConfig(seconds=0.5, seed=s, camera_fps=10, pictures=2, image_cameras=cameras, camera_scale=4)
+        for s in range(23, 27)
     ]
     return root, sorted(write_log(UPath(root / "val"), config).log_id for config in configs)
 

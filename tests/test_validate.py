@@ -363,7 +363,9 @@ def v2x_directory(tmp_path_factory):
     directory store per agent sequence (``out``: the stores the tests below edit), and with the
     default store in both layouts (``agents``, ``scenario``)."""
     tmp = tmp_path_factory.mktemp("coreg")
-    config = OpenCoodConfig(dataset="v2xset", frames=4, seed=6, cavs=2, infrastructure=True, lidar_columns=360)
+    config = OpenCoodConfig(
+        dataset="v2xset", frames=4, seed=6, cavs=2, infrastructure=True, lidar_columns=360, render_step=8
+    )
     (truth,) = write_dataset(UPath(tmp / "src"), config)
     for folder, options in (
         ("out", {"store_type": "directory", "profile": "default"}),

@@ -85,9 +85,12 @@ def _camera_extrinsic(yaw_deg: float, position_m: tuple[float, float, float]) ->
     return T
 
 
-def calibration(tbv: bool = False) -> tuple[dict[str, np.ndarray], dict[str, tuple[float, int, int]]]:
+def calibration(
+    tbv: bool = False, camera_scale: int = 1
+) -> tuple[dict[str, np.ndarray], dict[str, tuple[float, int, int]]]:
     """T_sensor_ego for all sensors and (focal, width, height) for the cameras (AV2: 9 cameras
-    at full resolution; TbV: the 7 ring cameras, all but ring_front_center at half resolution)."""
+    at full resolution; TbV: the 7 ring cameras, all but ring_front_center at half resolution),
+    each camera's focal length and size then divided by ``camera_scale``."""
     T_sensor_ego = {}
     cams = {}
     for cam, (yaw, pos, focal) in CAMERA_MOUNTS.items():
@@ -97,6 +100,8 @@ def calibration(tbv: bool = False) -> tuple[dict[str, np.ndarray], dict[str, tup
         width, height = (1550, 2048) if cam == "ring_front_center" else (2048, 1550)
         if tbv and cam != "ring_front_center":
             focal, width, height = focal / 2, width // 2, height // 2
+        if camera_scale != 1:
+            focal, width, height = focal / camera_scale, width // camera_scale, height // camera_scale
         cams[cam] = (focal, width, height)
     for lidar, (quat, t) in LIDAR_MOUNTS.items():
         T_sensor_ego[lidar] = se3_from_quat_wxyz(quat, t)
@@ -182,7 +187,7 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     n_sweeps = max(1, int(round(config.seconds * 10)))
     t0_ns = 315_970_000_000_000_000 + int(rng.integers(0, 10**12)) // 1000 * 1000
     scene = make_scene(rng, config.seconds, np.random.default_rng([config.seed, TRAFFIC_STREAM]))
-    T_sensor_ego, cams = calibration(config.tbv)
+    T_sensor_ego, cams = calibration(config.tbv, config.camera_scale)
     truth = SynthTruth(log_dir, log_id, t0_ns, scene, T_sensor_ego)
 
     jitter_us = rng.integers(-3000, 3000, n_sweeps)

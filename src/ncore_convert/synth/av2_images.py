@@ -93,6 +93,7 @@ def write_images(
                 count[cam],
                 config.light,
                 config.shadows,
+                config.camera_scale,
             )
         else:
             if (width, height) not in shared:
@@ -105,6 +106,7 @@ def write_images(
                     count=shared_count[(width, height)],
                     light=config.light,
                     shadows=config.shadows,
+                    binning=config.camera_scale,
                 )
             variants = shared[(width, height)]
         for i, ts in enumerate(stamps[::step]):

@@ -54,16 +54,18 @@ def project_ue4(T_cam_world: np.ndarray, xyz_world: np.ndarray) -> tuple[np.ndar
     return uv, p[:, 0] > 0.5
 
 
-def render_png(scene: Scene, box_rgb: np.ndarray, T_cam_world: np.ndarray) -> tuple[bytes, np.ndarray]:
+def render_png(
+    scene: Scene, box_rgb: np.ndarray, T_cam_world: np.ndarray, step: int = RENDER_STEP
+) -> tuple[bytes, np.ndarray]:
     """An 800x600 PNG of ``scene`` from the CARLA camera ``T_cam_world`` (UE4 axes), flat-shaded with
-    the boxes' colours ``box_rgb`` (:func:`synth.raycast.render`), and what each pixel shows, int
-    [600,800] (a scene box index, -1 ground, ``SKY``)."""
+    the boxes' colours ``box_rgb`` (:func:`synth.raycast.render`, one ray per ``step`` x ``step``
+    pixels), and what each pixel shows, int [600,800] (a scene box index, -1 ground, ``SKY``)."""
     image, shows = render(
         scene,
         box_rgb,
         T_cam_world @ T_UE4_OPENCV,
         PINHOLE,
-        RENDER_STEP,
+        step,
         max_range_m=RENDER_RANGE_M,
         ground_z_m=0.0,
     )

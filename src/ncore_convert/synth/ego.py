@@ -120,9 +120,9 @@ class _RealisticBody:
     """What stays fixed on a realistic body (its paint, markings, the silhouette's geometry) and
     what each picture changes (light, colour cast, reflections, glare, camouflaged stretches)."""
 
-    def __init__(self, rng: np.random.Generator, mask: np.ndarray, body: str = "realistic") -> None:
+    def __init__(self, rng: np.random.Generator, mask: np.ndarray, body: str = "realistic", binning: int = 1) -> None:
         height, width = mask.shape
-        self.rng = rng
+        self.rng, self.binning = rng, binning
         self.top = np.where(mask.any(axis=0), mask.argmax(axis=0), height).astype(np.float32)  # silhouette row
         self.r0 = int(self.top.min()) if mask.any() else height  # the body's rows: r0 and below
         rows = np.arange(height, dtype=np.float32)[:, None]
@@ -130,7 +130,7 @@ class _RealisticBody:
         extent = max(float((height - self.top[self.top < height]).max(initial=1.0)), 1.0)
         self.depth = depth / extent  # 0 at the silhouette, ~1 at the deepest body row
         base = rng.uniform(50, 190)  # dark to white paint
-        shading = 25 * _smooth_field(rng, width, height, 96) - 35 * self.depth  # curvature: darker below
+        shading = 25 * _smooth_field(rng, width, height, 96 // binning) - 35 * self.depth  # curvature: darker below
         markings = PIL.Image.new("L", (width, height), 0)
         draw = PIL.ImageDraw.Draw(markings)
         cols = np.flatnonzero(self.top < height)
@@ -142,7 +142,7 @@ class _RealisticBody:
             font = PIL.ImageFont.load_default(size=max(10, int(0.12 * extent)))
             draw.text((cx + 1.3 * r, cy - 0.5 * r), "SELF-DRIVING TEST", fill=255, font=font)  # text
             gap = [(float(x), float(self.top[x] + 0.7 * extent)) for x in cols[::8]]  # a panel gap
-            draw.line(gap, fill=160, width=3)
+            draw.line(gap, fill=160, width=max(1, 3 // binning))
         ink = np.asarray(markings, dtype=np.float32) / 255.0
         self.paint = np.clip(base + shading - 0.7 * base * ink + 60 * ink * (base < 100), 5, 250)
         lo, hi = REFLECTION[body]
@@ -182,7 +182,7 @@ class _RealisticBody:
                 y = float(rng.uniform(self.top[int(x)], height)) - self.r0
                 r = float(rng.uniform(0.02, 0.06)) * max(width, height)
                 PIL.ImageDraw.Draw(glare).ellipse([x - r, y - 0.5 * r, x + r, y + 0.5 * r], fill=255)
-            glare = np.asarray(glare.filter(PIL.ImageFilter.GaussianBlur(6)), dtype=np.float32) / 255.0
+            glare = np.asarray(glare.filter(PIL.ImageFilter.GaussianBlur(6 / self.binning)), dtype=np.float32) / 255.0
             grey = grey * (1 - glare) + 255.0 * glare
         return grey
 
@@ -198,15 +198,15 @@ def _shadow(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
     return 1 - np.float32(rng.uniform(*SHADOW_DEPTH)) * inside
 
 
-def _lamps(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+def _lamps(rng: np.random.Generator, width: int, height: int, binning: int) -> np.ndarray:
     """Street lamps and headlights in a night picture: saturating spots in the upper 60 % of the
-    picture, added grey levels, float32 [H,W]."""
+    picture, added grey levels, float32 [H,W] (``binning``: as in :func:`pictures`)."""
     spots = PIL.Image.new("L", (width, height), 0)
     draw = PIL.ImageDraw.Draw(spots)
     for _ in range(int(rng.integers(*NIGHT_LAMPS))):
         x, y, r = rng.uniform(0, width), rng.uniform(0, 0.6 * height), rng.uniform(0.005, 0.02) * width
         draw.ellipse([x - r, y - r, x + r, y + r], fill=255)
-    return 1.5 * np.asarray(spots.filter(PIL.ImageFilter.GaussianBlur(4)), dtype=np.float32)
+    return 1.5 * np.asarray(spots.filter(PIL.ImageFilter.GaussianBlur(4 / binning)), dtype=np.float32)
 
 
 def pictures(
@@ -219,31 +219,38 @@ def pictures(
     count: int = N_PICTURES,
     light: str = "day",
     shadows: bool = False,
+    binning: int = 1,
 ) -> list[bytes]:
     """``count`` JPEGs of one camera (~0.45 MB each at AV2 resolutions): a different world in each
     (the same one when ``parked``), the body (``mask``, or none) rendered as ``body`` (one of
     ``BODIES``) in ``light`` (one of ``LIGHTS``), with moving ``shadows`` or not. The first ``k``
-    pictures do not depend on ``count``."""
+    pictures do not depend on ``count``. ``binning``: the camera is a full-size one whose pixels are
+    binned ``binning`` x ``binning`` (``SynthConfig.camera_scale``): the same world in its field of
+    view (blobs, shading and blurs in pixels divided by it) and its sensor noise divided by it, as
+    averaging that many pixels does (what the ego-mask estimator sees of a full-size picture that it
+    decodes at reduced size)."""
     v = np.linspace(0, 1, height, dtype=np.float32)[:, None]
     road = np.where(v < 0.45, 150 + 80 * v, 90 - 40 * (v - 0.45))
     world_seed = int(rng.integers(2**62))
-    realistic = _RealisticBody(rng, mask, body) if mask is not None and body != "easy" else None
+    realistic = _RealisticBody(rng, mask, body, binning) if mask is not None and body != "easy" else None
     if mask is not None and realistic is None:
-        paint = 70 + 25 * _smooth_field(rng, width, height, 64) + 40 * np.clip(1.2 - v, 0, 1)
+        paint = 70 + 25 * _smooth_field(rng, width, height, 64 // binning) + 40 * np.clip(1.2 - v, 0, 1)
     cast = np.array([0, 5, 12], dtype=np.float32)  # a blue cast, growing down the picture
     night = NIGHT_GAIN if light == "night" else 1.0
     out = []
     for _ in range(count):
         world_rng = np.random.default_rng(world_seed) if parked else rng  # parked: the same world each time
         # in place, but the same float32 operations in the same order as the plain expressions
-        grey = _smooth_field(world_rng, width, height, 48)
+        grey = _smooth_field(world_rng, width, height, 48 // binning)
         grey *= 45
-        grey += 20 * _smooth_field(world_rng, width, height, 9)  # the world's blobs
+        grey += 20 * _smooth_field(world_rng, width, height, max(1, 9 // binning))  # the world's blobs
         noise = rng.standard_normal((height, width), dtype=np.float32)
+        if binning != 1:
+            noise /= binning
         grey += road
         grey *= rng.uniform(*EXPOSURE) * night
         if light == "night":
-            grey += _lamps(world_rng, width, height)
+            grey += _lamps(world_rng, width, height, binning)
         shade = _shadow(rng, width, height) if shadows and rng.random() < SHADOW_SHARE else None
         grey += 5 * noise
         if realistic is not None:

@@ -31,6 +31,7 @@ from ncore_convert.synth.carla import (
     HEIGHT,
     PILLAR_DIMS_M,
     PILLAR_RGB,
+    RENDER_STEP,
     WIDTH,
     carla_pose_list,
     carla_pose_matrix,
@@ -79,6 +80,9 @@ class SynthConfig:
     pcd_fields: str = "rgb"  #: the PCD's fourth field: "rgb" (Open3D's packed colour) or "intensity" (float)
     pcd_binary: bool = False  #: DATA binary instead of ascii
     cameras: bool = True  #: False: lidar and YAML only (no PNGs, no camera entries), for lidar-only tests
+    #: the pictures are ray-cast at one ray per render_step x render_step pixels (2: CARLA's look at
+    #: half resolution; tests that do not read pixels use 8, 16 times fewer rays)
+    render_step: int = RENDER_STEP
 
     @property
     def n_infrastructure(self) -> int:
@@ -411,7 +415,7 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             for index_cam, (mx, my, mz, yaw) in enumerate(CAMERA_MOUNTS if config.cameras else ()):
                 T_cam_world = T_base_world @ carla_pose_matrix(np.array([mx, my, mz, 0.0, yaw, pitch]))
                 uv, front = project_ue4(T_cam_world, truth.pillars_m)
-                png, shows = render_png(scene, box_rgb, T_cam_world)
+                png, shows = render_png(scene, box_rgb, T_cam_world, config.render_step)
                 (scenario_dir / agent_id / f"{key}_camera{index_cam}.png").write_bytes(png)
                 inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < WIDTH) & (uv[:, 1] >= 0) & (uv[:, 1] < HEIGHT)
                 visible = [p for p in np.flatnonzero(inside) if shows_around(shows, uv[p], len(boxes) + p)]
