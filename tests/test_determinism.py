@@ -9,7 +9,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import BIN
+from conftest import BIN, run_cli
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from upath import UPath
 
@@ -91,8 +91,7 @@ def sources(tmp_path_factory):
     def source(synth_args: list[str], split_folder: str) -> Path:
         if tuple(synth_args) not in roots:
             root = tmp_path_factory.mktemp("determinism-src")
-            cli = str(BIN / "ncore-convert")
-            subprocess.run([cli, "synth", *synth_args, "--out", str(root / split_folder)], check=True)
+            assert run_cli("synth", *synth_args, "--out", str(root / split_folder)).returncode == 0
             roots[tuple(synth_args)] = root
         return roots[tuple(synth_args)]
 

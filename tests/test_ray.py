@@ -7,7 +7,7 @@ import json
 import subprocess
 
 import pytest
-from conftest import BIN, av2_command, free_port
+from conftest import BIN, av2_command, free_port, run_cli
 from upath import UPath
 
 from ncore_convert.sources import argoverse2 as av2
@@ -60,7 +60,7 @@ def convert(root, out, *extra):
 
 def test_ray_executor_writes_what_the_local_executor_writes(ray_address, three_logs, tmp_path):
     root, truths, bad = three_logs
-    local = convert(root, tmp_path / "local", "--workers", "2")
+    local = run_cli(*av2_command(root, tmp_path / "local", "--workers", "2")[1:])
     on_ray = convert(root, tmp_path / "ray", "--executor", "ray", "--ray-address", ray_address)
     for result in (local, on_ray):
         assert result.returncode == 1, result.stdout + result.stderr  # the corrupt log fails, the others do not

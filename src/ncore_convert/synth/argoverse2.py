@@ -316,14 +316,17 @@ def annotated_boxes(scene: Scene, t_s: float, T_city_ego: np.ndarray) -> Iterato
 def _annotate(truth: SynthTruth, ts: int, xyz_ego: np.ndarray, T_city_ego: np.ndarray, rows: dict) -> None:
     """Annotation rows (:func:`annotated_boxes`), with num_interior_pts from the stored cloud."""
     points = PointGrid(xyz_ego)
-    for box, T_box_ego in annotated_boxes(truth.scene, (ts - truth.t0_ns) * 1e-9, T_city_ego):
+    annotated = list(annotated_boxes(truth.scene, (ts - truth.t0_ns) * 1e-9, T_city_ego))
+    if not annotated:
+        return
+    poses = _pose_columns(np.stack([T_box_ego for _, T_box_ego in annotated]))  # one batch per sweep
+    for k, (box, T_box_ego) in enumerate(annotated):
         inside = points_in_box(points, T_box_ego[:3, 3], T_box_ego[:3, :3], box.dims_m / 2)
-        pose = _pose_columns(T_box_ego[None])
         rows["timestamp_ns"].append(ts)
         rows["track_uuid"].append(box.track_uuid)
         rows["category"].append(box.category)
         for name, value in zip(("length_m", "width_m", "height_m"), box.dims_m, strict=True):
             rows[name].append(float(value))
-        for name, value in pose.items():
-            rows[name].append(float(value[0]))
+        for name, column in poses.items():
+            rows[name].append(float(column[k]))
         rows["num_interior_pts"].append(len(inside))
