@@ -29,21 +29,21 @@ REPO = Path(__file__).resolve().parents[1]
 #: is left with one at the end. A stale list costs balance, never a test.
 SLOW_FIRST = (
     "test_ego_masks",
+    "test_dynamic_tracks",
+    "test_shared_runs",
+    "test_determinism",
     "test_validate",
     "test_bad_input",
-    "test_determinism",
     "test_consumers",
-    "test_shared_runs",
-    "test_dynamic_tracks",
-    "test_camera_labels",
-    "test_ray",
+    "test_camera_labels_opencood",
+    "test_fuzz_readers",
+    "test_point_colours",
     "test_opencood_view",
     "test_s3",
-    "test_fuzz_readers",
-    "test_resume",
-    "test_point_colours",
+    "test_camera_labels",
     "test_presets",
-    "test_camera_labels_opencood",
+    "test_ray",
+    "test_resume",
 )
 #: Tests whose cases each build their own data and are slow: each case goes to whichever worker is
 #: free, instead of staying with its file.

@@ -19,7 +19,19 @@ RUN_DEPENDENT = {("seconds",), ("finished",), ("validation", "seconds")}
 #: enough distinct images for ego masks (two halves of at least 12 each)
 #: (seed 8 at 0.6 s or longer fails the points-in-box validation on one box, 51 points against
 #: the source's 49: a generator/validator disagreement not yet understood)
-AV2_SYNTH = ["argoverse2", "--seconds", "0.8", "--seed", "9", "--camera-fps", "20", "--pictures", "32"]
+AV2_SYNTH = [
+    "argoverse2",
+    "--seconds",
+    "0.8",
+    "--seed",
+    "9",
+    "--camera-fps",
+    "20",
+    "--pictures",
+    "32",
+    "--camera-scale",
+    "2",
+]
 V2XSET_SYNTH = ["v2xset", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "8", "--render-step", "8"]
 V2XSET_NOISE = ["--loc-err", "--xyz-std", "1", "--ryp-std", "2", "--async", "--async-overhead", "100"]
 #: case -> (synth arguments, split folder, dataset command, its arguments); the "consumer" cases set

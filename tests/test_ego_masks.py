@@ -127,6 +127,7 @@ def test_a_half_parked_log_looks_between_its_samples(tmp_path):
         ego_body="easy",
         sweeps=False,
         image_cameras=EGO_CAMERAS,
+        camera_scale=2,
     )
     run = synth_and_convert(tmp_path, config, Argoverse2Options(split="val", camera_ids=EGO_CAMERAS, lidar_ids=()))
     masks = _masks(run.loader)
@@ -294,7 +295,14 @@ def test_realistic_bodies(tmp_path, tbv, seed):
     the easy-body test above, and the sweep). (Each seed is its own case, so the six logs spread
     over the workers: ``OWN_SCOPE`` in conftest.py.)"""
     config = SynthConfig(
-        seconds=1.5, seed=seed, camera_fps=20, pictures=32, tbv=tbv, sweeps=False, image_cameras=EGO_CAMERAS
+        seconds=1.5,
+        seed=seed,
+        camera_fps=20,
+        pictures=32,
+        tbv=tbv,
+        sweeps=False,
+        image_cameras=EGO_CAMERAS,
+        camera_scale=1 if tbv else 2,  # AV2's 2048 px cameras at 1024 px: decoded at 1/2 to the same 512 px
     )
     truth = write_log(UPath(tmp_path / "src" / "val"), config)
     root = tmp_path / "src" if not tbv else tmp_path / "src" / "val"
