@@ -89,6 +89,8 @@ def test_ray_executor_writes_what_the_local_executor_writes(ray_address, three_l
 
 def test_no_cluster_at_the_address_is_a_usage_error(three_logs, tmp_path):
     root, _, _ = three_logs
-    result = convert(root, tmp_path / "out", "--executor", "ray", "--ray-address", f"127.0.0.1:{free_port()}")
+    result = run_cli(
+        *av2_command(root, tmp_path / "out", "--executor", "ray", "--ray-address", f"127.0.0.1:{free_port()}")[1:]
+    )
     assert result.returncode == 2 and "--ray-address 127.0.0.1:" in result.stderr, result.stderr
     assert not (tmp_path / "out").exists()
