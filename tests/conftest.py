@@ -149,10 +149,9 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(list(args), result.exit_code, result.stdout, result.stderr)
 
 
-def av2_command(root, out, *group_options) -> list[str]:
-    """The installed ``ncore-convert`` command converting ``<root>/val`` into ``out`` (for subprocesses)."""
+def av2_args(root, out, *group_options) -> list[str]:
+    """``ncore-convert``'s arguments converting ``<root>/val`` into ``out`` (for :func:`run_cli`)."""
     return [
-        str(BIN / "ncore-convert"),
         "--no-progress",
         "--root-dir",
         str(root),
@@ -163,6 +162,11 @@ def av2_command(root, out, *group_options) -> list[str]:
         "--split",
         "val",
     ]
+
+
+def av2_command(root, out, *group_options) -> list[str]:
+    """The installed ``ncore-convert`` command converting ``<root>/val`` into ``out`` (for subprocesses)."""
+    return [str(BIN / "ncore-convert"), *av2_args(root, out, *group_options)]
 
 
 @dataclass

@@ -7,7 +7,7 @@ import json
 import subprocess
 
 import pytest
-from conftest import BIN, av2_command, free_port, run_cli
+from conftest import BIN, av2_args, av2_command, free_port, run_cli
 from upath import UPath
 
 from ncore_convert.sources import argoverse2 as av2
@@ -60,7 +60,7 @@ def convert(root, out, *extra):
 
 def test_ray_executor_writes_what_the_local_executor_writes(ray_address, three_logs, tmp_path):
     root, truths, bad = three_logs
-    local = run_cli(*av2_command(root, tmp_path / "local", "--workers", "2")[1:])
+    local = run_cli(*av2_args(root, tmp_path / "local", "--workers", "2"))
     on_ray = convert(root, tmp_path / "ray", "--executor", "ray", "--ray-address", ray_address)
     for result in (local, on_ray):
         assert result.returncode == 1, result.stdout + result.stderr  # the corrupt log fails, the others do not
@@ -90,7 +90,7 @@ def test_ray_executor_writes_what_the_local_executor_writes(ray_address, three_l
 def test_no_cluster_at_the_address_is_a_usage_error(three_logs, tmp_path):
     root, _, _ = three_logs
     result = run_cli(
-        *av2_command(root, tmp_path / "out", "--executor", "ray", "--ray-address", f"127.0.0.1:{free_port()}")[1:]
+        *av2_args(root, tmp_path / "out", "--executor", "ray", "--ray-address", f"127.0.0.1:{free_port()}")
     )
     assert result.returncode == 2 and "--ray-address 127.0.0.1:" in result.stderr, result.stderr
     assert not (tmp_path / "out").exists()

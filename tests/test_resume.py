@@ -124,7 +124,7 @@ def test_a_run_killed_mid_log_is_completed_by_the_rerun(tmp_path):
     import subprocess
     import time
 
-    from conftest import av2_command, open_sequence, run_cli
+    from conftest import av2_args, av2_command, open_sequence, run_cli
 
     root = tmp_path / "root"
     truth = write_log(UPath(root / "val"), SynthConfig(seconds=1.0, seed=23, camera_fps=20, pictures=2, camera_scale=4))
@@ -142,7 +142,7 @@ def test_a_run_killed_mid_log_is_completed_by_the_rerun(tmp_path):
     assert proc.returncode == 1, output
     assert f"FAIL  {truth.log_id}: WorkerDied: a worker process died" in output
     assert not (out / truth.log_id).exists() and not list(out.glob(f".{truth.log_id}.*partial"))
-    rerun = run_cli(*av2_command(root, out)[1:])
+    rerun = run_cli(*av2_args(root, out))
     assert rerun.returncode == 0 and f"ok    {truth.log_id}" in rerun.stdout, rerun.stdout + rerun.stderr
     loader = open_sequence(out / truth.log_id, truth.log_id)
     assert loader.get_lidar_sensor("up_lidar").frames_count == len(truth.sweeps)

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import av2_command, run_cli
+from conftest import av2_args, av2_command, run_cli
 from upath import UPath
 
 from ncore_convert.run import claims as claims_module
@@ -230,7 +230,7 @@ def test_a_signal_stops_the_run_at_once_and_the_report_lists_what_it_published(f
     assert report_logs(out) == dict.fromkeys(done, "ok"), output
     assert f"{signal.Signals(signum).name}: run stopped" in output
     assert not list(out.glob(".*.claim")), "the abandoned logs' claims are released"
-    rerun = run_cli(*av2_command(root, out)[1:])
+    rerun = run_cli(*av2_args(root, out))
     converted = len(ids) - len(done)
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     assert f"{converted} converted, {len(done)} skipped, 0 failed" in rerun.stdout, rerun.stdout
@@ -275,7 +275,7 @@ def test_a_run_killed_while_it_holds_a_claim_is_taken_over(four_logs, tmp_path):
     size = sum(f.stat().st_size for f in partial.rglob("*") if f.is_file())
     time.sleep(1.0)
     assert sum(f.stat().st_size for f in partial.rglob("*") if f.is_file()) == size
-    rerun = run_cli(*av2_command(root, out)[1:])
+    rerun = run_cli(*av2_args(root, out))
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     assert sorted(_ok_lines(rerun.stdout)) == ids
     assert report_logs(out) == dict.fromkeys(ids, "ok") and not list(out.glob(".*"))

@@ -48,9 +48,10 @@ class SynthConfig:
     #: ``render`` (each picture ray-cast from the scene the lidar sees at its own time, flat-shaded,
     #: the ego body painted flat: one world, ~0.2 s per picture)
     world: str = "pattern"
-    #: every camera's size and focal length divided by this (the same field of view): a picture then
-    #: costs about 1/scale² as much to make, write and decode. Tests whose checks do not depend on
-    #: AV2's pixel count use 4 (AV2 2048 px -> 512 px, the size the ego-mask estimator decodes at)
+    #: every camera's size and focal length divided by this (the same field of view, pixels binned:
+    #: ``synth.ego.pictures``): a picture then costs about 1/scale² as much to make, write and
+    #: decode. The tests use 4 where no check depends on the pixel count, 2 for the AV2 ego-mask logs
+    #: (docs/tests.md says which keep the real size, and why)
     camera_scale: int = 1
 
     @property
