@@ -99,10 +99,8 @@ def render(
     rgb = surface_rgb(box_rgb, index, origins + d * np.where(hit, distance, 0.0)[:, None], hit)
 
     def full(small: np.ndarray) -> np.ndarray:  # each ray's value over its step x step block
-        rows, cols = rays.shape[:2]
-        blocks = small.reshape(rows, 1, cols, 1, *small.shape[1:])
-        tiled = np.broadcast_to(blocks, (rows, step, cols, step, *small.shape[1:]))
-        return tiled.reshape(rows * step, cols * step, *small.shape[1:])[:height, :width]
+        grid = small.reshape(*rays.shape[:2], *small.shape[1:])
+        return np.repeat(np.repeat(grid, step, axis=0), step, axis=1)[:height, :width]
 
     return full(rgb), full(np.where(hit, index, SKY)) if with_index else None
 
@@ -127,6 +125,12 @@ def _near_sphere(origins_m: np.ndarray, directions: np.ndarray, center_m: np.nda
     return w2 - ahead * ahead <= (radius_m + SPHERE_MARGIN_M) ** 2
 
 
+def _gather(sorted_rows: np.ndarray, spans: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
+    """The rows of ``sorted_rows`` [N,...] picked by each span (start, stop, mask over the span), in
+    order: ``rows[idx]`` read from the sorted copy's contiguous slices instead of gathered."""
+    return np.concatenate([sorted_rows[a:z][m] for a, z, m in spans])
+
+
 def cast_rays(
     origins_m: np.ndarray,
     directions: np.ndarray,
@@ -145,32 +149,38 @@ def cast_rays(
         range_m [N] (inf where nothing is hit within max_range_m), the hit intensity [N] (uint8)
         and the index of the hit box in ``scene.boxes`` [N] (-1: the ground or nothing).
     """
-    if origins_m.strides[0] != 0:  # a strided view (a pose stack's translations) gathers slowly
+    one_origin = origins_m.strides[0] == 0  # a camera's rays (broadcast from one point)
+    if not one_origin:  # a strided view (a pose stack's translations) gathers slowly
         origins_m = np.ascontiguousarray(origins_m)
     n = len(origins_m)
     best = np.full(n, np.inf)
     intensity = np.zeros(n, dtype=np.uint8)
     box_index = np.full(n, -1, dtype=np.int64)
+    if not n:
+        return best, intensity, box_index
     down = directions[:, 2] < -1e-9
     s_ground = np.full(n, np.inf)
     s_ground[down] = (ground_z_m - origins_m[down, 2]) / directions[down, 2]
     hit = (s_ground > 0) & (s_ground < best)
     best[hit] = s_ground[hit]
     intensity[hit] = 12
-    center_m = origins_m.mean(axis=0)
-    spread_m = float(np.max(np.linalg.norm(origins_m[:, :2] - center_m[:2], axis=1), initial=0.0))
-    t_mid_s, half_span_s = float(np.median(times_s)), float(np.ptp(times_s)) / 2 if n else 0.0
+    # the origins' bounding box: its centre, and the reach of its corners from there in x, y
+    lo_m, hi_m = (origins_m[0], origins_m[0]) if one_origin else (origins_m.min(0), origins_m.max(0))
+    center_m, spread_m = (lo_m + hi_m) / 2, float(np.linalg.norm(hi_m[:2] - lo_m[:2])) / 2
+    half_span_s = float(np.ptp(times_s)) / 2
+    one_time = half_span_s == 0.0  # a picture's rays: each moving box placed once
+    t_mid_s = float(times_s[0]) if one_time else float(np.median(times_s))
     box_reach_m = [float(np.linalg.norm(box.dims_m)) / 2 for box in scene.boxes]  # bounding-sphere radii
     motion_m = [float(np.linalg.norm(box.velocity_mps)) * half_span_s for box in scene.boxes]  # over the rays' times
     # the rays sorted by azimuth, so that the rays towards a box are contiguous slices
     azimuth = np.arctan2(directions[:, 1], directions[:, 0])
     order = np.argsort(azimuth)
     azimuth_sorted, directions_sorted = azimuth[order], directions[order]
-    origins_sorted = origins_m if origins_m.strides[0] == 0 else origins_m[order]
+    origins_sorted = origins_m if one_origin else origins_m[order]
     for b, box in enumerate(scene.boxes):
-        # Only rays whose azimuth points at the box can hit it: seen from the rays' mean origin, the
-        # box (at the sweep's middle time) lies within a disc of radius r, padded by the spread of
-        # the origins and the box's motion during the sweep.
+        # Only rays whose azimuth points at the box can hit it: seen from the origins' centre, the box
+        # (at the rays' middle time) lies within a disc of radius r, padded by the spread of the
+        # origins and the box's motion over the rays' times.
         center = box.center_m(t_mid_s)
         r = box_reach_m[b] + spread_m + motion_m[b]
         distance = np.linalg.norm(center[:2] - center_m[:2])
@@ -179,28 +189,23 @@ def cast_rays(
         spans = [(0, n)] if distance <= r else _azimuth_spans(azimuth_sorted, center - center_m, r / distance)
         # of those, the rays that pass the box's bounding sphere (padded by its motion)
         reach_m = box_reach_m[b] + motion_m[b]
-        idx = np.concatenate(
-            [order[a:z][_near_sphere(origins_sorted[a:z], directions_sorted[a:z], center, reach_m)] for a, z in spans]
-        )
+        near = [(a, z, _near_sphere(origins_sorted[a:z], directions_sorted[a:z], center, reach_m)) for a, z in spans]
+        idx = np.concatenate([order[a:z][m] for a, z, m in near])
         if not len(idx):
             continue
-        if np.any(box.velocity_mps):
-            o_b = (origins_m[idx] - box.center_m(times_s[idx])) @ box.rotation
-        elif origins_m.strides[0] == 0:  # one origin: one origin in the box frame
-            o_b = np.broadcast_to((origins_m[:1] - box.center0_m) @ box.rotation, (len(idx), 3))
+
+        moving = np.any(box.velocity_mps)
+        if one_origin and (one_time or not moving):  # one origin in the box frame
+            center = box.center_m(times_s[:1]) if moving else box.center0_m
+            o_b = np.broadcast_to((origins_m[:1] - center) @ box.rotation, (len(idx), 3))
+        elif moving:
+            o_b = (_gather(origins_sorted, near) - box.center_m(times_s[idx])) @ box.rotation
         else:
-            o_b = (origins_m[idx] - box.center0_m) @ box.rotation
-        d_b = directions[idx] @ box.rotation
+            o_b = (_gather(origins_sorted, near) - box.center0_m) @ box.rotation
+        d_b = _gather(directions_sorted, near) @ box.rotation
         t_near, t_far = slab_span(o_b.T, d_b.T, -box.dims_m / 2, box.dims_m / 2)
-        nearest = best[idx]
-        hit = (t_near <= t_far) & (t_near > 0) & (t_near < nearest)
-        nearest[hit] = t_near[hit]
-        best[idx] = nearest
-        hits = intensity[idx]
-        hits[hit] = box.intensity
-        intensity[idx] = hits
-        which = box_index[idx]
-        which[hit] = b
-        box_index[idx] = which
+        hit = (t_near <= t_far) & (t_near > 0) & (t_near < best[idx])
+        nearer = idx[hit]  # idx holds each ray once (the spans are disjoint): write only the hits
+        best[nearer], intensity[nearer], box_index[nearer] = t_near[hit], box.intensity, b
     best[best > max_range_m] = np.inf
     return best, intensity, box_index
