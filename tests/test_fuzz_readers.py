@@ -155,7 +155,7 @@ def mutated_frames(draw) -> bytes:
     vehicle = frame.get("vehicles")
     if isinstance(vehicle, dict) and "712" in vehicle and draw(st.booleans()):
         vehicle["712"][draw(st.sampled_from(["location", "angle", "center", "extent"]))] = draw(yaml_values)
-    return yaml.dump(frame, Dumper=yaml.CSafeDumper).encode()
+    return yaml.dump(frame, Dumper=getattr(yaml, "CSafeDumper", yaml.SafeDumper)).encode()  # libyaml if built
 
 
 yaml_text = st.text(alphabet=st.sampled_from(list("abc019:-[]{},&*!|>'\"#%@ \n\t.")), max_size=200).map(str.encode)

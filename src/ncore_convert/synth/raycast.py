@@ -193,11 +193,10 @@ def cast_rays(
         idx = np.concatenate([order[a:z][m] for a, z, m in near])
         if not len(idx):
             continue
-
         moving = np.any(box.velocity_mps)
-        if one_origin and (one_time or not moving):  # one origin in the box frame
-            center = box.center_m(times_s[:1]) if moving else box.center0_m
-            o_b = np.broadcast_to((origins_m[:1] - center) @ box.rotation, (len(idx), 3))
+        if one_origin and (one_time or not moving):  # one origin in the box frame (the box where it is then)
+            placed_m = center if moving else box.center0_m
+            o_b = np.broadcast_to((origins_m[:1] - placed_m) @ box.rotation, (len(idx), 3))
         elif moving:
             o_b = (_gather(origins_sorted, near) - box.center_m(times_s[idx])) @ box.rotation
         else:
