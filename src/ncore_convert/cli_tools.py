@@ -168,6 +168,24 @@ def synth():
     """Write synthetic source logs with known ground truth (test data and demo source)."""
 
 
+def object_options() -> Callable:
+    """The objects of a synthetic world (``synth.shapes``), for every ``synth`` command."""
+    return options(
+        click.option(
+            "--shapes/--boxes",
+            default=False,
+            help="Shape vehicles (body, cabin, wheels, mirrors), pedestrians and cyclists inside their"
+            " annotated boxes, and add cyclists (AV2, TbV); or keep every object its own box.",
+        ),
+        click.option(
+            "--close-range/--no-close-range",
+            default=False,
+            help="Add a car just ahead of the ego (OPV2V/V2XSet: 0.3-1.0 m from the first CAV's front"
+            " camera) and one 1-2 m alongside it.",
+        ),
+    )
+
+
 def synth_log_options(out_help: str, max_seconds: float | None) -> Callable:
     """The options of ``synth argoverse2`` and ``synth tbv`` (the log and its camera pictures)."""
     return options(
@@ -230,6 +248,7 @@ def synth_log_options(out_help: str, max_seconds: float | None) -> Callable:
             help="Divide every camera's size and focal length by this (the same field of view; pictures"
             " about 1/scale² as costly). 4 makes AV2's 2048 px cameras 512 px.",
         ),
+        object_options(),
     )
 
 
@@ -307,6 +326,7 @@ def _synth_opencood(dataset: str):
         default=2,
         help="Ray-cast the 800x600 pictures at one ray per N x N pixels (8: 16 times cheaper, blockier).",
     )
+    @object_options()
     def command(
         out_dir,
         split,
@@ -319,6 +339,8 @@ def _synth_opencood(dataset: str):
         lidar_dropoff_rate,
         seed,
         render_step,
+        shapes,
+        close_range,
     ):
         from ncore_convert.synth.opencood import SynthConfig, write_dataset
 
@@ -333,6 +355,8 @@ def _synth_opencood(dataset: str):
             lidar_noise_stddev=lidar_noise_stddev,
             lidar_dropoff_rate=lidar_dropoff_rate,
             render_step=render_step,
+            shapes=shapes,
+            close_range=close_range,
         )
         for truth in write_dataset(UPath(out_dir), config, scenarios):
             click.echo(f"wrote {truth.scenario_dir}: agents {', '.join(truth.agents)}, {len(truth.keys)} frames")

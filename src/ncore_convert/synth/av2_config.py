@@ -53,6 +53,11 @@ class SynthConfig:
     #: decode. The tests use 4 where no check depends on the pixel count, 2 for the AV2 ego-mask logs
     #: (docs/tests.md says which keep the real size, and why)
     camera_scale: int = 1
+    #: vehicles, pedestrians and cyclists shaped inside their boxes, and cyclists on the road
+    #: (``synth.shapes``; ``synth.scene.make_scene``)
+    shapes: bool = False
+    #: a car just ahead of the ego and one alongside it, at its speed (``synth.scene.make_scene``)
+    close_range: bool = False
 
     @property
     def cameras(self) -> tuple[str, ...]:

@@ -42,6 +42,7 @@ from ncore_convert.synth.carla import (
 )
 from ncore_convert.synth.raycast import BUILDING_RGB, cast_rays, own_colour, surface_rgb
 from ncore_convert.synth.scene import Box, Scene
+from ncore_convert.synth.shapes import shape_of
 
 LIDAR_CHANNELS, UPPER_FOV_DEG, LOWER_FOV_DEG, LIDAR_RANGE_M = 64, 2.0, -25.0, 120.0
 #: The infrastructure units' lidar (V2XSet): channels, upper_fov, lower_fov; its own protocol block.
@@ -83,6 +84,11 @@ class SynthConfig:
     #: the pictures are ray-cast at one ray per render_step x render_step pixels (2: CARLA's look at
     #: half resolution; tests that do not read pixels use 8, 16 times fewer rays)
     render_step: int = RENDER_STEP
+    #: vehicles shaped inside their boxes (``synth.shapes``: body, cabin, wheels, mirrors)
+    shapes: bool = False
+    #: a car queued just ahead of the first CAV (0.3-1.0 m from its front camera) and one alongside
+    #: it (1-2 m from its side), at its speed
+    close_range: bool = False
 
     @property
     def n_infrastructure(self) -> int:
@@ -160,17 +166,50 @@ def _actor_pose(road: _Road, actor: _Actor, t_s: float, wobble: bool) -> np.ndar
     return np.array([xyz[0], xyz[1], 0.03, roll, yaw, pitch])
 
 
-def _box(T_actor_world: np.ndarray, actor: _Actor, category: str) -> Box:
+def _box(T_actor_world: np.ndarray, actor: _Actor, category: str, shaped: bool) -> Box:
     center = T_actor_world[:3, :3] @ np.array(actor.center_m) + T_actor_world[:3, 3]
+    dims = 2 * np.array(actor.extent_m)
     return Box(
         center,
         np.zeros(3),
         T_actor_world[:3, :3],
-        2 * np.array(actor.extent_m),
+        dims,
         category,
         str(actor.actor_id),
         actor.intensity,
+        shape=shape_of(category, dims) if shaped else None,
     )
+
+
+def _close_to(cav: _Actor, ids: list[int], rng: np.random.Generator) -> list[_Actor]:
+    """A car queued 0.3-1.0 m ahead of ``cav``'s front camera and one 1-2 m from its left side, both
+    at its speed (their ids from ``ids``)."""
+    cars = []
+    for k, ahead in enumerate((True, False)):
+        extent = (float(rng.uniform(2.15, 2.45)), float(rng.uniform(0.9, 1.0)), float(rng.uniform(0.72, 0.8)))
+        gap = float(rng.uniform(0.3, 1.0) if ahead else rng.uniform(1.0, 2.0))
+        if ahead:
+            lane, start = cav.lane_m, cav.start_m + CAMERA_MOUNTS[0][0] + gap + extent[0]
+        else:
+            lane, start = cav.lane_m - (cav.extent_m[1] + gap + extent[1]), cav.start_m + float(rng.uniform(-1.0, 2.0))
+        intensity = int(rng.integers(20, 250))
+        cars.append(_Actor(ids[k], lane, start, cav.speed_mps, extent, (0.0, 0.0, extent[2]), intensity))
+    return cars
+
+
+def _clear_of(others: list[_Actor], cars: list[_Actor], span_s: float) -> list[_Actor]:
+    """``others`` without the vehicles that would drive into one of ``cars`` during the scenario
+    (lanes less than a car's width apart, centres nearer than ``CAV_CLEARANCE_M`` along the road)."""
+    t_s = np.linspace(0.0, span_s, 50)
+
+    def into(act: _Actor) -> bool:
+        return any(
+            abs(act.lane_m - car.lane_m) < act.extent_m[1] + car.extent_m[1] + 0.2
+            and np.min(np.abs(act.start_m - car.start_m + (act.speed_mps - car.speed_mps) * t_s)) < CAV_CLEARANCE_M
+            for car in cars
+        )
+
+    return [act for act in others if not into(act)]
 
 
 def lidar_block(config: SynthConfig, channels: int, upper_fov: float, lower_fov: float) -> dict:
@@ -285,7 +324,13 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                 int(rng.integers(20, 250)),
             )
         )
-    others = _clear_of_cavs(others, cavs, config.frames * config.key_step * config.fixed_delta_seconds)
+    span_s = config.frames * config.key_step * config.fixed_delta_seconds
+    others = _clear_of_cavs(others, cavs, span_s)
+    if config.close_range:
+        close_rng = np.random.default_rng([config.seed, scenario_seed, 1])  # the rest of the scenario unchanged
+        free = np.setdiff1d(np.arange(100, 9999), ids)
+        close = _close_to(cavs[0], close_rng.choice(free, 2, replace=False).tolist(), close_rng)
+        others = _clear_of(others, close, span_s) + close
     pillars, buildings = [], []
     for s in np.arange(-40.0, 80.0, 9.0):
         for side in (-1, 1):
@@ -344,7 +389,7 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
         t_s = int(key) * config.fixed_delta_seconds - tick0
         vehicle_pose = {c.actor_id: _actor_pose(road, c, t_s, True) for c in cavs + others}
         T_vehicle = {a: carla_pose_matrix(p) for a, p in vehicle_pose.items()}
-        actor_boxes = [_box(T_vehicle[c.actor_id], c, "VEHICLE") for c in cavs + others]
+        actor_boxes = [_box(T_vehicle[c.actor_id], c, "VEHICLE", config.shapes) for c in cavs + others]
         actors = cavs + others
         for agent_id in agent_ids:
             infra = int(agent_id) < 0

@@ -8,8 +8,9 @@ from __future__ import annotations
 import numpy as np
 
 from ncore_convert.synth.scene import GROUND_Z_M, Scene
+from ncore_convert.synth.shapes import Shape
 from ncore_convert.transforms.camera.models import Pinhole
-from ncore_convert.transforms.objects.boxes import slab_span
+from ncore_convert.transforms.objects.boxes import convex_span, slab_span
 
 
 def _azimuth_spans(azimuth_sorted: np.ndarray, offset_m: np.ndarray, sin_half: float) -> list[tuple[int, int]]:
@@ -131,6 +132,21 @@ def _gather(sorted_rows: np.ndarray, spans: list[tuple[int, int, np.ndarray]]) -
     return np.concatenate([sorted_rows[a:z][m] for a, z, m in spans])
 
 
+def first_entry(origins_m: np.ndarray, directions: np.ndarray, shape: Shape) -> np.ndarray:
+    """Where rays (box axes: ``origins_m``, unit ``directions`` [K,3]) first enter one of ``shape``'s
+    parts ahead of their origin, metres along the ray (inf: they miss it), float64 [K]; in chunks of
+    ``CHUNK_RAYS`` rays (a picture's worth of rays times parts times faces is large)."""
+    out = np.full(len(directions), np.inf)
+    for a in range(0, len(directions), CHUNK_RAYS):
+        chunk = slice(a, a + CHUNK_RAYS)
+        enter, leave = convex_span(origins_m[chunk], directions[chunk], shape.normals, shape.offsets_m)
+        out[chunk] = np.where((enter <= leave) & (enter > 0), enter, np.inf).min(axis=1)
+    return out
+
+
+CHUNK_RAYS = 16384
+
+
 def cast_rays(
     origins_m: np.ndarray,
     directions: np.ndarray,
@@ -170,7 +186,8 @@ def cast_rays(
     half_span_s = float(np.ptp(times_s)) / 2
     one_time = half_span_s == 0.0  # a picture's rays: each moving box placed once
     t_mid_s = float(times_s[0]) if one_time else float(np.median(times_s))
-    box_reach_m = [float(np.linalg.norm(box.dims_m)) / 2 for box in scene.boxes]  # bounding-sphere radii
+    bounds = [box.bound_m for box in scene.boxes]
+    box_reach_m = [float(np.linalg.norm(np.maximum(-lo, hi))) for lo, hi in bounds]  # bounding-sphere radii
     motion_m = [float(np.linalg.norm(box.velocity_mps)) * half_span_s for box in scene.boxes]  # over the rays' times
     # the rays sorted by azimuth, so that the rays towards a box are contiguous slices
     azimuth = np.arctan2(directions[:, 1], directions[:, 0])
@@ -202,8 +219,12 @@ def cast_rays(
         else:
             o_b = (_gather(origins_sorted, near) - box.center0_m) @ box.rotation
         d_b = _gather(directions_sorted, near) @ box.rotation
-        t_near, t_far = slab_span(o_b.T, d_b.T, -box.dims_m / 2, box.dims_m / 2)
+        t_near, t_far = slab_span(o_b.T, d_b.T, *bounds[b])
         hit = (t_near <= t_far) & (t_near > 0) & (t_near < best[idx])
+        if box.shape is not None:  # what the rays into its bound hit of the object itself
+            t_near = np.full(len(idx), np.inf)
+            t_near[hit] = first_entry(o_b[hit], d_b[hit], box.shape)
+            hit = t_near < best[idx]
         nearer = idx[hit]  # idx holds each ray once (the spans are disjoint): write only the hits
         best[nearer], intensity[nearer], box_index[nearer] = t_near[hit], box.intensity, b
     best[best > max_range_m] = np.inf

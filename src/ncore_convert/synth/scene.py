@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ncore_convert.synth.shapes import Shape, shape_of
+
 GROUND_Z_M = 45.0  #: city height of the ground plane
 EGO_ORIGIN_HEIGHT_M = 0.33  #: ego origin above ground (AV2 rear-axle origin)
 CITY_ORIGIN_M = np.array([5072.4, 2283.9])  #: offset of the scene from the city origin (large, as in AV2)
@@ -114,7 +116,8 @@ class Box:
         rotation: city_R_box [3,3]; dims_m: (length, width, height) along box x, y, z;
         category: AV2 class or "BUILDING"; move_from_s, move_until_s: it moves only within this
         window (seconds from the log start; default: always); jitter: how its annotations wander
-        (None: annotations are exact).
+        (None: annotations are exact); shape: what the object is inside (and, mirrors, just
+        outside) its box, in the box's axes (None: the box itself).
     """
 
     center0_m: np.ndarray
@@ -127,6 +130,7 @@ class Box:
     move_from_s: float = -np.inf
     move_until_s: float = np.inf
     jitter: AnnotationJitter | None = None
+    shape: Shape | None = None
 
     @property
     def annotated(self) -> bool:
@@ -136,6 +140,13 @@ class Box:
         """The true centre at times ``t_s`` (scalar -> [3], [N] -> [N,3])."""
         t_moving = np.clip(np.asarray(t_s, dtype=np.float64), self.move_from_s, self.move_until_s)
         return self.center0_m + np.multiply.outer(t_moving, self.velocity_mps)
+
+    @property
+    def bound_m(self) -> tuple[np.ndarray, np.ndarray]:
+        """The lowest and highest corner of what rays can hit, in the box's axes, [3] each."""
+        if self.shape is None:
+            return -self.dims_m / 2, self.dims_m / 2
+        return self.shape.lo_m, self.shape.hi_m
 
     def moved_m(self, t_lo_s: float, t_hi_s: float) -> float:
         """The true distance travelled between two times (the truth a motion test is scored on)."""
@@ -164,7 +175,13 @@ class Scene:
     boxes: list[Box]
 
 
-def make_scene(rng: np.random.Generator, seconds: float, traffic_rng: np.random.Generator) -> Scene:
+def make_scene(
+    rng: np.random.Generator,
+    seconds: float,
+    traffic_rng: np.random.Generator,
+    shapes: bool = False,
+    close_range: bool = False,
+) -> Scene:
     """Ego on a gentle arc with parked and moving cars, pedestrians, bollards and buildings.
 
     Parked cars' annotations jitter like human labels of real parked cars (AV2: a returning walk of
@@ -173,6 +190,11 @@ def make_scene(rng: np.random.Generator, seconds: float, traffic_rng: np.random.
     ``STOP_AND_GO_MIN_S`` adds a car that waits 10 s and then drives off; their annotations jitter
     a little (5-30 cm). ``traffic_rng`` draws all of that, so ``rng``'s stream (and everything the
     generator draws from it after the scene) is the same as without it.
+
+    ``shapes``: vehicles, pedestrians and cyclists are shaped inside their boxes (:mod:`synth.shapes`),
+    and cyclists ride along the ego's lane. ``close_range``: a car drives just ahead of the ego
+    (0.3-1.0 m from its front bumper) and one alongside it (1-2 m from its side), at its speed.
+    Both draw from ``traffic_rng`` after everything else, so the rest of the scene is unchanged.
     """
     ego = EgoMotion(
         speed_mps=float(rng.uniform(6.0, 9.0)),
@@ -205,6 +227,7 @@ def make_scene(rng: np.random.Generator, seconds: float, traffic_rng: np.random.
                 uuid(),
                 intensity,
                 **motion,
+                shape=shape_of(category, dims) if shapes else None,
             )
         )
 
@@ -262,7 +285,34 @@ def make_scene(rng: np.random.Generator, seconds: float, traffic_rng: np.random.
             c, yaw = along(t, side * rng.uniform(14.0, 18.0), GROUND_Z_M + 6.0)
             add(c, yaw, (14.0, 6.0, 12.0), "BUILDING", intensity=int(rng.integers(10, 40)))
     _add_slow_traffic(traffic_rng, seconds, along, add, jitter)
+    if shapes:
+        for _ in range(2):  # cyclists at the edge of the ego's lane, overtaken at about 1 m
+            dims = (float(traffic_rng.uniform(1.7, 1.9)), 0.6, float(traffic_rng.uniform(1.6, 1.8)))
+            t_s, side = float(traffic_rng.uniform(0.5, seconds + 3.0)), float(traffic_rng.choice([-1.0, 1.0]))
+            c, yaw = along(t_s, side * 2.0, GROUND_Z_M + dims[2] / 2)
+            speed = float(traffic_rng.uniform(3.0, 5.5))
+            add(c, yaw, dims, "BICYCLIST", velocity=(speed * np.cos(yaw), speed * np.sin(yaw), 0.0), intensity=90)
+    if close_range:
+        _add_close_traffic(traffic_rng, ego, along, add)
     return Scene(ego, boxes)
+
+
+EGO_FRONT_M, EGO_HALF_WIDTH_M = 3.9, 0.98  #: the ego's front bumper ahead of its origin, its half width
+
+
+def _add_close_traffic(rng: np.random.Generator, ego: EgoMotion, along, add) -> None:
+    """A car just ahead of the ego and one alongside it (see :func:`make_scene`) at the log's start,
+    at the ego's speed along the road where each starts (straight on: the ego's arc bends away from
+    them by about 0.5 * yaw rate * speed * t^2, 0.2 m after 1 s)."""
+    for ahead in (True, False):
+        dims = (float(rng.uniform(4.3, 4.9)), float(rng.uniform(1.8, 1.95)), float(rng.uniform(1.45, 1.6)))
+        gap = float(rng.uniform(0.3, 1.0) if ahead else rng.uniform(1.0, 2.0))
+        side = float(rng.choice([-1.0, 1.0]))
+        lead_m = EGO_FRONT_M + gap + dims[0] / 2 if ahead else float(rng.uniform(-1.0, 3.0))
+        lateral_m = 0.0 if ahead else side * (EGO_HALF_WIDTH_M + gap + dims[1] / 2)
+        c, yaw = along(lead_m / ego.speed_mps, lateral_m, GROUND_Z_M + dims[2] / 2)
+        v = ego.speed_mps * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        add(c, yaw, dims, "REGULAR_VEHICLE", velocity=v, intensity=int(rng.integers(60, 160)))
 
 
 def _add_slow_traffic(rng: np.random.Generator, seconds: float, along, add, jitter) -> None:

@@ -4,6 +4,8 @@
 - :func:`near_plane_crossings`: where the edges cross a camera's near plane (a box partly behind
   the camera is pictured by its corners ahead and these crossings);
 - :func:`slab_span`: where rays enter and leave a box (the slab test), vectorised over rays;
+- :func:`convex_span`: the same for convex solids of any faces (a shape's parts), vectorised over
+  rays and solids;
 - :class:`PointGrid`, :func:`in_box` and :func:`points_in_box`: which points lie in a box.
 
 Boxes are given by their rotation ``R_box_frame`` (box axes -> frame), centre and half sizes in
@@ -74,6 +76,30 @@ def slab_span(origin_m, directions, lo_m, hi_m, enter_from: float = -np.inf, dty
             np.fmax(enter, np.fmin(t_lo, t_hi), out=enter)  # fmax/fmin skip the NaN of a ray in a slab's plane
             np.fmin(leave, np.fmax(t_lo, t_hi), out=leave)
     return enter, leave
+
+
+def convex_span(origin_m, directions: np.ndarray, normals: np.ndarray, offsets_m: np.ndarray):
+    """Where rays enter and leave convex solids, each the points p with n . p <= offset for every
+    face (n, offset) of it: the slab test for faces of any direction, vectorised over rays and solids.
+    A ray meets a solid where ``enter <= leave``; a ray parallel to a face outside it never does.
+
+    Args:
+        origin_m: the rays' origins, float [K,3], or one shared origin [3]; directions: [K,3]; both
+            in the solids' frame, metres (a point is origin + s * direction).
+        normals: each solid's outward face normals, float [P,F,3]; offsets_m: float [P,F] (a face
+            with normal 0 and offset 1 is padding: every point is inside it).
+
+    Returns:
+        enter, leave: the ray parameters, float64 [K,P] each.
+    """
+    rise = np.einsum("kc,pfc->kpf", directions, normals)  # how fast each ray crosses each face
+    room = offsets_m[None] - np.einsum("...c,pfc->...pf", origin_m, normals)  # how far inside each face it starts
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = room / rise
+    enter = np.where(rise < 0, s, -np.inf).max(axis=-1)
+    leave = np.where(rise > 0, s, np.inf).min(axis=-1)
+    outside = np.any((rise == 0) & (room < 0), axis=-1)
+    return enter, np.where(outside, -np.inf, leave)
 
 
 #: Side of the grid columns points are bucketed into (metres; wider where the points spread over more

@@ -1,0 +1,183 @@
+"""Camera labels on shaped objects (issue 52): OPV2V / V2XSet scenarios whose vehicles have bodies,
+cabins, wheels and mirrors inside their boxes (``synth.shapes``), with a car queued 0.3-1.0 m ahead
+of the first CAV's front camera and one 1-2 m alongside it, converted with
+``--camera-labels depth,dynamic,instance`` and scored against the scene ray-cast from each camera
+(``synth.raycast.cast_rays``):
+
+- depth: the share of the pixels that a raw point hits and the camera sees in truth that are
+  labelled, on vehicles (the pixel's centre ray hits a vehicle) and overall; occlusion errors (a label
+  more than 0.5 m behind everything its pixel shows, sampled 2 x 2 over the pixel);
+- masks: per object view (an instance in one camera frame, >= 50 sampled pixels in truth or in the
+  label), the IoU and recall of ``segmentation.instance`` against the object's true silhouette
+  (every second pixel); the pooled recall; the ``mask.dynamic`` IoU and recall against the moving
+  vehicles; and the queued car's share of the front camera's picture, labelled and true.
+
+    python bench/bench_shaped_labels.py [--seeds 101,102] [--work DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+from ncore.impl.data.types import LabelType
+from upath import UPath
+
+from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+from ncore_convert.sources.opencood import load_yaml
+from ncore_convert.sources.pcd import read_pcd
+from ncore_convert.synth import carla as synth_carla
+from ncore_convert.synth import opencood as synth
+from ncore_convert.synth.raycast import cast_rays
+
+CAMERAS = ("camera_front", "camera_right_rear", "camera_left_rear", "camera_back")
+KINDS = ("depth", "dynamic", "instance")
+MIN_VIEW_PX = 50  #: sampled pixels (every second one) that make an object view
+
+
+def _rays(truth, agent_id: str, key: str, index: int, u: np.ndarray, v: np.ndarray):
+    """Origins, unit directions (CARLA world, [K,3]) and OpenCV ray lengths (z = 1, [K]) through
+    image points of camera ``index`` at tick ``key``."""
+    T = truth.agents[agent_id].T_cam_world[key][index] @ synth_carla.T_UE4_OPENCV
+    (fx, fy), (cx, cy) = synth_carla.PINHOLE.focal_length_px, synth_carla.PINHOLE.principal_point_px
+    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1) @ T[:3, :3].T
+    norm = np.linalg.norm(d, axis=1)
+    return np.broadcast_to(T[:3, 3], d.shape), d / norm[:, None], norm
+
+
+def _seen(truth, agent_id, key, index, u, v):
+    """z (m, inf: nothing) and the actor (-1 ground or nothing, -2 pillar, -3 building) seen through
+    image points, [K] each."""
+    scene, actor_of_box = truth.agents[agent_id].scenes[key]
+    origins, d, norm = _rays(truth, agent_id, key, index, u, v)
+    hit_m, _, box = cast_rays(origins, d, np.zeros(len(u)), scene, 500.0, ground_z_m=0.0)
+    return hit_m / norm, np.r_[actor_of_box, -1][np.where(np.isfinite(hit_m), box, -1)]
+
+
+def _raw_pixels(truth, agent_id: str, key: str, index: int):
+    """The raw PCD points in camera ``index``'s picture as OpenCOOD projects them: column, row, z."""
+    frame = load_yaml(UPath(truth.scenario_dir) / agent_id / f"{key}.yaml")
+    E, K = np.array(frame[f"camera{index}"]["extrinsic"]), np.array(frame[f"camera{index}"]["intrinsic"])
+    cloud = read_pcd(UPath(truth.scenario_dir) / agent_id / f"{key}.pcd")
+    xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
+    ue4 = xyz @ E[:3, :3].T + E[:3, 3]
+    x, y, z = ue4[:, 1], -ue4[:, 2], ue4[:, 0]
+    ahead = z > 0.3
+    u, v, z = K[0, 0] * x[ahead] / z[ahead] + K[0, 2], K[1, 1] * y[ahead] / z[ahead] + K[1, 2], z[ahead]
+    inside = (u >= 0) & (u < synth_carla.WIDTH) & (v >= 0) & (v < synth_carla.HEIGHT)
+    return u[inside].astype(np.int64), v[inside].astype(np.int64), z[inside]
+
+
+def _label(loader, cam: str, label_type: LabelType, position: int):
+    (labels,) = loader.query_camera_labels(cam, label_type=label_type)
+    label = labels.get_label(int(np.sort(labels.label_timestamps_us)[position]))
+    return label.get_data(), labels.labels_generic_meta_data
+
+
+def score_scenario(truth, out: Path, tally: dict) -> None:
+    """Add one converted scenario's figures to ``tally``."""
+    labelled_now = {
+        key: {
+            int(a)
+            for agent in truth.agents
+            for a in load_yaml(UPath(truth.scenario_dir) / agent / f"{key}.yaml").get("vehicles", {})
+        }
+        for key in truth.keys
+    }
+    front_cav = next(iter(truth.agents))
+    for agent_id in truth.agents:
+        loader = SequenceLoaderV4(
+            SequenceComponentGroupsReader([UPath(out / agent_id / f"{truth.scenario}_agent{agent_id}.json")])
+        )
+        for position, key in enumerate(truth.keys):
+            for index, cam in enumerate(CAMERAS):
+                depth, _ = _label(loader, cam, LabelType.DEPTH_Z_M, position)
+                # depth: coverage of the truly visible raw points' pixels, on vehicles and overall
+                cols, lines, z_m = _raw_pixels(truth, agent_id, key, index)
+                first_z, actor = _seen(truth, agent_id, key, index, cols + 0.5, lines + 0.5)
+                seen = first_z >= z_m - 0.05 * np.maximum(1.0, z_m / 10.0)
+                pixel, first = np.unique(lines[seen] * synth_carla.WIDTH + cols[seen], return_index=True)
+                on_vehicle = actor[seen][first] >= 0
+                covered = depth.reshape(-1)[pixel] > 0
+                tally["covered"].append(covered)
+                tally["covered_vehicle"].append(covered[on_vehicle])
+                # depth: occlusion errors
+                ll, cc = np.nonzero(depth)
+                du, dv = np.meshgrid([0.25, 0.75], [0.25, 0.75])
+                u = (cc[:, None] + du.reshape(-1)).reshape(-1)
+                v = (ll[:, None] + dv.reshape(-1)).reshape(-1)
+                z_true, _ = _seen(truth, agent_id, key, index, u, v)
+                tally["behind"].append(np.all(depth[ll, cc][:, None] - z_true.reshape(len(ll), -1) > 0.5, axis=1))
+                # masks against the true silhouettes, every second pixel
+                instances, meta = _label(loader, cam, LabelType.SEGMENTATION_INSTANCE, position)
+                ours_dynamic = _label(loader, cam, LabelType.MASK_DYNAMIC, position)[0][::2, ::2] > 0
+                actor_of_instance = {int(k): int(v["track_id"]) for k, v in meta["instances"].items()}
+                ours = instances[::2, ::2]
+                vv, uu = np.mgrid[0 : synth_carla.HEIGHT : 2, 0 : synth_carla.WIDTH : 2] + 0.5
+                _, true_actor = _seen(truth, agent_id, key, index, uu.reshape(-1), vv.reshape(-1))
+                true_actor = true_actor.reshape(uu.shape)
+                lookup = np.full(max([int(ours.max()), *actor_of_instance]) + 1, -1, np.int64)
+                for k, a in actor_of_instance.items():
+                    lookup[k] = a
+                ours_actor = lookup[ours]
+                unknown = (true_actor >= 0) & ~np.isin(true_actor, list(labelled_now[key]))
+                judged = ~unknown
+                for a in np.unique(np.r_[ours_actor[ours_actor >= 0], true_actor[(true_actor >= 0) & judged]]):
+                    mine, real = (ours_actor == a) & judged, (true_actor == a) & judged
+                    if max(mine.sum(), real.sum()) < MIN_VIEW_PX:
+                        continue
+                    inter = np.sum(mine & real)
+                    tally["iou"].append(inter / np.sum(mine | real))
+                    tally["recall"].append((inter, real.sum()))
+                moving = np.isin(true_actor, [a for a, s in truth.actor_speed_mps.items() if s > 0]) & judged
+                tally["dynamic"].append((np.sum(ours_dynamic & moving), np.sum(ours_dynamic | moving), moving.sum()))
+                if agent_id == front_cav and index == 0:  # the car queued ahead
+                    queued = int(np.bincount(true_actor[true_actor >= 0]).argmax()) if np.any(true_actor >= 0) else -1
+                    tally["queued"].append((np.mean(ours_actor == queued), np.mean(true_actor == queued)))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", default="101,102", help="scenario seeds, each run as OPV2V and V2XSet")
+    parser.add_argument("--frames", type=int, default=3)
+    parser.add_argument("--work", type=Path, default=None)
+    args = parser.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="shaped-labels-"))
+    tally = {k: [] for k in ("covered", "covered_vehicle", "behind", "iou", "recall", "dynamic", "queued")}
+    for seed in (int(s) for s in args.seeds.split(",")):
+        for dataset in ("opv2v", "v2xset"):
+            tmp = work / f"{dataset}-{seed}"
+            config = synth.SynthConfig(
+                dataset=dataset, frames=args.frames, seed=seed, keep_truth=True, shapes=True, close_range=True
+            )
+            (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
+            out = tmp / "out" / truth.scenario
+            convert_scenario(
+                UPath(tmp / "src"), UPath(out), truth.scenario, OpenCoodOptions(dataset, "test", camera_labels=KINDS)
+            )
+            score_scenario(truth, out, tally)
+            print(f"  {dataset} seed {seed}: {len(tally['iou'])} object views so far", flush=True)
+    covered, vehicle = np.concatenate(tally["covered"]), np.concatenate(tally["covered_vehicle"])
+    behind = np.concatenate(tally["behind"])
+    inter, real = (np.sum([r[i] for r in tally["recall"]]) for i in (0, 1))
+    recalls = [i / r for i, r in tally["recall"] if r]
+    dyn = np.sum(tally["dynamic"], axis=0)
+    print(f"shaped OPV2V/V2XSet scenarios, seeds {args.seeds}, {args.frames} ticks each:")
+    print(f"  depth: vehicle pixels labelled {vehicle.mean():.3f} of {len(vehicle)} (bound >= 0.95)")
+    print(f"  depth: all pixels labelled     {covered.mean():.3f} of {len(covered)} (bound >= 0.97)")
+    print(f"  depth: occlusion errors        {behind.mean():.4f} of {len(behind)} labels (bound <= 0.005)")
+    print(f"  masks: {len(tally['iou'])} object views, median IoU {statistics.median(tally['iou']):.3f} (>= 0.85)")
+    short = np.mean(np.array(recalls) < 0.98)
+    print(f"  masks: pooled recall {inter / real:.3f} (>= 0.98), views with recall < 0.98: {short:.3f}")
+    print(f"  dynamic mask: IoU {dyn[0] / dyn[1]:.3f}, recall {dyn[0] / dyn[2]:.3f}")
+    queued = np.array(tally["queued"])
+    mine, real_share = queued[:, 0].mean(), queued[:, 1].mean()
+    print(f"  queued car in the front camera: labelled {mine:.3f}, true {real_share:.3f} of the picture")
+
+
+if __name__ == "__main__":
+    main()
