@@ -18,7 +18,7 @@ from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.synth.argoverse2 import R_EGO_CAM_FORWARD, SynthConfig, simulate_unit, write_log
-from ncore_convert.synth.raycast import cast_rays
+from ncore_convert.synth.raycast import cast_rays, seen_through
 from ncore_convert.synth.scene import make_scene
 from ncore_convert.transforms.camera.labels import DYNAMIC_DT_US, box_index, depth_z
 from ncore_convert.transforms.camera.models import Pinhole
@@ -73,16 +73,9 @@ def _world(seed: int, pinhole: Pinhole = PINHOLE):
 
 
 def _seen(scene, T_camera_city: np.ndarray, pinhole: Pinhole, t_s: float, u: np.ndarray, v: np.ndarray):
-    """What the camera sees through image points (``u``, ``v``: px, float [K], NCore's corner
-    convention) at ``t_s``: the z of the surface hit (m, inf: nothing) and the scene box hit (index
-    into ``scene.boxes``, -1: the ground or nothing), [K] each."""
-    (fx, fy), (cx, cy) = pinhole.focal_length_px, pinhole.principal_point_px
-    d_city = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1) @ T_camera_city[:3, :3].T
-    norm = np.linalg.norm(d_city, axis=1)
-    origins = np.broadcast_to(T_camera_city[:3, 3], d_city.shape)
-    distance, _, index = cast_rays(origins, d_city / norm[:, None], np.full(len(u), t_s), scene, 500.0)
-    # along the ray -> along the optical axis (z = 1 per unit of d_camera)
-    return distance / norm, np.where(np.isfinite(distance), index, -1)
+    """What the camera sees through image points (``synth.raycast.seen_through``): z (m, inf:
+    nothing) and the scene box hit (-1: the ground or nothing), [K] each."""
+    return seen_through(scene, T_camera_city, pinhole, t_s, u, v)
 
 
 def _true_depth(scene, T_camera_city: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -649,3 +642,21 @@ def test_camera_labels_unknown_or_impossible_are_usage_errors(tmp_path, command,
     result = CliRunner().invoke(cli, [*args, "--camera-labels", value])
     assert result.exit_code == 2 and message in " ".join(result.output.split()), result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_depth_beyond_the_storage_range_is_left_out_and_counted():
+    """A depth label's pixels beyond ``MAX_DEPTH_M`` (262.14 m: uint16 steps of 4 mm) are stored as
+    0 (no measurement) and counted in the label's metadata; the others reach the library as they
+    are (it quantizes them: the read-back checks are the OPV2V held-out test's, within 2.1 mm)."""
+    from ncore_convert.writer.labels import DEPTH_BEYOND_RANGE, MAX_DEPTH_M, CameraLabelStream
+
+    stored = []
+    writer = type("Writer", (), {"store_label": lambda self, *args: stored.append(args)})()
+    depth = np.array([[0.0, 0.004, 123.456], [262.14, 262.2, 500.0]], np.float32)
+    CameraLabelStream(writer, "depth").store_label(depth, 7, {"sweep": 1})
+    CameraLabelStream(writer, "depth").store_label(depth[:1], 8, {"sweep": 2})
+    (first, t_first, meta_first), (second, _, meta_second) = stored
+    assert np.isclose(MAX_DEPTH_M, 262.14) and t_first == 7
+    np.testing.assert_array_equal(first, np.where([[False] * 3, [False, True, True]], np.float32(0.0), depth))
+    assert first.dtype == np.float32 and meta_first == {"sweep": 1, DEPTH_BEYOND_RANGE: 2}
+    assert meta_second == {"sweep": 2} and DEPTH_BEYOND_RANGE not in meta_second

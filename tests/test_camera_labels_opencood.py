@@ -84,6 +84,9 @@ def _cameras(truth, agent_id: str, key: str) -> list[tuple[str, int]]:
 
 CAMERA_IDS = ("camera_front", "camera_right_rear", "camera_left_rear", "camera_back")
 EDGE_PX = 1e-6  #: a raw point this close to a pixel edge projects into the pixels either side
+#: How far a stored depth may be from its point's: half the storage's 4 mm step, and 0.1 mm for the
+#: float32 arithmetic on the way (the point's coordinates, the library's quantization)
+STORED_DEPTH_M = 0.0021
 
 
 def test_labels_one_per_camera_frame_ground_truth_source_and_valid(labelled):
@@ -174,7 +177,8 @@ def _visible_point_pixels(truth, agent_id: str, key: str, index: int, scene, dep
 
 def _held_out(truth, out: Path, agent_id: str) -> tuple[int, int, int]:
     """The held-out check on one agent: every labelled depth pixel has a raw PCD point projecting
-    there (OpenCOOD's conventions) within 2 cm of its depth, and that point is the nearest such one.
+    there (OpenCOOD's conventions) within ``STORED_DEPTH_M`` of its depth (the storage's 4 mm steps),
+    and that point is the nearest such one.
     Returns (labelled pixels, without such a point, not the nearest)."""
     loader = _loader(out, truth.scenario, agent_id)
     labelled = missing = not_nearest = 0
@@ -185,13 +189,13 @@ def _held_out(truth, out: Path, agent_id: str) -> tuple[int, int, int]:
             cols, lines, z_m = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
             pixel = lines * synth_carla.WIDTH + cols
             label = depth.reshape(-1)[pixel]
-            near = np.abs(z_m - label) <= 0.02
+            near = np.abs(z_m - label) <= STORED_DEPTH_M
             set_pixels = np.flatnonzero(depth.reshape(-1))
             labelled += len(set_pixels)
             missing += len(np.setdiff1d(set_pixels, pixel[near]))
             nearest = np.full(depth.size, np.inf)
             np.minimum.at(nearest, pixel, z_m)
-            not_nearest += int(np.sum(depth.reshape(-1)[set_pixels] > nearest[set_pixels] + 0.02))
+            not_nearest += int(np.sum(depth.reshape(-1)[set_pixels] > nearest[set_pixels] + STORED_DEPTH_M))
     return labelled, missing, not_nearest
 
 
@@ -205,7 +209,7 @@ def test_every_depth_pixel_is_the_nearest_raw_point_there(labelled):
 
 def test_real_opv2v_frames_every_depth_pixel_is_the_nearest_raw_point_there(tmp_path):
     """The five real OPV2V frames in a synthetic agent's place: every labelled depth pixel is the
-    nearest raw point projecting there within 2 cm (OpenCOOD's projection), and the sequence
+    nearest raw point projecting there within ``STORED_DEPTH_M`` (OpenCOOD's projection), and the sequence
     validates."""
     config = synth.SynthConfig(dataset="opv2v", frames=5, seed=7, cavs=1, first_key=70, key_step=2, render_step=8)
     truth, _, out = _convert(tmp_path, config, real_pcds=True)

@@ -1,7 +1,8 @@
 """The synthetic generator's ray caster (``synth.raycast.cast_rays``), which culls by azimuth and by each
 box's bounding sphere before the exact slab test, against a brute-force reference that tests every
 ray against the ground and every box: the same first hit for any scene, from one shared origin (a
-camera) and from many (a moving lidar), with boxes that move during the rays' times."""
+camera) and from many (a moving lidar), with boxes that move during the rays' times, each a plain
+box or shaped (``synth.shapes``: then every ray against each of its convex parts, face by face)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from hypothesis import strategies as st
 
 from ncore_convert.synth.raycast import cast_rays
 from ncore_convert.synth.scene import Box, Scene
+from ncore_convert.synth.shapes import shape_of
 
 MAX_RANGE_M = 80.0
 GROUND_Z_M = -0.3
@@ -25,12 +27,25 @@ def brute_force(origins_m, directions, times_s, scene: Scene) -> tuple[np.ndarra
     """(range [N] with inf for no hit, box index [N], -1 ground/none): every ray against the ground
     plane and every box (a box placed at each ray's time), one ray at a time."""
     ranges, which = np.full(len(origins_m), np.inf), np.full(len(origins_m), -1)
+    shaped = {  # every ray against each shaped box's parts, the box placed at each ray's time
+        b: _first_part_entries(
+            np.einsum("ni,ij->nj", origins_m - box.center_m(np.asarray(times_s)), box.rotation),
+            directions @ box.rotation,
+            box.shape,
+        )
+        for b, box in enumerate(scene.boxes)
+        if box.shape is not None
+    }
     for i, (o, d, t) in enumerate(zip(origins_m, directions, times_s, strict=True)):
         if d[2] < -1e-9 and (GROUND_Z_M - o[2]) / d[2] > 0:
             ranges[i] = (GROUND_Z_M - o[2]) / d[2]
         for b, box in enumerate(scene.boxes):
             o_box = (o - box.center_m(np.array([t]))[0]) @ box.rotation
             d_box = d @ box.rotation
+            if b in shaped:
+                if shaped[b][i] < ranges[i]:
+                    ranges[i], which[i] = shaped[b][i], b
+                continue
             with np.errstate(divide="ignore", invalid="ignore"):
                 t1 = (-box.dims_m / 2 - o_box) / d_box
                 t2 = (box.dims_m / 2 - o_box) / d_box
@@ -39,6 +54,24 @@ def brute_force(origins_m, directions, times_s, scene: Scene) -> tuple[np.ndarra
                 ranges[i], which[i] = near, b
     ranges[ranges > MAX_RANGE_M] = np.inf
     return ranges, which
+
+
+def _first_part_entries(o: np.ndarray, d: np.ndarray, shape) -> np.ndarray:
+    """Where rays (box axes: origins ``o``, directions ``d``, [N,3]) first enter one of the shape's
+    convex parts ahead of their origins, each part's faces taken one by one (n . p <= offset); inf
+    where they miss them all, [N]."""
+    best = np.full(len(o), np.inf)
+    for normals, offsets in zip(shape.normals, shape.offsets_m, strict=True):
+        enter, leave = np.full(len(o), -np.inf), np.full(len(o), np.inf)
+        for n, offset in zip(normals, offsets, strict=True):
+            rate, room = d @ n, offset - o @ n
+            with np.errstate(divide="ignore", invalid="ignore"):
+                enter = np.where(rate < 0, np.maximum(enter, room / rate), enter)
+                leave = np.where(rate > 0, np.minimum(leave, room / rate), leave)
+            leave = np.where((rate == 0) & (room < 0), -np.inf, leave)
+        hit = (enter <= leave) & (enter > 0)
+        best = np.where(hit, np.minimum(best, enter), best)
+    return best
 
 
 boxes = st.lists(
@@ -52,6 +85,7 @@ boxes = st.lists(
         st.floats(-np.pi, np.pi),  # yaw
         st.sampled_from([0.0, 0.0, 8.0, -15.0]),
         st.sampled_from([0.0, 4.0]),  # velocity x, y
+        st.sampled_from(["REGULAR_VEHICLE", "PEDESTRIAN", "BICYCLIST", "BOLLARD"]),  # its shape, or a box
     ),
     min_size=1,
     max_size=8,
@@ -59,8 +93,8 @@ boxes = st.lists(
 
 
 @settings(max_examples=60, deadline=None)
-@given(boxes, st.booleans(), st.integers(0, 2**32 - 1))
-def test_cast_rays_finds_the_same_first_hit_as_testing_every_box(specs, one_origin, seed):
+@given(boxes, st.booleans(), st.booleans(), st.integers(0, 2**32 - 1))
+def test_cast_rays_finds_the_same_first_hit_as_testing_every_box(specs, one_origin, shaped, seed):
     rng = np.random.default_rng(seed)
     scene = Scene(
         None,
@@ -70,11 +104,12 @@ def test_cast_rays_finds_the_same_first_hit_as_testing_every_box(specs, one_orig
                 np.array([vx, vy, 0.0]),
                 _rotation_z(yaw),
                 np.array([lx, wy, hz]),
-                "REGULAR_VEHICLE",
+                category,
                 str(i),
                 10 + i,
+                shape=shape_of(category, np.array([lx, wy, hz])) if shaped else None,
             )
-            for i, (x, y, z, lx, wy, hz, yaw, vx, vy) in enumerate(specs)
+            for i, (x, y, z, lx, wy, hz, yaw, vx, vy, category) in enumerate(specs)
         ],
     )
     n = 600

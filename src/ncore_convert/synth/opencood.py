@@ -18,7 +18,7 @@ a marker: the truth keeps where its centre projects.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import yaml
@@ -40,9 +40,17 @@ from ncore_convert.synth.carla import (
     render_png,
     shows_around,
 )
+from ncore_convert.synth.opencood_traffic import (
+    Actor,
+    Road,
+    actor_box,
+    actor_pose,
+    clear_of,
+    clear_of_cavs,
+    close_to,
+)
 from ncore_convert.synth.raycast import BUILDING_RGB, cast_rays, own_colour, surface_rgb
 from ncore_convert.synth.scene import Box, Scene
-from ncore_convert.synth.shapes import shape_of
 
 LIDAR_CHANNELS, UPPER_FOV_DEG, LOWER_FOV_DEG, LIDAR_RANGE_M = 64, 2.0, -25.0, 120.0
 #: The infrastructure units' lidar (V2XSet): channels, upper_fov, lower_fov; its own protocol block.
@@ -53,7 +61,6 @@ RSU_LIDAR_HEIGHT_M = 4.5
 #: OpenCDA camera mounts (vehicle frame): x, y, z (m), yaw (deg); pitch 0 on a CAV, -35° on an RSU.
 CAMERA_MOUNTS = ((2.5, 0.0, 1.0, 0.0), (0.0, 0.3, 1.8, 100.0), (0.0, -0.3, 1.8, -100.0), (-2.0, 0.0, 1.5, 180.0))
 RSU_CAMERA_PITCH_DEG = -35.0
-CAV_CLEARANCE_M = 7.0  #: along the lane, no other vehicle's centre comes nearer a CAV's than this
 
 
 @dataclass(frozen=True)
@@ -128,90 +135,6 @@ class ScenarioTruth:
     actor_speed_mps: dict[int, float] = field(default_factory=dict)  #: every actor (CAVs included)
 
 
-@dataclass(frozen=True)
-class _Actor:
-    actor_id: int
-    lane_m: float  #: lateral offset (to the right of the road centre line)
-    start_m: float  #: arc length at t = 0
-    speed_mps: float
-    extent_m: tuple[float, float, float]
-    center_m: tuple[float, float, float]
-    intensity: int
-
-
-@dataclass(frozen=True)
-class _Road:
-    """A constant-curvature road in the CARLA world: centre line position and yaw by arc length."""
-
-    origin_m: np.ndarray
-    yaw0_deg: float
-    curvature: float  #: 1/m (positive: turning clockwise seen from above, i.e. to the right)
-
-    def at(self, s_m: float, lane_m: float) -> tuple[np.ndarray, float]:
-        yaw = np.radians(self.yaw0_deg) + self.curvature * s_m
-        y0 = np.radians(self.yaw0_deg)
-        k = self.curvature
-        x = self.origin_m[0] + (np.sin(yaw) - np.sin(y0)) / k
-        y = self.origin_m[1] - (np.cos(yaw) - np.cos(y0)) / k
-        right = np.array([-np.sin(yaw), np.cos(yaw)])
-        xy = np.array([x, y]) + lane_m * right
-        return np.array([xy[0], xy[1], 0.0]), float(np.degrees(yaw))
-
-
-def _actor_pose(road: _Road, actor: _Actor, t_s: float, wobble: bool) -> np.ndarray:
-    """[x, y, z, roll, yaw, pitch] of an actor's origin (on the ground) at time t_s."""
-    xyz, yaw = road.at(actor.start_m + actor.speed_mps * t_s, actor.lane_m)
-    roll = 0.3 * np.sin(1.3 * t_s + actor.actor_id) if wobble else 0.0
-    pitch = 0.4 * np.sin(0.9 * t_s + 0.5 * actor.actor_id) if wobble else 0.0
-    return np.array([xyz[0], xyz[1], 0.03, roll, yaw, pitch])
-
-
-def _box(T_actor_world: np.ndarray, actor: _Actor, category: str, shaped: bool) -> Box:
-    center = T_actor_world[:3, :3] @ np.array(actor.center_m) + T_actor_world[:3, 3]
-    dims = 2 * np.array(actor.extent_m)
-    return Box(
-        center,
-        np.zeros(3),
-        T_actor_world[:3, :3],
-        dims,
-        category,
-        str(actor.actor_id),
-        actor.intensity,
-        shape=shape_of(category, dims) if shaped else None,
-    )
-
-
-def _close_to(cav: _Actor, ids: list[int], rng: np.random.Generator) -> list[_Actor]:
-    """A car queued 0.3-1.0 m ahead of ``cav``'s front camera and one 1-2 m from its left side, both
-    at its speed (their ids from ``ids``)."""
-    cars = []
-    for k, ahead in enumerate((True, False)):
-        extent = (float(rng.uniform(2.15, 2.45)), float(rng.uniform(0.9, 1.0)), float(rng.uniform(0.72, 0.8)))
-        gap = float(rng.uniform(0.3, 1.0) if ahead else rng.uniform(1.0, 2.0))
-        if ahead:
-            lane, start = cav.lane_m, cav.start_m + CAMERA_MOUNTS[0][0] + gap + extent[0]
-        else:
-            lane, start = cav.lane_m - (cav.extent_m[1] + gap + extent[1]), cav.start_m + float(rng.uniform(-1.0, 2.0))
-        intensity = int(rng.integers(20, 250))
-        cars.append(_Actor(ids[k], lane, start, cav.speed_mps, extent, (0.0, 0.0, extent[2]), intensity))
-    return cars
-
-
-def _clear_of(others: list[_Actor], cars: list[_Actor], span_s: float) -> list[_Actor]:
-    """``others`` without the vehicles that would drive into one of ``cars`` during the scenario
-    (lanes less than a car's width apart, centres nearer than ``CAV_CLEARANCE_M`` along the road)."""
-    t_s = np.linspace(0.0, span_s, 50)
-
-    def into(act: _Actor) -> bool:
-        return any(
-            abs(act.lane_m - car.lane_m) < act.extent_m[1] + car.extent_m[1] + 0.2
-            and np.min(np.abs(act.start_m - car.start_m + (act.speed_mps - car.speed_mps) * t_s)) < CAV_CLEARANCE_M
-            for car in cars
-        )
-
-    return [act for act in others if not into(act)]
-
-
 def lidar_block(config: SynthConfig, channels: int, upper_fov: float, lower_fov: float) -> dict:
     """A ``sensing.perception.lidar`` block that matches the simulated lidar: one revolution per tick,
     and ``points_per_second`` with a fractional share per channel and tick that CARLA rounds to
@@ -241,22 +164,6 @@ def _lidar_rays(block: dict, dt: float) -> np.ndarray:
     azimuth = np.radians(-180.0 + np.arange(n) * (360.0 * block["rotation_frequency"] * dt) / n)
     el, az = np.meshgrid(elevation, azimuth, indexing="ij")
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
-
-
-def _clear_of_cavs(others: list[_Actor], cavs: list[_Actor], span_s: float) -> list[_Actor]:
-    """``others`` with every vehicle that would drive through a CAV during the scenario moved to the
-    lane left of the CAVs': a CAV's cameras inside another vehicle's box would see through it, while
-    its lidar does not."""
-    t_s = np.linspace(0.0, span_s, 50)
-
-    def through_a_cav(act: _Actor) -> bool:
-        return any(
-            act.lane_m == cav.lane_m
-            and np.min(np.abs(act.start_m - cav.start_m + (act.speed_mps - cav.speed_mps) * t_s)) < CAV_CLEARANCE_M
-            for cav in cavs
-        )
-
-    return [replace(act, lane_m=-1.75) if act.speed_mps and through_a_cav(act) else act for act in others]
 
 
 def _yaml(data: dict) -> bytes:
@@ -297,7 +204,7 @@ def _protocol(config: SynthConfig, cav_spawns: list[list[float]], rsu_spawns: li
 def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0) -> ScenarioTruth:
     """Write one scenario into ``split_dir``; return its truth."""
     rng = np.random.default_rng([config.seed, scenario_seed])
-    road = _Road(
+    road = Road(
         np.array([rng.uniform(-300, 300), rng.uniform(-400, 400)]),
         float(rng.uniform(-180, 180)),
         float(rng.choice([-1, 1]) * rng.uniform(1 / 600, 1 / 300)),
@@ -305,7 +212,7 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
     ids = rng.choice(np.arange(100, 9999), size=config.cavs + 12, replace=False).tolist()
     lincoln = (src.CAV_BOX_EXTENT_M, src.CAV_BOX_CENTER_M)
     cavs = [
-        _Actor(ids[i], 1.75 * (i % 2), -8.0 + 14.0 * i, 8.0, *lincoln, int(rng.integers(60, 250)))
+        Actor(ids[i], 1.75 * (i % 2), -8.0 + 14.0 * i, 8.0, *lincoln, int(rng.integers(60, 250)))
         for i in range(config.cavs)
     ]
     others = []
@@ -314,7 +221,7 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
         extent = (float(rng.uniform(2.0, 2.6)), float(rng.uniform(0.9, 1.1)), float(rng.uniform(0.7, 0.9)))
         lane = float(rng.choice([-1.75, 0.0, 1.75])) if moving else float(rng.choice([-5.0, 6.5]))
         others.append(
-            _Actor(
+            Actor(
                 ids[j],
                 lane,
                 float(rng.uniform(-60, 80)),
@@ -325,12 +232,12 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
             )
         )
     span_s = config.frames * config.key_step * config.fixed_delta_seconds
-    others = _clear_of_cavs(others, cavs, span_s)
+    others = clear_of_cavs(others, cavs, span_s)
     if config.close_range:
         close_rng = np.random.default_rng([config.seed, scenario_seed, 1])  # the rest of the scenario unchanged
         free = np.setdiff1d(np.arange(100, 9999), ids)
-        close = _close_to(cavs[0], close_rng.choice(free, 2, replace=False).tolist(), close_rng)
-        others = _clear_of(others, close, span_s) + close
+        close = close_to(cavs[0], CAMERA_MOUNTS[0][0], close_rng.choice(free, 2, replace=False).tolist(), close_rng)
+        others = clear_of(others, close, span_s) + close
     pillars, buildings = [], []
     for s in np.arange(-40.0, 80.0, 9.0):
         for side in (-1, 1):
@@ -377,7 +284,7 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
     }
     K = [[FOCAL_PX, 0.0, WIDTH / 2], [0.0, FOCAL_PX, HEIGHT / 2], [0.0, 0.0, 1.0]]
     tick0 = config.first_key * config.fixed_delta_seconds
-    cav_spawns = [_floats(_actor_pose(road, c, 0.0, False)) for c in cavs]
+    cav_spawns = [_floats(actor_pose(road, c, 0.0, False)) for c in cavs]
     rsu_spawns = [_floats([*p[:2], RSU_LIDAR_HEIGHT_M, 0, 0, 0]) for p in rsu_positions]
     written = _protocol(config, cav_spawns, rsu_spawns)
     for cav in written["scenario"]["single_cav_list"]:
@@ -387,9 +294,9 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
 
     for key in keys:
         t_s = int(key) * config.fixed_delta_seconds - tick0
-        vehicle_pose = {c.actor_id: _actor_pose(road, c, t_s, True) for c in cavs + others}
+        vehicle_pose = {c.actor_id: actor_pose(road, c, t_s, True) for c in cavs + others}
         T_vehicle = {a: carla_pose_matrix(p) for a, p in vehicle_pose.items()}
-        actor_boxes = [_box(T_vehicle[c.actor_id], c, "VEHICLE", config.shapes) for c in cavs + others]
+        actor_boxes = [actor_box(T_vehicle[c.actor_id], c, "VEHICLE", config.shapes) for c in cavs + others]
         actors = cavs + others
         for agent_id in agent_ids:
             infra = int(agent_id) < 0

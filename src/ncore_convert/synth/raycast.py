@@ -106,6 +106,34 @@ def render(
     return full(rgb), full(np.where(hit, index, SKY)) if with_index else None
 
 
+def seen_through(
+    scene: Scene,
+    T_camera_scene: np.ndarray,
+    pinhole: Pinhole,
+    t_s: float,
+    u_px: np.ndarray,
+    v_px: np.ndarray,
+    ground_z_m: float = GROUND_Z_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """What a camera sees through image points at ``t_s``: the truth its labels are scored against.
+
+    Args:
+        T_camera_scene: maps the camera frame (OpenCV) into the scene; pinhole: the camera (NCore's
+            pixel-corner convention); u_px, v_px: image points, float [K].
+
+    Returns:
+        the z (m, along the optical axis; inf: nothing within 500 m) of the surface hit, and the
+        scene box hit (index into ``scene.boxes``; -1: the ground or nothing), [K] each.
+    """
+    (fx, fy), (cx, cy) = pinhole.focal_length_px, pinhole.principal_point_px
+    d = np.stack([(u_px - cx) / fx, (v_px - cy) / fy, np.ones(len(u_px))], axis=1) @ T_camera_scene[:3, :3].T
+    norm = np.linalg.norm(d, axis=1)
+    origins = np.broadcast_to(T_camera_scene[:3, 3], d.shape)
+    distance, _, index = cast_rays(origins, d / norm[:, None], np.full(len(u_px), t_s), scene, 500.0, ground_z_m)
+    # along the ray -> along the optical axis (z = 1 per unit of d)
+    return distance / norm, np.where(np.isfinite(distance), index, -1)
+
+
 #: Slack of the bounding-sphere test in cast_rays (metres): far above rounding, far below a box.
 SPHERE_MARGIN_M = 1e-3
 
@@ -220,10 +248,12 @@ def cast_rays(
             o_b = (_gather(origins_sorted, near) - box.center0_m) @ box.rotation
         d_b = _gather(directions_sorted, near) @ box.rotation
         t_near, t_far = slab_span(o_b.T, d_b.T, *bounds[b])
-        hit = (t_near <= t_far) & (t_near > 0) & (t_near < best[idx])
-        if box.shape is not None:  # what the rays into its bound hit of the object itself
+        if box.shape is None:
+            hit = (t_near <= t_far) & (t_near > 0) & (t_near < best[idx])
+        else:  # what the rays through its bound (from outside it or from within) hit of the object itself
+            through = (t_near <= t_far) & (t_far > 0) & (t_near < best[idx])
             t_near = np.full(len(idx), np.inf)
-            t_near[hit] = first_entry(o_b[hit], d_b[hit], box.shape)
+            t_near[through] = first_entry(o_b[through], d_b[through], box.shape)
             hit = t_near < best[idx]
         nearer = idx[hit]  # idx holds each ray once (the spans are disjoint): write only the hits
         best[nearer], intensity[nearer], box_index[nearer] = t_near[hit], box.intensity, b

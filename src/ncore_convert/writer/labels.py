@@ -1,4 +1,4 @@
-"""How camera labels are stored (``--camera-labels``; docs/camera-labels.md): depth quantized RAW, the
+"""How camera labels are stored (``--camera-labels``; docs/camera-labels.md): depth quantized RAW (uint16, 4 mm), the
 masks as PNG; each label kind's NCore descriptor, and the stream that writes a camera's labels of one
 kind. Part of the writer: :class:`~ncore_convert.writer.SequenceWriter` opens the streams.
 """
@@ -19,14 +19,20 @@ from ncore.impl.data.types import (
     QuantizationParams,
 )
 
-#: How depth labels are stored: RAW, quantized to whole millimetres in uint32 (no range cap; 0 stays
-#: 0 = no measurement). The zero pixels compress to almost nothing (Blosc lz4 with bit shuffling,
-#: the library's choice). The library quantizes through ``intermediate_dtype``: float32 here (a
-#: fifth of float64's time on a full picture; the error of a value at most 0.52 mm instead of 0.5
-#: at 250 m). Readers de-quantize through float64 (the field is not stored).
+#: How depth labels are stored: RAW, quantized by the library to uint16 steps of 4 mm (``value =
+#: stored * 0.004``: error <= 2 mm from the steps, 2.014 mm with the float32 values' own rounding;
+#: range 262.14 m; the VLP-32C reaches 200 m and CARLA's lidars 120 m;
+#: 0 stays 0 = no measurement). A depth beyond the range is not stored (0) and is counted in the
+#: label's metadata (``DEPTH_BEYOND_RANGE``). The zero pixels compress to almost nothing (Blosc lz4
+#: with bit shuffling, the library's choice); two bytes per labelled pixel instead of uint32
+#: millimetres' four. The library quantizes through ``intermediate_dtype``: float32 here (a fifth of
+#: float64's time on a full picture, and the same largest error). Readers de-quantize through float64.
+DEPTH_STEP_M = 0.004
 DEPTH_QUANTIZATION = QuantizationParams(
-    quantized_dtype=np.dtype("uint32"), scale=0.001, offset=0.0, intermediate_dtype=np.dtype("float32")
+    quantized_dtype=np.dtype("uint16"), scale=DEPTH_STEP_M, offset=0.0, intermediate_dtype=np.dtype("float32")
 )
+MAX_DEPTH_M = np.iinfo(np.uint16).max * DEPTH_STEP_M  #: the deepest depth stored, m (262.14)
+DEPTH_BEYOND_RANGE = "depth_beyond_range"  #: per-label metadata: pixels whose depth was beyond ``MAX_DEPTH_M``
 
 
 #: How mask labels are stored: PNG (``IMAGE_ENCODED``), the library decoding them through PIL.
@@ -36,7 +42,8 @@ DEPTH_QUANTIZATION = QuantizationParams(
 PNG_COMPRESS_LEVEL = 1
 #: What each kind's component metadata says of its storage.
 LABEL_STORAGE = {
-    "depth": "RAW, uint32 millimetres (NCore quantization scale 0.001: error <= 0.52 mm)",
+    "depth": f"RAW, uint16 steps of 4 mm (NCore quantization scale {DEPTH_STEP_M:g}: error <= 2 mm); depths beyond"
+    f" {MAX_DEPTH_M:.2f} m are not stored (0) and counted per label in {DEPTH_BEYOND_RANGE}",
     "dynamic": "PNG (IMAGE_ENCODED), 1-bit: read back as uint8 0/1",
     "instance": "PNG (IMAGE_ENCODED), grey, 8-bit where every index is below 256, else 16-bit: read back as uint16",
 }
@@ -83,10 +90,19 @@ class CameraLabelStream:
 
     def store_label(self, data: np.ndarray, timestamp_us: int, generic_meta_data: dict | None = None) -> None:
         """Store the label of the camera frame ending at ``timestamp_us``, [height,width]: float32
-        metres for ``depth`` (0 = none); bool for ``dynamic``; uint16 instance indices for
-        ``instance`` (0 = none). The masks are PNG-encoded here."""
-        stored = data if self._kind == "depth" else _png(data, self._kind)
-        self._writer.store_label(stored, int(timestamp_us), generic_meta_data or {})
+        metres for ``depth`` (0 = none; beyond ``MAX_DEPTH_M``: not stored, counted in the label's
+        ``DEPTH_BEYOND_RANGE``); bool for ``dynamic``; uint16 instance indices for ``instance``
+        (0 = none). The masks are PNG-encoded here."""
+        meta = dict(generic_meta_data or {})
+        if self._kind == "depth":
+            beyond = data > MAX_DEPTH_M
+            if beyond.any():
+                data = np.where(beyond, np.float32(0.0), data)
+                meta[DEPTH_BEYOND_RANGE] = int(beyond.sum())
+            stored = data
+        else:
+            stored = _png(data, self._kind)
+        self._writer.store_label(stored, int(timestamp_us), meta)
 
     def set_meta(self, generic_meta_data: dict) -> None:
         """Replace the component-level metadata (the generator and its parameters; the storage is
