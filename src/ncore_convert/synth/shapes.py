@@ -79,6 +79,9 @@ def _wheel(centre: tuple[float, float, float], radius_m: float, half_width_m: fl
 
 
 def _shape(parts: list[list[tuple[np.ndarray, float]]], lo: np.ndarray, hi: np.ndarray) -> Shape:
+    """The shape of ``parts`` (lists of faces), each cut to the bound ``lo``..``hi`` [3]: what rays
+    can hit stays inside it whatever the box's size (a small box's wheel or mirror would not)."""
+    parts = [part + _block(tuple(lo), tuple(hi)) for part in parts]
     faces = max(len(p) for p in parts)
     normals = np.zeros((len(parts), faces, 3))
     offsets = np.ones((len(parts), faces))
