@@ -1,7 +1,7 @@
 """OPV2V / V2XSet camera labels (``--camera-labels depth,dynamic,instance``, ``GT_SYNTHETIC``).
 
 The truth: the synthetic scenario's own scene (the tick's vehicles, pillars and buildings) ray-cast
-from each camera at the tick (``synth.raycast.cast_rays``), and the raw PCD points projected into the
+from each camera at the tick (``synth.raycast.seen_through``), and the raw PCD points projected into the
 pictures as OpenCOOD does it (the YAML's ``extrinsic``: lidar -> camera, UE4 axes; its ``intrinsic``
 K), independently of the converter's own poses and projection. The real OPV2V frames take a
 synthetic agent's place for that last check.
@@ -24,7 +24,7 @@ from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.sources.opencood import load_yaml
 from ncore_convert.synth import carla as synth_carla
 from ncore_convert.synth import opencood as synth
-from ncore_convert.synth.raycast import cast_rays
+from ncore_convert.synth.raycast import seen_through
 from ncore_convert.validate.sequence import validate_sequence
 
 KINDS = ("depth", "dynamic", "instance")
@@ -61,15 +61,13 @@ def _labels(loader: SequenceLoaderV4, cam: str, label_type: LabelType):
     return labels
 
 
-def _camera_rays(truth, agent_id: str, key: str, index: int, u: np.ndarray, v: np.ndarray):
-    """The rays through image points (``u``, ``v``, px, NCore's corner convention) of camera
-    ``index`` at tick ``key``: origins and unit directions in the CARLA world [K,3], and the length
-    of each OpenCV ray (z = 1) [K]."""
+def _seen(truth, agent_id: str, key: str, index: int, u: np.ndarray, v: np.ndarray):
+    """What camera ``index`` of ``agent_id`` sees through image points (``u``, ``v``, px, NCore's
+    corner convention) at tick ``key`` (``synth.raycast.seen_through``): the z of the surface hit
+    (m, inf: nothing) and the scene box hit (-1: the ground or nothing), [K] each."""
+    scene, _ = truth.agents[agent_id].scenes[key]
     T = truth.agents[agent_id].T_cam_world[key][index] @ synth_carla.T_UE4_OPENCV
-    (fx, fy), (cx, cy) = synth_carla.PINHOLE.focal_length_px, synth_carla.PINHOLE.principal_point_px
-    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1) @ T[:3, :3].T
-    norm = np.linalg.norm(d, axis=1)
-    return np.broadcast_to(T[:3, 3], d.shape), d / norm[:, None], norm
+    return seen_through(scene, T, synth_carla.PINHOLE, 0.0, u, v, ground_z_m=0.0)
 
 
 def _yaml(truth, agent_id: str, key: str) -> dict:
@@ -120,7 +118,6 @@ def test_depth_labels_hold_the_surface_the_camera_sees(labelled):
     for agent_id in truth.agents:
         loader = _loader(out, truth.scenario, agent_id)
         for key in truth.keys:
-            scene, _ = truth.agents[agent_id].scenes[key]
             for cam, index in _cameras(truth, agent_id, key):
                 labels = _labels(loader, cam, LabelType.DEPTH_Z_M)
                 t_us = int(labels.label_timestamps_us[truth.keys.index(key)])
@@ -129,12 +126,11 @@ def test_depth_labels_hold_the_surface_the_camera_sees(labelled):
                 if len(lines):
                     u = (cols[:, None] + du).reshape(-1)
                     v = (lines[:, None] + dv).reshape(-1)
-                    origins, d, norm = _camera_rays(truth, agent_id, key, index, u, v)
-                    hit_m, _, _ = cast_rays(origins, d, np.zeros(len(u)), scene, 500.0, ground_z_m=0.0)
-                    error = depth[lines, cols][:, None] - (hit_m / norm).reshape(len(lines), -1)
+                    z_true, _ = _seen(truth, agent_id, key, index, u, v)
+                    error = depth[lines, cols][:, None] - z_true.reshape(len(lines), -1)
                     smallest.append(np.abs(error).min(axis=1))
                     behind.append(np.all(error > 0.5, axis=1))
-                covered.append(_visible_point_pixels(truth, agent_id, key, index, scene, depth))
+                covered.append(_visible_point_pixels(truth, agent_id, key, index, depth))
     smallest, behind, covered = np.concatenate(smallest), np.concatenate(behind), np.concatenate(covered)
     assert len(smallest) > 5000 and len(covered) > 5000
     assert np.median(smallest) <= 0.01, np.median(smallest)
@@ -164,13 +160,12 @@ def _opencood_pixels(agent_dir: Path, key: str, index: int) -> tuple[np.ndarray,
     return u[inside].astype(np.int64), v[inside].astype(np.int64), z[inside]
 
 
-def _visible_point_pixels(truth, agent_id: str, key: str, index: int, scene, depth: np.ndarray) -> np.ndarray:
+def _visible_point_pixels(truth, agent_id: str, key: str, index: int, depth: np.ndarray) -> np.ndarray:
     """Whether each pixel hit by a raw point that the camera sees in truth (nothing between the
     camera and the point but 5 cm) is labelled, bool [P]."""
     cols, lines, z_m = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
-    origins, d, norm = _camera_rays(truth, agent_id, key, index, cols + 0.5, lines + 0.5)
-    first_m, _, _ = cast_rays(origins, d, np.zeros(len(cols)), scene, 500.0, ground_z_m=0.0)
-    seen = first_m / norm >= z_m - 0.05 * np.maximum(1.0, z_m / 10.0)  # the pixel centre's ray, not the point's
+    first_z, _ = _seen(truth, agent_id, key, index, cols + 0.5, lines + 0.5)
+    seen = first_z >= z_m - 0.05 * np.maximum(1.0, z_m / 10.0)  # the pixel centre's ray, not the point's
     pixels = np.unique(lines[seen] * synth_carla.WIDTH + cols[seen])
     return depth.reshape(-1)[pixels] > 0
 
@@ -230,7 +225,7 @@ def test_box_labels_show_the_vehicles_the_camera_sees(labelled):
     for agent_id in truth.agents:
         loader = _loader(out, truth.scenario, agent_id)
         for key in truth.keys:
-            scene, actor_of_box = truth.agents[agent_id].scenes[key]
+            _, actor_of_box = truth.agents[agent_id].scenes[key]
             labelled_now = {  # the tick's labels: the vehicles of every agent's YAML (OpenCOOD merges them)
                 int(a) for other in truth.agents for a in _yaml(truth, other, key).get("vehicles", {})
             }
@@ -242,9 +237,8 @@ def test_box_labels_show_the_vehicles_the_camera_sees(labelled):
                 ours = instances.get_label(t_us).get_data()[::2, ::2]
                 ours_dynamic = _labels(loader, cam, LabelType.MASK_DYNAMIC).get_label(t_us).get_data()[::2, ::2] > 0
                 v, u = np.mgrid[0 : synth_carla.HEIGHT : 2, 0 : synth_carla.WIDTH : 2] + 0.5
-                origins, d, _ = _camera_rays(truth, agent_id, key, index, u.reshape(-1), v.reshape(-1))
-                hit_m, _, box = cast_rays(origins, d, np.zeros(len(d)), scene, 500.0, ground_z_m=0.0)
-                actor = np.r_[actor_of_box, -1][np.where(np.isfinite(hit_m), box, -1)].reshape(u.shape)
+                _, box = _seen(truth, agent_id, key, index, u.reshape(-1), v.reshape(-1))
+                actor = np.r_[actor_of_box, -1][box].reshape(u.shape)
                 actors = np.unique(actor)
                 instance_of = np.array([index_of.get(int(a), 0) if a in labelled_now else 0 for a in actors])
                 moves = np.array([truth.actor_speed_mps.get(int(a), 0.0) > 0.0 for a in actors])

@@ -2,7 +2,8 @@
 box's bounding sphere before the exact slab test, against a brute-force reference that tests every
 ray against the ground and every box: the same first hit for any scene, from one shared origin (a
 camera) and from many (a moving lidar), with boxes that move during the rays' times, each a plain
-box or shaped (``synth.shapes``: then every ray against each of its convex parts, face by face)."""
+box or shaped (``synth.shapes``: then every ray against each of its convex parts cut to the
+shape's bound, face by face)."""
 
 from __future__ import annotations
 
@@ -58,12 +59,14 @@ def brute_force(origins_m, directions, times_s, scene: Scene) -> tuple[np.ndarra
 
 def _first_part_entries(o: np.ndarray, d: np.ndarray, shape) -> np.ndarray:
     """Where rays (box axes: origins ``o``, directions ``d``, [N,3]) first enter one of the shape's
-    convex parts ahead of their origins, each part's faces taken one by one (n . p <= offset); inf
-    where they miss them all, [N]."""
+    convex parts, each cut to the shape's bound, ahead of their origins: each part's faces and the
+    bound's six taken one by one (n . p <= offset); inf where they miss them all, [N]."""
+    axes = np.eye(3)
+    bound = [(axes[k], shape.hi_m[k]) for k in range(3)] + [(-axes[k], -shape.lo_m[k]) for k in range(3)]
     best = np.full(len(o), np.inf)
     for normals, offsets in zip(shape.normals, shape.offsets_m, strict=True):
         enter, leave = np.full(len(o), -np.inf), np.full(len(o), np.inf)
-        for n, offset in zip(normals, offsets, strict=True):
+        for n, offset in [*zip(normals, offsets, strict=True), *bound]:
             rate, room = d @ n, offset - o @ n
             with np.errstate(divide="ignore", invalid="ignore"):
                 enter = np.where(rate < 0, np.maximum(enter, room / rate), enter)

@@ -125,8 +125,7 @@ def seen_through(
         the z (m, along the optical axis; inf: nothing within 500 m) of the surface hit, and the
         scene box hit (index into ``scene.boxes``; -1: the ground or nothing), [K] each.
     """
-    (fx, fy), (cx, cy) = pinhole.focal_length_px, pinhole.principal_point_px
-    d = np.stack([(u_px - cx) / fx, (v_px - cy) / fy, np.ones(len(u_px))], axis=1) @ T_camera_scene[:3, :3].T
+    d = pinhole.image_rays(u_px, v_px) @ T_camera_scene[:3, :3].T
     norm = np.linalg.norm(d, axis=1)
     origins = np.broadcast_to(T_camera_scene[:3, 3], d.shape)
     distance, _, index = cast_rays(origins, d / norm[:, None], np.full(len(u_px), t_s), scene, 500.0, ground_z_m)
@@ -160,19 +159,30 @@ def _gather(sorted_rows: np.ndarray, spans: list[tuple[int, int, np.ndarray]]) -
     return np.concatenate([sorted_rows[a:z][m] for a, z, m in spans])
 
 
-def first_entry(origins_m: np.ndarray, directions: np.ndarray, shape: Shape) -> np.ndarray:
-    """Where rays (box axes: ``origins_m``, unit ``directions`` [K,3]) first enter one of ``shape``'s
-    parts ahead of their origin, metres along the ray (inf: they miss it), float64 [K]; in chunks of
-    ``CHUNK_RAYS`` rays (a picture's worth of rays times parts times faces is large)."""
-    out = np.full(len(directions), np.inf)
-    for a in range(0, len(directions), CHUNK_RAYS):
-        chunk = slice(a, a + CHUNK_RAYS)
-        enter, leave = convex_span(origins_m[chunk], directions[chunk], shape.normals, shape.offsets_m)
-        out[chunk] = np.where((enter <= leave) & (enter > 0), enter, np.inf).min(axis=1)
-    return out
-
-
+#: Rays per convex_span call in :func:`first_entry` (rays x faces arrays stay small).
 CHUNK_RAYS = 16384
+
+
+def first_entry(
+    origins_m: np.ndarray, directions: np.ndarray, shape: Shape, bound_enter: np.ndarray, bound_leave: np.ndarray
+) -> np.ndarray:
+    """Where rays (box axes: ``origins_m``, unit ``directions`` [K,3]) first enter one of ``shape``'s
+    parts ahead of their origin, each part cut to the shape's bound (the rays' span through it:
+    ``bound_enter``, ``bound_leave`` [K], from the slab test), metres along the ray (inf: they miss
+    it), float64 [K]. Each part tests only the rays that meet its own box."""
+    out = np.full(len(directions), np.inf)
+    for p in range(len(shape.normals)):
+        enter_box, leave_box = slab_span(origins_m.T, directions.T, shape.part_lo_m[p], shape.part_hi_m[p])
+        rays = np.flatnonzero((enter_box <= leave_box) & (leave_box > 0))
+        for chunk in np.array_split(rays, max(1, -(-len(rays) // CHUNK_RAYS))):
+            enter, leave = convex_span(
+                origins_m[chunk], directions[chunk], shape.normals[p : p + 1], shape.offsets_m[p : p + 1]
+            )
+            enter = np.maximum(enter[:, 0], bound_enter[chunk])
+            leave = np.minimum(leave[:, 0], bound_leave[chunk])
+            entry = np.where((enter <= leave) & (enter > 0), enter, np.inf)
+            out[chunk] = np.minimum(out[chunk], entry)
+    return out
 
 
 def cast_rays(
@@ -252,9 +262,9 @@ def cast_rays(
             hit = (t_near <= t_far) & (t_near > 0) & (t_near < best[idx])
         else:  # what the rays through its bound (from outside it or from within) hit of the object itself
             through = (t_near <= t_far) & (t_far > 0) & (t_near < best[idx])
-            t_near = np.full(len(idx), np.inf)
-            t_near[through] = first_entry(o_b[through], d_b[through], box.shape)
-            hit = t_near < best[idx]
+            entry = np.full(len(idx), np.inf)
+            entry[through] = first_entry(o_b[through], d_b[through], box.shape, t_near[through], t_far[through])
+            t_near, hit = entry, entry < best[idx]
         nearer = idx[hit]  # idx holds each ray once (the spans are disjoint): write only the hits
         best[nearer], intensity[nearer], box_index[nearer] = t_near[hit], box.intensity, b
     best[best > max_range_m] = np.inf

@@ -13,6 +13,7 @@ shape is what the lidar and the cameras hit (:func:`synth.raycast.cast_rays`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 
@@ -22,17 +23,22 @@ CLEARANCE_M = 0.3  #: a vehicle body's lowest edge above the ground (the wheels 
 
 @dataclass(frozen=True)
 class Shape:
-    """A union of convex parts, each the points p with n . p <= offset for every face (n, offset).
+    """A union of convex parts, each the points p with n . p <= offset for every face (n, offset),
+    cut to the bound ``lo_m``..``hi_m``: what rays can hit stays inside it whatever the box's size (a
+    small box's wheel or mirror would reach out of it).
 
     Attributes:
         normals: unit outward face normals, float64 [P,F,3] (padding faces: normal 0, offset 1);
-        offsets_m: float64 [P,F]; lo_m, hi_m: the parts' bounding box, float64 [3] each.
+        offsets_m: float64 [P,F]; lo_m, hi_m: the bound, float64 [3] each; part_lo_m, part_hi_m:
+        each part's own bounding box within the bound, float64 [P,3] each.
     """
 
     normals: np.ndarray
     offsets_m: np.ndarray
     lo_m: np.ndarray
     hi_m: np.ndarray
+    part_lo_m: np.ndarray
+    part_hi_m: np.ndarray
 
 
 def _block(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> list[tuple[np.ndarray, float]]:
@@ -78,17 +84,36 @@ def _wheel(centre: tuple[float, float, float], radius_m: float, half_width_m: fl
     return faces + [(y, centre[1] + half_width_m), (-y, -(centre[1] - half_width_m))]
 
 
+def _extent(faces: list[tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """The bounding box of a bounded convex part, from its vertices (every three faces that meet in
+    one point inside all the others), [3] each."""
+    normals = np.array([n for n, _ in faces])
+    offsets = np.array([d for _, d in faces])
+    vertices = []
+    for trio in combinations(range(len(faces)), 3):
+        A = normals[list(trio)]
+        if abs(np.linalg.det(A)) > 1e-9:
+            p = np.linalg.solve(A, offsets[list(trio)])
+            if np.all(normals @ p <= offsets + 1e-9):
+                vertices.append(p)
+    if not vertices:  # empty (a small box's body lower than its clearance), or outside the bound
+        return np.full(3, np.inf), np.full(3, -np.inf)
+    vertices = np.array(vertices)
+    return vertices.min(axis=0), vertices.max(axis=0)
+
+
 def _shape(parts: list[list[tuple[np.ndarray, float]]], lo: np.ndarray, hi: np.ndarray) -> Shape:
-    """The shape of ``parts`` (lists of faces), each cut to the bound ``lo``..``hi`` [3]: what rays
-    can hit stays inside it whatever the box's size (a small box's wheel or mirror would not)."""
-    parts = [part + _block(tuple(lo), tuple(hi)) for part in parts]
+    """The shape of ``parts`` (lists of faces) within the bound ``lo``..``hi`` [3] (a part with
+    nothing inside it has an empty box: no ray hits it)."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    extents = [_extent(part + _block(tuple(lo), tuple(hi))) for part in parts]
     faces = max(len(p) for p in parts)
     normals = np.zeros((len(parts), faces, 3))
     offsets = np.ones((len(parts), faces))
     for i, part in enumerate(parts):
         for j, (n, d) in enumerate(part):
             normals[i, j], offsets[i, j] = n, d
-    return Shape(normals, offsets, np.asarray(lo, float), np.asarray(hi, float))
+    return Shape(normals, offsets, lo, hi, np.array([e[0] for e in extents]), np.array([e[1] for e in extents]))
 
 
 def vehicle_shape(dims_m: np.ndarray) -> Shape:

@@ -67,13 +67,19 @@ class Pinhole:
         (fx, fy), (cx, cy) = self.focal_length_px, self.principal_point_px
         return Pinhole((fx * sx, fy * sy), (cx * sx, cy * sy), (width_px, height_px))
 
+    def image_rays(self, u_px: np.ndarray, v_px: np.ndarray) -> np.ndarray:
+        """The rays through image points (``u_px``, ``v_px``: px, float, any one shape), in the camera
+        frame with z = 1, float64 [...,3]: the inverse of :meth:`project`."""
+        (fx, fy), (cx, cy) = self.focal_length_px, self.principal_point_px
+        u, v = np.asarray(u_px, dtype=np.float64), np.asarray(v_px, dtype=np.float64)
+        return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+
     def pixel_rays(self, step_px: int = 1) -> np.ndarray:
         """The rays through the centres of every ``step_px``-th pixel's ``step_px`` square, in the camera
         frame with z = 1, float64 [H,W,3] (H, W: the rows and columns sampled)."""
-        (fx, fy), (cx, cy) = self.focal_length_px, self.principal_point_px
         width, height = self.resolution_px
         u, v = np.meshgrid(np.arange(0, width, step_px) + step_px / 2, np.arange(0, height, step_px) + step_px / 2)
-        return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+        return self.image_rays(u, v)
 
 
 @dataclass(frozen=True)
