@@ -6,9 +6,8 @@
   alongside it, converted with ``--camera-labels depth,dynamic,instance``;
 - the AV2 world (shaped cars, pedestrians and cyclists, a car just ahead of the ego and one
   alongside): both VLP-32C units fire one sweep, and five ring cameras (at half size) label it at
-  the sweep's middle with the label kernel itself (``transforms.camera.labels``), every annotated
-  object's true box as an occluder (AV2's 0.5 m slack, as the converter gives them) and as the
-  masks' boxes.
+  the sweep's middle with the label kernel itself (``transforms.camera.labels``), the annotated
+  vehicles' true boxes as the occluders' boxes (AV2's 0.5 m slack) and as the masks' boxes.
 
 The figures:
 
@@ -47,6 +46,10 @@ from ncore_convert.transforms.camera.labels import DYNAMIC_DT_US, box_index, dep
 from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.camera.visibility import CameraView
 from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.lidar import vlp32c
+from ncore_convert.transforms.lidar.model import SpinningLidarModel
+from ncore_convert.transforms.objects.classes import AV2_TO_NCORE
+from ncore_convert.transforms.objects.cores import kind_of
 
 CAMERAS = ("camera_front", "camera_right_rear", "camera_left_rear", "camera_back")
 KINDS = ("depth", "dynamic", "instance")
@@ -167,17 +170,38 @@ def score_av2_world(seed: int, tally: dict) -> None:
     moving = np.r_[[bool(np.any(b.velocity_mps)) for b in scene.boxes], False]
     dynamic = moving[hits["box_index"]]
     times_us = (hits["time_ns"] - T0_NS) // 1000
-
+    elevations = np.radians(vlp32c.BEAM_ELEVATION_DEG)  # each beam's step, as the converter's model gives it
+    model = SpinningLidarModel(
+        10.0, "ccw", elevations, np.zeros(32), np.linspace(-np.pi, np.pi, 1800, endpoint=False), np.arange(32)
+    )
+    spacing_m = hits["distance_m"][:, None] * model.row_steps_rad()[hits["beam"]]
     annotated = [k for k, b in enumerate(scene.boxes) if b.annotated]
     T_box = np.stack([scene.boxes[k].T_box_city(CAMERA_S) for k in annotated])
     half = np.stack([scene.boxes[k].dims_m / 2 for k in annotated])
+    kind = np.array([kind_of(AV2_TO_NCORE[scene.boxes[k].category]) for k in annotated])
+    solid = kind >= 0
+    velocity = np.stack(  # each box's velocity at the camera's time (the converter's, from its track)
+        [
+            scene.boxes[k].velocity_mps * (scene.boxes[k].move_from_s <= CAMERA_S <= scene.boxes[k].move_until_s)
+            for k in annotated
+        ]
+    )
     for cam in AV2_CAMERAS:
         focal, width, height = cams[cam]
         pinhole = Pinhole((focal, focal), (width / 2, height / 2), (width, height))
         T_camera_city = scene.ego.T_ego_city(np.array([CAMERA_S]))[0] @ T_sensor_ego[cam]
-        # today's occluders, as the AV2 converter gives them: every annotated box, 0.5 m of slack
-        view = CameraView(cam, round(CAMERA_S * 1e6), invert_se3(T_camera_city), pinhole, None, (T_box, half), 0.5)
-        depth = depth_z(view, hits["xyz_city_m"], times_us, dynamic)
+        view = CameraView(
+            cam,
+            round(CAMERA_S * 1e6),
+            invert_se3(T_camera_city),
+            pinhole,
+            None,
+            (T_box[solid], half[solid]),
+            0.5,
+            velocity[solid],
+            kind[solid],
+        )
+        depth = depth_z(view, hits["xyz_city_m"], times_us, dynamic, spacing_m)
 
         def seen(u, v, T_camera_city=T_camera_city, pinhole=pinhole):
             return seen_through(scene, T_camera_city, pinhole, CAMERA_S, u, v)

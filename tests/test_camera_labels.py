@@ -1,13 +1,16 @@
 """Depth labels (``transforms.camera.labels.depth_z``) against the generator's truth.
 
-One world: the synthetic AV2 scene (ground, buildings, parked and moving cars, pedestrians). A
-VLP-32C on the roof fires one 100 ms sweep through it (``synth.argoverse2.simulate_unit``); a
-camera 1.6 m ahead of and 0.5 m below the lidar, at its own time inside the sweep, labels the
+One world: the synthetic AV2 scene with shaped objects (ground, buildings, parked and moving cars,
+pedestrians, cyclists, a car just ahead of the ego and one alongside: ``synth.shapes``). The two
+VLP-32C units of the AV2 rig fire one 100 ms sweep through it (``synth.argoverse2.simulate_unit``);
+a camera 1.6 m ahead of the ego's origin and 1.4 m up, at its own time inside the sweep, labels the
 sweep's points. The truth of a labelled pixel is the ray cast from the camera through the pixel's
 centre at the frame's time (``synth.raycast.cast_rays``): the surface the camera really sees there.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pyarrow.feather
@@ -17,14 +20,17 @@ from ncore.impl.data.types import LabelSource, LabelType
 from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
-from ncore_convert.synth.argoverse2 import R_EGO_CAM_FORWARD, SynthConfig, simulate_unit, write_log
+from ncore_convert.synth.argoverse2 import R_EGO_CAM_FORWARD, SynthConfig, calibration, simulate_unit, write_log
 from ncore_convert.synth.raycast import cast_rays, seen_through
 from ncore_convert.synth.scene import make_scene
 from ncore_convert.transforms.camera.labels import DYNAMIC_DT_US, box_index, depth_z
 from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.camera.visibility import CameraView
 from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.lidar.model import SpinningLidarModel
+from ncore_convert.transforms.lidar.vlp32c import BEAM_ELEVATION_DEG
 from ncore_convert.transforms.objects.classes import ALWAYS_DYNAMIC, AV2_TO_NCORE
+from ncore_convert.transforms.objects.cores import kind_of
 from ncore_convert.transforms.objects.dynamic import HOLD_S
 from ncore_convert.validate.sequence import validate_sequence
 
@@ -40,7 +46,6 @@ def _T(R: np.ndarray, t: tuple[float, float, float]) -> np.ndarray:
     return T
 
 
-T_LIDAR_EGO = _T(np.eye(3), (0.0, 0.0, 1.9))  # lidar -> ego
 T_CAMERA_EGO = _T(R_EGO_CAM_FORWARD, (1.6, 0.0, 1.4))  # camera -> ego (OpenCV axes)
 PINHOLE = Pinhole((1680.0, 1680.0), (1024.0, 775.0), (2048, 1550))  # an AV2 ring camera
 
@@ -50,16 +55,37 @@ def world(request):
     return _world(request.param)
 
 
+def _boxes_only(scene):
+    """``scene`` with every object its own box: the truth the box labels (``box_index``) are checked
+    against, while masks are made from boxes (the depth labels are checked against the shapes)."""
+    return replace(scene, boxes=[replace(b, shape=None) for b in scene.boxes])
+
+
 def _world(seed: int, pinhole: Pinhole = PINHOLE):
-    """The scene, the sweep's points (city frame, times, moving or not), the camera view, its label."""
-    scene = make_scene(np.random.default_rng(seed), 2.0, np.random.default_rng([seed, 1]))
+    """The scene (shaped objects, a car just ahead and one alongside), the sweep's points (city
+    frame, times, moving or not), the camera view, its label. The occluders are the annotated
+    objects' true boxes, each moving one with its velocity, each of its kind (as the converter gives
+    them); the
+    lidar's spacing at each point is its range times its beam's steps (the VLP-32C's rows)."""
+    scene = make_scene(
+        np.random.default_rng(seed),
+        2.0,
+        np.random.default_rng([seed, 1]),
+        shapes=True,
+        close_range=True,
+    )
     window_ns = (T0_NS + round(SWEEP_S[0] * 1e9), T0_NS + round(SWEEP_S[1] * 1e9))
-    hits = simulate_unit("up_lidar", window_ns, T0_NS, scene, lambda t_s: scene.ego.T_ego_city(t_s) @ T_LIDAR_EGO)
+    T_sensor_ego = calibration()[0]
+    parts = [
+        simulate_unit(unit, window_ns, T0_NS, scene, lambda t_s, u=unit: scene.ego.T_ego_city(t_s) @ T_sensor_ego[u])
+        for unit in ("up_lidar", "down_lidar")
+    ]
+    hits = {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
     moving = np.array([bool(np.any(b.velocity_mps)) for b in scene.boxes] + [False])
     dynamic = moving[hits["box_index"]]  # -1 (the ground): the appended False
     times_us = (hits["time_ns"] - T0_NS) // 1000
     T_camera_city = scene.ego.T_ego_city(np.array([CAMERA_S]))[0] @ T_CAMERA_EGO
-    solids = [b for b in scene.boxes if b.annotated]
+    solids = [b for b in scene.boxes if b.annotated and kind_of(AV2_TO_NCORE[b.category]) >= 0]
     view = CameraView(
         "ring_front_center",
         round(CAMERA_S * 1e6),
@@ -67,9 +93,18 @@ def _world(seed: int, pinhole: Pinhole = PINHOLE):
         pinhole,
         solids=(np.stack([b.T_box_city(CAMERA_S) for b in solids]), np.stack([b.dims_m / 2 for b in solids])),
         solids_slack_m=LABEL_SLACK_M,
+        solids_velocity_mps=np.stack([b.velocity_mps for b in solids]),
+        solids_kind=np.array([kind_of(AV2_TO_NCORE[b.category]) for b in solids]),
     )
-    label = depth_z(view, hits["xyz_city_m"], times_us, dynamic)
+    spacing_m = hits["distance_m"][:, None] * VLP32C_STEPS_RAD[hits["beam"]]
+    label = depth_z(view, hits["xyz_city_m"], times_us, dynamic, spacing_m)
     return scene, hits, times_us, dynamic, T_camera_city, view, label
+
+
+#: The VLP-32C's angles between neighbouring returns of each beam, across and along its rows (rad).
+VLP32C_STEPS_RAD = SpinningLidarModel(
+    10.0, "ccw", np.radians(BEAM_ELEVATION_DEG), np.zeros(32), np.radians(np.arange(0.0, 360.0, 0.2)), np.arange(32)
+).row_steps_rad()
 
 
 def _seen(scene, T_camera_city: np.ndarray, pinhole: Pinhole, t_s: float, u: np.ndarray, v: np.ndarray):
@@ -83,9 +118,10 @@ def _true_depth(scene, T_camera_city: np.ndarray, u: np.ndarray, v: np.ndarray) 
     return _seen(scene, T_camera_city, PINHOLE, CAMERA_S, u, v)[0]
 
 
-#: Where in a pixel the truth is sampled: an 8 x 8 grid (an eighth of a pixel apart: on the ground
-#: 50 m ahead the depth changes by about 0.8 m from one pixel row to the next).
-SUBPIXEL = (np.arange(8) + 0.5) / 8
+#: Where in a pixel the truth is sampled: a 9 x 9 grid from edge to edge (an eighth of a pixel apart:
+#: on the ground 50 m ahead the depth changes by about 0.8 m from one pixel row to the next; a point
+#: on a building's corner, 2 mm inside it 34 m away, is seen only near the pixel's edge).
+SUBPIXEL = np.linspace(0.0, 1.0, 9)
 
 
 def test_depth_labels_hold_the_surface_the_camera_sees(world):
@@ -112,7 +148,8 @@ def test_depth_labels_hold_the_surface_the_camera_sees(world):
 def test_depth_labels_cover_the_points_the_camera_sees(world):
     """>= 95 % of the pixels hit by a usable lidar point that is visible from the camera in truth
     (static, or within DYNAMIC_DT_US of the frame; nothing between the camera and the point) are
-    labelled; none of the pixels hit only by moving points from other times."""
+    labelled, and >= 95 % of those on the annotated objects; none of the pixels hit only by moving
+    points from other times."""
     scene, hits, times_us, dynamic, T_camera_city, view, label = world
     xyz_camera = hits["xyz_city_m"] @ view.T_world_camera[:3, :3].T + view.T_world_camera[:3, 3]
     ahead = xyz_camera[:, 2] > 0.3
@@ -127,9 +164,12 @@ def test_depth_labels_cover_the_points_the_camera_sees(world):
     first_m, _, _ = cast_rays(origins, towards / distance_m[:, None], np.full(len(idx), CAMERA_S), scene, 500.0)
     visible = idx[first_m >= distance_m - 0.05]
     assert len(visible) > 3000
-    pixels = np.unique(v[visible].astype(np.int64) * width + u[visible].astype(np.int64))
-    covered = np.mean(label.reshape(-1)[pixels] > 0)
-    assert covered >= 0.95, covered
+    pixels, first = np.unique(v[visible].astype(np.int64) * width + u[visible].astype(np.int64), return_index=True)
+    labelled = label.reshape(-1)[pixels] > 0
+    assert np.mean(labelled) >= 0.95, np.mean(labelled)
+    annotated = np.array([b.annotated for b in scene.boxes] + [False])  # the objects: cars, people, cyclists
+    on_object = annotated[hits["box_index"][visible[first]]]
+    assert on_object.sum() > 200 and np.mean(labelled[on_object]) >= 0.95, np.mean(labelled[on_object])
     stale = inside & dynamic & (np.abs(times_us - view.timestamp_us) > DYNAMIC_DT_US)
     only_stale = np.setdiff1d(
         v[stale].astype(np.int64) * width + u[stale].astype(np.int64),
@@ -152,9 +192,11 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 def test_box_index_is_the_box_the_camera_sees(world):
     """``box_index`` with the scene's true boxes (the annotated ones) against the scene seen from
-    the camera (every second pixel): every instance's IoU >= 0.95 and the moving boxes' (the
-    dynamic mask) >= 0.95. Where boxes overlap, the truth holds the nearer one. The only
-    differences are where an unannotated building hides a box (the labels know no other surface)."""
+    the camera (every second pixel) with every object its own box (the box pictures' geometry; how
+    far a box picture is from its shaped object is ``bench/bench_shaped_labels.py``'s): every
+    instance's IoU >= 0.95 and the moving boxes' (the dynamic mask) >= 0.95. Where boxes overlap, the
+    truth holds the nearer one. The only differences are where an unannotated building hides a box
+    (the labels know no other surface)."""
     scene, _, _, _, T_camera_city, view, _ = world
     annotated = [k for k, b in enumerate(scene.boxes) if b.annotated]
     boxes = [scene.boxes[k] for k in annotated]
@@ -163,7 +205,7 @@ def test_box_index_is_the_box_the_camera_sees(world):
     picture = box_index(view, T, half)
     ours = picture.index[::2, ::2]
     np.testing.assert_array_equal(picture.shown, np.unique(picture.index[picture.index >= 0]))
-    truth_scene = _box_truth(scene, T_camera_city, CAMERA_S, PINHOLE, 2)
+    truth_scene = _box_truth(_boxes_only(scene), T_camera_city, CAMERA_S, PINHOLE, 2)
     to_annotated = np.full(len(scene.boxes) + 1, -1)
     to_annotated[annotated] = np.arange(len(annotated))
     truth = to_annotated[truth_scene]  # -1 (ground, nothing, a building) -> the appended -1
@@ -182,8 +224,18 @@ LABEL_CAMERAS = ("ring_front_center", "ring_side_left")
 
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory) -> Converted:
-    """A 1 s synthetic log (10 fps cameras), two cameras, converted with every camera label."""
-    config = SynthConfig(seconds=1.0, seed=21, camera_fps=10, keep_truth=True, image_cameras=LABEL_CAMERAS, pictures=2)
+    """A 1 s synthetic log (10 fps cameras; shaped objects, a car just ahead and one alongside), two
+    cameras, converted with every camera label."""
+    config = SynthConfig(
+        seconds=1.0,
+        seed=21,
+        camera_fps=10,
+        keep_truth=True,
+        image_cameras=LABEL_CAMERAS,
+        pictures=2,
+        shapes=True,
+        close_range=True,
+    )
     options = Argoverse2Options(
         split="val", camera_ids=LABEL_CAMERAS, camera_labels=("depth", "dynamic", "instance"), ego_masks="none"
     )
@@ -225,8 +277,8 @@ def _label_errors(run: Converted, cam: str) -> tuple[np.ndarray, np.ndarray, np.
     """Every third stored depth label of ``cam`` against the generator's scene seen from the camera
     at the label's time, sampled over each labelled pixel as above: per labelled pixel, the smallest
     |error| (m), whether the label lies more than 0.5 m behind everything the pixel shows (seen
-    through something), and more than 0.5 m in front of it (a surface no longer there: a moving
-    object's point from another time)."""
+    through something), and more than 0.5 m in front of everything the pixel and its eight
+    neighbours show (a surface no longer there: a moving object's point from another time)."""
     truth, loader = run.truth, run.loader
     (labels,) = loader.query_camera_labels(cam, label_type=LabelType.DEPTH_Z_M)
     f, cx, cy = truth.intrinsics[cam]  # AV2's convention: pixel centres at integers
@@ -246,7 +298,18 @@ def _label_errors(run: Converted, cam: str) -> tuple[np.ndarray, np.ndarray, np.
         error = depth[lines, cols][:, None] - z_m.reshape(len(lines), -1)
         smallest.append(np.abs(error).min(axis=1))
         behind.append(np.all(error > 0.5, axis=1))
-        ahead.append(np.all(error < -0.5, axis=1))
+        stale = np.flatnonzero(np.all(error < -0.5, axis=1))
+        if not len(stale):
+            ahead.append(np.zeros(len(lines), bool))
+            continue
+        # a stale surface is in front of everything within a pixel of it too (a silhouette's pixel
+        # row, the bumper's lower edge, may show what lies past it in all its samples)
+        nu, nv = (a.reshape(-1) for a in np.meshgrid(np.arange(-1.0, 2.0), np.arange(-1.0, 2.0)))
+        su = (cols[stale, None, None] + nu[None, :, None] + du[None, None, :]).reshape(-1)
+        sv = (lines[stale, None, None] + nv[None, :, None] + dv[None, None, :]).reshape(-1)
+        near_m, _ = _seen(truth.scene, T_camera_city, pinhole, t_s, su, sv)
+        in_front = np.all(depth[lines[stale], cols[stale]][:, None] - near_m.reshape(len(stale), -1) < -0.5, axis=1)
+        ahead.append(np.isin(np.arange(len(lines)), stale[in_front]))
     return np.concatenate(smallest), np.concatenate(behind), np.concatenate(ahead)
 
 
@@ -265,14 +328,15 @@ def test_stored_depth_labels_hold_the_surfaces_the_camera_sees(labelled):
 
 def test_stored_box_labels_show_the_boxes_the_camera_sees(labelled):
     """Through the whole chain, every third frame's ``mask.dynamic`` and ``segmentation.instance``
-    against the generator's scene seen from the camera at the label's time (every fourth pixel):
-    the dynamic mask's IoU with the moving objects (those that move in truth, and the always-dynamic
-    classes) >= 0.95 per camera; each instance's IoU with its object >= 0.95 where the annotations
-    are exact (the moving ones here: a parked car's annotations wander, and its median box is as far
-    off its object as that noise leaves it; the pixels it claims, or that its object shows, are
-    judged by those annotations, not here). The instance table names every track's id and class.
-    Frames beyond the annotated sweeps (the cameras run on) say that the movers are unknown there,
-    and their dynamic mask is all 1."""
+    against the generator's scene with every object its own box (the masks are box pictures),
+    seen from the camera at the label's time (every fourth pixel): the dynamic mask's IoU with
+    the moving objects (those that move in truth, and the always-dynamic classes) >= 0.95 per
+    camera; each instance's IoU with its object >= 0.95 where the annotations are exact (the
+    moving ones here: a parked car's annotations wander, and its median box is as far off its
+    object as that noise leaves it; the pixels it claims, or that its object shows, are judged
+    by those annotations, not here). The instance table names every track's id and class. Frames
+    beyond the annotated sweeps (the cameras run on) say that the movers are unknown there, and
+    their dynamic mask is all 1."""
     truth, loader = labelled.truth, labelled.loader
     by_uuid = {b.track_uuid: b for b in truth.scene.boxes if b.annotated}
     annotated_s = (np.array([s.timestamp_ns for s in truth.sweeps]) - truth.t0_ns) * 1e-9
@@ -302,7 +366,7 @@ def test_stored_box_labels_show_the_boxes_the_camera_sees(labelled):
                 assert np.all(dynamic.get_label(int(ts)).get_data() == 1)
                 continue
             T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
-            scene_box = _box_truth(truth.scene, T_camera_city, t_s, pinhole, 4)
+            scene_box = _box_truth(_boxes_only(truth.scene), T_camera_city, t_s, pinhole, 4)
             ours = instances.get_label(int(ts)).get_data()[::4, ::4]
             true_instance = scene_instance[scene_box]
             judged = ~(jittered[ours] | jittered[true_instance])  # a wandering box's pixels: its annotations'

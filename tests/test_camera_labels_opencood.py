@@ -107,12 +107,10 @@ def test_labels_one_per_camera_frame_ground_truth_source_and_valid(labelled):
         assert report.ok, [(c.name, c.detail) for c in report.checks if not c.ok]
 
 
-def test_depth_labels_hold_the_surface_the_camera_sees(labelled):
+def _depth_figures(truth, out: Path) -> tuple[list, list, list]:
     """Each labelled pixel against the scene ray-cast from its camera at the tick, sampled 4 x 4 over
-    the pixel: median |error| <= 1 cm; <= 0.5 % occlusion errors (the label > 0.5 m behind every
-    sample: a surface seen through something); and >= 95 % of the pixels that a raw point hits and
-    the camera sees in truth are labelled."""
-    truth, _, out = labelled
+    the pixel: the smallest |error| and whether the label is > 0.5 m behind every sample (seen
+    through something); and per camera frame, :func:`_visible_point_pixels`."""
     du, dv = (a.reshape(-1) for a in np.meshgrid(SUBPIXEL, SUBPIXEL))
     smallest, behind, covered = [], [], []
     for agent_id in truth.agents:
@@ -131,11 +129,45 @@ def test_depth_labels_hold_the_surface_the_camera_sees(labelled):
                     smallest.append(np.abs(error).min(axis=1))
                     behind.append(np.all(error > 0.5, axis=1))
                 covered.append(_visible_point_pixels(truth, agent_id, key, index, depth))
-    smallest, behind, covered = np.concatenate(smallest), np.concatenate(behind), np.concatenate(covered)
-    assert len(smallest) > 5000 and len(covered) > 5000
+    return smallest, behind, covered
+
+
+def test_depth_labels_hold_the_surface_the_camera_sees(labelled):
+    """Median |error| <= 1 cm; <= 0.5 % occlusion errors (the label > 0.5 m behind every sample:
+    a surface seen through something); and >= 95 % of the pixels that a raw point hits and the
+    camera sees in truth are labelled, on vehicles and overall."""
+    truth, _, out = labelled
+    _assert_depth_bounds(*_depth_figures(truth, out), vehicles_bound=0.95, all_bound=0.95)
+
+
+@pytest.fixture(scope="module")
+def shaped(tmp_path_factory):
+    """A 3-tick OPV2V scenario whose vehicles have shapes inside their boxes (``synth.shapes``), a
+    car queued 0.3-1.0 m ahead of the first CAV's front camera and one 1-2 m alongside."""
+    config = synth.SynthConfig(frames=3, seed=11, keep_truth=True, shapes=True, close_range=True)
+    return _convert(tmp_path_factory.mktemp("shaped"), config)
+
+
+def test_depth_labels_keep_what_the_camera_sees_of_shaped_vehicles(shaped):
+    """Issue 52's bounds on vehicles that are not boxes: >= 95 % of the vehicle pixels that a raw
+    point the camera sees hits are labelled, >= 97 % of all such pixels, <= 0.5 % occlusion errors
+    (the kernel that took boxes as solid labelled about 65 % and 90 %: a box hid what the camera
+    sees over trunks, under bodies and past cabins)."""
+    truth, _, out = shaped
+    _assert_depth_bounds(*_depth_figures(truth, out), vehicles_bound=0.95, all_bound=0.97)
+
+
+def _assert_depth_bounds(smallest, behind, covered, vehicles_bound: float, all_bound: float) -> None:
+    """Median |error| <= 1 cm, <= 0.5 % occlusion errors; the shares of the pixels that a visible
+    raw point hits that are labelled: on vehicles, and overall."""
+    smallest, behind = np.concatenate(smallest), np.concatenate(behind)
+    labelled = np.concatenate([c for c, _ in covered])
+    on_vehicle = np.concatenate([v for _, v in covered])
+    assert len(smallest) > 5000 and len(labelled) > 5000 and on_vehicle.sum() > 2000
     assert np.median(smallest) <= 0.01, np.median(smallest)
     assert np.mean(behind) <= 0.005, np.mean(behind)
-    assert np.mean(covered) >= 0.95, np.mean(covered)
+    assert np.mean(labelled) >= all_bound, np.mean(labelled)
+    assert np.mean(labelled[on_vehicle]) >= vehicles_bound, np.mean(labelled[on_vehicle])
 
 
 def _opencood_pixels(agent_dir: Path, key: str, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -160,14 +192,16 @@ def _opencood_pixels(agent_dir: Path, key: str, index: int) -> tuple[np.ndarray,
     return u[inside].astype(np.int64), v[inside].astype(np.int64), z[inside]
 
 
-def _visible_point_pixels(truth, agent_id: str, key: str, index: int, depth: np.ndarray) -> np.ndarray:
+def _visible_point_pixels(truth, agent_id: str, key: str, index: int, depth: np.ndarray) -> tuple[np.ndarray, ...]:
     """Whether each pixel hit by a raw point that the camera sees in truth (nothing between the
-    camera and the point but 5 cm) is labelled, bool [P]."""
+    camera and the point but 5 cm) is labelled, and whether the pixel shows a vehicle, bool [P] each."""
     cols, lines, z_m = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
-    first_z, _ = _seen(truth, agent_id, key, index, cols + 0.5, lines + 0.5)
+    first_z, box = _seen(truth, agent_id, key, index, cols + 0.5, lines + 0.5)
     seen = first_z >= z_m - 0.05 * np.maximum(1.0, z_m / 10.0)  # the pixel centre's ray, not the point's
-    pixels = np.unique(lines[seen] * synth_carla.WIDTH + cols[seen])
-    return depth.reshape(-1)[pixels] > 0
+    pixels, first = np.unique(lines[seen] * synth_carla.WIDTH + cols[seen], return_index=True)
+    _, actor_of_box = truth.agents[agent_id].scenes[key]
+    on_vehicle = np.r_[actor_of_box, -1][box[seen][first]] >= 0
+    return depth.reshape(-1)[pixels] > 0, on_vehicle
 
 
 def _held_out(truth, out: Path, agent_id: str) -> tuple[int, int, int]:

@@ -197,14 +197,21 @@ def test_solid_boxes_place_static_tracks_at_their_median_and_moving_ones_at_the_
         np.tile(np.eye(3), (len(times_us) + 4, 1, 1)),
         np.tile([4.5, 1.9, 1.6], (len(times_us) + 4, 1)),
     )
-    solids = dynamic.SolidBoxes.select(observations, dynamic.static_poses(observations, {"parked"}), {"driving"})
-    T, half = solids.at(150_000)
+    static = dynamic.static_poses(observations, {"parked"})
+    solids = dynamic.SolidBoxes.select(observations, static, {"driving"}, kinds={"parked": 0, "driving": 0})
+    T, half, velocity_mps, kind = solids.solids_at(150_000)
     assert len(T) == 2
     np.testing.assert_allclose(T[0, :3, 3], np.median(parked, axis=0))
     np.testing.assert_allclose(T[1, :3, 3], [1.5, -3.0, 0.8])
     np.testing.assert_allclose(half, [[2.25, 0.95, 0.8]] * 2)
-    T_late, _ = solids.at(300_000 + round(dynamic.HOLD_S * 1e6) + 1)
+    np.testing.assert_allclose(velocity_mps, [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]], atol=1e-9)
+    np.testing.assert_array_equal(kind, [0, 0])
+    T_late, *_ = solids.solids_at(300_000 + round(dynamic.HOLD_S * 1e6) + 1)
     assert len(T_late) == 1 and np.allclose(T_late[0], T[0])
+    # an object whose kind hides nothing through its box (a sign, a cone) is no occluder
+    no_kind = dynamic.SolidBoxes.select(observations, static, {"driving"}, kinds={"driving": 0})
+    T_one, *_ = no_kind.solids_at(150_000)
+    assert len(T_one) == 1 and np.allclose(T_one[0], T[1])
 
 
 def test_dynamic_boxes_at_a_time_equal_each_tracks_own_interpolation():

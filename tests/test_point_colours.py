@@ -172,13 +172,17 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
     """A car right in front of a low camera, with the lidar 3 m behind and 1.2 m above the camera
     (OPV2V's front camera and roof lidar): the lidar sees the wall over the car's roof, but hardly
     any of the car's back, which fills the camera's picture. Only the car's labelled box
-    (``ColourFrame.solids``) tells that the wall behind it is hidden."""
+    (``ColourFrame.solids``: its solid parts, from its class and its own points on the roof) tells
+    that the wall behind it is hidden. The car has a shape (``synth.shapes``): a box taken as solid
+    would hide the street the camera sees beside its wheels and under its body."""
     from dataclasses import replace
 
     from ncore_convert.synth.raycast import render, surface_rgb
+    from ncore_convert.synth.shapes import shape_of
 
     camera_m, lidar_m = np.array([0.0, 0.0, 1.0]), np.array([-3.0, 0.0, 2.2])
     car = _box((3.2, 0.0, 0.75), (4.0, 1.9, 1.5))
+    car = replace(car, shape=shape_of(car.category, car.dims_m))
     scene = Scene(None, [_box((30.0, 0.0, 4.0), (1.0, 40.0, 8.0), category="BUILDING"), car])
     box_rgb = np.array([COLOURS[0], COLOURS[1]], np.uint8)
     T_camera_scene = np.eye(4)
@@ -219,8 +223,16 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
     solids = (np.stack([T_box_world, inside_camera[0]]), np.stack([car.dims_m / 2, inside_camera[1]]))
     rgb, coloured = point_colours(xyz, t_us, still, [replace(frame, solids=solids)])
     assert not coloured[hidden_wall].any()
-    assert coloured.sum() > 3000 and np.all(rgb[coloured] == truth[coloured], axis=1).mean() >= 0.98
     seen = first >= np.linalg.norm(ray, axis=1) - 0.05
+    # occlusion errors, coloured though more than 0.5 m behind what the camera sees: 0.37 % measured,
+    # at grazing silhouettes (the street seen past the trunk's corner, the roof seen over the rear
+    # window from 0.5 m below its plane); 2.25 % when the street under the body was taken as the
+    # car's own points (they are inside its box)
+    hidden = first < np.linalg.norm(ray, axis=1) - 0.5
+    assert coloured.sum() > 3000 and (coloured & hidden).sum() <= 0.01 * coloured.sum()
+    # the colours of what it sees within 30 m (farther, a pixel spans the ground's checker squares)
+    near_seen = coloured & seen & (np.linalg.norm(ray, axis=1) < 30.0)
+    assert np.all(rgb[near_seen] == truth[near_seen], axis=1).mean() >= 0.98
     cam = ray @ R_CAMERA_RIG.T
     in_picture = (
         (cam[:, 2] > 0.3)
@@ -231,24 +243,30 @@ def test_a_labelled_box_hides_what_the_lidar_sees_over_it():
 
 
 def test_av2_lidar_rgb_on_a_rendered_world(tmp_path):
-    """``synth argoverse2`` with ``world="render"``: every picture ray-cast from the scene the lidar
-    sees. The converted ``rgb`` (``--lidar-rgb``) against each point's surface colour, within JPEG's
-    tolerance (the pictures are JPEGs, decoded at 1/4): >= 98 % of the coloured points right
-    (measured 98.3 % here, 98.0 % with seed 6; most misses are ground points on a checker edge),
-    and >= 90 % of the static points that the cameras' pictures contain coloured (measured 90.2 %:
-    occluded ones count, and the annotated boxes hide what lies behind them; moving points wait for
-    a frame within 5 ms, which the 10 fps cameras here rarely have)."""
+    """``synth argoverse2`` with ``world="render"`` and shaped objects: every picture ray-cast from
+    the scene the lidar sees. The converted ``rgb`` (``--lidar-rgb``) against each point's surface
+    colour, within JPEG's tolerance (the pictures are JPEGs, decoded at 1/4):
+
+    - >= 97.5 % of the coloured points right (97.9 % measured; 98.25 % with the kernel that took
+      boxes as solid, which coloured 89,000 fewer points; most misses are ground points on a
+      checker edge, where a 1/4-scale pixel spans two squares);
+    - <= 0.5 % of the coloured points hidden from every camera at their sweep's time (occlusion
+      errors: 0.11 % measured, 0.015 % with boxes as solid);
+    - >= 93 % of the static points that the cameras' pictures contain coloured (94.2 % measured;
+      84.4 % with boxes as solid: they hid the street seen over and under the cars; occluded
+      points count, and moving points wait for a frame within 5 ms, which the 10 fps cameras here
+      rarely have)."""
     from conftest import synth_and_convert
 
     from ncore_convert.converters.argoverse2 import Argoverse2Options
     from ncore_convert.sources.argoverse2 import read_intrinsics
     from ncore_convert.synth.argoverse2 import SynthConfig
-    from ncore_convert.synth.raycast import box_colours, surface_rgb
+    from ncore_convert.synth.raycast import box_colours, cast_rays, surface_rgb
 
-    config = SynthConfig(seconds=1.0, seed=5, camera_fps=10, world="render", keep_truth=True)
+    config = SynthConfig(seconds=1.0, seed=5, camera_fps=10, world="render", keep_truth=True, shapes=True)
     run = synth_and_convert(tmp_path, config, Argoverse2Options(split="val", lidar_rgb=True, ego_masks="none"))
     truth, scene = run.truth, run.truth.scene
-    right = coloured_total = in_view = in_view_coloured = 0
+    right = coloured_total = in_view = in_view_coloured = hidden = 0
     moving = np.array([np.any(b.velocity_mps) or b.category == "PEDESTRIAN" for b in scene.boxes] + [False])
     for unit_index, unit in enumerate(("up_lidar", "down_lidar")):
         lidar = run.loader.get_lidar_sensor(unit)
@@ -262,13 +280,28 @@ def test_av2_lidar_rgb_on_a_rendered_world(tmp_path):
             expected = surface_rgb(box_colours(scene), box, xyz_city, np.ones(len(box), bool)).astype(int)
             rgb = lidar.get_frame_generic_data(i, "rgb").astype(int)
             coloured = np.any(rgb != 128, axis=1)
-            right += int((np.abs(rgb - expected).max(axis=1) <= 30)[coloured].sum())
+            wrong = coloured & (np.abs(rgb - expected).max(axis=1) > 30)
+            right += int(coloured.sum() - wrong.sum())
             coloured_total += int(coloured.sum())
             seen = np.zeros(len(box), bool)  # in some camera's picture (at the sweep's time), occluded or not
-            T_city_ego = np.linalg.inv(scene.ego.T_ego_city(np.array([(sweep.timestamp_ns - truth.t0_ns) * 1e-9]))[0])
+            sweep_s = (sweep.timestamp_ns - truth.t0_ns) * 1e-9
+            T_ego_city = scene.ego.T_ego_city(np.array([sweep_s]))[0]
+            T_city_ego = np.linalg.inv(T_ego_city)
+            seen_by_one = np.zeros(int(wrong.sum()), bool)  # a wrong colour's point that some camera sees
             for cam, intr in read_intrinsics(truth.log_dir).items():
                 f, cx, cy, w, h = intr.fx_px, intr.cx_px, intr.cy_px, intr.width_px, intr.height_px
                 T_city_cam = np.linalg.inv(truth.T_sensor_ego[cam]) @ T_city_ego
+                centre = (T_ego_city @ truth.T_sensor_ego[cam])[:3, 3]
+                towards = xyz_city[wrong] - centre
+                length = np.linalg.norm(towards, axis=1)
+                first, _, _ = cast_rays(
+                    np.broadcast_to(centre, towards.shape),
+                    towards / length[:, None],
+                    np.full(len(length), sweep_s),
+                    scene,
+                    500.0,
+                )
+                seen_by_one |= first >= length - 0.05
                 p = xyz_city @ T_city_cam[:3, :3].T + T_city_cam[:3, 3]
                 ahead = p[:, 2] > 1.0
                 u = f * p[:, 0] / np.where(ahead, p[:, 2], 1.0) + cx
@@ -276,5 +309,7 @@ def test_av2_lidar_rgb_on_a_rendered_world(tmp_path):
                 seen |= ahead & (u >= 0) & (u < w) & (v >= 0) & (v < h)
             static = seen & ~moving[box]
             in_view, in_view_coloured = in_view + int(static.sum()), in_view_coloured + int((static & coloured).sum())
-    assert coloured_total > 20000 and right / coloured_total >= 0.98, (right, coloured_total)
-    assert in_view_coloured / in_view >= 0.90, (in_view_coloured, in_view)
+            hidden += int((~seen_by_one).sum())
+    assert coloured_total > 20000 and right / coloured_total >= 0.975, (right, coloured_total)
+    assert hidden <= 0.005 * coloured_total, (hidden, coloured_total)
+    assert in_view_coloured / in_view >= 0.93, (in_view_coloured, in_view)

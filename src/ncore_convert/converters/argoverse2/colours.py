@@ -60,10 +60,14 @@ class SweepColours:
         return out
 
     def colours(
-        self, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray
+        self,
+        xyz_world_m: np.ndarray,
+        timestamps_us: np.ndarray,
+        dynamic: np.ndarray,
+        spacing_m: np.ndarray | None = None,
     ) -> tuple[np.ndarray, ...]:
         """:func:`point_colours` of a sweep's points (arguments as there) from the frames around it."""
         if not len(xyz_world_m):
             return np.zeros((0, 3), np.uint8), np.zeros(0, bool)
         t_us = np.asarray(timestamps_us, dtype=np.int64)
-        return point_colours(xyz_world_m, t_us, dynamic, self.frames(int(t_us.min()), int(t_us.max())))
+        return point_colours(xyz_world_m, t_us, dynamic, self.frames(int(t_us.min()), int(t_us.max())), spacing_m)

@@ -195,7 +195,7 @@ def _write_lidars(
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
         if depth is not None:
-            depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
+            depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic, data.spacing_m)
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
             frame_meta = {
@@ -237,7 +237,7 @@ def _write_depth_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, re
     labelled from the sweep nearest it."""
     depth = DepthLabeller(plan, writer, _depth_cameras(plan, job))
     for _, _, data in _sweeps(plan, None):
-        depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic)
+        depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic, data.spacing_m)
     _finish_depth(depth, result)
 
 

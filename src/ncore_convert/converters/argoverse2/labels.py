@@ -60,24 +60,31 @@ class DepthLabeller:
         }
         self._usable = {cam: usable_pixels(plan, cam, plan.cameras[cam].pinhole) for cam in camera_ids}
         self._next = {cam: 0 for cam in camera_ids}  # each camera's first frame not labelled yet
-        # the previous sweep: points, times, dynamic, median and last point time
-        self._held: tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
+        # the previous sweep: points, times, dynamic, spacing (or None), median and last point time
+        self._held: tuple | None = None
         self._first_sweep_us: float | None = None  # the first point time of the first sweep
         self.labels = 0
         self.seconds = 0.0
 
-    def add_sweep(self, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray) -> None:
-        """One sweep's points (``PointData.xyz_fixed_m``, ``timestamps_us``, ``dynamic``): the held
-        sweep labels the frames up to halfway to this one, and this one is held."""
+    def add_sweep(
+        self,
+        xyz_world_m: np.ndarray,
+        timestamps_us: np.ndarray,
+        dynamic: np.ndarray,
+        spacing_m: np.ndarray | None = None,
+    ) -> None:
+        """One sweep's points (``PointData.xyz_fixed_m``, ``timestamps_us``, ``dynamic``,
+        ``spacing_m``): the held sweep labels the frames up to halfway to this one, and this one is
+        held."""
         middle_us = float(np.median(timestamps_us)) if len(timestamps_us) else np.nan
         if self._first_sweep_us is None and len(timestamps_us):
             self._first_sweep_us = float(np.min(timestamps_us))
         if self._held is not None and np.isfinite(middle_us):
-            self._label_until((self._held[3] + middle_us) / 2)
+            self._label_until((self._held[4] + middle_us) / 2)
         if self._unknown_motion:
             dynamic = np.ones(len(timestamps_us), dtype=bool)
         if np.isfinite(middle_us):
-            self._held = (xyz_world_m, timestamps_us, dynamic, middle_us, float(np.max(timestamps_us)))
+            self._held = (xyz_world_m, timestamps_us, dynamic, spacing_m, middle_us, float(np.max(timestamps_us)))
 
     def finish(self) -> None:
         """Label the frames after the last sweep's middle (with it) and set each label's metadata."""
@@ -106,7 +113,7 @@ class DepthLabeller:
             points = None
             if self._held is not None:  # once per camera and sweep: the points its middle frame may see
                 near, _ = in_view(views[len(views) // 2], self._held[0], VIEW_MARGIN)
-                points = tuple(a[near] for a in self._held[:3])
+                points = tuple(None if a is None else a[near] for a in self._held[:4])
             for view in views:
                 reason = self._no_measurement(view.timestamp_us)
                 if reason:  # still one label per frame: an empty one, saying why
@@ -114,7 +121,7 @@ class DepthLabeller:
                     meta = {"no_measurement": reason}
                 else:
                     depth = camera_labels.depth_z(view, *points)
-                    meta = {"sweep_median_time_us": round(self._held[3])}
+                    meta = {"sweep_median_time_us": round(self._held[4])}
                 stream.store_label(depth, view.timestamp_us, meta)
                 self.labels += 1
         self.seconds += time.perf_counter() - started
@@ -124,7 +131,7 @@ class DepthLabeller:
         if self._held is None:
             return "no lidar sweep with points"
         hold_us = HOLD_S * 1e6
-        if t_us < self._first_sweep_us - hold_us or t_us > self._held[4] + hold_us:
+        if t_us < self._first_sweep_us - hold_us or t_us > self._held[5] + hold_us:
             return f"no lidar sweep within {HOLD_S * 1e3:g} ms: the moving objects are unknown there"
         return ""
 

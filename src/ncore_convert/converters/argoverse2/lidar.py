@@ -243,6 +243,9 @@ def sweep_frame(
             elements=None
             if unit not in calibration.models
             else partial(_elements, calibration.models[unit], sweep, times_ns),
+            row_steps_rad=calibration.models[unit].row_steps_rad(MODEL_UPSAMPLE)
+            if unit in calibration.models
+            else None,
         )
         for unit, _ in halves
     }

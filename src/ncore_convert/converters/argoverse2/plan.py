@@ -32,6 +32,7 @@ from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.geometry import Trajectory
 from ncore_convert.transforms.lidar import timing as lidar_timing
 from ncore_convert.transforms.objects import classes
+from ncore_convert.transforms.objects.cores import kind_of
 from ncore_convert.transforms.objects.dynamic import DynamicBoxes, SolidBoxes, TrackObservations
 from ncore_convert.transforms.timebase import WindowError, floor_us, in_window
 
@@ -372,7 +373,11 @@ def _cuboid_labels(
     solids = None
     from_boxes = any(kind in contract.BOX_LABEL_KINDS for kind in options.camera_labels)
     if from_boxes or (with_lidar and (options.lidar_rgb or "depth" in options.camera_labels)):
-        solids = SolidBoxes.select(observations, cuboid_labels.static_poses, cuboid_labels.dynamic)
+        kinds = {
+            str(track): kind_of(classes.AV2_TO_NCORE.get(category, ""))
+            for track, category in zip(annotations.track_uuids, annotations.categories, strict=True)
+        }
+        solids = SolidBoxes.select(observations, cuboid_labels.static_poses, cuboid_labels.dynamic, kinds)
     if not with_lidar:
         return cuboid_labels, None, solids
     return cuboid_labels, DynamicBoxes.select(observations, cuboid_labels.dynamic), solids

@@ -31,8 +31,11 @@ def camera_views(
     T_camera_world = T_rig_world @ plan.inputs.T_sensor_ego[camera_id]
     views = []
     for t_us, T in zip(stamps_us.tolist(), T_camera_world, strict=True):
-        solids = None if plan.solids is None else plan.solids.at(t_us)
-        views.append(CameraView(camera_id, t_us, invert_se3(T), pinhole, usable, solids, LABEL_SLACK_M))
+        solids, velocity, kind = None, None, None
+        if plan.solids is not None:
+            T_box, half, velocity, kind = plan.solids.solids_at(t_us)
+            solids = (T_box, half)
+        views.append(CameraView(camera_id, t_us, invert_se3(T), pinhole, usable, solids, LABEL_SLACK_M, velocity, kind))
     return views
 
 

@@ -204,6 +204,7 @@ def _write_sensors(
         geometry = LidarGeometry(
             exact=True,
             elements=None if model is None else lambda rays, rows: (assign_elements(model, rays.direction), {}),
+            row_steps_rad=None if model is None else model.row_steps_rad(),
         )
         lidar = LidarStore(writer.add_lidar(names.sensor(src.LIDAR), meta), coloured)
         skipped = dict(agent.skipped_keys)

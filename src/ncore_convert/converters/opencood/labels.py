@@ -75,8 +75,8 @@ def tick_boxes(plan: ScenarioPlan, agent: AgentPlan, key: str) -> tuple[np.ndarr
 
 def camera_view(agent: AgentPlan, frame: int, t_us: int, cam: str, T_box: np.ndarray, half: np.ndarray) -> CameraView:
     """Camera ``cam`` of ``agent`` at tick frame index ``frame`` (``t_us``), with the tick's boxes
-    (:func:`tick_boxes`: box -> world_global [K,4,4], half sizes [K,3]) as occluders; fixed frame
-    ``world_global``."""
+    (:func:`tick_boxes`: box -> world_global [K,4,4], half sizes [K,3]; every one a vehicle) as
+    occluders; fixed frame ``world_global``."""
     T_camera_world_global = agent.T_rig_world_global[frame] @ agent.T_sensor_rig[cam]
     return CameraView(cam, t_us, invert_se3(T_camera_world_global), agent.cameras[cam].pinhole, solids=(T_box, half))
 
@@ -125,7 +125,9 @@ class TickLabeller:
                 depth, meta = np.zeros((height, width), np.float32), {"no_measurement": why_none}
             else:
                 view = camera_view(self._agent, frame, t_us, cam, T_box, half)
-                depth = camera_labels.depth_z(view, points.xyz_fixed_m, points.timestamps_us, points.dynamic)
+                depth = camera_labels.depth_z(
+                    view, points.xyz_fixed_m, points.timestamps_us, points.dynamic, points.spacing_m
+                )
                 meta = {contract.CARLA_FRAME: int(key)}
             self._streams["depth", cam].store_label(depth, t_us, meta)
             self.labels += 1

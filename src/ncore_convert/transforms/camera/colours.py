@@ -58,6 +58,7 @@ def point_colours(
     timestamps_us: np.ndarray,
     dynamic: np.ndarray,
     frames: list[ColourFrame],
+    spacing_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each point's colour (see the module docstring).
 
@@ -66,6 +67,8 @@ def point_colours(
         timestamps_us: each point's own time, int64 [N].
         dynamic: the points on moving objects (``dynamic_flag``), bool [N].
         frames: the camera frames to take colours from, in the same fixed frame.
+        spacing_m: the lidar's spacing between neighbouring returns at each point, across and along its
+            rows, m [N,2] (None: not known; see :func:`visibility.visible_pixels`).
 
     Returns:
         rgb: uint8 [N,3], ``FILL_RGB`` where no camera sees the point; coloured: bool [N].
@@ -85,7 +88,7 @@ def point_colours(
         )
         near, _ = in_view(own[len(own) // 2], xyz_world_m, VIEW_MARGIN)  # once per camera: the frames are close
         for k, frame in enumerate(own):
-            rows, cols, lines = visible_pixels(frame, xyz_world_m[near])
+            rows, cols, lines = visible_pixels(frame, xyz_world_m[near], None if spacing_m is None else spacing_m[near])
             rows = near[rows]
             dt = np.abs(t_us[rows] - frame.timestamp_us).astype(np.float64)
             take = (nearest[rows] == k) & (dt < best_dt[rows]) & (~dynamic[rows] | (dt <= DYNAMIC_DT_US))

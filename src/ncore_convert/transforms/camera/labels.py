@@ -29,7 +29,13 @@ from ncore_convert.transforms.objects.boxes import slab_span
 DYNAMIC_DT_US = 5_000
 
 
-def depth_z(view: CameraView, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+def depth_z(
+    view: CameraView,
+    xyz_world_m: np.ndarray,
+    timestamps_us: np.ndarray,
+    dynamic: np.ndarray,
+    spacing_m: np.ndarray | None = None,
+) -> np.ndarray:
     """The depth label of ``view`` (see the module docstring).
 
     Args:
@@ -37,6 +43,8 @@ def depth_z(view: CameraView, xyz_world_m: np.ndarray, timestamps_us: np.ndarray
         xyz_world_m: lidar points where the lidar saw them, fixed frame, float64 [N,3].
         timestamps_us: each point's own time, int [N].
         dynamic: the points on moving objects (``dynamic_flag``), bool [N].
+        spacing_m: the lidar's spacing between neighbouring returns at each point, across and along its
+            rows, m [N,2] (None: not known; see :func:`visibility.visible_pixels`).
 
     Returns:
         float32 [height,width]: z in metres of the nearest visible point per pixel, 0 where none.
@@ -47,7 +55,12 @@ def depth_z(view: CameraView, xyz_world_m: np.ndarray, timestamps_us: np.ndarray
     usable = np.flatnonzero(~np.asarray(dynamic, dtype=bool) | (dt_us <= DYNAMIC_DT_US))
     if not len(usable):
         return image
-    rows, cols, lines = visible_pixels(view, xyz_world_m[usable])
+    stale = np.ones(len(xyz_world_m), bool)
+    stale[usable] = False  # a mover's points from other times: where its object is, not what a pixel shows
+    spacing = None if spacing_m is None else spacing_m[usable]
+    dt_s = (view.timestamp_us - np.asarray(timestamps_us, dtype=np.int64)[stale]) * 1e-6
+    stale_spacing = None if spacing_m is None else spacing_m[stale]
+    rows, cols, lines = visible_pixels(view, xyz_world_m[usable], spacing, xyz_world_m[stale], dt_s, stale_spacing)
     T = view.T_world_camera
     z_m = xyz_world_m[usable[rows]] @ T[2, :3] + T[2, 3]
     pixel = lines * width + cols

@@ -23,8 +23,9 @@ from ncore_convert.transforms.lidar.rays import RayBundle, ray_bundle
 from ncore_convert.transforms.objects.dynamic import BOX_MARGIN_M, DynamicBoxes, dynamic_flags
 from ncore_convert.transforms.timebase import floor_us
 
-#: ``(xyz_fixed_m [N,3], timestamps_us int64 [N], dynamic bool [N]) -> (rgb uint8 [N,3], coloured bool [N])``
-Colouring = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+#: ``(xyz_fixed_m [N,3], timestamps_us int64 [N], dynamic bool [N], spacing_m=float [N,2] | None) -> (rgb uint8
+#: [N,3], coloured bool [N])`` (``spacing_m`` by keyword: :class:`PointData`'s)
+Colouring = Callable[..., tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass
@@ -39,6 +40,8 @@ class PointData:
         xyz_fixed_m, timestamps_us, dynamic: the frame's points of all lidars together, where the
             lidar saw them in the fixed frame (float64 [N,3]), their own times (µs, int64 [N]) and
             which are on dynamic tracks (bool [N]): what camera labels are made from.
+        spacing_m: the lidar's spacing between neighbouring returns at each point, across and along
+            its rows (its range times its row's angular steps), m [N,2]; None where a lidar has no model.
     """
 
     generic: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
@@ -48,6 +51,7 @@ class PointData:
     xyz_fixed_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     timestamps_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     dynamic: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    spacing_m: np.ndarray | None = None
 
 
 def point_data(
@@ -55,6 +59,7 @@ def point_data(
     timestamps_us: dict[str, np.ndarray],
     boxes: DynamicBoxes | None,
     colouring: Colouring | None,
+    spacing_m: dict[str, np.ndarray | None] | None = None,
 ) -> PointData:
     """Each stored ray's ``dynamic_flag`` (with ``boxes``) and ``rgb`` (with a ``colouring``), per lidar.
 
@@ -64,6 +69,8 @@ def point_data(
         timestamps_us: lidar -> each ray's own time, µs [N].
         boxes: the dynamic tracks (None: no ``dynamic_flag``).
         colouring: colours the frame's points of all lidars together (None: no ``rgb``).
+        spacing_m: lidar -> the spacing between neighbouring returns at each ray's point, across and
+            along its rows, m [N,2] (None, or a lidar's None: not known).
     """
     out = PointData({lidar: {} for lidar in xyz_fixed_m})
     lidars = list(xyz_fixed_m)
@@ -72,6 +79,8 @@ def point_data(
     xyz = np.concatenate([xyz_fixed_m[lidar] for lidar in lidars])
     times_us = np.concatenate([np.asarray(timestamps_us[lidar]).astype(np.int64) for lidar in lidars])
     bounds = np.cumsum([0] + [len(xyz_fixed_m[lidar]) for lidar in lidars])
+    spacings = [None if spacing_m is None else spacing_m.get(lidar) for lidar in lidars]
+    spacing = None if any(s is None for s in spacings) else np.concatenate(spacings)
     parts = list(zip(lidars, bounds[:-1], bounds[1:], strict=True))
     dynamic = np.zeros(len(xyz), bool)
     if boxes is not None:
@@ -83,12 +92,12 @@ def point_data(
             out.generic[lidar][DYNAMIC_FLAG] = flags[a:b]
     if colouring is not None:
         started = time.perf_counter()
-        rgb, coloured = colouring(xyz, times_us, dynamic)
+        rgb, coloured = colouring(xyz, times_us, dynamic, spacing_m=spacing)
         out.colour_seconds = time.perf_counter() - started
         for lidar, a, b in parts:
             out.generic[lidar][LIDAR_RGB] = rgb[a:b]
             out.coloured[lidar] = int(coloured[a:b].sum())
-    out.xyz_fixed_m, out.timestamps_us, out.dynamic = xyz, times_us, dynamic
+    out.xyz_fixed_m, out.timestamps_us, out.dynamic, out.spacing_m = xyz, times_us, dynamic, spacing
     return out
 
 
@@ -124,11 +133,14 @@ class LidarGeometry:
         exact: the points are the source's own float32 values (``ray_bundle(exact=True)``).
         elements: ``(rays, rows) -> (model elements uint16 [N,2], column-time remap dict)`` with a model
             (``rows``: each ray's frame row); None: no model.
+        row_steps_rad: the angles between neighbouring returns of each model row, across and along the
+            rows (:meth:`model.SpinningLidarModel.row_steps_rad`), float64 [R,2]; None: not known (no model).
     """
 
     to_sensor: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
     exact: bool = False
     elements: Callable[[RayBundle, np.ndarray], tuple[np.ndarray, dict]] | None = None
+    row_steps_rad: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -169,7 +181,13 @@ def lidar_frame(
         lidar: transform_points(frame.T_reference_fixed, frame.xyz_m[rows[lidar]].astype(np.float64))
         for lidar in geometry
     }
-    data = point_data(xyz_fixed, {lidar: rays[lidar].timestamp_us for lidar in geometry}, boxes, colouring)
+    spacing = {  # the lidar's spacing between neighbouring returns at each point: its range times its row's step
+        lidar: None
+        if how.row_steps_rad is None or elements[lidar][0] is None
+        else rays[lidar].distance_m.astype(np.float64)[:, None] * how.row_steps_rad[elements[lidar][0][:, 0]]
+        for lidar, how in geometry.items()
+    }
+    data = point_data(xyz_fixed, {lidar: rays[lidar].timestamp_us for lidar in geometry}, boxes, colouring, spacing)
     stored = {
         lidar: StoredRays(rays[lidar], *elements[lidar], rows[lidar], data.generic[lidar], data.coloured.get(lidar, 0))
         for lidar in geometry

@@ -52,6 +52,21 @@ class SpinningLidarModel:
     column_azimuths_rad: np.ndarray
     beam_to_row: np.ndarray
 
+    def row_steps_rad(self, columns_per_return: int = 1) -> np.ndarray:
+        """The angles between each row's returns and their neighbours', float64 [R,2]: across (the
+        column step times ``columns_per_return``, the columns between a row's successive returns:
+        a model upsampled 16 times has 16) and along the rows' elevations (the row's wider gap to
+        the rows beside it: a VLP-32C's rows are 1/3 degree apart near the horizon and up to 9
+        degrees at its lowest)."""
+        elevations = self.row_elevations_rad
+        order = np.argsort(elevations)
+        gaps = np.diff(elevations[order])
+        wider = np.zeros(len(elevations))
+        if len(gaps):
+            wider[order] = np.maximum(np.r_[gaps[:1], gaps], np.r_[gaps, gaps[-1:]])
+        across = 2.0 * np.pi * columns_per_return / len(self.column_azimuths_rad)
+        return np.stack([np.full(len(elevations), across), wider], axis=1)
+
     @property
     def _sign(self) -> float:
         return 1.0 if self.spinning_direction == "ccw" else -1.0

@@ -264,6 +264,9 @@ class DynamicBoxes:
         return tracks, centres, np.where(alpha < 0.5, i, j)
 
 
+VELOCITY_SPAN_US = 100_000  #: a moving vehicle's velocity is its track's motion over this span
+
+
 @dataclass(frozen=True)
 class SolidBoxes:
     """The labelled objects as solid occluders (lidar colouring): each static track at its median box
@@ -275,29 +278,53 @@ class SolidBoxes:
         moving: the other tracks' observations, not grown.
         track_ids: every track's id, the static ones first (in ``static_T_box_frame``'s order),
             then the moving ones (in ``moving``'s), str [S+T].
+        kind: the kind of solid each track's object is (:func:`cores.kind_of`; -1: its box hides
+            nothing), int [S+T].
     """
 
     static_T_box_frame: np.ndarray
     static_half_m: np.ndarray
     moving: DynamicBoxes
     track_ids: np.ndarray
+    kind: np.ndarray
 
     @classmethod
     def select(
-        cls, observations: TrackObservations, static: dict[str, tuple[np.ndarray, ...]], dynamic: Collection[str]
+        cls,
+        observations: TrackObservations,
+        static: dict[str, tuple[np.ndarray, ...]],
+        dynamic: Collection[str],
+        kinds: dict[str, int] | None = None,
     ) -> SolidBoxes:
         """``static``: track id -> :func:`static_pose` of the static tracks (as :func:`static_poses`
-        gives them); ``dynamic``: the ids of the moving tracks, taken from ``observations``."""
+        gives them); ``dynamic``: the ids of the moving tracks, taken from ``observations``;
+        ``kinds``: track id -> the kind of solid its object is (:func:`cores.kind_of`; missing: -1)."""
         T = np.tile(np.eye(4), (len(static), 1, 1))
         half = np.zeros((len(static), 3))
         for k, (centre, R, dims) in enumerate(static.values()):
             T[k, :3, :3], T[k, :3, 3], half[k] = R, centre, dims / 2
         moving = DynamicBoxes.select(observations, dynamic, margin_m=0.0)
-        return cls(T, half, moving, np.concatenate([np.array(list(static), dtype=str), moving.track_ids]))
+        track_ids = np.concatenate([np.array(list(static), dtype=str), moving.track_ids])
+        kind = np.array([(kinds or {}).get(str(t), -1) for t in track_ids], dtype=np.int64)
+        return cls(T, half, moving, track_ids, kind)
 
-    def at(self, t_us: int) -> tuple[np.ndarray, np.ndarray]:
-        """The boxes at ``t_us``: box -> fixed frame [K,4,4] and half sizes [K,3] (:meth:`tracks_at`)."""
-        return self.tracks_at(t_us)[1:]
+    def solids_at(self, t_us: int) -> tuple[np.ndarray, ...]:
+        """The boxes at ``t_us`` of the objects with solid parts, the occluders (:mod:`cores`): box ->
+        fixed frame [V,4,4], half sizes [V,3], velocity, m/s [V,3] (a moving track's over
+        ``VELOCITY_SPAN_US`` around ``t_us``; 0 for a static one) and kind, int [V]."""
+        tracks, T, half = self.tracks_at(t_us)
+        velocity = np.zeros((len(tracks), 3))
+        n_static = len(self.static_T_box_frame)
+        before, centres_before, _ = self.moving.at(t_us - VELOCITY_SPAN_US // 2)
+        after, centres_after, _ = self.moving.at(t_us + VELOCITY_SPAN_US // 2)
+        both, i, j = np.intersect1d(before, after, return_indices=True)
+        rate = (centres_after[j] - centres_before[i]) / (VELOCITY_SPAN_US * 1e-6)
+        moving = np.flatnonzero(tracks >= n_static)
+        known = np.isin(tracks[moving] - n_static, both)
+        velocity[moving[known]] = rate[np.searchsorted(both, tracks[moving[known]] - n_static)]
+        kind = self.kind[tracks]
+        solid = kind >= 0
+        return T[solid], half[solid], velocity[solid], kind[solid]
 
     def tracks_at(self, t_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The boxes at ``t_us``: each one's track (index into ``track_ids``), int [K]; box -> fixed
