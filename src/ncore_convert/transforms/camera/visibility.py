@@ -15,7 +15,7 @@ import numpy as np
 from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.geometry import invert_se3
 from ncore_convert.transforms.objects.boxes import box_corners, near_plane_crossings
-from ncore_convert.transforms.objects.cores import CELL_M, VEHICLE, floor_z, solid_entry
+from ncore_convert.transforms.objects.cores import CELL_M, VEHICLE, solid_entry, under_floor
 
 CELL_RAD = np.radians(0.5)  #: depth-buffer cell, as an angle of view: its height; its width is half that
 DEPTH_TOLERANCE = 0.05  #: a point this far behind (relative) its cell's nearest point is still visible ...
@@ -204,8 +204,7 @@ def _behind_solids(
         kind = VEHICLE if frame.solids_kind is None else int(frame.solids_kind[k])
         gaps_m = CELL_M if spacing_m is None or not own.any() else float(np.median(spacing_m[near[own]].max(axis=1)))
         own_m = local[own]
-        if kind == VEHICLE:  # below a vehicle's floor is the street under its body, which the body may hide
-            own &= local[:, 2] > floor_z(half_m)
+        own &= ~under_floor(kind, half_m, local)
         test = ~own & candidates[near] & ~hidden[near]  # a point another box hides needs no more tests
         near, local = near[test], local[test]
         if not len(near):
@@ -287,7 +286,8 @@ def visible_pixels(
     cell_px = (max(1, int(round(CELL_RAD / 2 * fx))), max(1, int(round(CELL_RAD * fy))))
     nearest = nearest_in_front(cols, lines, depth, cell_px, (w, h))
     seen = depth <= nearest * (1.0 + DEPTH_TOLERANCE) + DEPTH_TOLERANCE_M
-    levels = footprint_levels(None if spacing_m is None else spacing_m[rows], depth)
+    in_view_spacing_m = None if spacing_m is None else spacing_m[rows]
+    levels = footprint_levels(in_view_spacing_m, depth)
     for wide, tall in np.unique(levels[np.any(levels > 0, axis=1)], axis=0):
         # the points whose footprints need cells this wide and tall hide what lies behind them in those
         near_scale = (
@@ -302,6 +302,5 @@ def visible_pixels(
         slope = GRAZING_SLOPE * CELL_RAD / 2 * 2.0**wide
         seen[sub] &= depth[sub] <= nearest * (1.0 + DEPTH_TOLERANCE + slope) + DEPTH_TOLERANCE_M
     seen &= rows < n  # the moved evidence only hides
-    in_view_spacing_m = None if spacing_m is None else spacing_m[rows]
     seen &= ~_behind_solids(frame, xyz_world_m[rows], cols, lines, in_view_spacing_m, seen)
     return rows[seen], cols[seen], lines[seen]

@@ -76,6 +76,23 @@ def floor_z(half_m: np.ndarray) -> float:
     return float(-half_m[2] + FLOOR_M)
 
 
+def under_floor(kind: int, half_m: np.ndarray, local_m: np.ndarray) -> np.ndarray:
+    """The points (box axes, [V,3], m) below a vehicle's floor: the street under its body, which the
+    body may hide although it lies inside the box; bool [V] (all False for the other kinds)."""
+    if kind != VEHICLE:
+        return np.zeros(len(local_m), bool)
+    return local_m[:, 2] <= floor_z(half_m)
+
+
+def _cell_of(x_m: np.ndarray, y_m: np.ndarray, half_m: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, ...]:
+    """The height-map cell (:func:`height_map`, ``shape``) over box-frame ``x_m``, ``y_m`` (any shape,
+    m; clamped to the footprint): its indices along x and y, int each."""
+    return (
+        np.clip(((x_m + float(half_m[0])) / CELL_M).astype(np.int64), 0, shape[0] - 1),
+        np.clip(((y_m + float(half_m[1])) / CELL_M).astype(np.int64), 0, shape[1] - 1),
+    )
+
+
 def height_map(half_m: np.ndarray, own_m: np.ndarray, spacing_m: float) -> np.ndarray:
     """A vehicle's solid top over its box's footprint, in ``CELL_M`` cells from the box's (-x, -y)
     corner, float64 [nx, ny], m in the box's axes (centre 0); ``floor_z`` - 1 where it is not solid.
@@ -104,10 +121,7 @@ def height_map(half_m: np.ndarray, own_m: np.ndarray, spacing_m: float) -> np.nd
     above = own_m[own_m[:, 2] > floor]
     if not len(above):
         return core
-    cell = (
-        np.clip(((above[:, 0] + hx) / CELL_M).astype(np.int64), 0, shape[0] - 1),
-        np.clip(((above[:, 1] + hy) / CELL_M).astype(np.int64), 0, shape[1] - 1),
-    )
+    cell = _cell_of(above[:, 0], above[:, 1], half_m, shape)
     top = np.full(shape, low)
     np.maximum.at(top, cell, np.minimum(above[:, 2], hz) + SILHOUETTE_M)
     seen = top > low
@@ -164,7 +178,6 @@ def _march(
     for ``enter`` <= t <= ``leave``, [V]) below the height map ``top`` and above ``floor``, sampled
     every half cell of its horizontal run, float64 [V] (inf: none). A line steep enough to stay in
     one cell is sampled at its ends (a vertical line's run is 0: enter and leave)."""
-    hx, hy = float(half_m[0]), float(half_m[1])
     # each line sampled every half cell of its horizontal run from where it enters (its own samples,
     # whichever lines are marched with it), and where it leaves
     run_per_t = np.maximum(np.hypot(step_m[:, 0], step_m[:, 1]), 1e-9)
@@ -173,9 +186,7 @@ def _march(
     k = np.arange(int(count.max()))
     t = np.minimum(enter[:, None] + k[None, :] * dt[:, None], leave[:, None])
     p = origin_m[None, None, :] + t[..., None] * step_m[:, None, :]
-    i = np.clip(((p[..., 0] + hx) / CELL_M).astype(np.int64), 0, top.shape[0] - 1)
-    j = np.clip(((p[..., 1] + hy) / CELL_M).astype(np.int64), 0, top.shape[1] - 1)
-    inside = (p[..., 2] >= floor) & (p[..., 2] <= top[i, j])
+    inside = (p[..., 2] >= floor) & (p[..., 2] <= top[_cell_of(p[..., 0], p[..., 1], half_m, top.shape)])
     first = np.argmax(inside, axis=1)
     hit = inside[np.arange(len(step_m)), first]
     return np.where(hit, t[np.arange(len(step_m)), first], np.inf)
