@@ -42,12 +42,13 @@ from ncore_convert.synth import opencood as synth
 from ncore_convert.synth.argoverse2 import calibration, simulate_unit
 from ncore_convert.synth.raycast import cast_rays, seen_through
 from ncore_convert.synth.scene import make_scene
-from ncore_convert.transforms.camera.labels import DYNAMIC_DT_US, box_index, depth_z
+from ncore_convert.transforms.camera.labels import DYNAMIC_DT_US, box_index, depth_z, points_at_frame
 from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.camera.visibility import CameraView
 from ncore_convert.transforms.geometry import invert_se3
 from ncore_convert.transforms.lidar import vlp32c
 from ncore_convert.transforms.lidar.model import SpinningLidarModel
+from ncore_convert.transforms.lidar.range_image import RangeImage
 from ncore_convert.transforms.objects.classes import AV2_TO_NCORE
 from ncore_convert.transforms.objects.cores import kind_of
 
@@ -143,6 +144,9 @@ def score_scenario(truth, out: Path, tally: dict) -> None:
                     inter = np.sum(mine & real)
                     tally["iou"].append(inter / np.sum(mine | real))
                     tally["recall"].append((inter, real.sum()))
+                    tally["views"].append(
+                        (f"{truth.scenario}/{agent_id}/{key}/{cam}", int(a), int(mine.sum()), int(real.sum()))
+                    )
                 moving = np.isin(true_actor, [a for a, s in truth.actor_speed_mps.items() if s > 0]) & judged
                 tally["dynamic"].append((np.sum(ours_dynamic & moving), np.sum(ours_dynamic | moving), moving.sum()))
                 if agent_id == front_cav and index == 0:  # the car queued ahead
@@ -167,6 +171,13 @@ def score_av2_world(seed: int, tally: dict) -> None:
         T = T_sensor_ego[unit]
         parts.append(simulate_unit(unit, window, T0_NS, scene, lambda t_s, T=T: scene.ego.T_ego_city(t_s) @ T))
     hits = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    origins_m = np.concatenate(  # where each unit was as it measured each point
+        [
+            np.einsum("nij,j->ni", scene.ego.T_ego_city((p["time_ns"] - T0_NS) * 1e-9), T_sensor_ego[unit][:, 3])[:, :3]
+            for p, unit in zip(parts, ("up_lidar", "down_lidar"), strict=True)
+        ]
+    )
+    sight = RangeImage(hits["xyz_city_m"], origins_m)  # where the sweep's lines of sight passed
     moving = np.r_[[bool(np.any(b.velocity_mps)) for b in scene.boxes], False]
     dynamic = moving[hits["box_index"]]
     times_us = (hits["time_ns"] - T0_NS) // 1000
@@ -230,7 +241,8 @@ def score_av2_world(seed: int, tally: dict) -> None:
         du, dv = np.meshgrid(PIXEL_SPAN, PIXEL_SPAN)
         z_true, _ = seen((cc[:, None] + du.reshape(-1)).reshape(-1), (ll[:, None] + dv.reshape(-1)).reshape(-1))
         tally["behind"].append(np.all(depth[ll, cc][:, None] - z_true.reshape(len(ll), -1) > 0.5, axis=1))
-        ours = box_index(view, T_box, half).index[::2, ::2]
+        at_frame = points_at_frame(view, hits["xyz_city_m"], times_us, dynamic, spacing_m, origins_m)
+        ours = box_index(view, T_box, half, kind, *at_frame, sight=sight).index[::2, ::2]
         vv, uu = np.mgrid[0:height:2, 0:width:2] + 0.5
         _, true_box = seen(uu.reshape(-1), vv.reshape(-1))
         to_annotated = np.full(len(scene.boxes) + 1, -1)
@@ -243,6 +255,7 @@ def score_av2_world(seed: int, tally: dict) -> None:
             inter = np.sum(mine & real)
             tally["iou"].append(inter / np.sum(mine | real))
             tally["recall"].append((inter, real.sum()))
+            tally["views"].append((f"av2 {seed}/{cam}", int(k), int(mine.sum()), int(real.sum())))
         moves = np.r_[[bool(np.any(scene.boxes[k].velocity_mps)) for k in annotated], False]
         ours_moving, true_moving = moves[ours], moves[truth]
         tally["dynamic"].append(
@@ -250,7 +263,7 @@ def score_av2_world(seed: int, tally: dict) -> None:
         )
 
 
-def report(title: str, tally: dict) -> None:
+def report(title: str, tally: dict, verbose: bool = False) -> None:
     covered, vehicle = np.concatenate(tally["covered"]), np.concatenate(tally["covered_vehicle"])
     behind = np.concatenate(tally["behind"])
     inter, real = (np.sum([r[i] for r in tally["recall"]]) for i in (0, 1))
@@ -264,6 +277,13 @@ def report(title: str, tally: dict) -> None:
     short = np.mean(np.array(recalls) < 0.98)
     print(f"  masks: pooled recall {inter / real:.3f} (>= 0.98), views with recall < 0.98: {short:.3f}")
     print(f"  dynamic mask: IoU {dyn[0] / dyn[1]:.3f}, recall {dyn[0] / dyn[2]:.3f}")
+    if verbose:
+        order = np.argsort(tally["iou"])
+        for i in order[: len(order) // 2]:
+            view, obj, mine, real = tally["views"][i]
+            inter, _ = tally["recall"][i]
+            figures = f"IoU {tally['iou'][i]:.3f}, recall {inter / max(real, 1):.3f}, {mine} ours, {real} true"
+            print(f"    {view} object {obj}: {figures}")
     if tally.get("queued"):
         queued = np.array(tally["queued"])
         mine, real_share = queued[:, 0].mean(), queued[:, 1].mean()
@@ -276,9 +296,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3)
     parser.add_argument("--av2-seeds", default="5,6,7", help="AV2 world seeds")
     parser.add_argument("--work", type=Path, default=None)
+    parser.add_argument("--verbose", action="store_true", help="list the worse half of the object views")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="shaped-labels-"))
-    tally = {k: [] for k in ("covered", "covered_vehicle", "behind", "iou", "recall", "dynamic", "queued")}
+    tally = {k: [] for k in ("covered", "covered_vehicle", "behind", "iou", "recall", "dynamic", "queued", "views")}
     for seed in (int(s) for s in args.seeds.split(",")):
         for dataset in ("opv2v", "v2xset"):
             tmp = work / f"{dataset}-{seed}"
@@ -293,11 +314,15 @@ def main() -> None:
             score_scenario(truth, out, tally)
             print(f"  {dataset} seed {seed}: {len(tally['iou'])} object views so far", flush=True)
     print("  OPV2V/V2XSet: the label bounds are issue 52's; 'object pixels' are the vehicles'", flush=True)
-    report(f"shaped OPV2V/V2XSet scenarios, seeds {args.seeds}, {args.frames} ticks each:", tally)
+    report(f"shaped OPV2V/V2XSet scenarios, seeds {args.seeds}, {args.frames} ticks each:", tally, args.verbose)
     av2 = {k: [] for k in tally}
     for seed in (int(s) for s in args.av2_seeds.split(",")):
         score_av2_world(seed, av2)
-    report(f"shaped AV2 world, seeds {args.av2_seeds}, one sweep, {len(AV2_CAMERAS)} cameras at half size:", av2)
+    report(
+        f"shaped AV2 world, seeds {args.av2_seeds}, one sweep, {len(AV2_CAMERAS)} cameras at half size:",
+        av2,
+        args.verbose,
+    )
 
 
 if __name__ == "__main__":

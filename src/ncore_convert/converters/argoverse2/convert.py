@@ -11,13 +11,12 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-import numpy as np
 from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.colours import COLOURS_TAKEN_FROM, SweepColours
-from ncore_convert.converters.argoverse2.labels import BoxLabeller, DepthLabeller
+from ncore_convert.converters.argoverse2.labels import FrameLabeller
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
@@ -171,12 +170,10 @@ def _sweeps(plan: LogPlan, colours: SweepColours | None) -> Iterator[tuple[int, 
 def _write_lidars(
     plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult, progress: Callable[[int], None]
 ) -> None:
-    """Stream sweeps one at a time (:func:`_sweeps`) and store them, and make the depth labels
-    ``job.label_ids`` from them. Memory stays flat."""
+    """Stream sweeps one at a time (:func:`_sweeps`) and store them. Memory stays flat."""
     started = time.perf_counter()
     calibration = plan.lidar_calibration
     colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
-    depth = DepthLabeller(plan, writer, _depth_cameras(plan, job)) if job.label_ids else None
     flag_meta = point_data_notes(
         plan.dynamic_boxes,
         "TbV has no cuboids" if plan.options.tbv else "the log has no annotations",
@@ -194,8 +191,6 @@ def _write_lidars(
     for sweep_ns, units, data in _sweeps(plan, colours):
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
-        if depth is not None:
-            depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic, data.spacing_m)
         for unit, unit_rays in units.items():
             rays = unit_rays.rays
             frame_meta = {
@@ -208,8 +203,6 @@ def _write_lidars(
             lidars[unit].store(unit_rays, frame_meta)
         result.frames += 1
         progress(1)
-    if depth is not None:
-        _finish_depth(depth, result)
     for unit, store in lidars.items():
         tally = store.tally
         figures = {
@@ -220,46 +213,34 @@ def _write_lidars(
     result.lidar_seconds = time.perf_counter() - started
 
 
-def _depth_cameras(plan: LogPlan, job: WriteJob) -> list[str]:
-    """The cameras whose depth labels ``job`` makes."""
-    return [cam for cam in plan.camera_ids if contract.camera_label_id("depth", cam) in job.label_ids]
-
-
-def _finish_depth(depth: DepthLabeller, result: JobResult) -> None:
-    depth.finish()
-    result.camera_labels += depth.labels
-    result.label_seconds += depth.seconds
-
-
-def _write_depth_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult) -> None:
-    """The depth labels ``job.label_ids`` (of some cameras) in a job of their own: the sweeps
-    streamed again (:func:`_sweeps`, not stored: the lidars' job stores them), each camera frame
+def _write_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult) -> None:
+    """The camera labels ``job.label_ids`` (every kind of some cameras) in a job of their own: the
+    sweeps streamed again (:func:`_sweeps`, not stored: the lidars' job stores them), each camera frame
     labelled from the sweep nearest it."""
-    depth = DepthLabeller(plan, writer, _depth_cameras(plan, job))
+    cameras = [
+        cam
+        for cam in plan.camera_ids
+        if any(contract.camera_label_id(k, cam) in job.label_ids for k in plan.label_kinds)
+    ]
+    labeller = FrameLabeller(plan, writer, cameras)
     for _, _, data in _sweeps(plan, None):
-        depth.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic, data.spacing_m)
-    _finish_depth(depth, result)
+        labeller.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic, data.spacing_m)
+    labeller.finish()
+    result.camera_labels += labeller.labels
+    result.label_seconds += labeller.seconds
 
 
 def _write_camera(
     plan: LogPlan, writer: SequenceWriter, cam: str, result: JobResult, progress: Callable[[int], None]
 ) -> None:
-    """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter), and
-    write the camera's box labels (``--camera-labels dynamic,instance``) frame by frame."""
+    """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
     started = time.perf_counter()
     stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam], plan.cameras[cam], plan.ego_masks[cam]))
-    boxes = BoxLabeller(plan, writer, cam) if plan.job_label_ids(cam) else None
     for image_ns in plan.inputs.image_timestamps_ns[cam]:
         t_us = floor_us(int(image_ns))
         stream.store_frame(av2.read_jpeg(plan.inputs.log_dir, cam, int(image_ns)), "jpeg", (t_us, t_us))
-        if boxes is not None:
-            boxes.label_frames(np.array([image_ns]))
         result.images += 1
         progress(1)
-    if boxes is not None:
-        boxes.finish()
-        result.camera_labels += boxes.labels
-        result.label_seconds += boxes.seconds
     result.camera_seconds += time.perf_counter() - started
 
 
@@ -272,7 +253,7 @@ def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress:
             if job.base:
                 _write_base(plan, writer, result, progress)
             elif not job.sensor_ids:
-                _write_depth_labels(plan, writer, job, result)
+                _write_labels(plan, writer, job, result)
             elif job.sensor_ids == tuple(plan.lidar_ids):
                 _write_lidars(plan, writer, job, result, progress)
             else:
@@ -282,9 +263,9 @@ def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress:
     return result
 
 
-#: At most this many cameras per depth-label job: AV2's 7 ring cameras make two jobs (4 and 3), all 9
+#: At most this many cameras per label job: AV2's 7 ring cameras make two jobs (4 and 3), all 9
 #: cameras three; each job streams the sweeps again (about 50 ms a sweep) for about 30 ms a label.
-DEPTH_JOB_CAMERAS = 4
+LABEL_JOB_CAMERAS = 4
 #: Rough single-core costs used to start the longest parts first (seconds per item; a label: one
 #: kind of one camera frame).
 _COST_S = {"sweep": 0.05, "image": 0.0035, "cuboid": 0.00025, "label": 0.035}
@@ -301,33 +282,27 @@ class LogPart:
 def log_jobs(plan: LogPlan) -> list[LogPart]:
     """The log's writing jobs grouped into independent parts, with an estimated cost per part.
 
-    Jobs: the base components, all lidars (they share each sweep read), one per camera (with its
-    box labels), and the depth labels: with the box labels, in the lidars' job (the cameras' jobs
-    carry more label work than depth: the workers stay balanced and the sweeps are streamed once);
-    without them, in jobs of their own of at most ``DEPTH_JOB_CAMERAS`` cameras (each streams the
-    sweeps again, so that several workers make them). Parts are in store order: base first, then
-    lidars, then cameras.
+    Jobs: the base components, all lidars (they share each sweep read), one per camera (its images),
+    and the camera labels in jobs of their own of at most ``LABEL_JOB_CAMERAS`` cameras, every kind
+    of a camera in one job (each streams the sweeps again, so that several workers make them). Parts
+    are in store order: base first, then lidars, then cameras.
     """
-    depth_ids = plan.job_label_ids(None)
-    with_boxes = any(plan.job_label_ids(cam) for cam in plan.camera_ids)
-    n_depth_jobs = 0 if with_boxes else -(-len(depth_ids) // DEPTH_JOB_CAMERAS)  # sharing the cameras evenly
-    depth_jobs = [depth_ids[i::n_depth_jobs] for i in range(n_depth_jobs)]
-    lidar_labels = depth_ids if with_boxes else ()
-    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids), label_ids=lidar_labels)] if plan.lidar_ids else [])
-    jobs += [WriteJob((cam,), label_ids=plan.job_label_ids(cam)) for cam in plan.camera_ids]
-    jobs += [WriteJob((), label_ids=ids) for ids in depth_jobs]
+    labelled = [cam for cam in plan.camera_ids if plan.label_kinds]
+    n_label_jobs = -(-len(labelled) // LABEL_JOB_CAMERAS)  # sharing the cameras evenly
+    label_jobs = [
+        tuple(contract.camera_label_id(k, cam) for cam in labelled[i::n_label_jobs] for k in plan.label_kinds)
+        for i in range(n_label_jobs)
+    ]
+    jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids))] if plan.lidar_ids else [])
+    jobs += [WriteJob((cam,)) for cam in plan.camera_ids]
+    jobs += [WriteJob((), label_ids=ids) for ids in label_jobs]
     n_cuboids = 0 if plan.inputs.annotations is None else len(plan.inputs.annotations)
     n_images = {cam: len(plan.inputs.image_timestamps_ns[cam]) for cam in plan.camera_ids}
+    frames_of = {contract.camera_label_id(k, cam): n for cam, n in n_images.items() for k in plan.label_kinds}
     n_sweeps = len(plan.sweep_timestamps_ns)
-    cost = [_COST_S["cuboid"] * n_cuboids]
-    frames_of = {contract.camera_label_id("depth", cam): n for cam, n in n_images.items()}
-    cost += (
-        [_COST_S["sweep"] * n_sweeps + _COST_S["label"] * sum(frames_of[i] for i in lidar_labels)]
-        if plan.lidar_ids
-        else []
-    )
-    cost += [(_COST_S["image"] + _COST_S["label"] * len(plan.job_label_ids(cam))) * n_images[cam] for cam in n_images]
-    cost += [_COST_S["sweep"] * n_sweeps + _COST_S["label"] * sum(frames_of[i] for i in ids) for ids in depth_jobs]
+    cost = [_COST_S["cuboid"] * n_cuboids] + ([_COST_S["sweep"] * n_sweeps] if plan.lidar_ids else [])
+    cost += [_COST_S["image"] * n_images[cam] for cam in plan.camera_ids]
+    cost += [_COST_S["sweep"] * n_sweeps + _COST_S["label"] * sum(frames_of[i] for i in ids) for ids in label_jobs]
     parts = independent_parts(jobs, plan.camera_ids, plan.lidar_ids, plan.options.profile, plan.label_ids)
     return [LogPart([jobs[i] for i in part], sum(cost[i] for i in part)) for part in parts]
 

@@ -1,12 +1,11 @@
-"""AV2 / TbV camera labels (``--camera-labels``), one per camera frame and kind.
+"""AV2 / TbV camera labels (``--camera-labels``), one per camera frame and kind, written by label jobs
+of a few cameras each as they stream the sweeps (``convert.log_jobs``, :class:`FrameLabeller`):
 
-Depth (:class:`DepthLabeller`): ``depth.z@<camera>``, from the lidar points of the sweep nearest the
-frame in time (:func:`ncore_convert.transforms.camera.labels.depth_z`), written by depth-label
-jobs of a few cameras each as they stream the sweeps (``convert.log_jobs``).
-
-Boxes (:class:`BoxLabeller`): ``mask.dynamic@<camera>`` and ``segmentation.instance@<camera>``, from
-which annotated box each pixel shows at the frame's time
-(:func:`ncore_convert.transforms.camera.labels.box_index`), written by the camera's own writing job.
+- ``depth.z@<camera>``: from the lidar points of the sweep nearest the frame in time
+  (:func:`ncore_convert.transforms.camera.labels.depth_z`);
+- ``mask.dynamic@<camera>`` and ``segmentation.instance@<camera>``: which annotated object each pixel
+  shows at the frame's time, each box cut to where that sweep's points show its object
+  (:func:`ncore_convert.transforms.camera.labels.box_index`).
 
 A frame belongs to the sweep whose middle (the median time of its points) is nearest its own time:
 each sweep's frames are labelled once the next sweep's middle is known, so two sweeps are held at
@@ -14,13 +13,13 @@ most. The views are at the cameras' full resolution, with their ego masks and th
 at the frames' times (:mod:`views`).
 
 Without cuboids (TbV), which points move is unknown: every point is then treated as possibly
-moving (used only within ``camera_labels.DYNAMIC_DT_US`` of its frame), so the labels are sparser
-but never show where a car was 50 ms earlier; the component metadata says so.
+moving (used only within ``camera_labels.DYNAMIC_DT_US`` of its frame), so the depth labels are
+sparser but never show where a car was 50 ms earlier; the component metadata says so.
 
 A frame more than ``dynamic.HOLD_S`` before the first sweep's points or after the last one's (the
-cameras may run on beyond the lidar) gets an empty label (0 everywhere) that says why in its
-metadata: there, the moving objects are neither in the points nor in the boxes, and the static
-points would label pixels through them.
+cameras may run on beyond the lidar) gets an empty depth label (0 everywhere) and masks of whole
+boxes, each saying why in its metadata: there, the moving objects are neither in the points nor in
+the boxes, and the static points would label pixels through them.
 """
 
 from __future__ import annotations
@@ -34,10 +33,13 @@ from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.converters.argoverse2.views import LABEL_SLACK_M, camera_views, usable_pixels
 from ncore_convert.transforms.camera import labels as camera_labels
 from ncore_convert.transforms.camera.visibility import VIEW_MARGIN, in_view
+from ncore_convert.transforms.lidar.range_image import RangeImage
 from ncore_convert.transforms.objects.dynamic import HOLD_S
 from ncore_convert.transforms.timebase import NS_PER_US, floor_us
 from ncore_convert.writer import CameraLabelStream, SequenceWriter
 
+#: Where the lidars were during a sweep: the rig's pose at this many times of it, between them linear.
+ORIGIN_KNOTS = 11
 #: What each depth label's component metadata says of how it was made.
 DEPTH_GENERATOR = {
     "generator": "ncore-convert transforms.camera_labels.depth_z",
@@ -49,102 +51,15 @@ DEPTH_GENERATOR = {
 }
 
 
-class DepthLabeller:
-    """Writes the depth labels of ``camera_ids`` of ``plan`` through ``writer`` (see the module docstring)."""
-
-    def __init__(self, plan: LogPlan, writer: SequenceWriter, camera_ids: list[str]) -> None:
-        self._plan = plan
-        self._unknown_motion = plan.dynamic_boxes is None  # no cuboids: any point may be on a mover
-        self._streams: dict[str, CameraLabelStream] = {
-            cam: writer.add_camera_label("depth", cam, "EXTERNAL", {}) for cam in camera_ids
-        }
-        self._usable = {cam: usable_pixels(plan, cam, plan.cameras[cam].pinhole) for cam in camera_ids}
-        self._next = {cam: 0 for cam in camera_ids}  # each camera's first frame not labelled yet
-        # the previous sweep: points, times, dynamic, spacing (or None), median and last point time
-        self._held: tuple | None = None
-        self._first_sweep_us: float | None = None  # the first point time of the first sweep
-        self.labels = 0
-        self.seconds = 0.0
-
-    def add_sweep(
-        self,
-        xyz_world_m: np.ndarray,
-        timestamps_us: np.ndarray,
-        dynamic: np.ndarray,
-        spacing_m: np.ndarray | None = None,
-    ) -> None:
-        """One sweep's points (``PointData.xyz_fixed_m``, ``timestamps_us``, ``dynamic``,
-        ``spacing_m``): the held sweep labels the frames up to halfway to this one, and this one is
-        held."""
-        middle_us = float(np.median(timestamps_us)) if len(timestamps_us) else np.nan
-        if self._first_sweep_us is None and len(timestamps_us):
-            self._first_sweep_us = float(np.min(timestamps_us))
-        if self._held is not None and np.isfinite(middle_us):
-            self._label_until((self._held[4] + middle_us) / 2)
-        if self._unknown_motion:
-            dynamic = np.ones(len(timestamps_us), dtype=bool)
-        if np.isfinite(middle_us):
-            self._held = (xyz_world_m, timestamps_us, dynamic, spacing_m, middle_us, float(np.max(timestamps_us)))
-
-    def finish(self) -> None:
-        """Label the frames after the last sweep's middle (with it) and set each label's metadata."""
-        self._label_until(np.inf)
-        meta = dict(DEPTH_GENERATOR)
-        if self._unknown_motion:
-            meta["moving_objects"] = (
-                "unknown (no cuboids): every point is used only within"
-                f" {camera_labels.DYNAMIC_DT_US / 1000:g} ms of its frame"
-            )
-        for stream in self._streams.values():
-            stream.set_meta(meta)
-
-    def _label_until(self, end_us: float) -> None:
-        """Label, with the held sweep, every camera's unlabelled frames before ``end_us`` (µs)."""
-        started = time.perf_counter()
-        for cam, stream in self._streams.items():
-            stamps_us = self._plan.inputs.image_timestamps_ns[cam] // NS_PER_US
-            first, last = self._next[cam], int(np.searchsorted(stamps_us, end_us, side="left"))
-            if last <= first:
-                continue
-            self._next[cam] = last
-            pinhole = self._plan.cameras[cam].pinhole
-            stamps_ns = self._plan.inputs.image_timestamps_ns[cam][first:last]
-            views = camera_views(self._plan, cam, stamps_ns, pinhole, self._usable[cam])
-            points = None
-            if self._held is not None:  # once per camera and sweep: the points its middle frame may see
-                near, _ = in_view(views[len(views) // 2], self._held[0], VIEW_MARGIN)
-                points = tuple(None if a is None else a[near] for a in self._held[:4])
-            for view in views:
-                reason = self._no_measurement(view.timestamp_us)
-                if reason:  # still one label per frame: an empty one, saying why
-                    depth = np.zeros(pinhole.resolution_px[::-1], np.float32)
-                    meta = {"no_measurement": reason}
-                else:
-                    depth = camera_labels.depth_z(view, *points)
-                    meta = {"sweep_median_time_us": round(self._held[4])}
-                stream.store_label(depth, view.timestamp_us, meta)
-                self.labels += 1
-        self.seconds += time.perf_counter() - started
-
-    def _no_measurement(self, t_us: int) -> str:
-        """Why the frame at ``t_us`` gets no depth ('' if it does)."""
-        if self._held is None:
-            return "no lidar sweep with points"
-        hold_us = HOLD_S * 1e6
-        if t_us < self._first_sweep_us - hold_us or t_us > self._held[5] + hold_us:
-            return f"no lidar sweep within {HOLD_S * 1e3:g} ms: the moving objects are unknown there"
-        return ""
-
-
 #: What the box labels' component metadata says of how they were made.
 BOX_GENERATOR = {
     "generator": "ncore-convert transforms.camera_labels.box_index",
     "from": "the annotated boxes at the frame's time: a static track's median box, a moving track's box"
     f" interpolated between its observations (up to {HOLD_S * 1e3:g} ms beyond its ends)",
-    "pixel": "the box the ray through the pixel's centre meets first (nearest box first where boxes overlap);"
+    "pixel": "the object the ray through the pixel's centre meets first (nearest box first where boxes overlap);"
     " none on the ego body (the camera's ego mask)",
-    "not_known": "surfaces other than the boxes (walls, poles, vegetation) do not hide a box; a box over-covers"
-    " its object's true shape",
+    "not_known": "surfaces other than the boxes (walls, poles, vegetation) do not hide an object; a mask may"
+    " over-cover its object where the points do not show the box empty",
 }
 #: ``mask.dynamic``: which boxes count.
 DYNAMIC_RULE = (
@@ -172,42 +87,167 @@ def instance_table(plan: LogPlan) -> tuple[np.ndarray, dict[str, dict]]:
     return index, dict(sorted(table.items(), key=lambda item: int(item[0])))
 
 
-class BoxLabeller:
-    """Writes ``camera_id``'s box labels (``plan.job_label_ids(camera_id)``) through ``writer``, one
-    per frame (see the module docstring)."""
+class FrameLabeller:
+    """Writes the labels of ``camera_ids`` of ``plan`` (every kind of ``plan.label_kinds``) through
+    ``writer`` (see the module docstring)."""
 
-    def __init__(self, plan: LogPlan, writer: SequenceWriter, camera_id: str) -> None:
-        self._plan, self._camera_id = plan, camera_id
-        self._kinds = [kind for kind in plan.label_kinds if kind in contract.BOX_LABEL_KINDS]
-        self._streams = {kind: writer.add_camera_label(kind, camera_id, "EXTERNAL", {}) for kind in self._kinds}
-        self._instance, table = instance_table(plan)
-        self._dynamic = np.array([tid in plan.cuboid_labels.dynamic for tid in plan.solids.track_ids], dtype=bool)
-        annotated_us = floor_us(plan.inputs.annotations.timestamps_ns)
-        self._span_us = (int(annotated_us.min()), int(annotated_us.max()))  # the annotated sweeps' times
-        self._pinhole = plan.cameras[camera_id].pinhole
-        self._usable = usable_pixels(plan, camera_id, self._pinhole)
-        self._meta = {
-            "dynamic": {**BOX_GENERATOR, "value": DYNAMIC_RULE},
-            "instance": {**BOX_GENERATOR, "value": "instance index (0: no box)", "instances": table},
+    def __init__(self, plan: LogPlan, writer: SequenceWriter, camera_ids: list[str]) -> None:
+        self._plan = plan
+        self._unknown_motion = plan.dynamic_boxes is None  # no cuboids: any point may be on a mover
+        self._kinds = [kind for kind in contract.CAMERA_LABEL_KINDS if kind in plan.label_kinds]
+        self._streams: dict[tuple[str, str], CameraLabelStream] = {
+            (kind, cam): writer.add_camera_label(kind, cam, "EXTERNAL", {})
+            for cam in camera_ids
+            for kind in self._kinds
         }
+        self._cameras = list(camera_ids)
+        self._usable = {cam: usable_pixels(plan, cam, plan.cameras[cam].pinhole) for cam in camera_ids}
+        self._next = {cam: 0 for cam in camera_ids}  # each camera's first frame not labelled yet
+        # the previous sweep: points, times, dynamic, spacing (or None), where the lidar was, median and
+        # last point time
+        self._held: tuple | None = None
+        self._first_sweep_us: float | None = None  # the first point time of the first sweep
+        self._covers: dict = {}
+        self._sight: RangeImage | None = None
+        mounts = [plan.inputs.T_sensor_ego[u][:3, 3] for u in plan.lidar_ids]
+        self._lidar_rig_m = np.mean(mounts, axis=0) if mounts else np.zeros(3)  # the units' middle, rig frame
+        if any(kind in contract.BOX_LABEL_KINDS for kind in self._kinds):
+            self._instance, table = instance_table(plan)
+            self._dynamic = np.array([tid in plan.cuboid_labels.dynamic for tid in plan.solids.track_ids], dtype=bool)
+            annotated_us = floor_us(plan.inputs.annotations.timestamps_ns)
+            self._span_us = (int(annotated_us.min()), int(annotated_us.max()))  # the annotated sweeps' times
+            box_meta = {**BOX_GENERATOR, "masks": camera_labels.MASKS_MADE}
+            self._box_meta = {
+                "dynamic": {**box_meta, "value": DYNAMIC_RULE},
+                "instance": {**box_meta, "value": "instance index (0: no box)", "instances": table},
+            }
         self.labels = 0
         self.seconds = 0.0
 
-    def label_frames(self, stamps_ns: np.ndarray) -> None:
-        """Label the frames at ``stamps_ns`` (int [K])."""
+    def add_sweep(
+        self,
+        xyz_world_m: np.ndarray,
+        timestamps_us: np.ndarray,
+        dynamic: np.ndarray,
+        spacing_m: np.ndarray | None = None,
+    ) -> None:
+        """One sweep's points (``PointData.xyz_fixed_m``, ``timestamps_us``, ``dynamic``,
+        ``spacing_m``): the held sweep labels the frames up to halfway to this one, and this one is
+        held."""
+        middle_us = float(np.median(timestamps_us)) if len(timestamps_us) else np.nan
+        if self._first_sweep_us is None and len(timestamps_us):
+            self._first_sweep_us = float(np.min(timestamps_us))
+        if self._held is not None and np.isfinite(middle_us):
+            self._label_until((self._held[5] + middle_us) / 2)
+        if self._unknown_motion:
+            dynamic = np.ones(len(timestamps_us), dtype=bool)
+        if np.isfinite(middle_us):
+            self._covers, self._sight = {}, None  # the held sweep's cover maps and range image
+            origins = self._lidar_origins(timestamps_us)
+            self._held = (
+                xyz_world_m,
+                timestamps_us,
+                dynamic,
+                spacing_m,
+                origins,
+                middle_us,
+                float(np.max(timestamps_us)),
+            )
+
+    def _lidar_origins(self, timestamps_us: np.ndarray) -> np.ndarray:
+        """Where the lidars were (the middle of the units) as they measured points at ``timestamps_us``
+        [N], world frame, float64 [N,3]: the rig's pose at a few times of the sweep, between them linear."""
+        traj = self._plan.T_rig_world
+        knots_us = np.linspace(float(np.min(timestamps_us)), float(np.max(timestamps_us)), ORIGIN_KNOTS)
+        T = traj.interpolate(traj.relative_seconds(np.round(knots_us).astype(np.int64) * NS_PER_US))
+        at_knots = T[:, :3, :3] @ self._lidar_rig_m + T[:, :3, 3]
+        return np.stack([np.interp(timestamps_us, knots_us, at_knots[:, a]) for a in range(3)], axis=1)
+
+    def finish(self) -> None:
+        """Label the frames after the last sweep's middle (with it) and set each label's metadata."""
+        self._label_until(np.inf)
+        depth_meta = dict(DEPTH_GENERATOR)
+        if self._unknown_motion:
+            depth_meta["moving_objects"] = (
+                "unknown (no cuboids): every point is used only within"
+                f" {camera_labels.DYNAMIC_DT_US / 1000:g} ms of its frame"
+            )
+        for (kind, _), stream in self._streams.items():
+            stream.set_meta(depth_meta if kind == "depth" else self._box_meta[kind])
+
+    def _label_until(self, end_us: float) -> None:
+        """Label, with the held sweep, every camera's unlabelled frames before ``end_us`` (µs)."""
         started = time.perf_counter()
-        for view in camera_views(self._plan, self._camera_id, stamps_ns, self._pinhole, self._usable):
-            tracks, T_box_world, half_m = self._plan.solids.tracks_at(view.timestamp_us)
-            picture = camera_labels.box_index(view, T_box_world, half_m)
-            instance, dynamic, shown = camera_labels.box_labels(picture, self._instance[tracks], self._dynamic[tracks])
-            meta = {"moving_objects_unknown": unknown} if (unknown := self._unknown(view.timestamp_us)) else {}
-            for kind, stream in self._streams.items():
-                if kind == "dynamic":  # where the movers are unknown, any pixel may show one: all 1
-                    stream.store_label(np.ones_like(dynamic) if unknown else dynamic, view.timestamp_us, meta)
-                else:
-                    stream.store_label(instance, view.timestamp_us, {"instances_shown": shown, **meta})
-                self.labels += 1
+        for cam in self._cameras:
+            stamps_us = self._plan.inputs.image_timestamps_ns[cam] // NS_PER_US
+            first, last = self._next[cam], int(np.searchsorted(stamps_us, end_us, side="left"))
+            if last <= first:
+                continue
+            self._next[cam] = last
+            pinhole = self._plan.cameras[cam].pinhole
+            stamps_ns = self._plan.inputs.image_timestamps_ns[cam][first:last]
+            views = camera_views(self._plan, cam, stamps_ns, pinhole, self._usable[cam])
+            points = None
+            if self._held is not None:  # once per camera and sweep: the points its middle frame may see
+                near, _ = in_view(views[len(views) // 2], self._held[0], VIEW_MARGIN)
+                points = tuple(None if a is None else a[near] for a in self._held[:5])
+            for view in views:
+                reason = self._no_measurement(view.timestamp_us)
+                for kind in self._kinds:
+                    if kind == "depth":
+                        self._store_depth(cam, view, points, reason)
+                if any(kind in contract.BOX_LABEL_KINDS for kind in self._kinds):
+                    self._store_boxes(cam, view, None if reason else points, reason)
         self.seconds += time.perf_counter() - started
+
+    def _store_depth(self, cam: str, view, points: tuple | None, reason: str) -> None:
+        if reason:  # still one label per frame: an empty one, saying why
+            depth = np.zeros(view.pinhole.resolution_px[::-1], np.float32)
+            meta = {"no_measurement": reason}
+        else:
+            depth = camera_labels.depth_z(view, *points[:4])
+            meta = {"sweep_median_time_us": round(self._held[5])}
+        self._streams["depth", cam].store_label(depth, view.timestamp_us, meta)
+        self.labels += 1
+
+    def _store_boxes(self, cam: str, view, points: tuple | None, reason: str) -> None:
+        """The box labels of one frame: each object where the held sweep's ``points`` show it (None:
+        whole boxes; ``reason`` says why)."""
+        tracks, T_box_world, half_m = self._plan.solids.tracks_at(view.timestamp_us)
+        kinds = self._plan.solids.kind[tracks]
+        if points is None:
+            picture = camera_labels.box_index(view, T_box_world, half_m)
+            meta = {"masks_from": f"whole boxes: {reason}"}
+        else:
+            at_frame = camera_labels.points_at_frame(view, *points)
+            keys = self._plan.solids.track_ids[tracks].tolist()
+            if self._sight is None:  # once per sweep: where its lines of sight passed
+                self._sight = RangeImage(self._held[0], self._held[4])
+            picture = camera_labels.box_index(
+                view, T_box_world, half_m, kinds, *at_frame, self._covers, keys, self._sight
+            )
+            meta = {"sweep_median_time_us": round(self._held[5])}
+        instance, dynamic, shown = camera_labels.box_labels(picture, self._instance[tracks], self._dynamic[tracks])
+        if unknown := self._unknown(view.timestamp_us):
+            meta["moving_objects_unknown"] = unknown
+        for kind in self._kinds:
+            if kind == "dynamic":  # where the movers are unknown, any pixel may show one: all 1
+                label = np.ones_like(dynamic) if unknown else dynamic
+                self._streams[kind, cam].store_label(label, view.timestamp_us, meta)
+            elif kind == "instance":
+                self._streams[kind, cam].store_label(instance, view.timestamp_us, {"instances_shown": shown, **meta})
+            else:
+                continue
+            self.labels += 1
+
+    def _no_measurement(self, t_us: int) -> str:
+        """Why the frame at ``t_us`` gets no lidar evidence ('' if it does)."""
+        if self._held is None:
+            return "no lidar sweep with points"
+        hold_us = HOLD_S * 1e6
+        if t_us < self._first_sweep_us - hold_us or t_us > self._held[6] + hold_us:
+            return f"no lidar sweep within {HOLD_S * 1e3:g} ms: the moving objects are unknown there"
+        return ""
 
     def _unknown(self, t_us: int) -> str:
         """Why the moving objects at ``t_us`` are unknown ('' if known): no annotations within
@@ -215,8 +255,3 @@ class BoxLabeller:
         if self._span_us[0] - HOLD_S * 1e6 <= t_us <= self._span_us[1] + HOLD_S * 1e6:
             return ""
         return f"no annotations within {HOLD_S * 1e3:g} ms: the static boxes only (mask.dynamic: all 1)"
-
-    def finish(self) -> None:
-        """Set each kind's component metadata."""
-        for kind, stream in self._streams.items():
-            stream.set_meta(self._meta[kind])

@@ -134,16 +134,6 @@ class LogPlan:
         """Every camera label component written (``contract.camera_label_id``)."""
         return [contract.camera_label_id(kind, cam) for cam in self.camera_ids for kind in self.label_kinds]
 
-    def job_label_ids(self, camera_id: str | None) -> tuple[str, ...]:
-        """The label components a writing job writes: the lidars' (``camera_id`` None) the depth
-        labels of every camera, a camera's its box labels."""
-        if camera_id is None:
-            depth = "depth" in self.label_kinds
-            return tuple(contract.camera_label_id("depth", cam) for cam in self.camera_ids if depth)
-        return tuple(
-            contract.camera_label_id(kind, camera_id) for kind in self.label_kinds if kind in contract.BOX_LABEL_KINDS
-        )
-
     @property
     def n_frames(self) -> int:
         return len(self.sweep_timestamps_ns) + sum(len(self.inputs.image_timestamps_ns[c]) for c in self.camera_ids)

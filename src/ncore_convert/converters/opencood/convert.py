@@ -179,9 +179,10 @@ def _write_sensors(
     labeller: TickLabeller | None = None,
 ) -> None:
     """Stream the agent's lidar frames and images, one frame at a time; skip (and report) missing
-    files; with ``labeller``, each camera frame's labels alongside (depth with the lidar frame of its
-    tick, box labels with the image)."""
+    files; with ``labeller``, each camera frame's labels alongside, with the lidar frame of its tick
+    (an agent without a lidar: box labels with the image)."""
     depth = labeller is not None and "depth" in labeller.kinds
+    boxes = labeller is not None and bool(labeller.kinds & set(contract.BOX_LABEL_KINDS))
     if agent.lidar_ids:
         coloured = bool(plan.options.lidar_rgb and agent.camera_ids)  # its points get rgb
         meta = {
@@ -215,8 +216,12 @@ def _write_sensors(
             except SourceError as err:
                 counts.warnings.append(f"{err}; lidar frame skipped")
                 skipped[key] = err.cause
-                if depth:  # the tick's pictures still get a (empty) depth label, saying why
-                    labeller.store_depth(frame, key, int(t_us), _pictured(agent, key), None, f"lidar frame: {err}")
+                if depth or boxes:  # the tick's pictures still get labels (depth: empty), saying why
+                    pictured = _pictured(agent, key)
+                    if depth:
+                        labeller.store_depth(frame, key, int(t_us), pictured, None, f"lidar frame: {err}")
+                    for cam in pictured if boxes else ():
+                        labeller.store_boxes(frame, key, int(t_us), cam, None, f"lidar frame: {err}")
                 progress(1)
                 continue
             xyz = carla.points_right_handed(sweep.xyz_m)  # float32: the mirror is exact
@@ -232,8 +237,12 @@ def _write_sensors(
             if coloured:
                 colouring = partial(point_colours, frames=_colour_frames(plan, agent, frame, key, int(t_us)))
             stored, points = lidar_frame(lidar_frame_in, {src.LIDAR: geometry}, plan.dynamic_boxes, colouring)
-            if depth:
-                labeller.store_depth(frame, key, int(t_us), _pictured(agent, key), points)
+            if depth or boxes:
+                pictured = _pictured(agent, key)
+                if depth:
+                    labeller.store_depth(frame, key, int(t_us), pictured, points)
+                for cam in pictured if boxes else ():
+                    labeller.store_boxes(frame, key, int(t_us), cam, points)
             own = stored[src.LIDAR]
             rays = own.rays
             generic = {
@@ -270,7 +279,6 @@ def _write_sensors(
         }
         stream = writer.add_camera(names.sensor(cam), meta)
         skipped = {}
-        boxes = labeller is not None and labeller.kinds & set(contract.BOX_LABEL_KINDS)
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             try:
                 data = src.read_png(agent.agent_dir, key, index)
@@ -280,8 +288,8 @@ def _write_sensors(
             else:
                 stream.store_frame(data, "png", (int(t_us), int(t_us)))
                 counts.images += 1
-                if boxes:
-                    labeller.store_boxes(frame, key, int(t_us), cam)
+                if boxes and not agent.lidar_ids:  # with a lidar, labelled with its frames
+                    labeller.store_boxes(frame, key, int(t_us), cam, None, "the agent has no lidar")
             progress(1)
         stream.set_meta({**meta, contract.SKIPPED_FRAMES: {**agent.skipped_keys, **skipped}})
 

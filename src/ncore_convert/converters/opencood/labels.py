@@ -20,9 +20,11 @@ import numpy as np
 
 from ncore_convert import contract
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, ScenarioPlan
+from ncore_convert.sources.opencood import LIDAR
 from ncore_convert.transforms.camera import labels as camera_labels
 from ncore_convert.transforms.camera.visibility import CameraView
 from ncore_convert.transforms.geometry import invert_se3
+from ncore_convert.transforms.lidar.range_image import RangeImage
 from ncore_convert.writer import CameraLabelStream, SequenceWriter
 
 #: The component metadata of each kind: how the labels were made.
@@ -35,10 +37,12 @@ GENERATOR = {
     },
     "boxes": {
         "generator": "ncore-convert transforms.camera_labels.box_index",
-        "from": "the tick's merged labelled vehicles (every agent's YAML), the agent's own vehicle excepted",
-        "pixel": "the box the ray through the pixel's centre meets first (nearest box first where boxes overlap)",
+        "from": "the tick's merged labelled vehicles (every agent's YAML), the agent's own vehicle excepted, and"
+        " the agent's own lidar points of the tick",
+        "pixel": "the vehicle the ray through the pixel's centre meets first (nearest box first where boxes overlap)",
+        "masks": camera_labels.MASKS_MADE,
         "not_known": "surfaces other than the labelled vehicles (buildings, poles, unlabelled actors) do not hide"
-        " a box; a box over-covers its vehicle's true shape",
+        " a vehicle; a mask may over-cover its vehicle where the points do not show the box empty",
     },
 }
 DYNAMIC_RULE = (
@@ -104,6 +108,8 @@ class TickLabeller:
             "dynamic": {**GENERATOR["boxes"], "value": DYNAMIC_RULE},
             "instance": {**GENERATOR["boxes"], "value": "instance index (0: no box)", "instances": table},
         }
+        self._covers: dict = {}
+        self._covers_of = ""  # the tick whose cover maps ``_covers`` holds
         self.labels = 0
         self.seconds = 0.0
 
@@ -133,15 +139,37 @@ class TickLabeller:
             self.labels += 1
         self.seconds += time.perf_counter() - started
 
-    def store_boxes(self, frame: int, key: str, t_us: int, cam: str) -> None:
-        """The box labels of camera ``cam`` at tick ``key`` (frame index ``frame``, ``t_us``)."""
+    def store_boxes(self, frame: int, key: str, t_us: int, cam: str, points, why_boxes: str = "") -> None:
+        """The box labels of camera ``cam`` at tick ``key`` (frame index ``frame``, ``t_us``): each
+        vehicle where the agent's lidar points of the tick (``points``, ``lidar_frames.PointData``)
+        show it (:func:`camera_labels.box_index`); None: its whole box, ``why_boxes`` says why."""
         started = time.perf_counter()
         actors, T_box, half = tick_boxes(self._plan, self._agent, key)
-        picture = camera_labels.box_index(camera_view(self._agent, frame, t_us, cam, T_box, half), T_box, half)
+        view = camera_view(self._agent, frame, t_us, cam, T_box, half)
+        if points is None:
+            picture = camera_labels.box_index(view, T_box, half)
+            meta = {contract.CARLA_FRAME: int(key), "masks_from": f"boxes only: {why_boxes}"}
+        else:
+            T_lidar_world_global = self._agent.T_rig_world_global[frame] @ self._agent.T_sensor_rig[LIDAR]
+            if self._covers_of != key:  # the tick's cover maps and range image, shared by its cameras
+                self._covers, self._covers_of = {}, key
+                self._sight = RangeImage(points.xyz_fixed_m, T_lidar_world_global[:3, 3])
+            picture = camera_labels.box_index(
+                view,
+                T_box,
+                half,
+                None,
+                points.xyz_fixed_m,
+                points.spacing_m,
+                T_lidar_world_global[:3, 3],
+                self._covers,
+                actors.tolist(),
+                self._sight,
+            )
+            meta = {contract.CARLA_FRAME: int(key)}
         instance_of_box = np.array([self._index[int(a)] for a in actors], dtype=np.int64)
         dynamic_of_box = np.array([str(a) in self._plan.cuboid_labels.dynamic for a in actors], dtype=bool)
         instance, dynamic, shown = camera_labels.box_labels(picture, instance_of_box, dynamic_of_box)
-        meta = {contract.CARLA_FRAME: int(key)}
         if ("dynamic", cam) in self._streams:
             self._streams["dynamic", cam].store_label(dynamic, t_us, meta)
             self.labels += 1

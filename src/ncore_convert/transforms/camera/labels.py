@@ -1,6 +1,7 @@
 """Image-aligned labels of camera frames, for NCore's camera-labels component: sparse z-depth from
-lidar points (``depth.z``), and which labelled box each pixel shows (``mask.dynamic`` and
-``segmentation.instance`` are made from :func:`box_index`).
+lidar points (``depth.z``), and which labelled object each pixel shows (``mask.dynamic`` and
+``segmentation.instance`` are made from :func:`box_index`: each object's box cut to where the
+lidar's points show it).
 
 A depth label holds, per pixel, the camera-frame z (metres, OpenCV frame: z forward) of the nearest
 lidar point that the camera sees there, 0 where no point does. The points are the lidar's, where
@@ -18,11 +19,19 @@ it saw them, in the fixed (world) frame:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
-from ncore_convert.transforms.camera.visibility import CameraView, box_pictures, visible_pixels
-from ncore_convert.transforms.objects.boxes import slab_span
+from ncore_convert.transforms.camera.visibility import (
+    MIN_DEPTH_M,
+    CameraView,
+    box_pictures,
+    moving_shift,
+    visible_pixels,
+)
+from ncore_convert.transforms.objects.boxes import box_corners, slab_span
+from ncore_convert.transforms.objects.cores import CELL_M, VEHICLE, cover_columns, cover_map
 
 #: A point on a moving object labels only a frame this close to its own time (µs): at 15 m/s the
 #: object moves 7.5 cm in that time.
@@ -70,6 +79,35 @@ def depth_z(
     return image
 
 
+def points_at_frame(
+    view: CameraView,
+    xyz_world_m: np.ndarray,
+    timestamps_us: np.ndarray,
+    dynamic: np.ndarray,
+    spacing_m: np.ndarray | None = None,
+    origins_m: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A sweep's points where their objects are at ``view``'s time, the evidence of the objects'
+    shapes in its masks (:func:`box_index`): a static point, and a moving one within ``DYNAMIC_DT_US``,
+    where the lidar saw it; a moving one from further off moved with its moving box
+    (:func:`visibility.moving_shift`), or left out. Arguments as :func:`depth_z`'s, and ``origins_m``:
+    where the lidar was as it measured each point, fixed frame, [N,3] or [3] (None: not known), moved
+    with its point. Returns the points [M,3], their spacing [M,2] and origins [M,3] (None where not
+    given)."""
+    dt_us = np.asarray(timestamps_us, dtype=np.int64) - int(view.timestamp_us)
+    near = ~np.asarray(dynamic, dtype=bool) | (np.abs(dt_us) <= DYNAMIC_DT_US)
+    far = np.flatnonzero(~near)
+    keep, shift = moving_shift(view, xyz_world_m[far], -dt_us[far] * 1e-6)
+    rows = np.r_[np.flatnonzero(near), far[keep]]
+    moved = np.zeros((len(rows), 3))
+    moved[int(near.sum()) :] = shift[keep]
+    origins = None
+    if origins_m is not None:
+        origins_m = np.asarray(origins_m, np.float64)
+        origins = (origins_m[rows] if origins_m.ndim == 2 else origins_m) + moved
+    return xyz_world_m[rows] + moved, None if spacing_m is None else spacing_m[rows], origins
+
+
 @dataclass(frozen=True)
 class BoxPicture:
     """Which box each pixel of a camera frame shows (:func:`box_index`).
@@ -86,15 +124,54 @@ class BoxPicture:
     rectangles: np.ndarray
 
 
-def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> BoxPicture:
-    """Which box each pixel of ``view`` shows: the box whose surface the ray through the pixel's
-    centre meets first (nearest box first where boxes overlap), -1 where it meets none or the pixel
-    is not usable (the ego body). Boxes hide each other; nothing else does (the labels know no
-    other surface). A box the camera is inside is left out.
+#: How masks (``mask.dynamic``, ``segmentation.instance``) are made, as their metadata says it.
+MASKS_MADE = (
+    "each labelled object's box cut where the lidar shows it empty: a vehicle to a height map of its own points"
+    " (6 cm cells; its far side mirrored, unseen cells a generous car shape no higher than the lidar's lines of"
+    " sight through them; the street under its body between the wheels left out; vans, trucks and buses taller"
+    " than 2 m at full height), any other object to its own points' footprints; a box without own points whole"
+)
+#: A box's own points for its mask (:func:`objects.cores.cover_map`) are those within this of it
+#: (annotation error).
+OWN_MARGIN_M = 0.1
+
+
+def box_index(
+    view: CameraView,
+    T_box_world: np.ndarray,
+    half_m: np.ndarray,
+    kinds: np.ndarray | None = None,
+    points_m: np.ndarray | None = None,
+    spacing_m: np.ndarray | None = None,
+    origins_m: np.ndarray | None = None,
+    covers: dict | None = None,
+    keys: list | None = None,
+    sight=None,
+) -> BoxPicture:
+    """Which object each pixel of ``view`` shows: the object whose picture holds the pixel, the nearest
+    box's where they overlap (boxes do not overlap in space: the nearer one is in front), -1 where
+    none does or the pixel is not usable (the ego body). Objects hide each other; nothing else does
+    (the labels know no other surface). A box the camera is inside is left out.
+
+    With the lidar's points, a box's object is where its own points do not show the box empty
+    (:func:`objects.cores.cover_map`: the box cut to the tops its points show, and for a vehicle
+    to its body and wheels); without them, it is its whole box.
 
     Args:
         view: the camera frame; its pinhole's resolution is the result's.
         T_box_world: box -> fixed frame, float64 [K,4,4]; half_m: half sizes, float64 [K,3], m.
+        kinds: each box's kind of solid (:data:`objects.cores.SOLID_KINDS`, -1 none), int [K]
+            (None: every one a vehicle).
+        points_m: the lidar's points at the frame's time, fixed frame, float64 [N,3] (None: boxes only).
+        spacing_m: the lidar's spacing between neighbouring returns at each point, across and along
+            its rows, m [N,2] (None: not known, ``CELL_M``).
+        origins_m: where the lidar was as it measured each point, fixed frame, float64 [N,3] or [3]
+            (None: not known).
+        covers, keys: each vehicle's :func:`objects.cores.cover_map` is kept in ``covers`` under its
+            box's key (``keys`` [K], hashable) and taken from there when it is already in: the frames
+            of one sweep share the maps (the caller empties it for the next sweep).
+        sight: where the sweep's lines of sight passed (``sight.passed(places [M,3], fixed frame) ->
+            bool [M]``: ``lidar.range_image.RangeImage``); None: nowhere known (no free space cuts).
     """
     width, height = view.pinhole.resolution_px
     index = np.full((height, width), -1, dtype=np.int32)
@@ -104,22 +181,53 @@ def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> 
     rectangles = np.zeros((len(candidates), 4), dtype=np.int64)
     rectangles[:, 0], rectangles[:, 1] = np.maximum(v_lo[candidates], 0), np.minimum(v_hi[candidates], height - 1) + 1
     rectangles[:, 2], rectangles[:, 3] = np.maximum(u_lo[candidates], 0), np.minimum(u_hi[candidates], width - 1) + 1
-    nearest_m = np.full((height, width), np.inf, dtype=np.float32)
     (fx, fy), (cx, cy) = view.pinhole.focal_length_px, view.pinhole.principal_point_px
     R_camera_world = view.T_world_camera[:3, :3].T  # camera axes in the fixed frame
-    for k, (r0, r1, c0, c1) in zip(candidates, rectangles.tolist(), strict=True):
-        # the ray through pixel (col, row) is x(col) X + y(row) Y + Z in camera axes (z = 1, so the
-        # ray parameter at a hit is its z-depth); in the box's axes each coordinate is a sum of a
-        # column term and a row term
-        M = T_box_world[k, :3, :3].T @ R_camera_world  # camera axes -> box axes
-        x = ((np.arange(c0, c1) + 0.5 - cx) / fx).astype(np.float32)
-        y = ((np.arange(r0, r1) + 0.5 - cy) / fy).astype(np.float32)
-        steps = [(M[axis, 2] + M[axis, 0] * x)[None, :] + (M[axis, 1] * y)[:, None] for axis in range(3)]  # [rows,cols]
-        enter, leave = slab_span(pictures.origin_m[k], steps, -half_m[k], half_m[k], 0.0, np.float32)
-        window = nearest_m[r0:r1, c0:c1]
-        hit = (enter <= leave) & (enter < window)
-        window[hit] = enter[hit]
-        index[r0:r1, c0:c1][hit] = k
+    owner = _OwnPoints(view, points_m, spacing_m, origins_m, pictures, sight) if points_m is not None else None
+
+    def entry(k: int, lines: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Where the rays through pixels (``lines``, ``cols``, int [P]) enter box ``k``: z-depth, [P]."""
+        M = (T_box_world[k, :3, :3].T @ R_camera_world).astype(np.float32)  # camera axes -> box axes
+        rays = np.stack([(cols + 0.5 - cx) / fx, (lines + 0.5 - cy) / fy, np.ones(len(cols))]).astype(np.float32)
+        return slab_span(pictures.origin_m[k], list(M @ rays), -half_m[k], half_m[k], 0.0, np.float32)[0]
+
+    for i, k in enumerate(candidates):
+        r0, r1, c0, c1 = rectangles[i].tolist()
+        if owner is not None and (kinds is None or kinds[k] == VEHICLE):
+            key = None if covers is None or keys is None else keys[k]
+            if key is None or key not in covers:
+                own = owner.of_box(k, T_box_world[k], half_m[k])
+                passed = None if sight is None else partial(owner.passed, T_box_world[k])
+                made = cover_map(half_m[k], own.local_m, own.spacing_m, own.origins_m, passed)
+                if key is not None:
+                    covers[key] = made
+            top, bottom = made if key is None else covers[key]
+            hit = cover_picture(view, T_box_world[k], half_m[k], top, bottom, (r0, r1, c0, c1))
+        else:
+            # the ray through pixel (col, row) is x(col) X + y(row) Y + Z in camera axes; in the box's
+            # axes each coordinate is a sum of a column term and a row term
+            M = T_box_world[k, :3, :3].T @ R_camera_world  # camera axes -> box axes
+            x = ((np.arange(c0, c1) + 0.5 - cx) / fx).astype(np.float32)
+            y = ((np.arange(r0, r1) + 0.5 - cy) / fy).astype(np.float32)
+            steps = [(M[a, 2] + M[a, 0] * x)[None, :] + (M[a, 1] * y)[:, None] for a in range(3)]  # [rows,cols]
+            enter, leave = slab_span(pictures.origin_m[k], steps, -half_m[k], half_m[k], 0.0, np.float32)
+            hit = enter <= leave
+            if owner is not None and len((own := owner.of_box(k, T_box_world[k], half_m[k])).local_m):
+                # a person, a rider, a post, a sign: where its own points are
+                size_px = own.spacing_m / own.depth_m[:, None] * np.array([fx, fy])
+                hit &= footprints(own.u_px - c0, own.v_px - r0, size_px, (r1 - r0, c1 - c0))
+        window = index[r0:r1, c0:c1]
+        lines, cols = np.nonzero(hit & (window >= 0))  # pixels another object's picture holds already
+        if len(lines):  # the object whose box the pixel's ray enters first holds it (boxes do not overlap)
+            mine = entry(k, lines + r0, cols + c0)
+            held_by = window[lines, cols]
+            theirs = np.empty(len(lines), np.float32)
+            for other in np.unique(held_by):
+                at = held_by == other
+                theirs[at] = entry(int(other), lines[at] + r0, cols[at] + c0)
+            behind = mine >= theirs
+            hit[lines[behind], cols[behind]] = False
+        window[hit] = k
     if view.usable is not None:
         index[~view.usable] = -1
     # the boxes still holding a pixel of their rectangle once every box is in
@@ -129,6 +237,148 @@ def box_index(view: CameraView, T_box_world: np.ndarray, half_m: np.ndarray) -> 
         if np.any(index[r0:r1, c0:c1] == k)
     ]
     return BoxPicture(index, candidates[held], rectangles[held])
+
+
+class _OwnPoints:
+    """The lidar's points that lie in each box of a camera frame (:func:`box_index`), found through
+    the boxes' pictures: a box's points project into its picture's rectangle."""
+
+    def __init__(
+        self,
+        view: CameraView,
+        points_m: np.ndarray,
+        spacing_m: np.ndarray | None,
+        origins_m: np.ndarray | None,
+        pictures,
+        sight,
+    ) -> None:
+        self._view = view
+        self._points_m = points_m
+        self._spacing_m = spacing_m
+        self._origins_m = None if origins_m is None else np.asarray(origins_m, np.float64)
+        self._pictures = pictures
+        self._sight = sight
+
+    def passed(self, T_box_world: np.ndarray, local_m: np.ndarray) -> np.ndarray:
+        """Which places (a box's axes, ``T_box_world`` its pose, [M,3], m) a line of sight passed
+        through (``sight.passed``), bool [M]."""
+        return self._sight.passed(local_m @ T_box_world[:3, :3].T + T_box_world[:3, 3])
+
+    def _project(self) -> None:
+        """The points ahead of the camera, by image column: their rows, image points and depths."""
+        view = self._view
+        xyz = self._points_m @ view.T_world_camera[:3, :3].T + view.T_world_camera[:3, 3]
+        ahead = np.flatnonzero(xyz[:, 2] > MIN_DEPTH_M)
+        u, v = view.pinhole.project(xyz[ahead])
+        order = np.argsort(u, kind="stable")
+        self._rows, self._u, self._v = ahead[order], u[order], v[order]
+        self._depth = xyz[ahead[order], 2]
+
+    def of_box(self, k: int, T_box_world: np.ndarray, half_m: np.ndarray) -> OwnPoints:
+        """Box ``k``'s own points (within ``OWN_MARGIN_M`` of it)."""
+        if not hasattr(self, "_rows"):
+            self._project()
+        u_lo, u_hi, v_lo, v_hi = (a[k] for a in self._pictures.rectangle_px)
+        span = slice(np.searchsorted(self._u, u_lo), np.searchsorted(self._u, u_hi + 1))
+        near = np.flatnonzero((self._v[span] >= v_lo) & (self._v[span] < v_hi + 1)) + span.start
+        local = (self._points_m[self._rows[near]] - T_box_world[:3, 3]) @ T_box_world[:3, :3]
+        own = np.all(np.abs(local) <= half_m + OWN_MARGIN_M, axis=1)
+        near = near[own]
+        rows = self._rows[near]
+        spacing = np.full((len(rows), 2), CELL_M) if self._spacing_m is None else self._spacing_m[rows]
+        origins = self._origins_m
+        if origins is not None:
+            origins = ((origins[rows] if origins.ndim == 2 else origins) - T_box_world[:3, 3]) @ T_box_world[:3, :3]
+        return OwnPoints(local[own], spacing, origins, self._u[near], self._v[near], self._depth[near])
+
+
+@dataclass(frozen=True)
+class OwnPoints:
+    """One box's own points (:meth:`_OwnPoints.of_box`).
+
+    Attributes:
+        local_m: in the box's axes, [P,3], m; spacing_m: the lidar's spacing between neighbouring
+            returns at each, across and along its rows, [P,2], m; origins_m: where the lidar was as
+            it measured each, box axes, [P,3] or [3] (None: not known).
+        u_px, v_px: where each shows in the camera's image, [P] each; depth_m: its camera z, [P], m.
+    """
+
+    local_m: np.ndarray
+    spacing_m: np.ndarray
+    origins_m: np.ndarray | None
+    u_px: np.ndarray
+    v_px: np.ndarray
+    depth_m: np.ndarray
+
+
+def footprints(u_px: np.ndarray, v_px: np.ndarray, size_px: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The pixels of a picture of ``shape`` (rows, columns) that points' footprints cover: each point at
+    image point (``u_px``, ``v_px``), [P] each, covers a rectangle of ``size_px`` [P,2] (width, height)
+    centred on it, a pixel more each way (the object's outline lies within half the lidar's spacing of
+    its outermost returns). bool [rows, columns]."""
+    half = size_px / 2.0 + 1.0
+    return rectangles_cover(
+        np.floor(v_px - half[:, 1]),
+        np.floor(v_px + half[:, 1]),
+        np.floor(u_px - half[:, 0]),
+        np.floor(u_px + half[:, 0]),
+        shape,
+    )
+
+
+def rectangles_cover(
+    first_row: np.ndarray, last_row: np.ndarray, first_col: np.ndarray, last_col: np.ndarray, shape: tuple[int, int]
+) -> np.ndarray:
+    """The pixels of a picture of ``shape`` (rows, columns) that rectangles cover: each from row
+    ``first_row`` to ``last_row`` and column ``first_col`` to ``last_col`` (whole pixels, inclusive,
+    [R] each; clipped to the picture). bool [rows, columns]."""
+    n_rows, n_cols = shape
+    r0 = np.clip(first_row, 0, n_rows).astype(np.int64)
+    r1 = np.clip(np.asarray(last_row) + 1, 0, n_rows).astype(np.int64)
+    c0 = np.clip(first_col, 0, n_cols).astype(np.int64)
+    c1 = np.clip(np.asarray(last_col) + 1, 0, n_cols).astype(np.int64)
+    count = np.zeros((n_rows + 1, n_cols + 1), np.int32)  # each rectangle's corners, summed below
+    np.add.at(count, (r0, c0), 1)
+    np.add.at(count, (r0, c1), -1)
+    np.add.at(count, (r1, c0), -1)
+    np.add.at(count, (r1, c1), 1)
+    return count.cumsum(axis=0).cumsum(axis=1)[:n_rows, :n_cols] > 0
+
+
+def cover_picture(
+    view: CameraView,
+    T_box_world: np.ndarray,
+    half_m: np.ndarray,
+    top: np.ndarray,
+    bottom: np.ndarray,
+    rectangle: tuple[int, int, int, int],
+) -> np.ndarray:
+    """The pixels of a box's picture (rows ``r0:r1``, columns ``c0:c1`` of ``rectangle``) that its
+    :func:`objects.cores.cover_map` (``top``, ``bottom``) covers: the pixels whose centres lie in one of
+    its columns' pictures (each column's bounding rectangle in the image: at most a column's slant
+    more at an outline), bool [r1-r0, c1-c0].
+
+    Args:
+        T_box_world: the box -> fixed frame, float64 [4,4]; half_m: its half sizes, [3], m.
+    """
+    r0, r1, c0, c1 = rectangle
+    centres, halves = cover_columns(half_m, top, bottom)
+    R_camera_box = view.T_world_camera[:3, :3] @ T_box_world[:3, :3]
+    t_camera_box = view.T_world_camera[:3, :3] @ T_box_world[:3, 3] + view.T_world_camera[:3, 3]
+    corners = box_corners(
+        np.broadcast_to(R_camera_box, (len(centres), 3, 3)), centres @ R_camera_box.T + t_camera_box, halves
+    )
+    ahead = np.any(corners[..., 2] > MIN_DEPTH_M, axis=1)
+    corners = corners[ahead]
+    corners[..., 2] = np.maximum(corners[..., 2], MIN_DEPTH_M)  # a column reaching behind the camera: its near end
+    u, v = (a.reshape(-1, 8) for a in view.pinhole.project(corners.reshape(-1, 3)))
+    return rectangles_cover(  # the pixels whose centres lie in a column's rectangle
+        np.ceil(v.min(axis=1) - 0.5) - r0,
+        np.floor(v.max(axis=1) - 0.5) - r0,
+        np.ceil(u.min(axis=1) - 0.5) - c0,
+        np.floor(u.max(axis=1) - 0.5) - c0,
+        (r1 - r0, c1 - c0),
+    )
 
 
 def box_labels(picture: BoxPicture, instance_of_box: np.ndarray, dynamic_of_box: np.ndarray):

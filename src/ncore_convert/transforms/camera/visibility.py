@@ -229,23 +229,30 @@ def footprint_levels(spacing_m: np.ndarray | None, depth_m: np.ndarray) -> np.nd
     return np.where(cells > FOOTPRINT_CELLS, np.minimum(level, MAX_LEVEL), 0).astype(np.int64)
 
 
-def moved_evidence(
-    frame: CameraView, evidence_m: np.ndarray, evidence_dt_s: np.ndarray, spacing_m: np.ndarray | None
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """The points of ``evidence_m`` ([E,3], fixed frame, taken ``evidence_dt_s`` [E] seconds before
-    the frame) that lie in a moving solid's box (grown by ``frame.solids_slack_m``) once moved with
-    its velocity to the frame's time: those moved points [M,3] and their ``spacing_m`` rows ([M,2],
-    None without). A still box claims none: a mover's points from other times near it are not its."""
+def moving_shift(frame: CameraView, evidence_m: np.ndarray, evidence_dt_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which points of ``evidence_m`` ([E,3], fixed frame, taken ``evidence_dt_s`` [E] seconds before
+    the frame) lie in a moving solid's box (grown by ``frame.solids_slack_m``) once moved with its
+    velocity to the frame's time, bool [E], and that move, float64 [E,3] (m; 0 for the others). A
+    still box claims none: a mover's points from other times near it are not its."""
     keep = np.zeros(len(evidence_m), bool)
-    moved = np.array(evidence_m, dtype=np.float64, copy=True)
+    shift = np.zeros((len(evidence_m), 3))
     if frame.solids is not None and frame.solids_velocity_mps is not None and len(evidence_m):
         T_box_world, half_all = frame.solids
         for k in np.flatnonzero(np.any(frame.solids_velocity_mps != 0, axis=1)):
-            at_frame = evidence_m + np.multiply.outer(evidence_dt_s, frame.solids_velocity_mps[k])
-            local = (at_frame - T_box_world[k, :3, 3]) @ T_box_world[k, :3, :3]
+            move = np.multiply.outer(evidence_dt_s, frame.solids_velocity_mps[k])
+            local = (evidence_m + move - T_box_world[k, :3, 3]) @ T_box_world[k, :3, :3]
             inside = ~keep & np.all(np.abs(local) <= half_all[k] + frame.solids_slack_m, axis=1)
-            moved[inside], keep[inside] = at_frame[inside], True
-    return moved[keep], None if spacing_m is None else spacing_m[keep]
+            shift[inside], keep[inside] = move[inside], True
+    return keep, shift
+
+
+def moved_evidence(
+    frame: CameraView, evidence_m: np.ndarray, evidence_dt_s: np.ndarray, spacing_m: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points of ``evidence_m`` that a moving solid claims (:func:`moving_shift`), moved with it to
+    the frame's time [M,3], and their ``spacing_m`` rows ([M,2], None without)."""
+    keep, shift = moving_shift(frame, evidence_m, evidence_dt_s)
+    return (evidence_m + shift)[keep], None if spacing_m is None else spacing_m[keep]
 
 
 def visible_pixels(
