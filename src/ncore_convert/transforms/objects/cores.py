@@ -350,7 +350,7 @@ def cover_map(
     low = own_m[(own_m[:, 2] > -hz + LOW_POINT_M) & (own_m[:, 2] < -hz + COVER_FLOOR_M)]
     if len(low):  # its own points show the body lower there (a skirt, a bumper): down to the street
         np.minimum.at(bottom, _cell_of(low[:, 0], low[:, 1], half_m, bottom.shape), -hz)
-    low = own_m[(own_m[:, 2] > -hz + LOW_POINT_M) & (own_m[:, 2] <= hz)]  # every own point of the body
+    body = own_m[(own_m[:, 2] > -hz + LOW_POINT_M) & (own_m[:, 2] <= hz)]  # every own point of the body
     if 2 * hz > CAR_HEIGHT_M:
         return np.full(X.shape, hz), bottom
     if origins_m is not None:
@@ -378,8 +378,8 @@ def cover_map(
         top[seen] = tops[0][seen]
     if passed is not None:
         top[~seen] = _carved(X[~seen], Y[~seen], top[~seen], bottom[~seen], passed)
-    if len(low):  # a cell holding own points is covered up to them, whatever else says
-        np.maximum.at(top, _cell_of(low[:, 0], low[:, 1], half_m, top.shape), low[:, 2] + COVER_TOP_M)
+    if len(body):  # a cell holding own points is covered up to them, whatever else says
+        np.maximum.at(top, _cell_of(body[:, 0], body[:, 1], half_m, top.shape), body[:, 2] + COVER_TOP_M)
     return top, bottom
 
 
