@@ -169,9 +169,10 @@ camera_labels_option = click.option(
     help="Image-aligned labels per camera frame, in NCore's camera-labels component"
     " (comma-separated): 'depth' -> depth.z@<camera>, the z-depth (m) of the nearest lidar point"
     " the camera sees in each pixel, 0 where none (needs the lidars); 'dynamic' ->"
-    " mask.dynamic@<camera>, 1 where a moving object's box shows; 'instance' ->"
-    " segmentation.instance@<camera>, the per-sequence instance index of the box each pixel"
-    " shows, 0 where none (both need cuboids: not TbV).",
+    " mask.dynamic@<camera>, 1 where a moving object shows; 'instance' ->"
+    " segmentation.instance@<camera>, the per-sequence instance index of the object each pixel"
+    " shows, 0 where none (both need cuboids: not TbV; each object is its box cut to where the"
+    " lidar points show it).",
 )
 
 

@@ -110,8 +110,8 @@ DEFAULT_INSTANCE = "default"
 #: ``--camera-labels`` kinds, each one NCore camera-labels component per camera, named by NCore's
 #: convention ``category.qualifier@camera_id``: ``depth`` -> ``depth.z@<camera>`` (z-depth in metres
 #: from the lidar points the camera sees, 0 = no measurement); ``dynamic`` -> ``mask.dynamic@<camera>``
-#: (1 where a moving object's box shows, else 0); ``instance`` -> ``segmentation.instance@<camera>``
-#: (the per-sequence instance index of the box each pixel shows, 0 = none).
+#: (1 where a moving object shows, else 0); ``instance`` -> ``segmentation.instance@<camera>``
+#: (the per-sequence instance index of the object each pixel shows, 0 = none).
 CAMERA_LABEL_KINDS = ("depth", "dynamic", "instance")
 CAMERA_LABEL_QUALIFIED = {"depth": "depth.z", "dynamic": "mask.dynamic", "instance": "segmentation.instance"}
 #: The kinds made from the annotated boxes (the others from the lidar points).
