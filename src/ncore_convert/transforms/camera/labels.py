@@ -30,7 +30,7 @@ from ncore_convert.transforms.camera.visibility import (
     moving_shift,
     visible_pixels,
 )
-from ncore_convert.transforms.objects.boxes import box_corners, slab_span
+from ncore_convert.transforms.objects.boxes import box_corners, first_seen, slab_span
 from ncore_convert.transforms.objects.cores import CELL_M, VEHICLE, cover_columns, cover_map
 
 #: A point on a moving object labels only a frame this close to its own time (µs): at 15 m/s the
@@ -148,9 +148,10 @@ def box_index(
     keys: list | None = None,
     sight=None,
 ) -> BoxPicture:
-    """Which object each pixel of ``view`` shows: the object whose picture holds the pixel, the nearest
-    box's where they overlap (boxes do not overlap in space: the nearer one is in front), -1 where
-    none does or the pixel is not usable (the ego body). Objects hide each other; nothing else does
+    """Which object each pixel of ``view`` shows: the object whose picture holds the pixel, where
+    pictures overlap the one whose box is in front (:func:`objects.boxes.first_seen`; of boxes that
+    overlap in space, the one each pixel's ray enters first), -1 where none does or the pixel is not
+    usable (the ego body). Objects hide each other; nothing else does
     (the labels know no other surface). A box the camera is inside is left out.
 
     With the lidar's points, a box's object is where its own points do not show the box empty
@@ -183,13 +184,16 @@ def box_index(
     rectangles[:, 2], rectangles[:, 3] = np.maximum(u_lo[candidates], 0), np.minimum(u_hi[candidates], width - 1) + 1
     (fx, fy), (cx, cy) = view.pinhole.focal_length_px, view.pinhole.principal_point_px
     R_camera_world = view.T_world_camera[:3, :3].T  # camera axes in the fixed frame
+    eye_m = -R_camera_world @ view.T_world_camera[:3, 3]  # the camera's centre, fixed frame
     owner = _OwnPoints(view, points_m, spacing_m, origins_m, pictures, sight) if points_m is not None else None
 
     def entry(k: int, lines: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Where the rays through pixels (``lines``, ``cols``, int [P]) enter box ``k``: z-depth, [P]."""
         M = (T_box_world[k, :3, :3].T @ R_camera_world).astype(np.float32)  # camera axes -> box axes
-        rays = np.stack([(cols + 0.5 - cx) / fx, (lines + 0.5 - cy) / fy, np.ones(len(cols))]).astype(np.float32)
-        return slab_span(pictures.origin_m[k], list(M @ rays), -half_m[k], half_m[k], 0.0, np.float32)[0]
+        x = ((cols + (0.5 - cx)) * (1.0 / fx)).astype(np.float32)
+        y = ((lines + (0.5 - cy)) * (1.0 / fy)).astype(np.float32)
+        rays = [M[a, 0] * x + M[a, 1] * y + M[a, 2] for a in range(3)]  # box axes
+        return slab_span(pictures.origin_m[k], rays, -half_m[k], half_m[k], 0.0, np.float32, leave=False)[0]
 
     for i, k in enumerate(candidates):
         r0, r1, c0, c1 = rectangles[i].tolist()
@@ -217,16 +221,17 @@ def box_index(
                 size_px = own.spacing_m / own.depth_m[:, None] * np.array([fx, fy])
                 hit &= footprints(own.u_px - c0, own.v_px - r0, size_px, (r1 - r0, c1 - c0))
         window = index[r0:r1, c0:c1]
-        lines, cols = np.nonzero(hit & (window >= 0))  # pixels another object's picture holds already
-        if len(lines):  # the object whose box the pixel's ray enters first holds it (boxes do not overlap)
-            mine = entry(k, lines + r0, cols + c0)
-            held_by = window[lines, cols]
-            theirs = np.empty(len(lines), np.float32)
-            for other in np.unique(held_by):
-                at = held_by == other
-                theirs[at] = entry(int(other), lines[at] + r0, cols[at] + c0)
-            behind = mine >= theirs
-            hit[lines[behind], cols[behind]] = False
+        shared = hit & (window >= 0)  # pixels another object's picture holds already
+        if shared.any():  # the object in front holds them
+            for other in np.flatnonzero(np.bincount(window[shared])).tolist():
+                front = first_seen(eye_m, T_box_world[k], half_m[k], T_box_world[other], half_m[other])
+                if front == 0:
+                    continue
+                theirs = shared & (window == other)
+                if front is None:  # boxes that overlap (annotation error): the one each ray enters first
+                    lines, cols = np.nonzero(theirs)
+                    theirs[lines, cols] = entry(k, lines + r0, cols + c0) >= entry(other, lines + r0, cols + c0)
+                hit &= ~theirs
         window[hit] = k
     if view.usable is not None:
         index[~view.usable] = -1
@@ -337,12 +342,14 @@ def rectangles_cover(
     r1 = np.clip(np.asarray(last_row) + 1, 0, n_rows).astype(np.int64)
     c0 = np.clip(first_col, 0, n_cols).astype(np.int64)
     c1 = np.clip(np.asarray(last_col) + 1, 0, n_cols).astype(np.int64)
-    count = np.zeros((n_rows + 1, n_cols + 1), np.int32)  # each rectangle's corners, summed below
-    np.add.at(count, (r0, c0), 1)
-    np.add.at(count, (r0, c1), -1)
-    np.add.at(count, (r1, c0), -1)
-    np.add.at(count, (r1, c1), 1)
-    return count.cumsum(axis=0).cumsum(axis=1)[:n_rows, :n_cols] > 0
+    # each rectangle's corners, summed below; a pixel's sum counts the rectangles holding it, so the
+    # narrowest integer that holds their number will do (a quarter of the memory traffic of int64)
+    dtype = np.int16 if len(r0) < np.iinfo(np.int16).max else np.int32
+    count = np.zeros((n_rows + 1, n_cols + 1), dtype)
+    sign = np.ones(len(r0), dtype)
+    np.add.at(count, (np.r_[r0, r0, r1, r1], np.r_[c0, c1, c0, c1]), np.r_[sign, -sign, -sign, sign])
+    np.cumsum(count, axis=0, dtype=dtype, out=count)
+    return np.cumsum(count, axis=1, dtype=dtype, out=count)[:n_rows, :n_cols] > 0
 
 
 def cover_picture(

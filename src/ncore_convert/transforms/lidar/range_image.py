@@ -54,20 +54,18 @@ class RangeImage:
         xyz_m = np.asarray(xyz_m, np.float64)
         cell, _ = self._cells(xyz_m, np.broadcast_to(self._middle_m, xyz_m.shape))
         cell, range_m = self._cells(xyz_m, self._origin_m[cell])  # from where the lidar looked there
-        n_rows, n_cols = self._shape
-        row, col = cell // n_cols, cell % n_cols
         nearest = self._range_m[cell]
-        between = np.isnan(nearest)
-        above = below = np.zeros(len(cell), bool)
-        for step in range(1, ROW_GAP + 1):
-            for sign in (1, -1):
-                r = row + sign * step
-                found = self._range_m[np.clip(r, 0, n_rows - 1) * n_cols + col]
-                found = np.where((r >= 0) & (r < n_rows), found, np.nan)
-                nearest = np.where(between, np.fmin(nearest, found), nearest)
-                if sign > 0:
-                    above = above | np.isfinite(found)
-                else:
-                    below = below | np.isfinite(found)
-        known = ~between | (above & below)
-        return known & np.isfinite(nearest) & (nearest > range_m * 1.01 + PASSED_MARGIN_M)
+        between = np.flatnonzero(np.isnan(nearest))  # no return in the place's own cell
+        if len(between):
+            n_rows, n_cols = self._shape
+            row, col = np.divmod(cell[between], n_cols)
+            found_m = np.full(len(between), np.nan)
+            sides = np.zeros((2, len(between)), bool)  # a return above it, below it
+            for step in range(1, ROW_GAP + 1):
+                for side, r in enumerate((row + step, row - step)):
+                    ok = (r >= 0) & (r < n_rows)
+                    found = np.where(ok, self._range_m[np.clip(r, 0, n_rows - 1) * n_cols + col], np.nan)
+                    found_m = np.fmin(found_m, found)
+                    sides[side] |= np.isfinite(found)
+            nearest[between] = np.where(sides.all(axis=0), found_m, np.nan)
+        return np.isfinite(nearest) & (nearest > range_m * 1.01 + PASSED_MARGIN_M)
