@@ -114,12 +114,13 @@ def _beside_cells(cols: np.ndarray, lines: np.ndarray, occupied_by: np.ndarray, 
 def in_view(frame: CameraView, xyz_world_m: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """The rows of ``xyz_world_m`` [N,3] in front of ``frame``'s camera that project into its image
     grown by ``margin`` of its size on every side, int [K], and those points in the camera frame [K,3]."""
-    xyz = xyz_world_m @ frame.T_world_camera[:3, :3].T + frame.T_world_camera[:3, 3]
-    ahead = np.flatnonzero(xyz[:, 2] > MIN_DEPTH_M)
+    R, t = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
+    ahead = np.flatnonzero(xyz_world_m @ R[2] + t[2] > MIN_DEPTH_M)  # depth first: most points are not ahead
+    xyz = xyz_world_m[ahead] @ R.T + t
     w, h = frame.pinhole.resolution_px
-    u, v = frame.pinhole.project(xyz[ahead])
+    u, v = frame.pinhole.project(xyz)
     inside = (u >= -margin * w) & (u < (1 + margin) * w) & (v >= -margin * h) & (v < (1 + margin) * h)
-    return ahead[inside], xyz[ahead[inside]]
+    return ahead[inside], xyz[inside]
 
 
 @dataclass(frozen=True)

@@ -28,12 +28,12 @@ class RangeImage:
         self._middle_m = np.median(origins, axis=0) if len(origins) else np.zeros(3)
         self._shape = (int(np.ceil(np.pi / ELEVATION_CELL_RAD)) + 1, int(np.ceil(2 * np.pi / AZIMUTH_CELL_RAD)) + 1)
         cell, range_m = self._cells(points_m, origins)
-        order = np.lexsort((range_m, cell))  # by cell, nearest first
-        first = order[np.r_[True, cell[order][1:] != cell[order][:-1]]] if len(order) else order
         size = self._shape[0] * self._shape[1]
-        self._range_m = np.full(size, np.nan)  # the nearest return's range per cell (NaN: none)
+        nearest_m = np.full(size, np.inf)
+        np.minimum.at(nearest_m, cell, range_m)
+        first = np.flatnonzero(range_m == nearest_m[cell])  # each cell's nearest return (or its equals)
+        self._range_m = np.where(np.isfinite(nearest_m), nearest_m, np.nan)  # per cell (NaN: none)
         self._origin_m = np.tile(self._middle_m, (size, 1))  # where the lidar was as it looked there
-        self._range_m[cell[first]] = range_m[first]
         self._origin_m[cell[first]] = origins[first]
 
     def _cells(self, xyz_m: np.ndarray, origins_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
