@@ -409,22 +409,25 @@ def nine_camera_plan(tmp_path_factory):
     return plan(("depth",)), plan(("depth", "dynamic", "instance"))
 
 
-def test_depth_labels_alone_are_made_by_several_jobs(nine_camera_plan):
-    """Depth labels alone: made by jobs of their own, three for the 9 cameras (at most
-    ``LABEL_JOB_CAMERAS`` = 4 each, sharing them evenly; each streams the sweeps again, so several
-    workers make them), each in a part of its own with the separate-sensors profile; every
-    camera's depth label in exactly one of them; the lidar and camera jobs make none."""
-    from ncore_convert.converters.argoverse2.convert import LABEL_JOB_CAMERAS, log_jobs
+def test_depth_labels_alone_are_made_by_one_job_per_worker(nine_camera_plan):
+    """Depth labels alone: made by jobs of their own, one per worker and at most one per camera
+    (each streams the sweeps again, so no more jobs than workers make them at once), sharing the 9
+    cameras evenly, each in a part of its own with the separate-sensors profile; every camera's depth
+    label in exactly one of them; the lidar and camera jobs make none."""
+    from ncore_convert.converters.argoverse2.convert import log_jobs
 
     plan, _ = nine_camera_plan
-    assert len(plan.camera_ids) == 9 and LABEL_JOB_CAMERAS == 4
-    parts = log_jobs(plan)
-    jobs = [job for part in parts for job in part.jobs]
-    label_jobs = [job for job in jobs if not job.sensor_ids and not job.base]
-    assert [len(job.label_ids) for job in label_jobs] == [3, 3, 3]
-    assert sorted(i for job in label_jobs for i in job.label_ids) == sorted(f"depth.z@{c}" for c in plan.camera_ids)
-    assert [len(part.jobs) for part in parts if any(job in label_jobs for job in part.jobs)] == [1, 1, 1]
-    assert all(job.label_ids == () for job in jobs if job.sensor_ids)
+    assert len(plan.camera_ids) == 9
+    for workers, cameras_per_job in ((1, [9]), (2, [5, 4]), (4, [3, 2, 2, 2]), (16, [1] * 9)):
+        parts = log_jobs(plan, workers)
+        jobs = [job for part in parts for job in part.jobs]
+        label_jobs = [job for job in jobs if not job.sensor_ids and not job.base]
+        assert [len(job.label_ids) for job in label_jobs] == cameras_per_job
+        assert sorted(i for job in label_jobs for i in job.label_ids) == sorted(f"depth.z@{c}" for c in plan.camera_ids)
+        assert [len(part.jobs) for part in parts if any(job in label_jobs for job in part.jobs)] == [1] * len(
+            cameras_per_job
+        )
+        assert all(job.label_ids == () for job in jobs if job.sensor_ids)
 
 
 def test_every_kind_of_a_camera_is_made_by_one_label_job(nine_camera_plan):
@@ -434,7 +437,7 @@ def test_every_kind_of_a_camera_is_made_by_one_label_job(nine_camera_plan):
     from ncore_convert.converters.argoverse2.convert import log_jobs
 
     _, plan = nine_camera_plan
-    jobs = [job for part in log_jobs(plan) for job in part.jobs]
+    jobs = [job for part in log_jobs(plan, 3) for job in part.jobs]
     label_jobs = [job for job in jobs if not job.sensor_ids and not job.base]
     assert [len(job.label_ids) for job in label_jobs] == [9, 9, 9]
     for job in label_jobs:

@@ -263,9 +263,6 @@ def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress:
     return result
 
 
-#: At most this many cameras per label job: AV2's 7 ring cameras make two jobs (4 and 3), all 9
-#: cameras three; each job streams the sweeps again (about 50 ms a sweep) for about 30 ms a label.
-LABEL_JOB_CAMERAS = 4
 #: Rough single-core costs used to start the longest parts first (seconds per item; a label: one
 #: kind of one camera frame).
 _COST_S = {"sweep": 0.05, "image": 0.0035, "cuboid": 0.00025, "label": 0.035}
@@ -279,16 +276,18 @@ class LogPart:
     cost_s: float
 
 
-def log_jobs(plan: LogPlan) -> list[LogPart]:
+def log_jobs(plan: LogPlan, workers: int = 1) -> list[LogPart]:
     """The log's writing jobs grouped into independent parts, with an estimated cost per part.
 
     Jobs: the base components, all lidars (they share each sweep read), one per camera (its images),
-    and the camera labels in jobs of their own of at most ``LABEL_JOB_CAMERAS`` cameras, every kind
-    of a camera in one job (each streams the sweeps again, so that several workers make them). Parts
-    are in store order: base first, then lidars, then cameras.
+    and the camera labels in jobs of their own, one per worker (``workers``, at most one per camera;
+    every kind of a camera in one job). Each label job streams the sweeps again (about 50 ms a sweep,
+    for about 30 ms a label), so there are no more of them than the workers that can make them at
+    once: the labels, most of a labelled log's work, then end together. Parts are in store order:
+    base first, then lidars, then cameras.
     """
     labelled = [cam for cam in plan.camera_ids if plan.label_kinds]
-    n_label_jobs = -(-len(labelled) // LABEL_JOB_CAMERAS)  # sharing the cameras evenly
+    n_label_jobs = min(len(labelled), max(1, workers))  # sharing the cameras evenly
     label_jobs = [
         tuple(contract.camera_label_id(k, cam) for cam in labelled[i::n_label_jobs] for k in plan.label_kinds)
         for i in range(n_label_jobs)
@@ -325,7 +324,7 @@ def convert_log(
     progress = progress or Progress()
     plan = plan_log(root_dir, log_id, options, pool.run if pool else None)
     progress.total(plan.n_frames)
-    parts = log_jobs(plan)
+    parts = log_jobs(plan, pool.workers if pool else 1)
     output_dir.mkdir(parents=True, exist_ok=True)
     longest_first = sorted(range(len(parts)), key=lambda i: -parts[i].cost_s)
     calls = [(write_part, (plan, output_dir, parts[i].jobs)) for i in longest_first]

@@ -1,5 +1,5 @@
 """AV2 / TbV camera labels (``--camera-labels``), one per camera frame and kind, written by label jobs
-of a few cameras each as they stream the sweeps (``convert.log_jobs``, :class:`FrameLabeller`):
+(one per worker, sharing the cameras) as they stream the sweeps (``convert.log_jobs``, :class:`FrameLabeller`):
 
 - ``depth.z@<camera>``: from the lidar points of the sweep nearest the frame in time
   (:func:`ncore_convert.transforms.camera.labels.depth_z`);
