@@ -20,7 +20,6 @@ from ncore_convert.converters.argoverse2.labels import FrameLabeller
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
-from ncore_convert.converters.argoverse2.views import label_work
 from ncore_convert.converters.common import Counts, LidarStore
 from ncore_convert.errors import warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
@@ -282,26 +281,16 @@ def log_jobs(plan: LogPlan, workers: int = 1) -> list[LogPart]:
 
     Jobs: the base components, all lidars (they share each sweep read), one per camera (its images),
     and the camera labels in jobs of their own, one per worker (``workers``, at most one per camera;
-    every kind of a camera in one job; the cameras shared by their :func:`views.label_work`). Each
-    label job streams the sweeps again (about 50 ms a sweep, for about 30 ms a label), so there are
-    no more of them than the workers that can make them at once: the labels, most of a labelled
-    log's work, then end together. Parts are in store order:
+    every kind of a camera in one job). Each label job streams the sweeps again (about 50 ms a sweep,
+    for about 30 ms a label), so there are no more of them than the workers that can make them at
+    once: the labels, most of a labelled log's work, then end together. Parts are in store order:
     base first, then lidars, then cameras.
     """
     labelled = [cam for cam in plan.camera_ids if plan.label_kinds]
-    n_label_jobs = min(len(labelled), max(1, workers))
-    shares: list[list[str]] = [[] for _ in range(n_label_jobs)]
-    if n_label_jobs > 1:  # the most work first, each to the job with the least so far
-        work = {cam: label_work(plan, cam) for cam in labelled}
-        totals = [0.0] * n_label_jobs
-        for cam in sorted(labelled, key=lambda cam: -work[cam]):
-            least = totals.index(min(totals))
-            shares[least].append(cam)
-            totals[least] += work[cam]
-    elif labelled:
-        shares[0] = labelled
+    n_label_jobs = min(len(labelled), max(1, workers))  # sharing the cameras evenly
     label_jobs = [
-        tuple(contract.camera_label_id(k, cam) for cam in share for k in plan.label_kinds) for share in shares
+        tuple(contract.camera_label_id(k, cam) for cam in labelled[i::n_label_jobs] for k in plan.label_kinds)
+        for i in range(n_label_jobs)
     ]
     jobs = [BASE_JOB] + ([WriteJob(tuple(plan.lidar_ids))] if plan.lidar_ids else [])
     jobs += [WriteJob((cam,)) for cam in plan.camera_ids]
