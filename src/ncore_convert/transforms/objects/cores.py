@@ -194,7 +194,7 @@ def solid_entry(
     if not len(crossing) or top.max() <= floor:
         return entry
     for rows in np.array_split(crossing, int(np.ceil(len(crossing) / MARCH_ROWS))):
-        entry[rows] = _march(top, np.full(top.shape, floor), half_m, origin_m, step_m[rows], enter[rows], leave[rows])
+        entry[rows] = _march(top, floor, half_m, origin_m, step_m[rows], enter[rows], leave[rows])
     return entry
 
 
@@ -202,24 +202,34 @@ MARCH_ROWS = 4096  #: lines marched at once (memory: rows x samples x 3 floats)
 MAX_SAMPLES = 700  #: a line's samples in a box at most (the run across a 20 m bus in half cells)
 
 
+def _half_cell_samples(step_m: np.ndarray, enter: np.ndarray, stop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Samples along lines (each ``step_m`` [V,3] long, box axes, m) every half ``CELL_M`` of their
+    horizontal run from ``enter`` ([V], in units of the line's length) while below ``stop`` ([V]): the
+    ray parameters, float64 [V, K] (each row its own samples, the count past them), and how many of
+    each row's lie before ``stop``, int [V] (at most ``MAX_SAMPLES``)."""
+    dt = 0.5 * CELL_M / _run_per_t(step_m)
+    count = np.clip(np.ceil((stop - enter) / dt), 0, MAX_SAMPLES).astype(np.int64)
+    return enter[:, None] + np.arange(int(count.max(initial=0)) + 1)[None, :] * dt[:, None], count
+
+
+def _run_per_t(step_m: np.ndarray) -> np.ndarray:
+    """How far lines (each ``step_m`` [V,3] long, m) run horizontally per unit of their parameter, m [V]."""
+    return np.maximum(np.hypot(step_m[:, 0], step_m[:, 1]), 1e-9)
+
+
 def _march(
-    top: np.ndarray, bottom: np.ndarray, half_m: np.ndarray, origin_m: np.ndarray, step_m: np.ndarray, enter, leave
+    top: np.ndarray, floor: float, half_m: np.ndarray, origin_m: np.ndarray, step_m: np.ndarray, enter, leave
 ) -> np.ndarray:
     """The first fraction of each line (``origin_m`` + t ``step_m``, [V,3]; inside the box's footprint
-    for ``enter`` <= t <= ``leave``, [V]) below the height map ``top`` and above the map ``bottom``
-    (each [nx, ny], m in the box's axes), sampled every half cell of its horizontal run, float64 [V]
-    (inf: none). A line steep enough to stay in one cell is sampled at its ends (a vertical line's run
-    is 0: enter and leave)."""
+    for ``enter`` <= t <= ``leave``, [V]) below the height map ``top`` and above ``floor``, sampled
+    every half cell of its horizontal run, float64 [V] (inf: none). A line steep enough to stay in
+    one cell is sampled at its ends (a vertical line's run is 0: enter and leave)."""
     # each line sampled every half cell of its horizontal run from where it enters (its own samples,
     # whichever lines are marched with it), and where it leaves
-    run_per_t = np.maximum(np.hypot(step_m[:, 0], step_m[:, 1]), 1e-9)
-    dt = 0.5 * CELL_M / run_per_t
-    count = np.minimum(np.ceil((leave - enter) / dt), MAX_SAMPLES).astype(np.int64) + 1
-    k = np.arange(int(count.max()))
-    t = np.minimum(enter[:, None] + k[None, :] * dt[:, None], leave[:, None])
+    t, _ = _half_cell_samples(step_m, enter, leave)
+    t = np.minimum(t, leave[:, None])
     p = origin_m[None, None, :] + t[..., None] * step_m[:, None, :]
-    cell = _cell_of(p[..., 0], p[..., 1], half_m, top.shape)
-    inside = (p[..., 2] >= bottom[cell]) & (p[..., 2] <= top[cell])
+    inside = (p[..., 2] >= floor) & (p[..., 2] <= top[_cell_of(p[..., 0], p[..., 1], half_m, top.shape)])
     first = np.argmax(inside, axis=1)
     hit = inside[np.arange(len(step_m)), first]
     return np.where(hit, t[np.arange(len(step_m)), first], np.inf)
@@ -278,13 +288,10 @@ def _lines_of_sight(half_m: np.ndarray, own_m: np.ndarray, origins_m: np.ndarray
     start_m = np.broadcast_to(origins_m, own_m.shape)[to_ground]
     step_m = end_m - start_m
     enter, leave = slab_span(start_m.T, step_m.T, (-hx, -hy, -np.inf), (hx, hy, np.inf), enter_from=0.0)
-    run_per_t = np.maximum(np.hypot(step_m[:, 0], step_m[:, 1]), 1e-9)
-    dt = 0.5 * CELL_M / run_per_t
-    last = 1.0 - 1.5 * CELL_M / run_per_t  # short of the point's own cell
-    count = np.clip(np.ceil((last - enter) / dt), 0, MAX_SAMPLES).astype(np.int64)
+    last = 1.0 - 1.5 * CELL_M / _run_per_t(step_m)  # short of the point's own cell
+    t, count = _half_cell_samples(step_m, enter, last)
     if not count.max(initial=0):
         return under
-    t = enter[:, None] + np.arange(int(count.max()))[None, :] * dt[:, None]
     valid = (np.arange(t.shape[1])[None, :] < count[:, None]) & (enter <= leave)[:, None]
     p = start_m[:, None, :] + t[..., None] * step_m[:, None, :]
     cell = _cell_of(p[..., 0][valid], p[..., 1][valid], half_m, under.shape)
@@ -350,7 +357,6 @@ def cover_map(
     low = own_m[(own_m[:, 2] > -hz + LOW_POINT_M) & (own_m[:, 2] < -hz + COVER_FLOOR_M)]
     if len(low):  # its own points show the body lower there (a skirt, a bumper): down to the street
         np.minimum.at(bottom, _cell_of(low[:, 0], low[:, 1], half_m, bottom.shape), -hz)
-    body = own_m[(own_m[:, 2] > -hz + LOW_POINT_M) & (own_m[:, 2] <= hz)]  # every own point of the body
     if 2 * hz > CAR_HEIGHT_M:
         return np.full(X.shape, hz), bottom
     if origins_m is not None:
@@ -378,6 +384,7 @@ def cover_map(
         top[seen] = tops[0][seen]
     if passed is not None:
         top[~seen] = _carved(X[~seen], Y[~seen], top[~seen], bottom[~seen], passed)
+    body = own_m[(own_m[:, 2] > -hz + LOW_POINT_M) & (own_m[:, 2] <= hz)]  # every own point of the body
     if len(body):  # a cell holding own points is covered up to them, whatever else says
         np.maximum.at(top, _cell_of(body[:, 0], body[:, 1], half_m, top.shape), body[:, 2] + COVER_TOP_M)
     return top, bottom
