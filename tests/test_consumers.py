@@ -396,11 +396,13 @@ def test_opv2v_dynamic_tracks_come_from_carlas_speeds(opv2v):
     assert static["frame"] == "world_global" and set(static["tracks"]) == annotated - set(dynamic) != set()
 
 
-def test_tbv_writes_no_dynamic_flag_and_says_so(tbv):
+def test_tbv_flags_what_the_lidar_saw_move_and_says_so(tbv):
+    """TbV has no cuboids: its dynamic_flag comes from the lidar itself (tests/test_motion.py scores it)."""
     meta = tbv.reader.open_component_readers(LidarSensorComponent.Reader)
     for unit in UNITS:
-        assert not tbv.loader.get_point_clouds_source(unit).has_pc_generic_data(0, "dynamic_flag")
-        assert meta[unit].generic_meta_data["dynamic_flag"] == "not written: TbV has no cuboids"
+        assert tbv.loader.get_point_clouds_source(unit).has_pc_generic_data(0, "dynamic_flag")
+        note = meta[unit].generic_meta_data["dynamic_flag"]
+        assert note.startswith("written: int8 per point, 1 = on a mover the lidar itself saw move"), note
 
 
 # --- clip window and world_global ------------------------------------------------------------------

@@ -214,6 +214,15 @@ def av2_family_options(log_scope: str) -> Callable:
         ),
         lidar_model_source_option,
         camera_labels_option,
+        click.option(
+            "--dynamic-source",
+            type=click.Choice(["annotations", "lidar", "both"]),
+            default=None,
+            show_default="annotations; lidar for a TbV log without annotations",
+            help="Where the lidar's dynamic_flag comes from: the annotated movers' boxes; what the lidar itself"
+            " saw move (free space: other sweeps saw through the point's place, docs/motion.md); or both (the"
+            " lidar adds movers the annotations miss, never in a standing track's box).",
+        ),
     )
 
 

@@ -72,6 +72,8 @@ EGO_MASK_MAX_FRACTION = 0.5
 
 # --- per-frame lidar generic data ---
 DYNAMIC_FLAG = "dynamic_flag"  #: int8 [N]: 1 = the point lies in a dynamic track's box grown by 0.5 m
+#: sequence metadata: where ``dynamic_flag`` comes from (annotations, lidar free space) and how
+DYNAMIC_FLAG_SOURCE = "dynamic_flag_source"
 LIDAR_RGB = "rgb"  #: uint8 [N,3]: the point's colour from the cameras (3DGRUT's ``lidar_color_generic_data_name``)
 #: uint32 [K], present when K > 0: the rays whose float32 ``direction * distance`` is not the source file's point
 #: (OpenCOOD: the few with no unit direction and distance that multiply to it; transforms.lidar.rays.exact_rays)

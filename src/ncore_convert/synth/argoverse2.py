@@ -187,7 +187,7 @@ def write_log(out_dir: UPath, config: SynthConfig) -> SynthTruth:
     n_sweeps = max(1, int(round(config.seconds * 10)))
     t0_ns = 315_970_000_000_000_000 + int(rng.integers(0, 10**12)) // 1000 * 1000
     traffic_rng = np.random.default_rng([config.seed, TRAFFIC_STREAM])
-    scene = make_scene(rng, config.seconds, traffic_rng, config.shapes, config.close_range)
+    scene = make_scene(rng, config.seconds, traffic_rng, config.shapes, config.close_range, config.clear_paths)
     T_sensor_ego, cams = calibration(config.tbv, config.camera_scale)
     truth = SynthTruth(log_dir, log_id, t0_ns, scene, T_sensor_ego)
 

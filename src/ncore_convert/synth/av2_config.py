@@ -58,6 +58,9 @@ class SynthConfig:
     shapes: bool = False
     #: a car just ahead of the ego and one alongside it, at its speed (``synth.scene.make_scene``)
     close_range: bool = False
+    #: nothing moves through a standing object: parked cars stand clear of the moving cars, pedestrians
+    #: who would walk through one are left out (``synth.scene.make_scene``)
+    clear_paths: bool = False
 
     @property
     def cameras(self) -> tuple[str, ...]:
@@ -106,3 +109,32 @@ class SynthTruth:
 
     def T_ego_city(self, timestamps_ns: np.ndarray) -> np.ndarray:
         return self.scene.ego.T_ego_city((np.asarray(timestamps_ns) - self.t0_ns) * 1e-9)
+
+    def sweep_returns(self, k: int, moving_mps: float = 0.2) -> dict[str, np.ndarray]:
+        """Sweep ``k``'s returns as the lidar measured them (a log written with ``keep_truth``): ``xyz_m``
+        (city frame) and ``origin_m`` (where the unit was as it fired), float64 [N,3]; ``unit`` and
+        ``beam`` (laser_number), [N]; ``moving``: the object it hit moved faster than ``moving_mps``
+        at the return's own time, bool [N]."""
+        sweep = self.sweeps[k]
+        t_s = (sweep.time_ns - self.t0_ns) * 1e-9
+        T_ego_city = self.scene.ego.T_ego_city(t_s)
+        xyz_m, origin_m = np.zeros((len(t_s), 3)), np.zeros((len(t_s), 3))
+        for u, unit in enumerate(av2.LIDARS):
+            m = sweep.unit == u
+            T = T_ego_city[m] @ self.T_sensor_ego[unit]
+            local = sweep.direction_sensor[m] * sweep.distance_m[m, None]
+            xyz_m[m] = np.einsum("nij,nj->ni", T[:, :3, :3], local) + T[:, :3, 3]
+            origin_m[m] = T[:, :3, 3]
+        speed = np.zeros(len(t_s))
+        for b in np.unique(sweep.box_index[sweep.box_index >= 0]):
+            m = sweep.box_index == b
+            box = self.scene.boxes[b]
+            moving = (t_s[m] >= box.move_from_s) & (t_s[m] <= box.move_until_s)
+            speed[m] = np.where(moving, np.linalg.norm(box.velocity_mps), 0.0)
+        return {
+            "xyz_m": xyz_m,
+            "origin_m": origin_m,
+            "unit": sweep.unit,
+            "beam": sweep.laser_number,
+            "moving": speed > moving_mps,
+        }

@@ -180,6 +180,18 @@ class Trajectory:
         out[:, 3, 3] = 1.0
         return out
 
+    def positions_at(self, point_source_m: np.ndarray, timestamps_us: np.ndarray, knots: int = 11) -> np.ndarray:
+        """Where a point fixed in the source frame (``point_source_m`` [3]: a lidar's mount in the rig)
+        was at each of ``timestamps_us`` (µs, [N]), target frame, float64 [N,3]: the pose at ``knots``
+        times spread over them, linear between (a lidar sweep's 0.1 s is one gentle arc)."""
+        timestamps_us = np.asarray(timestamps_us)
+        if not len(timestamps_us):
+            return np.zeros((0, 3))
+        knots_us = np.linspace(float(np.min(timestamps_us)), float(np.max(timestamps_us)), knots)
+        T = self.interpolate(self.relative_seconds(np.round(knots_us).astype(np.int64) * NS_PER_US))
+        at_knots = T[:, :3, :3] @ np.asarray(point_source_m, np.float64) + T[:, :3, 3]
+        return np.stack([np.interp(timestamps_us, knots_us, at_knots[:, a]) for a in range(3)], axis=1)
+
     def relative_seconds(self, times_ns: np.ndarray) -> np.ndarray:
         """Absolute int64 ns times [M] -> float64 seconds relative to the first sample."""
         return (np.asarray(times_ns, dtype=np.int64) - np.int64(self.start_us) * NS_PER_US).astype(np.float64) * 1e-9

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+import numpy as np
 from upath import UPath
 
 from ncore_convert import contract
@@ -19,6 +20,7 @@ from ncore_convert.converters.argoverse2.colours import COLOURS_TAKEN_FROM, Swee
 from ncore_convert.converters.argoverse2.labels import FrameLabeller
 from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, sweep_times_ns
 from ncore_convert.converters.argoverse2.masks import EgoMask
+from ncore_convert.converters.argoverse2.motion import LIDAR_FLAGS, with_motion
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Counts, LidarStore
 from ncore_convert.errors import warnings_kept
@@ -27,7 +29,14 @@ from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
 from ncore_convert.sources import argoverse2_map as av2_map
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
-from ncore_convert.transforms.lidar.frames import PointData, lidar_frame, point_data_notes
+from ncore_convert.transforms.lidar.frames import (
+    LidarFrame,
+    LidarGeometry,
+    Moved,
+    PointData,
+    lidar_frame,
+    point_data_notes,
+)
 from ncore_convert.transforms.timebase import floor_us
 from ncore_convert.writer import Cuboids, SequenceWriter, write_sequence_meta
 from ncore_convert.writer.parts import BASE_JOB, WriteJob, independent_parts
@@ -153,18 +162,37 @@ def _store_map(log_dir: UPath, writer: SequenceWriter, result: JobResult) -> Non
     result.maps = 1
 
 
-def _sweeps(plan: LogPlan, colours: SweepColours | None) -> Iterator[tuple[int, dict, PointData]]:
-    """Each sweep of the log, one at a time: read, split by unit, decompensated, model elements and
-    per-point data assigned (``lidar_frames.lidar_frame``): (its timestamp ns, the units' rays, the
-    point data)."""
+def _frames(plan: LogPlan) -> Iterator[tuple[int, LidarFrame, dict[str, LidarGeometry], np.ndarray]]:
+    """Each sweep of the log, one at a time: read, its points' own times, split by unit and how each
+    unit's rays are made (:func:`sweep_frame`): (its timestamp ns, the frame, the units' geometry, every
+    row's ``laser_number``)."""
     calibration = plan.lidar_calibration
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
     for sweep_ns in plan.sweep_timestamps_ns:
         sweep = av2.read_sweep(plan.inputs.log_dir, int(sweep_ns), not plan.options.tbv)
         times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
         frame, geometry = sweep_frame(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
-        units, data = lidar_frame(frame, geometry, plan.dynamic_boxes, None if colours is None else colours.colours)
-        yield int(sweep_ns), units, data
+        yield int(sweep_ns), frame, geometry, sweep.laser_number
+
+
+def _sweeps(plan: LogPlan, colours: SweepColours | None, motion: bool = False) -> Iterator[tuple[int, dict, PointData]]:
+    """Each sweep of the log, one at a time (:func:`_frames`), its rays, model elements and per-point
+    data assigned (``lidar_frames.lidar_frame``): (its timestamp ns, the units' rays, the point data).
+    ``motion``: with what the lidar itself saw move (``plan.dynamic_source`` lidar or both; the
+    frames are held a few sweeps for it, :func:`motion.with_motion`)."""
+    frames = _frames(plan)
+    boxes = plan.dynamic_boxes if plan.dynamic_source != "lidar" else None
+    colouring = None if colours is None else colours.colours
+    if not (motion and plan.moves_from_lidar):
+        for sweep_ns, frame, geometry, _ in frames:
+            units, data = lidar_frame(frame, geometry, boxes, colouring)
+            yield sweep_ns, units, data
+        return
+    T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
+    for sweep_ns, frame, geometry, found, seconds in with_motion(frames, plan.T_rig_world, T_sensor_rig):
+        units, data = lidar_frame(frame, geometry, boxes, colouring, Moved(found, plan.parked_boxes))
+        data.flag_seconds += seconds
+        yield sweep_ns, units, data
 
 
 def _write_lidars(
@@ -175,11 +203,12 @@ def _write_lidars(
     calibration = plan.lidar_calibration
     colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
     flag_meta = point_data_notes(
-        plan.dynamic_boxes,
+        plan.dynamic_boxes if plan.dynamic_source != "lidar" else None,
         "TbV has no cuboids" if plan.options.tbv else "the log has no annotations",
         plan.options.lidar_rgb,
         bool(plan.camera_ids),
         COLOURS_TAKEN_FROM,
+        LIDAR_FLAGS if plan.moves_from_lidar else "",
     )
     lidars = {  # one metadata dict per lidar: the writer updates it in place
         unit: LidarStore(
@@ -188,7 +217,7 @@ def _write_lidars(
         )
         for unit in plan.lidar_ids
     }
-    for sweep_ns, units, data in _sweeps(plan, colours):
+    for sweep_ns, units, data in _sweeps(plan, colours, motion=True):
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
         for unit, unit_rays in units.items():

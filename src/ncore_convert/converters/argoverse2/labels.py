@@ -156,12 +156,8 @@ class FrameLabeller:
 
     def _lidar_origins(self, timestamps_us: np.ndarray) -> np.ndarray:
         """Where the lidars were (the middle of the units) as they measured points at ``timestamps_us``
-        [N], world frame, float64 [N,3]: the rig's pose at a few times of the sweep, between them linear."""
-        traj = self._plan.T_rig_world
-        knots_us = np.linspace(float(np.min(timestamps_us)), float(np.max(timestamps_us)), ORIGIN_KNOTS)
-        T = traj.interpolate(traj.relative_seconds(np.round(knots_us).astype(np.int64) * NS_PER_US))
-        at_knots = T[:, :3, :3] @ self._lidar_rig_m + T[:, :3, 3]
-        return np.stack([np.interp(timestamps_us, knots_us, at_knots[:, a]) for a in range(3)], axis=1)
+        [N], world frame, float64 [N,3]."""
+        return self._plan.T_rig_world.positions_at(self._lidar_rig_m, timestamps_us, ORIGIN_KNOTS)
 
     def finish(self) -> None:
         """Label the frames after the last sweep's middle (with it) and set each label's metadata."""

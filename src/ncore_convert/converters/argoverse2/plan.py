@@ -22,6 +22,7 @@ from ncore_convert.converters import consumer
 from ncore_convert.converters.argoverse2.inputs import LogInputs, ego_trajectory, read_log_inputs, sensor_time_range_us
 from ncore_convert.converters.argoverse2.lidar import LidarCalibration, TriggerTiming, calibrate_lidars
 from ncore_convert.converters.argoverse2.masks import EgoMask, plan_ego_masks
+from ncore_convert.converters.argoverse2.motion import MOTION_META
 from ncore_convert.converters.common import ConsumerOptions, select_sensors
 from ncore_convert.errors import SourceError, UsageError, warnings_kept
 from ncore_convert.run.pool import Job
@@ -59,6 +60,9 @@ class Argoverse2Options(ConsumerOptions):
     camera_ids: tuple[str, ...] | None = None
     lidar_ids: tuple[str, ...] | None = None
     camera_labels: tuple[str, ...] = ()  #: ``contract.CAMERA_LABEL_KINDS`` written per camera frame
+    #: where ``dynamic_flag`` comes from: ``annotations``, ``lidar`` (free space, docs/motion.md) or ``both``;
+    #: None: ``annotations``, but ``lidar`` for a TbV log (it has no cuboids)
+    dynamic_source: str | None = None
 
     @property
     def tbv(self) -> bool:
@@ -93,10 +97,12 @@ class LogPlan:
         window_us: the clip window (inclusive µs), None for the whole log.
         cameras: how each camera is stored (model type, f-theta fit).
         cuboid_labels: class names, label source and dynamic tracks (None without annotations).
-        dynamic_boxes: the dynamic tracks' boxes in ``world`` (None: no ``dynamic_flag``).
+        dynamic_boxes: the dynamic tracks' boxes in ``world`` (None: no ``dynamic_flag`` from them).
         solids: every track's box in ``world``: occluders for ``--lidar-rgb`` and depth labels, and
             what the box labels show (None: none of them, or no annotations).
         ego_masks: each camera's ego mask (``--ego-masks``).
+        dynamic_source: where ``dynamic_flag`` comes from (``Argoverse2Options.dynamic_source``, resolved).
+        parked_boxes: the standing tracks' boxes, where no point is flagged from the lidar (``both``).
     """
 
     inputs: LogInputs
@@ -115,6 +121,13 @@ class LogPlan:
     dynamic_boxes: DynamicBoxes | None = None
     solids: SolidBoxes | None = None
     ego_masks: dict[str, EgoMask] | None = None
+    dynamic_source: str = "annotations"
+    parked_boxes: DynamicBoxes | None = None
+
+    @property
+    def moves_from_lidar(self) -> bool:
+        """Whether ``dynamic_flag`` takes what the lidar itself saw move (``--dynamic-source lidar|both``)."""
+        return self.dynamic_source in ("lidar", "both") and bool(self.lidar_ids)
 
     @property
     def sweep_timestamps_ns(self) -> np.ndarray:
@@ -263,6 +276,14 @@ def _plan_rest(
     cuboid_labels, dynamic_boxes, solids = _cuboid_labels(inputs, options, T_rig_world, bool(lidar_ids))
     if cuboid_labels is not None:
         warnings.extend(cuboid_labels.warnings)
+    tbv_unlabelled = options.tbv and inputs.annotations is None
+    dynamic_source = options.dynamic_source or ("lidar" if tbv_unlabelled else "annotations")
+    parked_boxes = None
+    if dynamic_source == "both" and cuboid_labels is not None and dynamic_boxes is not None:
+        standing = set(map(str, inputs.annotations.track_uuids)) - set(cuboid_labels.dynamic)
+        parked_boxes = DynamicBoxes.select(_observations(inputs, T_rig_world), standing)
+    if lidar_ids:
+        generic_meta[contract.DYNAMIC_FLAG_SOURCE] = _flag_source_meta(dynamic_source, dynamic_boxes is not None)
     cameras = {
         cam: consumer.camera_spec(camera_pinhole(inputs.intrinsics[cam]), options.camera_model) for cam in camera_ids
     }
@@ -282,7 +303,30 @@ def _plan_rest(
         cuboid_labels=cuboid_labels,
         dynamic_boxes=dynamic_boxes,
         solids=solids,
+        dynamic_source=dynamic_source,
+        parked_boxes=parked_boxes,
     )
+
+
+def _flag_source_meta(dynamic_source: str, annotated: bool) -> dict:
+    """What the sequence metadata says of where ``dynamic_flag`` comes from."""
+    from_boxes = annotated and dynamic_source in ("annotations", "both")
+    meta: dict = {
+        "source": " and ".join(
+            name
+            for name, used in (("annotations", from_boxes), ("lidar free space", dynamic_source != "annotations"))
+            if used
+        )
+        or "none (no annotations)"
+    }
+    if dynamic_source != "annotations":
+        meta["lidar free space"] = MOTION_META
+        if dynamic_source == "both":
+            meta["both"] = (
+                "an annotated mover is always flagged; the lidar adds movers outside the annotations,"
+                " never in a standing track's box"
+            )
+    return meta
 
 
 def _with_frames(
@@ -332,6 +376,20 @@ def _clipped(inputs: LogInputs, window_us: tuple[int, int]) -> LogInputs:
     )
 
 
+def _observations(inputs: LogInputs, T_rig_world: Trajectory) -> TrackObservations:
+    """The annotations' boxes in ``world``."""
+    annotations = inputs.annotations
+    T_rig_world_at = T_rig_world.interpolate(T_rig_world.relative_seconds(annotations.timestamps_ns))
+    T_box_world = T_rig_world_at @ annotations.T_object_ego
+    return TrackObservations(
+        annotations.track_uuids,
+        floor_us(annotations.timestamps_ns),
+        T_box_world[:, :3, 3],
+        T_box_world[:, :3, :3],
+        annotations.dims_m,
+    )
+
+
 def _cuboid_labels(
     inputs: LogInputs, options: Argoverse2Options, T_rig_world: Trajectory, with_lidar: bool
 ) -> tuple[consumer.CuboidLabels | None, DynamicBoxes | None, SolidBoxes | None]:
@@ -341,15 +399,7 @@ def _cuboid_labels(
     annotations = inputs.annotations
     if annotations is None:
         return None, None, None
-    T_rig_world_at = T_rig_world.interpolate(T_rig_world.relative_seconds(annotations.timestamps_ns))
-    T_box_world = T_rig_world_at @ annotations.T_object_ego
-    observations = TrackObservations(
-        annotations.track_uuids,
-        floor_us(annotations.timestamps_ns),
-        T_box_world[:, :3, 3],
-        T_box_world[:, :3, :3],
-        annotations.dims_m,
-    )
+    observations = _observations(inputs, T_rig_world)
     cuboid_labels = consumer.cuboid_labels(
         observations,
         annotations.categories,

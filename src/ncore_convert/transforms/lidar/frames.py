@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -26,6 +26,20 @@ from ncore_convert.transforms.timebase import floor_us
 #: ``(xyz_fixed_m [N,3], timestamps_us int64 [N], dynamic bool [N], spacing_m=float [N,2] | None) -> (rgb uint8
 #: [N,3], coloured bool [N])`` (``spacing_m`` by keyword: :class:`PointData`'s)
 Colouring = Callable[..., tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class Moved:
+    """What the lidar itself saw move in one frame (``transforms.lidar.free_space``).
+
+    Attributes:
+        found: lidar -> which of its rays are on a mover, bool [N] (stored-ray order).
+        parked: the boxes of the tracks that stand still (grown like the dynamic ones): a point in one
+            is never flagged from the lidar (``--dynamic-source both``); None: no such rule.
+    """
+
+    found: dict[str, np.ndarray]
+    parked: DynamicBoxes | None = None
 
 
 @dataclass
@@ -60,6 +74,7 @@ def point_data(
     boxes: DynamicBoxes | None,
     colouring: Colouring | None,
     spacing_m: dict[str, np.ndarray | None] | None = None,
+    moved: Moved | None = None,
 ) -> PointData:
     """Each stored ray's ``dynamic_flag`` (with ``boxes``) and ``rgb`` (with a ``colouring``), per lidar.
 
@@ -71,6 +86,7 @@ def point_data(
         colouring: colours the frame's points of all lidars together (None: no ``rgb``).
         spacing_m: lidar -> the spacing between neighbouring returns at each ray's point, across and
             along its rows, m [N,2] (None, or a lidar's None: not known).
+        moved: the rays the lidar itself saw move (:class:`Moved`), flagged besides ``boxes``'.
     """
     out = PointData({lidar: {} for lidar in xyz_fixed_m})
     lidars = list(xyz_fixed_m)
@@ -83,13 +99,18 @@ def point_data(
     spacing = None if any(s is None for s in spacings) else np.concatenate(spacings)
     parts = list(zip(lidars, bounds[:-1], bounds[1:], strict=True))
     dynamic = np.zeros(len(xyz), bool)
-    if boxes is not None:
+    if boxes is not None or moved is not None:
         started = time.perf_counter()
-        flags = dynamic_flags(xyz, times_us, boxes)
+        if boxes is not None:
+            dynamic = dynamic_flags(xyz, times_us, boxes) == 1
+        if moved is not None:
+            found = np.concatenate([moved.found[lidar] for lidar in lidars])
+            if moved.parked is not None:  # never a point in a parked car's box
+                found &= dynamic_flags(xyz, times_us, moved.parked) == 0
+            dynamic |= found
         out.flag_seconds = time.perf_counter() - started
-        dynamic = flags == 1
         for lidar, a, b in parts:
-            out.generic[lidar][DYNAMIC_FLAG] = flags[a:b]
+            out.generic[lidar][DYNAMIC_FLAG] = dynamic[a:b].astype(np.int8)
     if colouring is not None:
         started = time.perf_counter()
         rgb, coloured = colouring(xyz, times_us, dynamic, spacing_m=spacing)
@@ -164,10 +185,15 @@ class StoredRays:
 
 
 def lidar_frame(
-    frame: LidarFrame, geometry: dict[str, LidarGeometry], boxes: DynamicBoxes | None, colouring: Colouring | None
+    frame: LidarFrame,
+    geometry: dict[str, LidarGeometry],
+    boxes: DynamicBoxes | None,
+    colouring: Colouring | None,
+    moved: Moved | None = None,
 ) -> tuple[dict[str, StoredRays], PointData]:
     """Every lidar's rays, model elements and per-point data of one frame (lidars: ``geometry``'s
-    keys); also the :class:`PointData` (its timings)."""
+    keys); also the :class:`PointData` (its timings). ``moved``: what the lidar saw move, its
+    ``found`` per row of ``frame.rows[lidar]`` (the rays keep their rows')."""
     rays, rows, elements = {}, {}, {}
     for lidar, how in geometry.items():
         own = frame.rows[lidar]
@@ -187,7 +213,11 @@ def lidar_frame(
         else rays[lidar].distance_m.astype(np.float64)[:, None] * how.row_steps_rad[elements[lidar][0][:, 0]]
         for lidar, how in geometry.items()
     }
-    data = point_data(xyz_fixed, {lidar: rays[lidar].timestamp_us for lidar in geometry}, boxes, colouring, spacing)
+    if moved is not None:  # each ray's row's
+        moved = replace(moved, found={lidar: moved.found[lidar][rays[lidar].source_index] for lidar in geometry})
+    data = point_data(
+        xyz_fixed, {lidar: rays[lidar].timestamp_us for lidar in geometry}, boxes, colouring, spacing, moved
+    )
     stored = {
         lidar: StoredRays(rays[lidar], *elements[lidar], rows[lidar], data.generic[lidar], data.coloured.get(lidar, 0))
         for lidar in geometry
@@ -216,23 +246,32 @@ class LidarCounts:
 
 
 def point_data_notes(
-    boxes: DynamicBoxes | None, why_no_boxes: str, lidar_rgb: bool, cameras: bool, taken_from: str
+    boxes: DynamicBoxes | None,
+    why_no_boxes: str,
+    lidar_rgb: bool,
+    cameras: bool,
+    taken_from: str,
+    from_lidar: str = "",
 ) -> dict[str, str]:
     """What a lidar's metadata says of the per-point data :func:`lidar_frame` writes on its frames,
     given what the frames get (the same ``boxes``; colours when ``lidar_rgb`` and ``cameras``):
 
-    - ``dynamic_flag``: written from the dynamic tracks' boxes, or why not (``why_no_boxes``: the
-      dataset's reason when ``boxes`` is None);
+    - ``dynamic_flag``: written from the dynamic tracks' boxes and, with ``from_lidar`` (how), from
+      what the lidar itself saw move; or why not (``why_no_boxes``: the dataset's reason when
+      ``boxes`` is None);
     - ``rgb``: written (``taken_from``: the pixel of which camera frame, and what occludes it), or why
       not (``--lidar-rgb`` off, no cameras converted).
     """
-    if boxes is None:
+    by_boxes = (
+        ""
+        if boxes is None
+        else f"inside one of {len(boxes)} dynamic tracks' boxes grown by {BOX_MARGIN_M:g} m at the point's own"
+        " time (cuboids metadata: dynamic_tracks, dynamic_rule)"
+    )
+    if not by_boxes and not from_lidar:
         flags = f"not written: {why_no_boxes}"
     else:
-        flags = (
-            f"written: int8 per point, 1 = inside one of {len(boxes)} dynamic tracks' boxes grown by"
-            f" {BOX_MARGIN_M:g} m at the point's own time (cuboids metadata: dynamic_tracks, dynamic_rule)"
-        )
+        flags = "written: int8 per point, 1 = " + " or ".join(part for part in (by_boxes, from_lidar) if part)
     if not lidar_rgb:
         rgb = "not written (--lidar-rgb is off)"
     elif not cameras:

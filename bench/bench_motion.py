@@ -1,0 +1,152 @@
+"""Movers from the lidar alone (issue 53, ``transforms.lidar.free_space``) on synthetic TbV logs,
+against the generator's truth: which scene object each return hit, and whether it moved faster than
+0.2 m/s at the return's own time.
+
+The generator's returns go in as the lidar measured them (each unit's points in the city frame, where
+the unit was as it fired, its beam); the sweeps stream through ``MotionWindow``. Per seed: SA (static
+returns not flagged / static returns), DA (moving returns flagged / moving returns), HA (their
+harmonic mean), DA on the first and the last sweep, and the milliseconds a sweep (building the sweeps'
+images; flagging). Seeds 201-202 were looked at while the method was made; the default seeds were not.
+
+``--dufomap`` runs DUFOMap (``pip install dufomap``: Duberg, Zhang et al., RA-L 2024) with its
+paper's defaults (0.1 m voxels, d_s 0.2, d_p 1; 2 threads) on the same sweeps, side by side: each
+unit's returns of a sweep integrated from where that unit was in the middle of the sweep, in time
+order, then propagated once and every sweep segmented; its milliseconds a sweep and the resident
+memory it added.
+
+    python bench/bench_motion.py [--seeds 203,204,205] [--seconds 4] [--dufomap]
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_argoverse2 import bench_parser, work_dir
+from upath import UPath
+
+from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+from ncore_convert.transforms.lidar import free_space
+
+MOVING_MPS = 0.2  #: issue 53: a return is on a mover when its object moves faster than this at its time
+
+
+def _rss_mb() -> float:
+    """This process's resident memory, MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def dufomap_flags(sweeps: list[dict[str, np.ndarray]]) -> tuple[list[np.ndarray], float, float]:
+    """DUFOMap's labels of every return (bool [N] per sweep), its seconds a sweep and the MB it added."""
+    from dufomap import dufomap
+
+    before = _rss_mb()
+    started = time.perf_counter()
+    mapper = dufomap(0.1, 0.2, 1, num_threads=2)
+    parts = []
+    for s in sweeps:
+        for u in (0, 1):
+            mine = s["unit"] == u
+            pose = np.eye(4)
+            pose[:3, 3] = s["origin_m"][mine].mean(axis=0)
+            parts.append((mine, pose))
+            mapper.run(s["xyz_m"][mine], pose, cloud_transform=False)
+    mapper.oncePropagateCluster(if_propagate=True, if_cluster=False)
+    flags = []
+    for k, s in enumerate(sweeps):
+        flag = np.zeros(len(s["unit"]), bool)
+        for u in (0, 1):
+            mine, pose = parts[2 * k + u]
+            flag[mine] = mapper.segment(s["xyz_m"][mine], pose, cloud_transform=False) == 1
+        flags.append(flag)
+    seconds = (time.perf_counter() - started) / len(sweeps)
+    return flags, seconds, _rss_mb() - before
+
+
+def _figures(sweeps: list[dict[str, np.ndarray]], flagged: list[np.ndarray]) -> dict:
+    """SA, DA, HA and DA on the first and last sweep of ``flagged`` (bool [N] per sweep)."""
+    static_ok = static = moving_ok = moving = 0
+    for s, dynamic in zip(sweeps, flagged, strict=True):
+        truth = s["moving"]
+        static_ok += int((~dynamic & ~truth).sum())
+        static += int((~truth).sum())
+        moving_ok += int((dynamic & truth).sum())
+        moving += int(truth.sum())
+    sa, da = static_ok / static, moving_ok / max(moving, 1)
+    ends = [
+        (d & s["moving"]).sum() / max(s["moving"].sum(), 1)
+        for s, d in ((sweeps[0], flagged[0]), (sweeps[-1], flagged[-1]))
+    ]
+    return {"SA": sa, "DA": da, "HA": 2 * sa * da / (sa + da), "DA first": ends[0], "DA last": ends[1]}
+
+
+def score(sweeps: list[dict[str, np.ndarray]]) -> dict:
+    """Run ``MotionWindow`` over ``sweeps`` and score it."""
+    started = time.perf_counter()
+    sights = [
+        [
+            free_space.SweepSight(s["xyz_m"][s["unit"] == u], s["origin_m"][s["unit"] == u], s["beam"][s["unit"] == u])
+            for u in (0, 1)
+        ]
+        for s in sweeps
+    ]
+    built = time.perf_counter() - started
+    started = time.perf_counter()
+    window, flagged = free_space.MotionWindow(), []
+    for units in sights:
+        flagged += window.push(units)
+    flagged += window.finish()
+    spent = time.perf_counter() - started
+    by_sweep = [None] * len(sweeps)
+    for k, flags in flagged:
+        s = sweeps[k]
+        order = np.concatenate([np.flatnonzero(s["unit"] == u) for u in (0, 1)])
+        dynamic = np.zeros(len(order), bool)
+        dynamic[order] = flags.dynamic
+        by_sweep[k] = dynamic
+    moving = sum(int(s["moving"].sum()) for s in sweeps)
+    static = sum(int((~s["moving"]).sum()) for s in sweeps)
+    return {
+        **_figures(sweeps, by_sweep),
+        "build ms": 1e3 * built / len(sweeps),
+        "flag ms": 1e3 * spent / len(sweeps),
+        "moving share": moving / (moving + static),
+    }
+
+
+def main() -> None:
+    parser = bench_parser(__doc__, repeat=1)
+    parser.add_argument("--seeds", default="203,204,205")
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--dufomap", action="store_true", help="run DUFOMap side by side (pip install dufomap)")
+    args = parser.parse_args()
+    work = work_dir(args) / "motion"
+    rows = {}
+    for seed in (int(s) for s in args.seeds.split(",")):
+        config = SynthConfig(seconds=args.seconds, seed=seed, tbv=True, keep_truth=True, camera_fps=0, clear_paths=True)
+        truth = write_log(UPath(work / str(seed)), config)
+        sweeps = [truth.sweep_returns(k, MOVING_MPS) for k in range(len(truth.sweeps))]
+        rows[seed] = score(sweeps)
+        if args.dufomap:
+            flags, seconds, added_mb = dufomap_flags(sweeps)
+            figures = _figures(sweeps, flags)
+            rows[seed].update({f"DUFOMap {k}": v for k, v in figures.items()})
+            rows[seed].update({"DUFOMap ms": 1e3 * seconds, "DUFOMap MB": added_mb})
+            ours_ms = rows[seed]["build ms"] + rows[seed]["flag ms"]
+            rows[seed]["speed-up"] = rows[seed]["DUFOMap ms"] / ours_ms
+        print(
+            f"  seed {seed}: " + ", ".join(f"{k} {v:.4f}" if v < 10 else f"{k} {v:.0f}" for k, v in rows[seed].items()),
+            flush=True,
+        )
+    print(f"{args.seconds:g} s synthetic TbV logs, seeds {args.seeds}: medians")
+    for key in next(iter(rows.values())):
+        print(f"  {key:<14} {statistics.median(r[key] for r in rows.values()):.4f}")
+
+
+if __name__ == "__main__":
+    main()

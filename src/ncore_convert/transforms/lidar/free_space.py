@@ -1,0 +1,381 @@
+"""What moves, from the lidar alone: a point is on a mover when, at another time, the lidar saw through
+the place where it was (free-space carving; docs/motion.md).
+
+The test of one place against one other sweep (:class:`SweepSight`) is a bracket: a spinning lidar
+samples the world on rows (its beams) and columns (its firing steps), so a place lies between two
+rows and two columns of every sweep that looked its way. If all four of those rays ended beyond the
+place, any surface there larger than their spacing would have stopped one of them: the place was
+empty then. One ray beyond a place proves nothing: on a surface seen at a grazing angle (the road,
+a roof) the nearest ray lands a metre further along the same surface; its neighbour on the other side
+lands before the place. A ray without a return proves nothing either (a dark or glossy surface may
+return nothing), nor does a bracket whose rays end before the place (it was hidden then).
+
+A point with such evidence marks its object: :func:`flag_sweep` groups a sweep's points off the
+ground into objects (touching voxels) and flags every point of an object that enough of its points
+prove moved. The ground never moves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+#: A column of a sweep's image: the VLP-32C fires a cycle every 0.199 degrees at 10 Hz.
+COLUMN_RAD = np.radians(0.2)
+#: All four rays of a bracket must end this far beyond the place, and this share of its range (the
+#: returns' noise, AV2's float16 coordinates: 1.6 cm at 30 m, and the pose's drift within a window).
+BEYOND_M = 0.25
+BEYOND_FRACTION = 0.02
+#: The largest gap between two rows (or columns) that still brackets a place, radians: a VLP-32C's
+#: widest rows are 3-4 degrees apart.
+MAX_ROW_GAP_RAD = np.radians(5.0)
+
+
+class SweepSight:
+    """One lidar unit's sweep as its rows and columns saw it.
+
+    Args:
+        points_m: the returns, fixed frame, float64 [N,3].
+        origins_m: where the unit was as it measured each, fixed frame, float64 [N,3].
+        beams: each return's beam (laser) index, int [N]; the rows are the beams ordered by elevation.
+    """
+
+    def __init__(self, points_m: np.ndarray, origins_m: np.ndarray, beams: np.ndarray) -> None:
+        sight = np.asarray(points_m, np.float64) - origins_m
+        range_m = np.linalg.norm(sight, axis=1)
+        elevation = np.arcsin(np.clip(sight[:, 2] / np.maximum(range_m, 1e-9), -1.0, 1.0))
+        beam_ids, beam_of = np.unique(np.asarray(beams), return_inverse=True)
+        n_rows = len(beam_ids)
+        beam_el = np.bincount(beam_of, elevation, n_rows) / np.maximum(np.bincount(beam_of, minlength=n_rows), 1)
+        order = np.argsort(beam_el)
+        row_of_beam = np.empty(n_rows, np.int64)
+        row_of_beam[order] = np.arange(n_rows)
+        row = row_of_beam[beam_of]
+        self.row_elevation_rad = beam_el[order]  # each row's mean elevation, increasing [R]
+        self._n_cols = int(np.ceil(2 * np.pi / COLUMN_RAD))
+        col = self._column(np.arctan2(sight[:, 1], sight[:, 0]))
+        self._middle_m = np.median(origins_m, axis=0) if len(origins_m) else np.zeros(3)
+        self._range_m = _nearest_per_cell(row * self._n_cols + col, range_m, max(n_rows, 1) * self._n_cols)
+        # where the unit was as it looked along each column, and its attitude there (the rows' offset
+        # from their median elevation)
+        counts = np.bincount(col, minlength=self._n_cols)
+        self._origin_m = np.tile(self._middle_m, (self._n_cols, 1))
+        seen = counts > 0
+        for axis in range(3):
+            self._origin_m[seen, axis] = np.bincount(col, origins_m[:, axis], self._n_cols)[seen] / counts[seen]
+        offset = elevation - (self.row_elevation_rad[row] if n_rows else 0.0)
+        self._offset_rad = np.zeros(self._n_cols)
+        self._offset_rad[seen] = np.bincount(col, offset, self._n_cols)[seen] / counts[seen]
+        self._n_rows = n_rows
+        self.points_m = np.asarray(points_m, np.float64)
+        self.row, self.col, self.range_m = row, col, range_m
+        self.column_rad = COLUMN_RAD
+
+    def _column(self, azimuth_rad: np.ndarray) -> np.ndarray:
+        return ((azimuth_rad + np.pi) / COLUMN_RAD).astype(np.int64) % self._n_cols
+
+    def passed(self, xyz_m: np.ndarray) -> np.ndarray:
+        """Which places ``xyz_m`` (fixed frame, [M,3]) this sweep saw through: the four rays around
+        each (the rows above and below it in the columns either side) all ended beyond it
+        (``BEYOND_M`` and ``BEYOND_FRACTION``). bool [M]."""
+        xyz_m = np.asarray(xyz_m, np.float64)
+        if self._n_rows < 2 or not len(xyz_m):
+            return np.zeros(len(xyz_m), bool)
+        sight = xyz_m - self._middle_m
+        origin = self._origin_m[self._column(np.arctan2(sight[:, 1], sight[:, 0]))]  # where it looked from
+        sight = xyz_m - origin
+        range_m = np.linalg.norm(sight, axis=1)
+        azimuth = np.arctan2(sight[:, 1], sight[:, 0])
+        elevation = np.arcsin(np.clip(sight[:, 2] / np.maximum(range_m, 1e-9), -1.0, 1.0))
+        left = np.floor((azimuth + np.pi) / COLUMN_RAD - 0.5).astype(np.int64)  # the columns' centres either side
+        beyond_m = range_m * (1.0 + BEYOND_FRACTION) + BEYOND_M
+        ok = np.ones(len(xyz_m), bool)
+        for col in (left % self._n_cols, (left + 1) % self._n_cols):
+            el = elevation - self._offset_rad[col]
+            above = np.searchsorted(self.row_elevation_rad, el)
+            inside = (above > 0) & (above < self._n_rows)
+            above = np.clip(above, 1, self._n_rows - 1)
+            gap = self.row_elevation_rad[above] - self.row_elevation_rad[above - 1]
+            ok &= inside & (gap <= MAX_ROW_GAP_RAD)
+            for r in (above - 1, above):
+                found = self._range_m[r * self._n_cols + col]
+                ok &= found > beyond_m  # NaN (no return): False
+        return ok
+
+
+#: Returns this far over the ground are tested (a line of sight that grazes the street proves nothing
+#: of a place just over it) ...
+GROUND_CLEARANCE_M = 0.2
+#: ... and returns this far over it may belong to an object (a car's wheels and sills, a pedestrian's
+#: feet), joined to it where they make one surface with it (:func:`objects`).
+OBJECT_CLEARANCE_M = 0.05
+GROUND_CELL_M = 2.0  #: the ground's height: the lowest returns per cell of this size
+#: An object moved if at least this many of its points, and this share, were seen through.
+MIN_EVIDENCE = 3
+#: How many returns of an object are tested (spread over it): the share of them seen through decides.
+SAMPLES_PER_OBJECT = 24
+MIN_EVIDENCE_SHARE = 0.1
+
+
+def ground_clearance_m(xyz_m: np.ndarray) -> np.ndarray:
+    """Each point's height over the ground under it, m [N] (fixed frame, z up; float64 [N,3]): the
+    ground is the lowest return within a cell of ``GROUND_CELL_M`` either way (a cell of its own may
+    hold no ground: the lidar's low rows are far apart, and a pedestrian shades the street behind it)."""
+    cell = np.floor(xyz_m[:, :2] / GROUND_CELL_M).astype(np.int64)
+    if not len(cell):
+        return np.zeros(0)
+    cell -= cell.min(axis=0)
+    shape = tuple(cell.max(axis=0) + 1)
+    lowest = np.full(shape, np.inf)
+    np.minimum.at(lowest, (cell[:, 0], cell[:, 1]), xyz_m[:, 2])
+    ground = ndimage.minimum_filter(lowest, size=3, mode="nearest")
+    return xyz_m[:, 2] - ground[cell[:, 0], cell[:, 1]]
+
+
+def _nearest_per_cell(cell: np.ndarray, range_m: np.ndarray, size: int) -> np.ndarray:
+    """The nearest of the ranges ``range_m`` [N] in each of ``size`` cells (``cell``: flat index [N]),
+    float64 [size]; NaN where a cell has none."""
+    nearest = np.full(size, np.inf)
+    np.minimum.at(nearest, cell, range_m)
+    return np.where(np.isfinite(nearest), nearest, np.nan)
+
+
+#: Two neighbouring returns (rows or columns) are one surface when the line between them leans at
+#: least this much from the farther one's line of sight (Bogoslavskyi and Stachniss's depth
+#: clustering: a gap in depth between objects makes it flat).
+SURFACE_ANGLE_RAD = np.radians(10.0)
+#: ... and lie at most this much apart in depth (the lidar's widest rows are 4 degrees apart, where
+#: the angle alone joins a car to a wall a few metres behind it).
+JOIN_DEPTH_M = 0.5
+JOIN_DEPTH_FRACTION = 0.05
+
+
+def objects(sight: SweepSight, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which object (int >= 0; -1: none) each return of ``sight`` in ``candidates`` (bool [N])
+    belongs to: the returns joined through neighbouring cells of its image (the next column, the
+    next row) whose depths make one surface (``SURFACE_ANGLE_RAD``), int [N]; and which returns
+    lie on a surface that faces the lidar (joined to the row above or below: a wall, a car's side),
+    not one it grazes (a roof at the lidar's height), bool [N]."""
+    n_cols = int(np.ceil(2 * np.pi / sight.column_rad))
+    n_rows = len(sight.row_elevation_rad)
+    label = np.full(len(candidates), -1, np.int64)
+    facing = np.zeros(len(candidates), bool)
+    idx = np.flatnonzero(candidates)
+    if not len(idx):
+        return label, facing
+    cell = sight.row[idx] * n_cols + sight.col[idx]
+    size = n_rows * n_cols
+    rng = _nearest_per_cell(cell, sight.range_m[idx], size).reshape(n_rows, n_cols)
+    gaps = np.diff(sight.row_elevation_rad)
+    edges = []
+    for a, b, alpha in (
+        (rng, np.roll(rng, -1, axis=1), np.full((n_rows, 1), sight.column_rad)),
+        (rng[:-1], rng[1:], gaps[:, None]),
+    ):
+        near, gap = np.minimum(a, b), np.abs(a - b)  # NaN (an empty cell): no edge
+        beta = np.arctan2(near * np.sin(alpha), near + gap - near * np.cos(alpha))
+        edges.append((beta > SURFACE_ANGLE_RAD) & (gap <= JOIN_DEPTH_M + JOIN_DEPTH_FRACTION * near))  # NaN: False
+    flat = np.arange(size).reshape(n_rows, n_cols)
+    src = np.concatenate([flat[edges[0]], flat[:-1][edges[1]]])
+    dst = np.concatenate([np.roll(flat, -1, axis=1)[edges[0]], flat[1:][edges[1]]])
+    graph = coo_matrix((np.ones(len(src), bool), (src, dst)), shape=(size, size))
+    _, component = connected_components(graph, directed=False)
+    label[idx] = component[cell]
+    upright = np.zeros((n_rows, n_cols), bool)
+    upright[1:] |= edges[1]  # joined to the row below
+    upright[:-1] |= edges[1]  # joined to the row above
+    facing[idx] = upright.ravel()[cell]
+    return label, facing
+
+
+def _flanks(sight: SweepSight, picks: np.ndarray) -> np.ndarray:
+    """The returns beside each of ``picks`` (indices into ``sight``'s returns) in its row, the columns
+    either side, int [M,2] (-1: none there).
+
+    At an object's vertical edge, a bracket of another sweep may lie across the edge with its inner
+    rays on a face that recedes from that sweep's lidar: they end beyond the place although the face
+    is there. That happens a column or two wide; a place a mover left is seen through across its face,
+    so a return's evidence counts only where its neighbours either side have evidence too."""
+    n_cols = int(np.ceil(2 * np.pi / sight.column_rad))
+    at = np.full((max(len(sight.row_elevation_rad), 1), n_cols), -1, np.int64)
+    at[sight.row, sight.col] = np.arange(len(sight.row))
+    row, col = sight.row[picks], sight.col[picks]
+    return np.stack([at[row, (col - 1) % n_cols], at[row, (col + 1) % n_cols]], axis=1)
+
+
+def _samples(label: np.ndarray, n_objects: int) -> np.ndarray:
+    """Up to about ``SAMPLES_PER_OBJECT`` returns of each object (``label`` [N], -1: none), spread
+    over it: indices, int [M]."""
+    members = np.flatnonzero(label >= 0)
+    members = members[np.argsort(label[members], kind="stable")]  # grouped by object, in order
+    size = np.bincount(label[members], minlength=n_objects)
+    first = np.concatenate([[0], np.cumsum(size)[:-1]])
+    of = label[members]
+    rank = np.arange(len(members)) - first[of]
+    step = np.maximum(size // SAMPLES_PER_OBJECT, 1)
+    return members[rank % step[of] == 0]
+
+
+@dataclass
+class SweepFlags:
+    """What :func:`flag_sweep` found for one sweep's returns (its units' in order).
+
+    Attributes:
+        points_m: the returns, fixed frame, float64 [N,3].
+        evidence: sampled, and seen through by another sweep with the returns either side of it
+            (:func:`flag_sweep`), bool [N].
+        objects: which object each return belongs to (-1: the ground), int [N].
+        dynamic: on a mover, bool [N].
+        samples: the returns tested, up to ``SAMPLES_PER_OBJECT`` of each object, int [M].
+    """
+
+    points_m: np.ndarray
+    evidence: np.ndarray
+    objects: np.ndarray
+    dynamic: np.ndarray
+    samples: np.ndarray
+
+    def unit_parts(self, own: list[SweepSight]) -> list[np.ndarray]:
+        """``dynamic`` split by unit (``own``: the units the sweep was made of)."""
+        bounds = np.cumsum([0] + [len(unit.points_m) for unit in own])
+        return [self.dynamic[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def flag_sweep(own: list[SweepSight], others: list[list[SweepSight]]) -> SweepFlags:
+    """The movers among one sweep's returns (``own``: its units), from the sweeps ``others`` (each a
+    list of its units' :class:`SweepSight`): every return of an object enough of whose sampled returns
+    (``SAMPLES_PER_OBJECT``; ``MIN_EVIDENCE``, ``MIN_EVIDENCE_SHARE``) other sweeps saw through, and
+    the returns either side of them too (:func:`_flanks`)."""
+    xyz = np.concatenate([unit.points_m for unit in own])
+    bounds = np.cumsum([0] + [len(unit.points_m) for unit in own])
+    clearance_m = ground_clearance_m(xyz)
+    label = np.full(len(xyz), -1, np.int64)
+    facing = np.zeros(len(xyz), bool)
+    n_objects = 0
+    for unit, a, b in zip(own, bounds[:-1], bounds[1:], strict=True):
+        part, facing[a:b] = objects(unit, clearance_m[a:b] > OBJECT_CLEARANCE_M)
+        label[a:b] = np.where(part >= 0, part + n_objects, -1)
+        n_objects += int(part.max()) + 1 if len(part) else 0
+    # tested: the returns off the ground on surfaces that face the lidar (a line of sight along a roof
+    # at the lidar's height lands beyond the place beside it)
+    picks = _samples(np.where((clearance_m > GROUND_CLEARANCE_M) & facing, label, -1), n_objects)
+    flanks = np.full((len(picks), 2), -1, np.int64)
+    for unit, a, b in zip(own, bounds[:-1], bounds[1:], strict=True):
+        mine = (picks >= a) & (picks < b)
+        beside = _flanks(unit, picks[mine] - a)
+        flanks[mine] = np.where(beside >= 0, beside + a, -1)
+    tested = np.unique(np.concatenate([picks, flanks[flanks >= 0]]))
+    seen_through = np.zeros(len(xyz), bool)
+    for units in others:
+        for sight in units:
+            seen_through[tested] |= sight.passed(xyz[tested])
+    evidence = np.zeros(len(xyz), bool)
+    evidence[picks] = seen_through[picks] & (flanks >= 0).all(axis=1) & seen_through[flanks].all(axis=1)
+    size = np.bincount(label[picks], minlength=n_objects)
+    hits = np.bincount(label[picks], evidence[picks], n_objects)
+    moving = (hits >= MIN_EVIDENCE) & (hits >= MIN_EVIDENCE_SHARE * size)
+    return SweepFlags(xyz, evidence, label, (label >= 0) & moving[np.maximum(label, 0)], picks)
+
+
+#: An object of one sweep is the mover flagged in the sweep before or after it when this share of its
+#: returns lie within ``FOLLOW_M`` of that mover's returns (a car at 15 m/s moves 1.5 m a sweep:
+#: most of its sides stay within a metre of where they were).
+FOLLOW_SHARE = 0.5
+FOLLOW_M = 1.0
+
+
+def follow(flags: SweepFlags, reference: SweepFlags) -> np.ndarray:
+    """The objects of ``flags`` that continue a mover of ``reference`` (the sweep before or after),
+    as flags on ``flags``' returns, bool [N]. A mover the lidar never saw through in its own sweep
+    (a car driving ahead at the ego's speed hides its own trail from every earlier sweep) is found
+    from the sweeps that did."""
+    movers = reference.points_m[reference.dynamic]
+    ok = flags.objects >= 0
+    if not len(movers) or not ok.any():
+        return np.zeros(len(ok), bool)
+    sample = flags.samples
+    distance, _ = cKDTree(movers).query(flags.points_m[sample], distance_upper_bound=FOLLOW_M)
+    n = int(flags.objects.max()) + 1
+    objects_sampled = flags.objects[sample]
+    share = np.bincount(objects_sampled, np.isfinite(distance), n) / np.maximum(
+        np.bincount(objects_sampled, minlength=n), 1
+    )
+    return ok & (share >= FOLLOW_SHARE)[np.maximum(flags.objects, 0)]
+
+
+#: The sweeps each sweep is tested against, by their distance in sweeps (a slow mover needs the far
+#: ones: 0.5 m/s moves 0.4 m in 0.8 s).
+OFFSETS = (-8, -4, -2, -1, 1, 2, 4, 8)
+
+
+class MotionWindow:
+    """Flags a log's sweeps as they stream (:meth:`push` each sweep's units, then :meth:`finish`).
+
+    Each sweep is tested against the sweeps ``OFFSETS`` away (:func:`flag_sweep`), then takes the
+    objects that continue a mover the sweep before or after it found (:func:`follow`, one hop: a
+    chain would carry a static object flagged once through the rest of the log). Within
+    ``max(OFFSETS)`` sweeps of the log's ends, where a sweep has others on one side only, the movers
+    are carried along a chain from the first (and the last) sweep with others on both sides: a car
+    driving ahead at the ego's speed hides its own trail from every earlier sweep, so the last
+    sweeps see nothing of it move. Holds ``2 * max(OFFSETS) + 1`` sweeps: memory does not grow with
+    the log."""
+
+    def __init__(self) -> None:
+        self._sights: dict[int, list[SweepSight]] = {}
+        self._found: dict[int, SweepFlags] = {}
+        self._last: SweepFlags | None = None  # the flags last handed out
+        self._next = 0  # the next sweep to hand out
+        self._pushed = 0
+
+    def push(self, units: list[SweepSight]) -> list[tuple[int, SweepFlags]]:
+        """Add the next sweep; returns the sweeps now final: (index, flags), in order."""
+        self._sights[self._pushed] = units
+        self._pushed += 1
+        return self._advance(final=False)
+
+    def finish(self) -> list[tuple[int, SweepFlags]]:
+        """The remaining sweeps' flags, in order."""
+        return self._advance(final=True)
+
+    def _advance(self, final: bool) -> list[tuple[int, SweepFlags]]:
+        reach = max(OFFSETS)
+        start = max(self._found) + 1 if self._found else 0
+        for k in range(start, self._pushed):
+            if k + reach < self._pushed or final:
+                others = [self._sights[k + d] for d in OFFSETS if 0 <= k + d < self._pushed]
+                self._found[k] = flag_sweep(self._sights[k], others)
+        ready = []
+        while self._ready(self._next, final):
+            k = self._next
+            flags = self._found[k]
+            dynamic = flags.dynamic.copy()
+            if k < reach:  # the head: carried back from the first sweep with others on both sides
+                top = min(reach, max(self._found))
+                carried = self._found[top]
+                for j in range(top - 1, k - 1, -1):
+                    found = self._found[j]
+                    carried = replace(found, dynamic=found.dynamic | follow(found, carried))
+                dynamic |= carried.dynamic
+            elif k + 1 in self._found:  # one hop from the sweep after it
+                dynamic |= follow(flags, self._found[k + 1])
+            if self._last is not None:
+                tail = final and k >= self._pushed - reach
+                dynamic |= follow(flags, self._last if tail else self._found[k - 1])  # the tail: a chain
+            self._last = replace(flags, dynamic=dynamic)
+            ready.append((k, self._last))
+            self._next += 1
+            self._found.pop(k - 1, None)
+            self._sights.pop(k - reach, None)
+        return ready
+
+    def _ready(self, k: int, final: bool) -> bool:
+        """Whether sweep ``k`` can be handed out: its flags and the next sweep's are known (in the
+        head, those up to the first sweep with others on both sides)."""
+        if k not in self._found:
+            return False
+        return final or (min(k, max(OFFSETS) - 1) + 1) in self._found and k + 1 in self._found

@@ -1,0 +1,168 @@
+"""What moves, from the lidar alone (issue 53, ``transforms.lidar.free_space``; docs/motion.md).
+
+- The bracket test on a lidar whose returns are known exactly (a wall and the street): a place is
+  seen through only where all four rays around it ended beyond it.
+- A converted synthetic TbV log (``--dynamic-source`` lidar, its default without annotations),
+  scored per point against the generator's truth (the object each return hit, and whether it moved
+  faster than 0.2 m/s then), read back as 3DGRUT reads it; a planted control (the flags flipped)
+  fails the same bounds.
+- The real AV2 sample with ``--dynamic-source lidar``: no point of a standing track's box is flagged.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import AV2_SAMPLE_LOG, component_meta, open_sequence
+from ncore.data.v4 import CuboidsComponent, LidarSensorComponent
+from ncore.impl.common.transformations import is_within_3d_bboxes
+from upath import UPath
+
+from ncore_convert import contract
+from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+from ncore_convert.transforms.lidar import free_space, vlp32c
+from ncore_convert.validate.readback import world_points
+
+LIDAR_M = np.array([0.0, 0.0, 2.0])  #: the analytic lidar's place
+WALL_X_M = 20.0  #: a wall across its view, x = 20 m; the street is z = 0
+
+
+def _analytic_sweep() -> free_space.SweepSight:
+    """A VLP-32C's rows and 0.2 degree columns from ``LIDAR_M``, returns on the street (z = 0) and on the
+    wall (x = ``WALL_X_M``, |y| < 10 m, up to 6 m), whichever each ray meets first; none elsewhere."""
+    elevation = np.radians(vlp32c.BEAM_ELEVATION_DEG)
+    azimuth = np.radians(np.arange(-180.0, 180.0, 0.2) + 0.1)
+    el, az = (a.ravel() for a in np.meshgrid(elevation, azimuth, indexing="ij"))
+    beam = np.repeat(np.arange(len(elevation)), len(azimuth))
+    direction = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_street = np.where(direction[:, 2] < 0, -LIDAR_M[2] / direction[:, 2], np.inf)
+        to_wall = np.where(direction[:, 0] > 0, (WALL_X_M - LIDAR_M[0]) / direction[:, 0], np.inf)
+        on_wall = LIDAR_M + direction * to_wall[:, None]
+    to_wall = np.where((np.abs(on_wall[:, 1]) < 10.0) & (on_wall[:, 2] < 6.0), to_wall, np.inf)
+    distance = np.minimum(to_street, to_wall)
+    hit = np.isfinite(distance) & (distance < 200.0)
+    points = LIDAR_M + direction[hit] * distance[hit, None]
+    return free_space.SweepSight(points, np.broadcast_to(LIDAR_M, points.shape), beam[hit])
+
+
+def test_a_place_is_seen_through_only_where_all_four_rays_around_it_ended_beyond_it():
+    sight = _analytic_sweep()
+    places = np.array(
+        [
+            [10.0, 0.3, 1.0],  # in the air between the lidar and the wall: seen through
+            [15.0, -2.0, 0.5],  # also
+            [WALL_X_M, 0.3, 1.0],  # on the wall: the rays end there
+            [WALL_X_M - 0.1, 0.3, 1.0],  # 10 cm before it: closer than the returns' noise
+            [30.0, 15.0, 0.0],  # on the street: the row below ends before it (a grazing ray passes over it)
+            [14.0, 12.0, 0.05],  # 5 cm over the street, beside the wall
+            [10.0, 0.3, 9.0],  # above the lidar's top row: no bracket
+            [-10.0, 0.3, 1.0],  # in the air behind it: the rays either side meet the street 20 m out
+            [-10.0, 0.3, -0.5],  # under the street: the rays end before it
+        ]
+    )
+    expected = [True, True, False, False, False, False, False, True, False]
+    assert sight.passed(places).tolist() == expected
+    # one ray beyond is not enough: the street 30 m out lies between rows whose upper ray lands
+    # beyond it, so a single-ray rule calls the street empty
+    street = np.array([[30.0 * np.cos(a), 30.0 * np.sin(a), 0.0] for a in np.radians(np.arange(100, 260, 7.0))])
+    assert not sight.passed(street).any()
+
+
+@pytest.fixture(scope="module")
+def moving_log(tmp_path_factory):
+    """A 2 s synthetic TbV log (no cameras; nothing drives through a standing object), converted
+    with the defaults: ``dynamic_flag`` from the lidar."""
+    tmp = Path(tmp_path_factory.mktemp("motion"))
+    config = SynthConfig(seconds=2.0, seed=302, tbv=True, keep_truth=True, camera_fps=0, clear_paths=True)
+    truth = write_log(UPath(tmp / "src"), config)
+    folder = tmp / "out" / truth.log_id
+    convert_log(UPath(tmp / "src"), UPath(folder), truth.log_id, Argoverse2Options(split=None))
+    return truth, open_sequence(folder, truth.log_id), folder
+
+
+def _read_flags(loader) -> list[dict[int, np.ndarray]]:
+    """Each sweep's ``dynamic_flag`` per unit (0, 1: ``av2.LIDARS``), as 3DGRUT reads them (the
+    point-cloud-source API)."""
+    sources = [loader.get_point_clouds_source(unit) for unit in av2.LIDARS]
+    return [
+        {u: s.get_pc_generic_data(i, "dynamic_flag") for u, s in enumerate(sources)}
+        for i in range(sources[0].pcs_count)
+    ]
+
+
+def _score(truth, flags: list[dict[int, np.ndarray]]) -> tuple[float, float, float]:
+    """SA, DA and the share of the moving points that 3DGRUT's rule (drop ``dynamic_flag == 1``)
+    leaves in its static cloud."""
+    static_ok = static = moving_ok = moving = kept_moving = 0
+    for k, sweep in enumerate(truth.sweeps):
+        on_mover = truth.sweep_returns(k)["moving"]
+        for u, flag in flags[k].items():
+            truly = on_mover[sweep.unit == u]
+            said = flag == 1
+            static_ok, static = static_ok + (~said & ~truly).sum(), static + (~truly).sum()
+            moving_ok, moving = moving_ok + (said & truly).sum(), moving + truly.sum()
+            kept_moving += (truly[flag != 1]).sum()
+    assert moving > 10_000 and static > 100_000
+    return static_ok / static, moving_ok / moving, kept_moving / moving
+
+
+#: Today's figures on this log, as bounds (issue 53 asks SA >= 0.995 and DA >= 0.95: not met yet,
+#: docs/motion.md); a flag flipped on every point fails them.
+SA_BOUND, DA_BOUND = 0.98, 0.85
+
+
+def test_lidar_flags_against_the_generators_truth(moving_log):
+    truth, loader, _ = moving_log
+    sa, da, kept = _score(truth, _read_flags(loader))
+    assert sa >= SA_BOUND and da >= DA_BOUND, (sa, da)
+    assert kept <= 1 - DA_BOUND, kept  # 3DGRUT's static cloud keeps no more of the movers than DA misses
+    flipped = [{u: (1 - f).astype(np.int8) for u, f in sweep.items()} for sweep in _read_flags(loader)]
+    sa, da, _ = _score(truth, flipped)
+    assert sa < SA_BOUND and da < DA_BOUND  # the planted control fails both
+
+
+def test_lidar_flags_say_where_they_come_from(moving_log):
+    _, loader, folder = moving_log
+    for unit in av2.LIDARS:
+        note = component_meta(loader, LidarSensorComponent, unit)[contract.DYNAMIC_FLAG]
+        assert note.startswith("written") and "lidar free space" in note, note
+    sequence = json.loads(next(folder.glob("*.json")).read_text())["generic_meta_data"]
+    source = sequence[contract.DYNAMIC_FLAG_SOURCE]
+    assert source["source"] == "lidar free space" and source["lidar free space"]["parameters"]["sweep_offsets"]
+
+
+def test_no_point_of_a_standing_track_is_flagged_on_the_real_sample(av2_sample_root, tmp_path):
+    """The real sample's 2 sweeps with ``--dynamic-source lidar``: no point inside a standing
+    (static) track's box is flagged. What two sweeps 0.1 s apart allow of the moving tracks is
+    reported (docs/motion.md), not bounded."""
+    out = tmp_path / AV2_SAMPLE_LOG
+    options = Argoverse2Options(split="val", dynamic_source="lidar", camera_ids=())
+    convert_log(UPath(av2_sample_root), UPath(out), AV2_SAMPLE_LOG, options)
+    loader = open_sequence(out, AV2_SAMPLE_LOG)
+    observations = list(loader.get_cuboid_track_observations())
+    dynamic = set(component_meta(loader, CuboidsComponent, "default")[contract.DYNAMIC_TRACKS])
+    standing = inside = moving = found = 0
+    for unit in av2.LIDARS:
+        source = loader.get_point_clouds_source(unit)
+        lidar = loader.get_lidar_sensor(unit)
+        for i in range(source.pcs_count):
+            flag = source.get_pc_generic_data(i, "dynamic_flag") == 1
+            start_us = int(lidar.frames_timestamps_us[i, 0])
+            xyz_world, _ = world_points(loader, unit, i)  # NCore's motion compensation, per-point times
+            T_rig_world = loader.pose_graph.evaluate_poses("rig", "world", np.array([start_us], dtype=np.uint64))[0]
+            xyz_rig = ((xyz_world - T_rig_world[:3, 3]) @ T_rig_world[:3, :3].astype(np.float64)).astype(np.float32)
+            for box in (b for b in observations if b.timestamp_us == start_us):
+                row = np.array([[*box.bbox3.centroid, *box.bbox3.dim, *box.bbox3.rot]], dtype=np.float32)
+                within = is_within_3d_bboxes(xyz_rig, row).ravel()
+                if box.track_id in dynamic:
+                    moving, found = moving + within.sum(), found + (within & flag).sum()
+                else:
+                    standing, inside = standing + within.sum(), inside + (within & flag).sum()
+    print(f"real sample, 2 sweeps: {found} of {moving} points of the moving tracks flagged")
+    assert standing > 5000 and inside == 0, (inside, standing)
