@@ -112,14 +112,16 @@ def _score(truth, flags: list[dict[int, np.ndarray]]) -> tuple[float, float, flo
     return static_ok / static, moving_ok / moving, kept_moving / moving
 
 
-#: Today's figures on this log, as bounds (issue 53 asks SA >= 0.995 and DA >= 0.95: not met yet,
-#: docs/motion.md); a flag flipped on every point fails them.
-SA_BOUND, DA_BOUND = 0.98, 0.85
+#: SA: issue 53's bound (0.9992 measured on this log); DA: today's figure through the converter, as a
+#: bound (0.9348 measured; issue 53 asks 0.95: not met on this log, docs/motion.md). A flag flipped
+#: on every point fails both.
+SA_BOUND, DA_BOUND = 0.995, 0.92
 
 
 def test_lidar_flags_against_the_generators_truth(moving_log):
     truth, loader, _ = moving_log
     sa, da, kept = _score(truth, _read_flags(loader))
+    print(f"seed 302 through the converter: SA {sa:.4f}, DA {da:.4f}, movers kept {kept:.4f}")
     assert sa >= SA_BOUND and da >= DA_BOUND, (sa, da)
     assert kept <= 1 - DA_BOUND, kept  # 3DGRUT's static cloud keeps no more of the movers than DA misses
     flipped = [{u: (1 - f).astype(np.int8) for u, f in sweep.items()} for sweep in _read_flags(loader)]
@@ -135,6 +137,42 @@ def test_lidar_flags_say_where_they_come_from(moving_log):
     sequence = json.loads(next(folder.glob("*.json")).read_text())["generic_meta_data"]
     source = sequence[contract.DYNAMIC_FLAG_SOURCE]
     assert source["source"] == "lidar free space" and source["lidar free space"]["parameters"]["sweep_offsets"]
+
+
+def test_both_keeps_every_annotated_mover_and_never_flags_a_standing_track(tmp_path):
+    """``--dynamic-source both`` on a synthetic AV2 log, against ``annotations`` on the same log:
+    every point the annotations flag stays flagged (every return on a track the converter calls
+    dynamic among them), and no return on a standing track is flagged beyond what the annotations'
+    own 0.5 m margin flags."""
+    config = SynthConfig(seconds=1.5, seed=303, keep_truth=True, camera_fps=0, clear_paths=True)
+    truth = write_log(UPath(tmp_path / "src" / "val"), config)
+    flags = {}
+    for source in ("annotations", "both"):
+        folder = tmp_path / source / truth.log_id
+        convert_log(
+            UPath(tmp_path / "src"), UPath(folder), truth.log_id, Argoverse2Options(split="val", dynamic_source=source)
+        )
+        loader = open_sequence(folder, truth.log_id)
+        flags[source] = _read_flags(loader)
+        meta = json.loads(next(folder.glob("*.json")).read_text())["generic_meta_data"][contract.DYNAMIC_FLAG_SOURCE]
+        assert meta["source"] == {"annotations": "annotations", "both": "annotations and lidar free space"}[source]
+    dynamic = set(component_meta(loader, CuboidsComponent, "default")[contract.DYNAMIC_TRACKS])
+    annotated = np.array([b.annotated for b in truth.scene.boxes])
+    on_dynamic = np.array([b.track_uuid in dynamic for b in truth.scene.boxes])
+    movers = mover_flagged = standing = standing_added = kept = annotated_flags = 0
+    for k, sweep in enumerate(truth.sweeps):
+        for u in (0, 1):
+            box = sweep.box_index[sweep.unit == u]
+            hit = box >= 0
+            mover = hit & on_dynamic[np.maximum(box, 0)]
+            still = hit & annotated[np.maximum(box, 0)] & ~mover
+            both, by_annotations = flags["both"][k][u] == 1, flags["annotations"][k][u] == 1
+            movers, mover_flagged = movers + mover.sum(), mover_flagged + (mover & both).sum()
+            standing, standing_added = standing + still.sum(), standing_added + (still & both & ~by_annotations).sum()
+            kept, annotated_flags = kept + (by_annotations & both).sum(), annotated_flags + by_annotations.sum()
+    assert movers > 1000 and mover_flagged == movers, (mover_flagged, movers)
+    assert kept == annotated_flags > 0
+    assert standing > 1000 and standing_added == 0, (standing_added, standing)
 
 
 def test_no_point_of_a_standing_track_is_flagged_on_the_real_sample(av2_sample_root, tmp_path):

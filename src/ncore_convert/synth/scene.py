@@ -326,8 +326,9 @@ def collide(a: Box, b: Box, seconds: float, margin_m: float = 0.3) -> bool:
 def _clear_paths(boxes: list[Box], seconds: float) -> list[Box]:
     """``boxes`` with nothing moving through a standing object (a parked car, a bollard) during the log:
     a parked car in a moving vehicle's way stands further from it (in 0.25 m steps, up to 2 m; else
-    it is left out; a bollard it then stands on is left out), and a pedestrian who would walk through
-    a standing object is left out. Real
+    it is left out; a bollard it then stands on is left out), a moving vehicle that would drive
+    through one before it is left out, and a pedestrian who would walk through a standing object is
+    left out. Real
     traffic goes round them, and a place two objects share is neither's (buildings aside: the
     background)."""
 
@@ -340,7 +341,12 @@ def _clear_paths(boxes: list[Box], seconds: float) -> list[Box]:
     def hits(b: Box, m: Box) -> bool:
         return collide(b, m, seconds)
 
-    vehicles = [m for m in boxes if moving(m) and m.category not in ("PEDESTRIAN", "BICYCLIST")]
+    vehicles: list[Box] = []  # the moving vehicles, each clear of those before it
+    for m in boxes:
+        if moving(m) and m.category not in ("PEDESTRIAN", "BICYCLIST") and not any(hits(m, v) for v in vehicles):
+            vehicles.append(m)
+    kept = {id(v) for v in vehicles}
+    boxes = [b for b in boxes if id(b) in kept or not moving(b) or b.category in ("PEDESTRIAN", "BICYCLIST")]
     standing = []
     for b in boxes:
         if moving(b) or b.category == "BUILDING":

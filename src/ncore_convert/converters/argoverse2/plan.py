@@ -122,7 +122,7 @@ class LogPlan:
     solids: SolidBoxes | None = None
     ego_masks: dict[str, EgoMask] | None = None
     dynamic_source: str = "annotations"
-    parked_boxes: DynamicBoxes | None = None
+    parked_boxes: tuple[DynamicBoxes, np.ndarray, np.ndarray] | None = None
 
     @property
     def moves_from_lidar(self) -> bool:
@@ -280,8 +280,12 @@ def _plan_rest(
     dynamic_source = options.dynamic_source or ("lidar" if tbv_unlabelled else "annotations")
     parked_boxes = None
     if dynamic_source == "both" and cuboid_labels is not None and dynamic_boxes is not None:
-        standing = set(map(str, inputs.annotations.track_uuids)) - set(cuboid_labels.dynamic)
-        parked_boxes = DynamicBoxes.select(_observations(inputs, T_rig_world), standing)
+        static = cuboid_labels.static_poses  # the standing tracks' median boxes, and their annotations
+        T_box_world = np.tile(np.eye(4), (len(static), 1, 1))
+        half_m = np.zeros((len(static), 3))
+        for k, (centre, R, dims) in enumerate(static.values()):
+            T_box_world[k, :3, :3], T_box_world[k, :3, 3], half_m[k] = R, centre, dims / 2
+        parked_boxes = (DynamicBoxes.select(_observations(inputs, T_rig_world), set(static)), T_box_world, half_m)
     if lidar_ids:
         generic_meta[contract.DYNAMIC_FLAG_SOURCE] = _flag_source_meta(dynamic_source, dynamic_boxes is not None)
     cameras = {

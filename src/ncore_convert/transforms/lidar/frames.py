@@ -20,6 +20,7 @@ from ncore_convert.contract import DYNAMIC_FLAG, LIDAR_RGB
 from ncore_convert.transforms.camera.colours import FILL_RGB
 from ncore_convert.transforms.geometry import transform_points
 from ncore_convert.transforms.lidar.rays import RayBundle, ray_bundle
+from ncore_convert.transforms.objects.boxes import PointGrid, points_in_box
 from ncore_convert.transforms.objects.dynamic import BOX_MARGIN_M, DynamicBoxes, dynamic_flags
 from ncore_convert.transforms.timebase import floor_us
 
@@ -34,12 +35,26 @@ class Moved:
 
     Attributes:
         found: lidar -> which of its rays are on a mover, bool [N] (stored-ray order).
-        parked: the boxes of the tracks that stand still (grown like the dynamic ones): a point in one
-            is never flagged from the lidar (``--dynamic-source both``); None: no such rule.
+        parked: the annotated boxes of the tracks that stand still, and their median boxes (box ->
+            fixed frame [S,4,4], half sizes [S,3]), all grown like the dynamic ones: a point in one is
+            never flagged from the lidar (``--dynamic-source both``); None: no such rule.
     """
 
     found: dict[str, np.ndarray]
-    parked: DynamicBoxes | None = None
+    parked: tuple[DynamicBoxes, np.ndarray, np.ndarray] | None = None
+
+    def standing(self, xyz_m: np.ndarray, timestamps_us: np.ndarray) -> np.ndarray:
+        """Which points (fixed frame, float64 [N,3], at ``timestamps_us``) lie in a standing track's
+        box (``parked``), bool [N]."""
+        inside = np.zeros(len(xyz_m), bool)
+        if self.parked is None:
+            return inside
+        annotated, T_box_frame, half_m = self.parked
+        inside |= dynamic_flags(xyz_m, timestamps_us, annotated) == 1
+        grid = PointGrid(xyz_m)
+        for T, half in zip(T_box_frame, half_m, strict=True):
+            inside[points_in_box(grid, T[:3, 3], T[:3, :3], half + BOX_MARGIN_M)] = True
+        return inside
 
 
 @dataclass
@@ -105,9 +120,7 @@ def point_data(
             dynamic = dynamic_flags(xyz, times_us, boxes) == 1
         if moved is not None:
             found = np.concatenate([moved.found[lidar] for lidar in lidars])
-            if moved.parked is not None:  # never a point in a parked car's box
-                found &= dynamic_flags(xyz, times_us, moved.parked) == 0
-            dynamic |= found
+            dynamic |= found & ~moved.standing(xyz, times_us)  # never a point in a parked car's box
         out.flag_seconds = time.perf_counter() - started
         for lidar, a, b in parts:
             out.generic[lidar][DYNAMIC_FLAG] = dynamic[a:b].astype(np.int8)

@@ -79,13 +79,15 @@ class SweepSight:
     def _column(self, azimuth_rad: np.ndarray) -> np.ndarray:
         return ((azimuth_rad + np.pi) / COLUMN_RAD).astype(np.int64) % self._n_cols
 
-    def passed(self, xyz_m: np.ndarray) -> np.ndarray:
-        """Which places ``xyz_m`` (fixed frame, [M,3]) this sweep saw through: the four rays around
-        each (the rows above and below it in the columns either side) all ended beyond it
-        (``BEYOND_M`` and ``BEYOND_FRACTION``). bool [M]."""
+    def bracket(self, xyz_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The four rays around each place ``xyz_m`` (fixed frame, [M,3]): the ranges where the rows
+        above and below it in the columns either side ended (m [M,4]; NaN: no return there, or no
+        such rows within ``MAX_ROW_GAP_RAD``), and the place's own range from where the lidar looked
+        (m [M])."""
         xyz_m = np.asarray(xyz_m, np.float64)
+        ends = np.full((len(xyz_m), 4), np.nan)
         if self._n_rows < 2 or not len(xyz_m):
-            return np.zeros(len(xyz_m), bool)
+            return ends, np.zeros(len(xyz_m))
         sight = xyz_m - self._middle_m
         origin = self._origin_m[self._column(np.arctan2(sight[:, 1], sight[:, 0]))]  # where it looked from
         sight = xyz_m - origin
@@ -93,19 +95,36 @@ class SweepSight:
         azimuth = np.arctan2(sight[:, 1], sight[:, 0])
         elevation = np.arcsin(np.clip(sight[:, 2] / np.maximum(range_m, 1e-9), -1.0, 1.0))
         left = np.floor((azimuth + np.pi) / COLUMN_RAD - 0.5).astype(np.int64)  # the columns' centres either side
-        beyond_m = range_m * (1.0 + BEYOND_FRACTION) + BEYOND_M
-        ok = np.ones(len(xyz_m), bool)
-        for col in (left % self._n_cols, (left + 1) % self._n_cols):
+        for c, col in enumerate((left % self._n_cols, (left + 1) % self._n_cols)):
             el = elevation - self._offset_rad[col]
             above = np.searchsorted(self.row_elevation_rad, el)
             inside = (above > 0) & (above < self._n_rows)
             above = np.clip(above, 1, self._n_rows - 1)
             gap = self.row_elevation_rad[above] - self.row_elevation_rad[above - 1]
-            ok &= inside & (gap <= MAX_ROW_GAP_RAD)
-            for r in (above - 1, above):
-                found = self._range_m[r * self._n_cols + col]
-                ok &= found > beyond_m  # NaN (no return): False
-        return ok
+            usable = inside & (gap <= MAX_ROW_GAP_RAD)
+            for k, r in enumerate((above - 1, above)):
+                ends[:, 2 * c + k] = np.where(usable, self._range_m[r * self._n_cols + col], np.nan)
+        return ends, range_m
+
+    def passed(self, xyz_m: np.ndarray) -> np.ndarray:
+        """Which places ``xyz_m`` (fixed frame, [M,3]) this sweep saw through: the four rays around
+        each (:meth:`bracket`) all ended beyond it (``BEYOND_M`` and ``BEYOND_FRACTION``). bool [M]."""
+        return _beyond(*self.bracket(xyz_m))
+
+    def seen_at(self, xyz_m: np.ndarray) -> np.ndarray:
+        """Which places ``xyz_m`` (fixed frame, [M,3]) this sweep saw something at: the four rays
+        around each all ended there (within ``BEYOND_M`` and ``BEYOND_FRACTION``). bool [M]."""
+        return _at(*self.bracket(xyz_m))
+
+
+def _beyond(ends_m: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+    """Whether all four rays of each bracket (``SweepSight.bracket``) ended beyond its place, bool [M]."""
+    return np.all(ends_m > (range_m * (1.0 + BEYOND_FRACTION) + BEYOND_M)[:, None], axis=1)  # NaN: False
+
+
+def _at(ends_m: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+    """Whether all four rays of each bracket ended at its place, bool [M]."""
+    return np.all(np.abs(ends_m - range_m[:, None]) <= (range_m * BEYOND_FRACTION + BEYOND_M)[:, None], axis=1)
 
 
 #: Returns this far over the ground are tested (a line of sight that grazes the street proves nothing
@@ -232,6 +251,8 @@ class SweepFlags:
         objects: which object each return belongs to (-1: the ground), int [N].
         dynamic: on a mover, bool [N].
         samples: the returns tested, up to ``SAMPLES_PER_OBJECT`` of each object, int [M].
+        settled: on an object other sweeps saw at its place (``SETTLED_SHARE`` of its samples), bool [N]:
+            it is not carried from a mover next to it (:func:`follow`).
     """
 
     points_m: np.ndarray
@@ -239,6 +260,7 @@ class SweepFlags:
     objects: np.ndarray
     dynamic: np.ndarray
     samples: np.ndarray
+    settled: np.ndarray
 
     def unit_parts(self, own: list[SweepSight]) -> list[np.ndarray]:
         """``dynamic`` split by unit (``own``: the units the sweep was made of)."""
@@ -246,7 +268,9 @@ class SweepFlags:
         return [self.dynamic[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def flag_sweep(own: list[SweepSight], others: list[list[SweepSight]]) -> SweepFlags:
+def flag_sweep(
+    own: list[SweepSight], others: list[list[SweepSight]], far: list[list[SweepSight]] | None = None
+) -> SweepFlags:
     """The movers among one sweep's returns (``own``: its units), from the sweeps ``others`` (each a
     list of its units' :class:`SweepSight`): every return of an object enough of whose sampled returns
     (``SAMPLES_PER_OBJECT``; ``MIN_EVIDENCE``, ``MIN_EVIDENCE_SHARE``) other sweeps saw through, and
@@ -269,17 +293,30 @@ def flag_sweep(own: list[SweepSight], others: list[list[SweepSight]]) -> SweepFl
         mine = (picks >= a) & (picks < b)
         beside = _flanks(unit, picks[mine] - a)
         flanks[mine] = np.where(beside >= 0, beside + a, -1)
-    tested = np.unique(np.concatenate([picks, flanks[flanks >= 0]]))
     seen_through = np.zeros(len(xyz), bool)
+    seen_at = np.zeros(len(xyz), bool)
+    far_ids = {id(units) for units in far or []}
+    for units in others:  # the samples; against the farthest sweeps, whether they were seen at their places
+        for sight in units:
+            ends_m, range_m = sight.bracket(xyz[picks])
+            seen_through[picks] |= _beyond(ends_m, range_m)
+            if id(units) in far_ids:
+                seen_at[picks] |= _at(ends_m, range_m)
+    beside = flanks[seen_through[picks]]  # then the returns beside those seen through
+    beside = np.unique(beside[beside >= 0])
     for units in others:
         for sight in units:
-            seen_through[tested] |= sight.passed(xyz[tested])
+            seen_through[beside] |= sight.passed(xyz[beside])
     evidence = np.zeros(len(xyz), bool)
     evidence[picks] = seen_through[picks] & (flanks >= 0).all(axis=1) & seen_through[flanks].all(axis=1)
     size = np.bincount(label[picks], minlength=n_objects)
     hits = np.bincount(label[picks], evidence[picks], n_objects)
     moving = (hits >= MIN_EVIDENCE) & (hits >= MIN_EVIDENCE_SHARE * size)
-    return SweepFlags(xyz, evidence, label, (label >= 0) & moving[np.maximum(label, 0)], picks)
+    settled = np.bincount(label[picks], seen_at[picks], n_objects) >= SETTLED_SHARE * size
+    on_object = label >= 0
+    return SweepFlags(
+        xyz, evidence, label, on_object & moving[np.maximum(label, 0)], picks, on_object & settled[np.maximum(label, 0)]
+    )
 
 
 #: An object of one sweep is the mover flagged in the sweep before or after it when this share of its
@@ -287,6 +324,11 @@ def flag_sweep(own: list[SweepSight], others: list[list[SweepSight]]) -> SweepFl
 #: most of its sides stay within a metre of where they were).
 FOLLOW_SHARE = 0.5
 FOLLOW_M = 1.0
+#: ... unless other sweeps saw this share of its tested returns at their places: a car parked beside
+#: a passing one is not carried with it.
+SETTLED_SHARE = 0.5
+#: Every this many of a mover's returns stand for it (they lie centimetres apart; a metre is asked).
+FOLLOW_STRIDE = 4
 
 
 def follow(flags: SweepFlags, reference: SweepFlags) -> np.ndarray:
@@ -294,7 +336,7 @@ def follow(flags: SweepFlags, reference: SweepFlags) -> np.ndarray:
     as flags on ``flags``' returns, bool [N]. A mover the lidar never saw through in its own sweep
     (a car driving ahead at the ego's speed hides its own trail from every earlier sweep) is found
     from the sweeps that did."""
-    movers = reference.points_m[reference.dynamic]
+    movers = reference.points_m[reference.dynamic][::FOLLOW_STRIDE]
     ok = flags.objects >= 0
     if not len(movers) or not ok.any():
         return np.zeros(len(ok), bool)
@@ -305,7 +347,7 @@ def follow(flags: SweepFlags, reference: SweepFlags) -> np.ndarray:
     share = np.bincount(objects_sampled, np.isfinite(distance), n) / np.maximum(
         np.bincount(objects_sampled, minlength=n), 1
     )
-    return ok & (share >= FOLLOW_SHARE)[np.maximum(flags.objects, 0)]
+    return ok & (share >= FOLLOW_SHARE)[np.maximum(flags.objects, 0)] & ~flags.settled
 
 
 #: The sweeps each sweep is tested against, by their distance in sweeps (a slow mover needs the far
@@ -348,7 +390,8 @@ class MotionWindow:
         for k in range(start, self._pushed):
             if k + reach < self._pushed or final:
                 others = [self._sights[k + d] for d in OFFSETS if 0 <= k + d < self._pushed]
-                self._found[k] = flag_sweep(self._sights[k], others)
+                far = [self._sights[k + d] for d in (-reach, reach) if 0 <= k + d < self._pushed]
+                self._found[k] = flag_sweep(self._sights[k], others, far)
         ready = []
         while self._ready(self._next, final):
             k = self._next
@@ -378,4 +421,4 @@ class MotionWindow:
         head, those up to the first sweep with others on both sides)."""
         if k not in self._found:
             return False
-        return final or (min(k, max(OFFSETS) - 1) + 1) in self._found and k + 1 in self._found
+        return final or max(k + 1, max(OFFSETS)) in self._found
