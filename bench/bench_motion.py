@@ -87,9 +87,10 @@ def _figures(sweeps: list[dict[str, np.ndarray]], flagged: list[np.ndarray]) -> 
     return {"SA": sa, "DA": da, "HA": 2 * sa * da / (sa + da), "DA first": ends[0], "DA last": ends[1]}
 
 
-def _stream(sweeps: list[dict[str, np.ndarray]]) -> tuple[list, float, float]:
+def _stream(sweeps: list[dict[str, np.ndarray]], keep: bool = True) -> tuple[list, float, float]:
     """Stream ``sweeps`` through ``MotionWindow``, each sweep's images built as it arrives: the flags
-    (index, ``SweepFlags``), the seconds building and flagging."""
+    (index, ``SweepFlags``; none unless ``keep``: a converter hands each on), the seconds building and
+    flagging."""
     built = spent = 0.0
     window, flagged = free_space.MotionWindow(), []
     for s in sweeps:
@@ -100,10 +101,11 @@ def _stream(sweeps: list[dict[str, np.ndarray]]) -> tuple[list, float, float]:
         ]
         built += time.perf_counter() - started
         started = time.perf_counter()
-        flagged += window.push(units)
+        ready = window.push(units)
         spent += time.perf_counter() - started
+        flagged += ready if keep else []
     started = time.perf_counter()
-    flagged += window.finish()
+    flagged += window.finish() if keep else []
     return flagged, built, spent + time.perf_counter() - started
 
 
@@ -111,7 +113,7 @@ def peak_mb(sweeps: list[dict[str, np.ndarray]]) -> float:
     """The most memory (MB, numpy's arrays through tracemalloc) streaming ``sweeps`` holds at once."""
     tracemalloc.start()
     base = tracemalloc.get_traced_memory()[0]
-    _stream(sweeps)
+    _stream(sweeps, keep=False)
     peak = tracemalloc.get_traced_memory()[1] - base
     tracemalloc.stop()
     return peak / 1e6

@@ -112,8 +112,8 @@ def _score(truth, flags: list[dict[int, np.ndarray]]) -> tuple[float, float, flo
     return static_ok / static, moving_ok / moving, kept_moving / moving
 
 
-#: SA: issue 53's bound (0.9992 measured on this log); DA: today's figure through the converter, as a
-#: bound (0.9348 measured; issue 53 asks 0.95: not met on this log, docs/motion.md). A flag flipped
+#: SA: issue 53's bound (1.0000 measured on this log); DA: today's figure through the converter, as a
+#: bound (0.9333 measured; issue 53 asks 0.95: not met on this log, docs/motion.md). A flag flipped
 #: on every point fails both.
 SA_BOUND, DA_BOUND = 0.995, 0.92
 
@@ -121,7 +121,6 @@ SA_BOUND, DA_BOUND = 0.995, 0.92
 def test_lidar_flags_against_the_generators_truth(moving_log):
     truth, loader, _ = moving_log
     sa, da, kept = _score(truth, _read_flags(loader))
-    print(f"seed 302 through the converter: SA {sa:.4f}, DA {da:.4f}, movers kept {kept:.4f}")
     assert sa >= SA_BOUND and da >= DA_BOUND, (sa, da)
     assert kept <= 1 - DA_BOUND, kept  # 3DGRUT's static cloud keeps no more of the movers than DA misses
     flipped = [{u: (1 - f).astype(np.int8) for u, f in sweep.items()} for sweep in _read_flags(loader)]
