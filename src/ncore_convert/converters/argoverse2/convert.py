@@ -181,7 +181,8 @@ def _sweeps(plan: LogPlan, colours: SweepColours | None, motion: bool = False) -
     ``motion``: with what the lidar itself saw move (``plan.dynamic_source`` lidar or both; the
     frames are held a few sweeps for it, :func:`motion.with_motion`)."""
     frames = _frames(plan)
-    boxes = plan.dynamic_boxes if plan.dynamic_source != "lidar" else None
+    # the stored flags follow --dynamic-source; the label jobs (no motion) keep the annotated movers
+    boxes = plan.dynamic_boxes if plan.dynamic_source != "lidar" or not motion else None
     colouring = None if colours is None else colours.colours
     if not (motion and plan.moves_from_lidar):
         for sweep_ns, frame, geometry, _ in frames:
