@@ -23,6 +23,8 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+from ncore_convert.converters.argoverse2.convert import _sweeps as label_sweeps
+from ncore_convert.converters.argoverse2.plan import plan_log
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.transforms.lidar import free_space, vlp32c
@@ -142,7 +144,7 @@ def test_both_keeps_every_annotated_mover_and_never_flags_a_standing_track(tmp_p
     """``--dynamic-source both`` on a synthetic AV2 log, against ``annotations`` on the same log:
     every point the annotations flag stays flagged (every return on a track the converter calls
     dynamic among them), and no return on a standing track is flagged beyond what the annotations'
-    own 0.5 m margin flags."""
+    own 0.5 m margin flags. The camera-label jobs keep the annotated movers under ``lidar``."""
     config = SynthConfig(seconds=1.5, seed=303, keep_truth=True, camera_fps=0, clear_paths=True)
     truth = write_log(UPath(tmp_path / "src" / "val"), config)
     flags = {}
@@ -172,6 +174,13 @@ def test_both_keeps_every_annotated_mover_and_never_flags_a_standing_track(tmp_p
     assert movers > 1000 and mover_flagged == movers, (mover_flagged, movers)
     assert kept == annotated_flags > 0
     assert standing > 1000 and standing_added == 0, (standing_added, standing)
+    # the camera-label jobs' points keep the annotated movers whatever --dynamic-source says (under
+    # `lidar` they would otherwise take every point as static: stale movers in the depth labels)
+    options = Argoverse2Options(split="val", dynamic_source="lidar", ego_masks="none")
+    plan = plan_log(UPath(tmp_path / "src"), truth.log_id, options)
+    for k, (_, _, data) in enumerate(label_sweeps(plan, None)):
+        annotated_flags = np.concatenate([flags["annotations"][k][u] for u in (0, 1)]) == 1
+        assert np.array_equal(data.dynamic, annotated_flags)
 
 
 def test_no_point_of_a_standing_track_is_flagged_on_the_real_sample(av2_sample_root, tmp_path):
