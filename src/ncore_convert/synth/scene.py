@@ -328,9 +328,8 @@ def _clear_paths(boxes: list[Box], seconds: float) -> list[Box]:
     a parked car in a moving vehicle's way stands further from it (in 0.25 m steps, up to 2 m; else
     it is left out; a bollard it then stands on is left out), a moving vehicle that would drive
     through one before it is left out, and a pedestrian who would walk through a standing object is
-    left out. Real
-    traffic goes round them, and a place two objects share is neither's (buildings aside: the
-    background)."""
+    left out. Real traffic goes round them, and a place two objects share is neither's (buildings
+    aside: the background)."""
 
     def moving(b: Box) -> bool:
         return bool(np.any(b.velocity_mps))
@@ -338,12 +337,13 @@ def _clear_paths(boxes: list[Box], seconds: float) -> list[Box]:
     times_s = np.arange(0.0, seconds + 0.05, 0.05)
     paths = {id(m): m.center_m(times_s)[:, :2] for m in boxes if moving(m)}
 
-    def hits(b: Box, m: Box) -> bool:
-        return collide(b, m, seconds)
-
     vehicles: list[Box] = []  # the moving vehicles, each clear of those before it
     for m in boxes:
-        if moving(m) and m.category not in ("PEDESTRIAN", "BICYCLIST") and not any(hits(m, v) for v in vehicles):
+        if (
+            moving(m)
+            and m.category not in ("PEDESTRIAN", "BICYCLIST")
+            and not any(collide(m, v, seconds) for v in vehicles)
+        ):
             vehicles.append(m)
     kept = {id(v) for v in vehicles}
     boxes = [b for b in boxes if id(b) in kept or not moving(b) or b.category in ("PEDESTRIAN", "BICYCLIST")]
@@ -353,7 +353,7 @@ def _clear_paths(boxes: list[Box], seconds: float) -> list[Box]:
             standing.append(b)
             continue
         for _ in range(9):
-            blocking = [m for m in vehicles if hits(b, m)]
+            blocking = [m for m in vehicles if collide(b, m, seconds)]
             if not blocking:
                 standing.append(b)
                 break
@@ -361,9 +361,9 @@ def _clear_paths(boxes: list[Box], seconds: float) -> list[Box]:
             away = b.center0_m[:2] - path[np.argmin(np.linalg.norm(path - b.center0_m[:2], axis=1))]
             b = replace(b, center0_m=b.center0_m + np.append(0.25 * away / max(np.linalg.norm(away), 1e-9), 0.0))
     parked = [b for b in standing if not moving(b) and b.category == "REGULAR_VEHICLE"]
-    standing = [b for b in standing if b.category != "BOLLARD" or not any(hits(b, car) for car in parked)]
+    standing = [b for b in standing if b.category != "BOLLARD" or not any(collide(b, car, seconds) for car in parked)]
     still = [b for b in standing if not moving(b) and b.category != "BUILDING"]
-    return [b for b in standing if b.category != "PEDESTRIAN" or not any(hits(b, s) for s in still)]
+    return [b for b in standing if b.category != "PEDESTRIAN" or not any(collide(b, s, seconds) for s in still)]
 
 
 EGO_FRONT_M, EGO_HALF_WIDTH_M = 3.9, 0.98  #: the ego's front bumper ahead of its origin, its half width

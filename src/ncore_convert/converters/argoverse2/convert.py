@@ -181,8 +181,7 @@ def _sweeps(plan: LogPlan, colours: SweepColours | None, motion: bool = False) -
     ``motion``: with what the lidar itself saw move (``plan.dynamic_source`` lidar or both; the
     frames are held a few sweeps for it, :func:`motion.with_motion`)."""
     frames = _frames(plan)
-    # the stored flags follow --dynamic-source; the label jobs (no motion) keep the annotated movers
-    boxes = plan.dynamic_boxes if plan.dynamic_source != "lidar" or not motion else None
+    boxes = plan.stored_flag_boxes if motion else plan.dynamic_boxes  # the label jobs keep the annotated movers
     colouring = None if colours is None else colours.colours
     if not (motion and plan.moves_from_lidar):
         for sweep_ns, frame, geometry, _ in frames:
@@ -204,7 +203,7 @@ def _write_lidars(
     calibration = plan.lidar_calibration
     colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
     flag_meta = point_data_notes(
-        plan.dynamic_boxes if plan.dynamic_source != "lidar" else None,
+        plan.stored_flag_boxes,
         "TbV has no cuboids" if plan.options.tbv else "the log has no annotations",
         plan.options.lidar_rgb,
         bool(plan.camera_ids),

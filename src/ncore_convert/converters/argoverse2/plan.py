@@ -34,7 +34,7 @@ from ncore_convert.transforms.geometry import Trajectory
 from ncore_convert.transforms.lidar import timing as lidar_timing
 from ncore_convert.transforms.objects import classes
 from ncore_convert.transforms.objects.cores import kind_of
-from ncore_convert.transforms.objects.dynamic import DynamicBoxes, SolidBoxes, TrackObservations
+from ncore_convert.transforms.objects.dynamic import DynamicBoxes, SolidBoxes, TrackObservations, static_boxes
 from ncore_convert.transforms.timebase import WindowError, floor_us, in_window
 
 #: Below this margin the unit decision is reported as a warning.
@@ -123,6 +123,12 @@ class LogPlan:
     ego_masks: dict[str, EgoMask] | None = None
     dynamic_source: str = "annotations"
     parked_boxes: tuple[DynamicBoxes, np.ndarray, np.ndarray] | None = None
+
+    @property
+    def stored_flag_boxes(self) -> DynamicBoxes | None:
+        """The boxes whose points the stored ``dynamic_flag`` flags (None with ``--dynamic-source lidar``:
+        the lidar's alone). The camera-label jobs keep ``dynamic_boxes`` whatever the source."""
+        return None if self.dynamic_source == "lidar" else self.dynamic_boxes
 
     @property
     def moves_from_lidar(self) -> bool:
@@ -280,12 +286,9 @@ def _plan_rest(
     dynamic_source = options.dynamic_source or ("lidar" if tbv_unlabelled else "annotations")
     parked_boxes = None
     if dynamic_source == "both" and cuboid_labels is not None and dynamic_boxes is not None:
-        static = cuboid_labels.static_poses  # the standing tracks' median boxes, and their annotations
-        T_box_world = np.tile(np.eye(4), (len(static), 1, 1))
-        half_m = np.zeros((len(static), 3))
-        for k, (centre, R, dims) in enumerate(static.values()):
-            T_box_world[k, :3, :3], T_box_world[k, :3, 3], half_m[k] = R, centre, dims / 2
-        parked_boxes = (DynamicBoxes.select(_observations(inputs, T_rig_world), set(static)), T_box_world, half_m)
+        static = cuboid_labels.static_poses  # the standing tracks' annotations, and their median boxes
+        observations = _observations(inputs, T_rig_world)
+        parked_boxes = (DynamicBoxes.select(observations, set(static)), *static_boxes(static))
     if lidar_ids:
         generic_meta[contract.DYNAMIC_FLAG_SOURCE] = _flag_source_meta(dynamic_source, dynamic_boxes is not None)
     cameras = {

@@ -25,6 +25,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from ncore_convert.transforms.lidar.range_image import nearest_per_cell
+
 #: A column of a sweep's image: the VLP-32C fires a cycle every 0.199 degrees at 10 Hz.
 COLUMN_RAD = np.radians(0.2)
 #: All four rays of a bracket must end this far beyond the place, and this share of its range (the
@@ -60,7 +62,7 @@ class SweepSight:
         self._n_cols = int(np.ceil(2 * np.pi / COLUMN_RAD))
         col = self._column(np.arctan2(sight[:, 1], sight[:, 0]))
         self._middle_m = np.median(origins_m, axis=0) if len(origins_m) else np.zeros(3)
-        self._range_m = _nearest_per_cell(row * self._n_cols + col, range_m, max(n_rows, 1) * self._n_cols)
+        self._range_m = nearest_per_cell(row * self._n_cols + col, range_m, max(n_rows, 1) * self._n_cols)
         # where the unit was as it looked along each column, and its attitude there (the rows' offset
         # from their median elevation)
         counts = np.bincount(col, minlength=self._n_cols)
@@ -74,7 +76,11 @@ class SweepSight:
         self._n_rows = n_rows
         self.points_m = np.asarray(points_m, np.float64)
         self.row, self.col, self.range_m = row, col, range_m
-        self.column_rad = COLUMN_RAD
+
+    @property
+    def n_cols(self) -> int:
+        """Columns in a turn."""
+        return self._n_cols
 
     def _column(self, azimuth_rad: np.ndarray) -> np.ndarray:
         return ((azimuth_rad + np.pi) / COLUMN_RAD).astype(np.int64) % self._n_cols
@@ -156,14 +162,6 @@ def ground_clearance_m(xyz_m: np.ndarray) -> np.ndarray:
     return xyz_m[:, 2] - ground[cell[:, 0], cell[:, 1]]
 
 
-def _nearest_per_cell(cell: np.ndarray, range_m: np.ndarray, size: int) -> np.ndarray:
-    """The nearest of the ranges ``range_m`` [N] in each of ``size`` cells (``cell``: flat index [N]),
-    float64 [size]; NaN where a cell has none."""
-    nearest = np.full(size, np.inf)
-    np.minimum.at(nearest, cell, range_m)
-    return np.where(np.isfinite(nearest), nearest, np.nan)
-
-
 #: Two neighbouring returns (rows or columns) are one surface when the line between them leans at
 #: least this much from the farther one's line of sight (Bogoslavskyi and Stachniss's depth
 #: clustering: a gap in depth between objects makes it flat).
@@ -180,8 +178,7 @@ def objects(sight: SweepSight, candidates: np.ndarray) -> tuple[np.ndarray, np.n
     next row) whose depths make one surface (``SURFACE_ANGLE_RAD``), int [N]; and which returns
     lie on a surface that faces the lidar (joined to the row above or below: a wall, a car's side),
     not one it grazes (a roof at the lidar's height), bool [N]."""
-    n_cols = int(np.ceil(2 * np.pi / sight.column_rad))
-    n_rows = len(sight.row_elevation_rad)
+    n_cols, n_rows = sight.n_cols, len(sight.row_elevation_rad)
     label = np.full(len(candidates), -1, np.int64)
     facing = np.zeros(len(candidates), bool)
     idx = np.flatnonzero(candidates)
@@ -189,11 +186,11 @@ def objects(sight: SweepSight, candidates: np.ndarray) -> tuple[np.ndarray, np.n
         return label, facing
     cell = sight.row[idx] * n_cols + sight.col[idx]
     size = n_rows * n_cols
-    rng = _nearest_per_cell(cell, sight.range_m[idx], size).reshape(n_rows, n_cols)
+    rng = nearest_per_cell(cell, sight.range_m[idx], size).reshape(n_rows, n_cols)
     gaps = np.diff(sight.row_elevation_rad)
     edges = []
     for a, b, alpha in (
-        (rng, np.roll(rng, -1, axis=1), np.full((n_rows, 1), sight.column_rad)),
+        (rng, np.roll(rng, -1, axis=1), np.full((n_rows, 1), COLUMN_RAD)),
         (rng[:-1], rng[1:], gaps[:, None]),
     ):
         near, gap = np.minimum(a, b), np.abs(a - b)  # NaN (an empty cell): no edge
@@ -220,7 +217,7 @@ def _flanks(sight: SweepSight, picks: np.ndarray) -> np.ndarray:
     rays on a face that recedes from that sweep's lidar: they end beyond the place although the face
     is there. That happens a column or two wide; a place a mover left is seen through across its face,
     so a return's evidence counts only where its neighbours either side have evidence too."""
-    n_cols = int(np.ceil(2 * np.pi / sight.column_rad))
+    n_cols = sight.n_cols
     at = np.full((max(len(sight.row_elevation_rad), 1), n_cols), -1, np.int64)
     at[sight.row, sight.col] = np.arange(len(sight.row))
     row, col = sight.row[picks], sight.col[picks]
@@ -246,8 +243,6 @@ class SweepFlags:
 
     Attributes:
         points_m: the returns, fixed frame, float64 [N,3].
-        evidence: sampled, and seen through by another sweep with the returns either side of it
-            (:func:`flag_sweep`), bool [N].
         objects: which object each return belongs to (-1: the ground), int [N].
         dynamic: on a mover, bool [N].
         samples: the returns tested, up to ``SAMPLES_PER_OBJECT`` of each object, int [M].
@@ -256,7 +251,6 @@ class SweepFlags:
     """
 
     points_m: np.ndarray
-    evidence: np.ndarray
     objects: np.ndarray
     dynamic: np.ndarray
     samples: np.ndarray
@@ -307,15 +301,14 @@ def flag_sweep(
     for units in others:
         for sight in units:
             seen_through[beside] |= sight.passed(xyz[beside])
-    evidence = np.zeros(len(xyz), bool)
-    evidence[picks] = seen_through[picks] & (flanks >= 0).all(axis=1) & seen_through[flanks].all(axis=1)
+    evidence = seen_through[picks] & (flanks >= 0).all(axis=1) & seen_through[flanks].all(axis=1)
     size = np.bincount(label[picks], minlength=n_objects)
-    hits = np.bincount(label[picks], evidence[picks], n_objects)
+    hits = np.bincount(label[picks], evidence, n_objects)
     moving = (hits >= MIN_EVIDENCE) & (hits >= MIN_EVIDENCE_SHARE * size)
     settled = np.bincount(label[picks], seen_at[picks], n_objects) >= SETTLED_SHARE * size
     on_object = label >= 0
     return SweepFlags(
-        xyz, evidence, label, on_object & moving[np.maximum(label, 0)], picks, on_object & settled[np.maximum(label, 0)]
+        xyz, label, on_object & moving[np.maximum(label, 0)], picks, on_object & settled[np.maximum(label, 0)]
     )
 
 

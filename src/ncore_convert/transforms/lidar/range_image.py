@@ -19,6 +19,14 @@ PASSED_MARGIN_M = 0.1
 ROW_GAP = 4  #: the lidar's rows may be this many cells apart (2 degrees: the VLP-32C's lowest are 3-4 apart)
 
 
+def nearest_per_cell(cell: np.ndarray, range_m: np.ndarray, size: int) -> np.ndarray:
+    """The nearest of the ranges ``range_m`` [N] in each of ``size`` cells (``cell``: flat index [N]),
+    float64 [size]; NaN where a cell has none."""
+    nearest = np.full(size, np.inf)
+    np.minimum.at(nearest, cell, range_m)
+    return np.where(np.isfinite(nearest), nearest, np.nan)
+
+
 class RangeImage:
     """The nearest return per direction of a sweep's points ``points_m`` [N,3] (fixed frame), each
     seen from where the lidar was as it measured it, ``origins_m`` [N,3] or [3]."""
@@ -29,10 +37,8 @@ class RangeImage:
         self._shape = (int(np.ceil(np.pi / ELEVATION_CELL_RAD)) + 1, int(np.ceil(2 * np.pi / AZIMUTH_CELL_RAD)) + 1)
         cell, range_m = self._cells(points_m, origins)
         size = self._shape[0] * self._shape[1]
-        nearest_m = np.full(size, np.inf)
-        np.minimum.at(nearest_m, cell, range_m)
-        first = np.flatnonzero(range_m == nearest_m[cell])  # each cell's nearest return (or its equals)
-        self._range_m = np.where(np.isfinite(nearest_m), nearest_m, np.nan)  # per cell (NaN: none)
+        self._range_m = nearest_per_cell(cell, range_m, size)  # per cell (NaN: none)
+        first = np.flatnonzero(range_m == self._range_m[cell])  # each cell's nearest return (or its equals)
         self._origin_m = np.tile(self._middle_m, (size, 1))  # where the lidar was as it looked there
         self._origin_m[cell[first]] = origins[first]
 

@@ -267,6 +267,16 @@ class DynamicBoxes:
 VELOCITY_SPAN_US = 100_000  #: a moving vehicle's velocity is its track's motion over this span
 
 
+def static_boxes(static: dict[str, tuple[np.ndarray, ...]]) -> tuple[np.ndarray, np.ndarray]:
+    """The static tracks' boxes (``static``: track id -> :func:`static_pose`): box -> fixed frame,
+    float64 [S,4,4], and half sizes, m [S,3], in ``static``'s order."""
+    T = np.tile(np.eye(4), (len(static), 1, 1))
+    half = np.zeros((len(static), 3))
+    for k, (centre, R, dims) in enumerate(static.values()):
+        T[k, :3, :3], T[k, :3, 3], half[k] = R, centre, dims / 2
+    return T, half
+
+
 @dataclass(frozen=True)
 class SolidBoxes:
     """The labelled objects as solid occluders (lidar colouring): each static track at its median box
@@ -299,10 +309,7 @@ class SolidBoxes:
         """``static``: track id -> :func:`static_pose` of the static tracks (as :func:`static_poses`
         gives them); ``dynamic``: the ids of the moving tracks, taken from ``observations``;
         ``kinds``: track id -> the kind of solid its object is (:func:`cores.kind_of`; missing: -1)."""
-        T = np.tile(np.eye(4), (len(static), 1, 1))
-        half = np.zeros((len(static), 3))
-        for k, (centre, R, dims) in enumerate(static.values()):
-            T[k, :3, :3], T[k, :3, 3], half[k] = R, centre, dims / 2
+        T, half = static_boxes(static)
         moving = DynamicBoxes.select(observations, dynamic, margin_m=0.0)
         track_ids = np.concatenate([np.array(list(static), dtype=str), moving.track_ids])
         kind = np.array([(kinds or {}).get(str(t), -1) for t in track_ids], dtype=np.int64)
