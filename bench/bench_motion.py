@@ -122,17 +122,22 @@ def peak_mb(sweeps: list[dict[str, np.ndarray]]) -> float:
 def score(sweeps: list[dict[str, np.ndarray]]) -> dict:
     """Stream ``sweeps`` through ``MotionWindow`` and score it."""
     flagged, built, spent = _stream(sweeps)
-    by_sweep = [None] * len(sweeps)
+    by_sweep, unknown = [None] * len(sweeps), [None] * len(sweeps)
     for k, flags in flagged:
         s = sweeps[k]
         order = np.concatenate([np.flatnonzero(s["unit"] == u) for u in (0, 1)])
-        dynamic = np.zeros(len(order), bool)
-        dynamic[order] = flags.dynamic
-        by_sweep[k] = dynamic
+        by_sweep[k], unknown[k] = np.zeros(len(order), bool), np.zeros(len(order), bool)
+        by_sweep[k][order] = flags.dynamic
+        unknown[k][order] = flags.not_judged
     moving = sum(int(s["moving"].sum()) for s in sweeps)
     static = sum(int((~s["moving"]).sum()) for s in sweeps)
+    missed = sum(int((s["moving"] & ~d).sum()) for s, d in zip(sweeps, by_sweep, strict=True))
     return {
         **_figures(sweeps, by_sweep),
+        "unknown": sum(int(u.sum()) for u in unknown) / (moving + static),
+        "static unknown": sum(int((u & ~s["moving"]).sum()) for s, u in zip(sweeps, unknown, strict=True)) / static,
+        "missed unknown": sum(int((u & s["moving"]).sum()) for s, u in zip(sweeps, unknown, strict=True))
+        / max(missed, 1),
         "build ms": 1e3 * built / len(sweeps),
         "flag ms": 1e3 * spent / len(sweeps),
         "moving share": moving / (moving + static),

@@ -74,6 +74,8 @@ EGO_MASK_MAX_FRACTION = 0.5
 DYNAMIC_FLAG = "dynamic_flag"  #: int8 [N]: 1 = the point lies in a dynamic track's box grown by 0.5 m
 #: sequence metadata: where ``dynamic_flag`` comes from (annotations, lidar free space) and how
 DYNAMIC_FLAG_SOURCE = "dynamic_flag_source"
+#: int8 [N], with flags from the lidar: 1 = whether the point moved could not be judged (its ``dynamic_flag`` is 0)
+DYNAMIC_UNKNOWN = "dynamic_flag_unknown"
 LIDAR_RGB = "rgb"  #: uint8 [N,3]: the point's colour from the cameras (3DGRUT's ``lidar_color_generic_data_name``)
 #: uint32 [K], present when K > 0: the rays whose float32 ``direction * distance`` is not the source file's point
 #: (OpenCOOD: the few with no unit direction and distance that multiply to it; transforms.lidar.rays.exact_rays)

@@ -254,24 +254,41 @@ def _check_window(report: Report, loader: SequenceLoaderV4, cuboids: CuboidColum
 
 
 def _check_dynamic_flag(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> None:
-    """Where the lidar has ``dynamic_flag``, every frame has one int8 value in {0, 1} per ray."""
+    """Where the lidar has ``dynamic_flag``, every frame has one int8 value in {0, 1} per ray; where it
+    has ``dynamic_flag_unknown`` too, the same, and never 1 on a flagged ray."""
     source = loader.get_point_clouds_source(lidar_id)
     if not source.pcs_count or not source.has_pc_generic_data(0, contract.DYNAMIC_FLAG):
         return
-    bad, lidar = [], loader.get_lidar_sensor(lidar_id)
+    with_unknown = source.has_pc_generic_data(0, contract.DYNAMIC_UNKNOWN)
+    bad, bad_unknown, lidar = [], [], loader.get_lidar_sensor(lidar_id)
     for i in range(source.pcs_count):
         try:
             flag = source.get_pc_generic_data(i, contract.DYNAMIC_FLAG)
+            unknown = source.get_pc_generic_data(i, contract.DYNAMIC_UNKNOWN) if with_unknown else None
             n = lidar.get_frame_ray_bundle_count(i)
         except (KeyError, ValueError, OSError):  # an unreadable frame: "frames readable" names it
             continue
-        if flag.dtype != np.int8 or flag.shape != (n,) or (n and flag.view(np.uint8).max() > 1):
+        if not _binary_per_ray(flag, n):
             bad.append(i)
+        elif unknown is not None and (not _binary_per_ray(unknown, n) or np.any((unknown == 1) & (flag == 1))):
+            bad_unknown.append(i)
     report.add(
         f"lidar {lidar_id}: dynamic_flag per ray",
         not bad,
         f"int8 in {{0, 1}}, one per ray; {len(bad)} of {source.pcs_count} frames not",
     )
+    if with_unknown:
+        report.add(
+            f"lidar {lidar_id}: {contract.DYNAMIC_UNKNOWN} per ray",
+            not bad_unknown,
+            f"int8 in {{0, 1}}, one per ray, 0 where dynamic_flag is 1; {len(bad_unknown)} of"
+            f" {source.pcs_count} frames not",
+        )
+
+
+def _binary_per_ray(values: np.ndarray, n: int) -> bool:
+    """Whether ``values`` is one int8 0 or 1 per ray of a frame of ``n`` rays."""
+    return values.dtype == np.int8 and values.shape == (n,) and (not n or values.view(np.uint8).max() <= 1)
 
 
 def _lidar_checks(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> list:

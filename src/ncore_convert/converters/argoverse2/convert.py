@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from upath import UPath
@@ -32,7 +32,6 @@ from ncore_convert.transforms.geometry import euler_xyz_from_rotation
 from ncore_convert.transforms.lidar.frames import (
     LidarFrame,
     LidarGeometry,
-    Moved,
     PointData,
     lidar_frame,
     point_data_notes,
@@ -189,8 +188,8 @@ def _sweeps(plan: LogPlan, colours: SweepColours | None, motion: bool = False) -
             yield sweep_ns, units, data
         return
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
-    for sweep_ns, frame, geometry, found, seconds in with_motion(frames, plan.T_rig_world, T_sensor_rig):
-        units, data = lidar_frame(frame, geometry, boxes, colouring, Moved(found, plan.parked_boxes))
+    for sweep_ns, frame, geometry, moved, seconds in with_motion(frames, plan.T_rig_world, T_sensor_rig):
+        units, data = lidar_frame(frame, geometry, boxes, colouring, replace(moved, parked=plan.parked_boxes))
         data.flag_seconds += seconds
         yield sweep_ns, units, data
 

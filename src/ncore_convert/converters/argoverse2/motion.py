@@ -14,9 +14,10 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from ncore_convert import contract
 from ncore_convert.transforms.geometry import Trajectory, transform_points
 from ncore_convert.transforms.lidar import free_space
-from ncore_convert.transforms.lidar.frames import LidarFrame, LidarGeometry
+from ncore_convert.transforms.lidar.frames import LidarFrame, LidarGeometry, Moved
 from ncore_convert.transforms.timebase import NS_PER_US
 
 #: What a lidar's metadata says of the flags the lidar itself found (``point_data_notes``).
@@ -50,8 +51,10 @@ MOTION_META = {
         "follow_stride": free_space.FOLLOW_STRIDE,
         "settled_share": free_space.SETTLED_SHARE,
     },
-    "not_known": "a point the method cannot judge (its place never seen through from another time: hidden, or"
-    " between the lidar's rows) is 0, not marked apart",
+    "judged_share": free_space.JUDGED_SHARE,
+    "not_known": "a point the method cannot judge (its object's tested returns: fewer than judged_share in view"
+    " of another sweep, all four rays around the place reaching it; hidden, beyond the range, or untested) has"
+    f" {contract.DYNAMIC_UNKNOWN} 1 (and dynamic_flag 0): consumers that read only dynamic_flag take it as static",
 }
 
 
@@ -76,10 +79,11 @@ def with_motion(
     frames: Iterator[tuple[int, LidarFrame, dict[str, LidarGeometry], np.ndarray]],
     T_rig_world: Trajectory,
     T_sensor_rig: dict[str, np.ndarray],
-) -> Iterator[tuple[int, LidarFrame, dict[str, LidarGeometry], dict[str, np.ndarray], float]]:
+) -> Iterator[tuple[int, LidarFrame, dict[str, LidarGeometry], Moved, float]]:
     """``frames`` (sweep time ns, frame, how its units' rays are made, every row's beam), each handed
-    on with what moved in it (unit -> bool per row of ``frame.rows[unit]``) and the seconds spent
-    finding it since the previous one. Holds the frames a :class:`free_space.MotionWindow` needs
+    on with what moved in it and what could not be judged (:class:`Moved`, per row of
+    ``frame.rows[unit]``; a non-finite row: neither) and the seconds spent finding it since the
+    previous one. Holds the frames a :class:`free_space.MotionWindow` needs
     ahead; memory does not grow with the log."""
     window = free_space.MotionWindow()
     held: dict[int, tuple] = {}
@@ -88,12 +92,19 @@ def with_motion(
     def hand_on(k: int, flags: free_space.SweepFlags):
         nonlocal spent
         sweep_ns, frame, geometry, sights, finite = held.pop(k)
-        found = {}
-        for (unit, rows), part, ok in zip(frame.rows.items(), flags.unit_parts(sights), finite, strict=True):
-            found[unit] = np.zeros(len(rows), bool)
-            found[unit][ok] = part
+        found, unknown = {}, {}
+        parts = zip(
+            frame.rows.items(),
+            flags.unit_parts(sights, flags.dynamic),
+            flags.unit_parts(sights, flags.not_judged),
+            finite,
+            strict=True,
+        )
+        for (unit, rows), dynamic, not_judged, ok in parts:
+            found[unit], unknown[unit] = np.zeros(len(rows), bool), np.zeros(len(rows), bool)
+            found[unit][ok], unknown[unit][ok] = dynamic, not_judged
         seconds, spent = spent, 0.0
-        return sweep_ns, frame, geometry, found, seconds
+        return sweep_ns, frame, geometry, Moved(found, unknown=unknown), seconds
 
     for k, (sweep_ns, frame, geometry, beams) in enumerate(frames):
         started = time.perf_counter()

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ncore_convert.contract import DYNAMIC_FLAG, LIDAR_RGB
+from ncore_convert.contract import DYNAMIC_FLAG, DYNAMIC_UNKNOWN, LIDAR_RGB
 from ncore_convert.transforms.camera.colours import FILL_RGB
 from ncore_convert.transforms.geometry import transform_points
 from ncore_convert.transforms.lidar.rays import RayBundle, ray_bundle
@@ -35,6 +35,7 @@ class Moved:
 
     Attributes:
         found: lidar -> which of its rays are on a mover, bool [N] (stored-ray order).
+        unknown: lidar -> which of its rays the lidar could not judge, bool [N] (None: not told).
         parked: the annotated boxes of the tracks that stand still, and their median boxes (box ->
             fixed frame [S,4,4], half sizes [S,3]), all grown like the dynamic ones: a point in one is
             never flagged from the lidar (``--dynamic-source both``); None: no such rule.
@@ -42,6 +43,7 @@ class Moved:
 
     found: dict[str, np.ndarray]
     parked: tuple[DynamicBoxes, np.ndarray, np.ndarray] | None = None
+    unknown: dict[str, np.ndarray] | None = None
 
     def standing(self, xyz_m: np.ndarray, timestamps_us: np.ndarray) -> np.ndarray:
         """Which points (fixed frame, float64 [N,3], at ``timestamps_us``) lie in a standing track's
@@ -118,12 +120,18 @@ def point_data(
         started = time.perf_counter()
         if boxes is not None:
             dynamic = dynamic_flags(xyz, times_us, boxes) == 1
+        unknown = None
         if moved is not None:
             found = np.concatenate([moved.found[lidar] for lidar in lidars])
-            dynamic |= found & ~moved.standing(xyz, times_us)  # never a point in a parked car's box
+            standing = moved.standing(xyz, times_us)
+            dynamic |= found & ~standing  # never a point in a parked car's box
+            if moved.unknown is not None:  # an annotated mover or a parked car is known
+                unknown = np.concatenate([moved.unknown[lidar] for lidar in lidars]) & ~dynamic & ~standing
         out.flag_seconds = time.perf_counter() - started
         for lidar, a, b in parts:
             out.generic[lidar][DYNAMIC_FLAG] = dynamic[a:b].astype(np.int8)
+            if unknown is not None:
+                out.generic[lidar][DYNAMIC_UNKNOWN] = unknown[a:b].astype(np.int8)
     if colouring is not None:
         started = time.perf_counter()
         rgb, coloured = colouring(xyz, times_us, dynamic, spacing_m=spacing)
@@ -227,7 +235,13 @@ def lidar_frame(
         for lidar, how in geometry.items()
     }
     if moved is not None:  # each ray's row's
-        moved = replace(moved, found={lidar: moved.found[lidar][rays[lidar].source_index] for lidar in geometry})
+        moved = replace(
+            moved,
+            found={lidar: moved.found[lidar][rays[lidar].source_index] for lidar in geometry},
+            unknown=None
+            if moved.unknown is None
+            else {lidar: moved.unknown[lidar][rays[lidar].source_index] for lidar in geometry},
+        )
     data = point_data(
         xyz_fixed, {lidar: rays[lidar].timestamp_us for lidar in geometry}, boxes, colouring, spacing, moved
     )
@@ -294,4 +308,10 @@ def point_data_notes(
             f"written: uint8 [N,3] per point, the colour of the {taken_from}; {list(FILL_RGB)} where no camera"
             " sees it (rgb_coloured_points counts the others)"
         )
-    return {DYNAMIC_FLAG: flags, LIDAR_RGB: rgb}
+    notes = {DYNAMIC_FLAG: flags, LIDAR_RGB: rgb}
+    if from_lidar:
+        notes[DYNAMIC_UNKNOWN] = (
+            "written: int8 per point, 1 = the lidar could not judge whether it moved (its dynamic_flag is 0; the"
+            " sequence metadata's dynamic_flag_source says when)"
+        )
+    return notes

@@ -133,6 +133,12 @@ def _at(ends_m: np.ndarray, range_m: np.ndarray) -> np.ndarray:
     return np.all(np.abs(ends_m - range_m[:, None]) <= (range_m * BEYOND_FRACTION + BEYOND_M)[:, None], axis=1)
 
 
+def _in_view(ends_m: np.ndarray, range_m: np.ndarray) -> np.ndarray:
+    """Whether all four rays of each bracket reached its place (ended at it or beyond): that sweep could
+    judge it. A ray that ended before it (it was hidden) or returned nothing judges nothing. bool [M]."""
+    return np.all(ends_m >= (range_m * (1.0 - BEYOND_FRACTION) - BEYOND_M)[:, None], axis=1)  # NaN: False
+
+
 #: Returns this far over the ground are tested (a line of sight that grazes the street proves nothing
 #: of a place just over it) ...
 GROUND_CLEARANCE_M = 0.2
@@ -145,6 +151,8 @@ MIN_EVIDENCE = 3
 #: How many returns of an object are tested (spread over it): the share of them seen through decides.
 SAMPLES_PER_OBJECT = 24
 MIN_EVIDENCE_SHARE = 0.1
+#: An object is judged when other sweeps had this share of its tested returns in view (:func:`_in_view`).
+JUDGED_SHARE = 0.5
 
 
 def ground_clearance_m(xyz_m: np.ndarray) -> np.ndarray:
@@ -248,6 +256,9 @@ class SweepFlags:
         samples: the returns tested, up to ``SAMPLES_PER_OBJECT`` of each object, int [M].
         settled: on an object other sweeps saw at its place (``SETTLED_SHARE`` of its samples), bool [N]:
             it is not carried from a mover next to it (:func:`follow`).
+        unknown: on an object no other sweep could judge: fewer than ``JUDGED_SHARE`` of its samples were
+            in view of one (hidden, between the rows, beyond the range), or none was tested, bool [N].
+            ``not_judged`` leaves out the movers found all the same.
     """
 
     points_m: np.ndarray
@@ -255,11 +266,18 @@ class SweepFlags:
     dynamic: np.ndarray
     samples: np.ndarray
     settled: np.ndarray
+    unknown: np.ndarray
 
-    def unit_parts(self, own: list[SweepSight]) -> list[np.ndarray]:
-        """``dynamic`` split by unit (``own``: the units the sweep was made of)."""
+    @property
+    def not_judged(self) -> np.ndarray:
+        """The returns whose motion is not known: on an object no other sweep could judge, and not
+        flagged (found from a mover next to it), bool [N]."""
+        return self.unknown & ~self.dynamic
+
+    def unit_parts(self, own: list[SweepSight], values: np.ndarray) -> list[np.ndarray]:
+        """``values`` (one per return, [N]) split by unit (``own``: the units the sweep was made of)."""
         bounds = np.cumsum([0] + [len(unit.points_m) for unit in own])
-        return [self.dynamic[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+        return [values[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
 def flag_sweep(
@@ -289,11 +307,13 @@ def flag_sweep(
         flanks[mine] = np.where(beside >= 0, beside + a, -1)
     seen_through = np.zeros(len(xyz), bool)
     seen_at = np.zeros(len(xyz), bool)
+    in_view = np.zeros(len(picks), bool)
     far_ids = {id(units) for units in far or []}
     for units in others:  # the samples; against the farthest sweeps, whether they were seen at their places
         for sight in units:
             ends_m, range_m = sight.bracket(xyz[picks])
             seen_through[picks] |= _beyond(ends_m, range_m)
+            in_view |= _in_view(ends_m, range_m)
             if id(units) in far_ids:
                 seen_at[picks] |= _at(ends_m, range_m)
     beside = flanks[seen_through[picks]]  # then the returns beside those seen through
@@ -306,9 +326,11 @@ def flag_sweep(
     hits = np.bincount(label[picks], evidence, n_objects)
     moving = (hits >= MIN_EVIDENCE) & (hits >= MIN_EVIDENCE_SHARE * size)
     settled = np.bincount(label[picks], seen_at[picks], n_objects) >= SETTLED_SHARE * size
+    judged = np.bincount(label[picks], in_view, n_objects) >= JUDGED_SHARE * np.maximum(size, 1)
     on_object = label >= 0
+    of = np.maximum(label, 0)
     return SweepFlags(
-        xyz, label, on_object & moving[np.maximum(label, 0)], picks, on_object & settled[np.maximum(label, 0)]
+        xyz, label, on_object & moving[of], picks, on_object & settled[of], on_object & ~moving[of] & ~judged[of]
     )
 
 
