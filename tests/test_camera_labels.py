@@ -449,34 +449,107 @@ def test_every_kind_of_a_camera_is_made_by_one_label_job(nine_camera_plan):
     assert all(job.label_ids == () for job in jobs if job.sensor_ids)
 
 
-def test_tbv_depth_labels_use_only_points_near_the_frame(tmp_path):
-    """TbV has no cuboids, so which points move is unknown: every point labels only frames within
-    5 ms of it. The labels are sparser but right (the same bounds against the truth, passing cars
-    included: with every point used at any time, 0.23 % of the labelled pixels showed a car where it
-    had been, against 0.04 % now), and their metadata says why."""
-    cam = "ring_front_center"
-    truth = write_log(
-        UPath(tmp_path / "src"),
-        SynthConfig(
-            seconds=1.0,
-            seed=22,
-            camera_fps=10,
-            tbv=True,
-            keep_truth=True,
-            image_cameras=(cam,),
-            pictures=2,
-            camera_scale=2,
-        ),
+TBV_CAMERAS = ("ring_front_center", "ring_side_left")
+
+
+@pytest.fixture(scope="module")
+def tbv_labelled(tmp_path_factory) -> dict[str, Converted]:
+    """A 1.5 s synthetic TbV log (two cameras, 10 fps; nothing drives through a standing
+    object) converted with ``--dynamic-source annotations`` (no flags: every point may move) and
+    with the default (the lidar's own movers), the second with ``mask.dynamic`` too."""
+    tmp_path = tmp_path_factory.mktemp("tbv-labels")
+    config = SynthConfig(
+        seconds=1.5,
+        seed=22,
+        camera_fps=10,
+        tbv=True,
+        keep_truth=True,
+        image_cameras=TBV_CAMERAS,
+        pictures=2,
+        clear_paths=True,
     )
-    options = Argoverse2Options(split=None, camera_ids=(cam,), camera_labels=("depth",), ego_masks="none")
-    summary = convert_log(UPath(tmp_path / "src"), UPath(tmp_path / "out"), truth.log_id, options)
-    run = Converted(truth, summary, tmp_path / "out", open_sequence(tmp_path / "out", truth.log_id))
+    truth = write_log(UPath(tmp_path / "src"), config)
+    runs = {}
+    for source, kinds in (("annotations", ("depth",)), ("lidar", ("depth", "dynamic"))):
+        out = tmp_path / source
+        options = Argoverse2Options(
+            split=None, camera_ids=TBV_CAMERAS, camera_labels=kinds, ego_masks="none", dynamic_source=source
+        )
+        summary = convert_log(UPath(tmp_path / "src"), UPath(out), truth.log_id, options)
+        runs[source] = Converted(truth, summary, out, open_sequence(out, truth.log_id))
+    return runs
+
+
+def test_tbv_depth_labels_without_flags_use_only_points_near_the_frame(tbv_labelled):
+    """Without flags (``--dynamic-source annotations`` on TbV: no cuboids), which points move is
+    unknown: every point labels only frames within 5 ms of it. The labels are sparser but right (the
+    same bounds against the truth, passing cars included: with every point used at any time, 0.23 %
+    of the labelled pixels showed a car where it had been, against 0.04 % then), and their metadata
+    says why. (The front camera; ring_side_left, with a car alongside, has 1.3 % occlusion errors
+    without boxes: the next test compares the two runs there.)"""
+    run, cam = tbv_labelled["annotations"], "ring_front_center"
     (labels,) = run.loader.query_camera_labels(cam, label_type=LabelType.DEPTH_Z_M)
     assert "unknown (no cuboids)" in labels.labels_generic_meta_data["moving_objects"]
     smallest, behind, ahead = _label_errors(run, cam)
     assert len(smallest) > 500
     assert np.median(smallest) <= 0.01 and np.mean(behind) <= 0.005, (np.median(smallest), np.mean(behind))
     assert np.mean(ahead) <= 0.001, ("stale surfaces", np.mean(ahead))
+
+
+def test_tbv_depth_labels_use_the_static_points_the_lidar_found(tbv_labelled):
+    """With the lidar's own flags (issue 53), the points it did not see move label frames at any
+    time of their sweep: at least twice the pixels of the run without flags (2.2 and 3.9 x measured),
+    at the same accuracy against the truth: median error <= 1 cm, and occlusion errors and stale
+    surfaces within the bounds above or no more than without flags (ring_side_left: 0.90 % occlusion
+    errors against 1.30 %; ring_front_center: 0.03 % against 0.32 %). The movers' points near the
+    frame hide what lies behind them."""
+    old, new = tbv_labelled["annotations"], tbv_labelled["lidar"]
+    for cam in TBV_CAMERAS:
+        (labels,) = new.loader.query_camera_labels(cam, label_type=LabelType.DEPTH_Z_M)
+        assert "moving_objects" not in labels.labels_generic_meta_data
+        smallest, behind, ahead = _label_errors(new, cam)
+        before, behind_before, ahead_before = _label_errors(old, cam)
+        print(f"{cam}: {len(smallest)} labelled pixels against {len(before)} without flags")
+        assert len(smallest) >= 2 * len(before), (len(smallest), len(before))
+        assert np.median(smallest) <= 0.01, np.median(smallest)
+        assert np.mean(behind) <= max(0.005, np.mean(behind_before)), (np.mean(behind), np.mean(behind_before))
+        assert np.mean(ahead) <= max(0.001, np.mean(ahead_before)), (np.mean(ahead), np.mean(ahead_before))
+
+
+def test_tbv_dynamic_masks_cover_the_movers(tbv_labelled):
+    """``mask.dynamic`` on TbV from the lidar's movers, every second frame against the movers' true
+    silhouettes (objects faster than 0.2 m/s at the frame's time, every fourth pixel): it holds >= 97 %
+    of their pixels (recall first) and covers less than twice their area. Frames with no sweep on one
+    side are all 1 and say why. (Footprints that stopped at the points, not reaching the ground, held
+    0.83 on bench seed 211: the lidar above does not see a near car's lower body.)"""
+    run = tbv_labelled["lidar"]
+    truth, loader = run.truth, run.loader
+    held = true_n = ours_n = 0
+    for cam in TBV_CAMERAS:
+        (masks,) = loader.query_camera_labels(cam, label_type=LabelType.MASK_DYNAMIC)
+        assert "lidar itself saw move" in masks.labels_generic_meta_data["from"]
+        f, cx, cy = truth.intrinsics[cam]
+        pinhole = Pinhole((f, f), (cx + 0.5, cy + 0.5), loader.get_camera_sensor(cam).model_parameters.resolution)
+        for ts in masks.label_timestamps_us[::2]:
+            label = masks.get_label(int(ts))
+            if "moving_objects_unknown" in label.generic_meta_data:
+                assert np.all(label.get_data() == 1)
+                continue
+            t_s = (int(ts) * 1000 - truth.t0_ns) * 1e-9
+            T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
+            scene_box = _box_truth(truth.scene, T_camera_city, t_s, pinhole, 4)
+            speed = np.r_[[_speed(b, t_s) for b in truth.scene.boxes], 0.0]
+            moving = speed[scene_box] > 0.2
+            ours = label.get_data()[::4, ::4] == 1
+            held, true_n, ours_n = held + np.sum(ours & moving), true_n + np.sum(moving), ours_n + np.sum(ours)
+    print(f"mask.dynamic: recall {held / true_n:.4f}, area {ours_n / true_n:.2f} x the truth's")
+    assert true_n > 1000 and held / true_n >= 0.97, held / true_n
+    assert ours_n / true_n < 2.0, ours_n / true_n
+
+
+def _speed(box, t_s: float) -> float:
+    """A scene object's true speed at ``t_s``, m/s."""
+    return float(np.linalg.norm(box.velocity_mps)) if box.move_from_s <= t_s <= box.move_until_s else 0.0
 
 
 class _Labels:
@@ -700,7 +773,11 @@ def test_preview_draws_the_depth_and_mask_labels(labelled, tmp_path):
         ("argoverse2-v4", "depth,foo", "unknown camera label 'foo'"),
         ("opv2v-v4", "instance,bar", "unknown camera label 'bar'"),
         ("tbv-v4", "depth,instance", "instance: made from the annotated boxes, and TbV has no cuboids"),
-        ("tbv-v4", "dynamic", "dynamic: made from the annotated boxes, and TbV has no cuboids"),
+        (
+            "tbv-v4",
+            "dynamic --dynamic-source annotations",
+            "dynamic: made from the annotated boxes, and TbV has no cuboids (dynamic: from the lidar's movers",
+        ),
     ],
 )
 def test_camera_labels_unknown_or_impossible_are_usage_errors(tmp_path, command, value, message):
@@ -713,7 +790,8 @@ def test_camera_labels_unknown_or_impossible_are_usage_errors(tmp_path, command,
 
     args = ["--root-dir", str(tmp_path), "--output-dir", str(tmp_path / "out"), command]
     args += {"argoverse2-v4": ["--split", "val"], "opv2v-v4": ["--split", "test"]}.get(command, [])
-    result = CliRunner().invoke(cli, [*args, "--camera-labels", value])
+    value, *more = value.split(" ")
+    result = CliRunner().invoke(cli, [*args, "--camera-labels", value, *more])
     assert result.exit_code == 2 and message in " ".join(result.output.split()), result.output
     assert not (tmp_path / "out").exists()
 

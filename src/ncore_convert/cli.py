@@ -329,9 +329,13 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, **options):
 def tbv_v4(obj: GroupOptions, log_ids, **options):
     """Argoverse 2 TbV (<root>/<log_id>) to NCore V4; per-point times reconstructed (no offset_ns)."""
     from_boxes = [kind for kind in options["camera_labels"] if kind in BOX_LABEL_KINDS]
+    if "dynamic" in from_boxes and options["dynamic_source"] in (None, "lidar", "both"):
+        from_boxes.remove("dynamic")  # from the movers the lidar itself finds
     if from_boxes:
+        lidar = " (dynamic: from the lidar's movers, without --dynamic-source annotations)"
         raise click.BadParameter(
-            f"{', '.join(from_boxes)}: made from the annotated boxes, and TbV has no cuboids",
+            f"{', '.join(from_boxes)}: made from the annotated boxes, and TbV has no cuboids"
+            + (lidar if "dynamic" in from_boxes else ""),
             param_hint="--camera-labels",
         )
     _convert(obj, "tbv-v4", log_ids, split=None, **options)

@@ -12,9 +12,13 @@ each sweep's frames are labelled once the next sweep's middle is known, so two s
 most. The views are at the cameras' full resolution, with their ego masks and the annotated boxes
 at the frames' times (:mod:`views`).
 
-Without cuboids (TbV), which points move is unknown: every point is then treated as possibly
-moving (used only within ``camera_labels.DYNAMIC_DT_US`` of its frame), so the depth labels are
-sparser but never show where a car was 50 ms earlier; the component metadata says so.
+Without cuboids (TbV), which points move comes from the lidar itself (``--dynamic-source lidar``, the
+default there; ``transforms.lidar.free_space``): the points it saw move, and those it could not
+judge, label depth only within ``camera_labels.DYNAMIC_DT_US`` of their frame, the others at any time
+of their sweep, and the movers' points near the frame hide what lies behind them; ``mask.dynamic``
+draws the movers the sweeps before and after the frame saw (:func:`mover_mask`). With
+``--dynamic-source annotations`` (no flags), every point is treated as possibly moving, so the depth
+labels are sparser but never show where a car was 50 ms earlier; the component metadata says so.
 
 A frame more than ``dynamic.HOLD_S`` before the first sweep's points or after the last one's (the
 cameras may run on beyond the lidar) gets an empty depth label (0 everywhere) and masks of whole
@@ -32,8 +36,11 @@ from ncore_convert import contract
 from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.converters.argoverse2.views import LABEL_SLACK_M, camera_views, usable_pixels
 from ncore_convert.transforms.camera import labels as camera_labels
+from ncore_convert.transforms.camera.mover_mask import mover_mask
 from ncore_convert.transforms.camera.visibility import VIEW_MARGIN, in_view
+from ncore_convert.transforms.lidar.free_space import ground_clearance_m
 from ncore_convert.transforms.lidar.range_image import RangeImage
+from ncore_convert.transforms.lidar.vlp32c import SPIN_RATE_HZ
 from ncore_convert.transforms.objects.dynamic import HOLD_S
 from ncore_convert.transforms.timebase import NS_PER_US, floor_us
 from ncore_convert.writer import CameraLabelStream, SequenceWriter
@@ -68,6 +75,31 @@ DYNAMIC_RULE = (
 )
 
 
+#: ``mask.dynamic`` without boxes (TbV, ``--dynamic-source lidar``): what its metadata says.
+LIDAR_MOVERS = {
+    "generator": "ncore-convert transforms.camera.mover_mask",
+    "from": "the points the lidar itself saw move (dynamic_flag from lidar free space) of the sweep nearest the"
+    " frame and the sweeps either side, each drawn where it was at its own time, grown by the lidar's spacing"
+    " there, if measured within a sweep period (less 5 ms) of the frame: a mover is drawn where the sweeps"
+    " before and after the frame saw it",
+    "value": "1 where a mover may be (it over-covers by up to what the mover moves in a sweep: recall first);"
+    " 0 elsewhere, which includes the movers the lidar missed (dynamic_flag_unknown, hidden parts)",
+}
+#: The lidar's sweep period (µs): how far from a frame a mover's point may be drawn (``mover_mask``).
+SWEEP_PERIOD_US = 1e6 / SPIN_RATE_HZ
+#: The lidar's widest steps between neighbouring returns, across and along its rows (rad): a point's
+#: footprint where no lidar model gives its own.
+WIDEST_STEPS_RAD = np.radians([0.2, 4.0])
+
+
+def _spacing_or_widest(xyz_world_m: np.ndarray, origins_m: np.ndarray, spacing_m: np.ndarray | None) -> np.ndarray:
+    """``spacing_m`` (m [N,2]) or, where not known (None), each point's range from where the lidar was
+    (``origins_m`` [N,3]) times ``WIDEST_STEPS_RAD``."""
+    if spacing_m is not None:
+        return spacing_m
+    return np.linalg.norm(xyz_world_m - origins_m, axis=1)[:, None] * WIDEST_STEPS_RAD
+
+
 def instance_table(plan: LogPlan) -> tuple[np.ndarray, dict[str, dict]]:
     """The sequence's instance index of every track of ``plan.solids`` (int [S+T], 1 upwards, by
     sorted track id: the same in every camera), and the table index -> track id, class and whether
@@ -93,7 +125,13 @@ class FrameLabeller:
 
     def __init__(self, plan: LogPlan, writer: SequenceWriter, camera_ids: list[str]) -> None:
         self._plan = plan
-        self._unknown_motion = plan.dynamic_boxes is None  # no cuboids: any point may be on a mover
+        # without cuboids (TbV), the movers the lidar itself found (--dynamic-source lidar) or, without
+        # those, none: then any point may be on a mover
+        self._lidar_movers = plan.dynamic_boxes is None and plan.moves_from_lidar
+        self._unknown_motion = plan.dynamic_boxes is None and not self._lidar_movers
+        # the movers' points (xyz, times, spacing) of the sweep before the held one, the held one's and
+        # the next one's (``mask.dynamic`` from the lidar's movers)
+        self._around: list[tuple | None] = [None, None, None]
         self._kinds = [kind for kind in contract.CAMERA_LABEL_KINDS if kind in plan.label_kinds]
         self._streams: dict[tuple[str, str], CameraLabelStream] = {
             (kind, cam): writer.add_camera_label(kind, cam, "EXTERNAL", {})
@@ -111,7 +149,9 @@ class FrameLabeller:
         self._sight: RangeImage | None = None
         mounts = [plan.inputs.T_sensor_ego[u][:3, 3] for u in plan.lidar_ids]
         self._lidar_rig_m = np.mean(mounts, axis=0) if mounts else np.zeros(3)  # the units' middle, rig frame
-        if any(kind in contract.BOX_LABEL_KINDS for kind in self._kinds):
+        if self._lidar_movers:
+            self._box_meta = {"dynamic": {**LIDAR_MOVERS, "sweep_period_us": SWEEP_PERIOD_US}}
+        elif any(kind in contract.BOX_LABEL_KINDS for kind in self._kinds):
             self._instance, table = instance_table(plan)
             self._dynamic = np.array([tid in plan.cuboid_labels.dynamic for tid in plan.solids.track_ids], dtype=bool)
             annotated_us = floor_us(plan.inputs.annotations.timestamps_ns)
@@ -130,18 +170,29 @@ class FrameLabeller:
         timestamps_us: np.ndarray,
         dynamic: np.ndarray,
         spacing_m: np.ndarray | None = None,
+        unknown: np.ndarray | None = None,
     ) -> None:
         """One sweep's points (``PointData.xyz_fixed_m``, ``timestamps_us``, ``dynamic``,
-        ``spacing_m``): the held sweep labels the frames up to halfway to this one, and this one is
-        held."""
+        ``spacing_m``, ``unknown``): the held sweep labels the frames up to halfway to this one, and
+        this one is held. A point whose motion the lidar could not judge (``unknown``) labels depth as
+        a mover's does (only near its time)."""
         middle_us = float(np.median(timestamps_us)) if len(timestamps_us) else np.nan
         if self._first_sweep_us is None and len(timestamps_us):
             self._first_sweep_us = float(np.min(timestamps_us))
+        movers = None
+        if self._lidar_movers:
+            spacing = _spacing_or_widest(xyz_world_m, self._lidar_origins(timestamps_us), spacing_m)
+            ground_z_m = xyz_world_m[:, 2] - ground_clearance_m(xyz_world_m)
+            movers = (xyz_world_m[dynamic], timestamps_us[dynamic], spacing[dynamic], ground_z_m[dynamic])
         if self._held is not None and np.isfinite(middle_us):
+            self._around[2] = movers
             self._label_until((self._held[5] + middle_us) / 2)
         if self._unknown_motion:
             dynamic = np.ones(len(timestamps_us), dtype=bool)
+        elif unknown is not None:
+            dynamic = dynamic | unknown
         if np.isfinite(middle_us):
+            self._around = [self._around[1], movers, None]
             self._covers, self._sight = {}, None  # the held sweep's cover maps and range image
             origins = self._lidar_origins(timestamps_us)
             self._held = (
@@ -192,7 +243,9 @@ class FrameLabeller:
                 for kind in self._kinds:
                     if kind == "depth":
                         self._store_depth(cam, view, points, reason)
-                if any(kind in contract.BOX_LABEL_KINDS for kind in self._kinds):
+                if self._lidar_movers and "dynamic" in self._kinds:
+                    self._store_lidar_movers(cam, view, reason)
+                elif any(kind in contract.BOX_LABEL_KINDS for kind in self._kinds):
                     self._store_boxes(cam, view, None if reason else points, reason)
         self.seconds += time.perf_counter() - started
 
@@ -201,9 +254,39 @@ class FrameLabeller:
             depth = np.zeros(view.pinhole.resolution_px[::-1], np.float32)
             meta = {"no_measurement": reason}
         else:
-            depth = camera_labels.depth_z(view, *points[:4])
+            movers = self._movers_near(view.timestamp_us)
+            depth = camera_labels.depth_z(view, *points[:4], hiding=None if movers is None else movers[:2])
             meta = {"sweep_median_time_us": round(self._held[5])}
         self._streams["depth", cam].store_label(depth, view.timestamp_us, meta)
+        self.labels += 1
+
+    def _movers_near(self, t_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The lidar's movers' points of the sweeps around the held one measured within a sweep of
+        ``t_us`` (less ``camera_labels.DYNAMIC_DT_US``), fixed frame [M,3], their spacing [M,2] and the
+        ground's height under them [M]: where a mover may be at that time
+        (:func:`mover_mask`). None: no lidar movers."""
+        if not self._lidar_movers:
+            return None
+        around = [a for a in self._around if a is not None]
+        xyz, times_us, spacing, ground_z_m = (np.concatenate([a[k] for a in around]) for k in range(4))
+        near = np.abs(times_us - t_us) < SWEEP_PERIOD_US - camera_labels.DYNAMIC_DT_US
+        return xyz[near], spacing[near], ground_z_m[near]
+
+    def _store_lidar_movers(self, cam: str, view, reason: str) -> None:
+        """``mask.dynamic`` of one frame from the movers the lidar found in the sweeps around it
+        (:func:`mover_mask`); all 1 where there is no sweep near it (``reason``)."""
+        width, height = view.pinhole.resolution_px
+        if not reason and None in (self._around[0], self._around[2]) and len(self._plan.sweep_timestamps_ns) > 1:
+            # the first sweep's frames before its middle, the last one's after it: no sweep on one side
+            before = self._around[0] is None and view.timestamp_us < self._held[5]
+            if before or (self._around[2] is None and view.timestamp_us > self._held[5]):
+                reason = "no sweep on one side of the frame: where a mover is at its time is not bracketed"
+        if reason:
+            mask, meta = np.ones((height, width), bool), {"moving_objects_unknown": reason}
+        else:
+            mask = mover_mask(view, *self._movers_near(view.timestamp_us))
+            meta = {"sweep_median_time_us": round(self._held[5])}
+        self._streams["dynamic", cam].store_label(mask, view.timestamp_us, meta)
         self.labels += 1
 
     def _store_boxes(self, cam: str, view, points: tuple | None, reason: str) -> None:

@@ -141,11 +141,17 @@ class LogPlan:
 
     @property
     def label_kinds(self) -> tuple[str, ...]:
-        """The ``--camera-labels`` kinds written: depth needs the lidars, the masks the annotated boxes."""
+        """The ``--camera-labels`` kinds written: depth needs the lidars, the masks the annotated boxes
+        (``dynamic`` without them: the movers the lidar itself found)."""
+        from_lidar = self.dynamic_boxes is None and self.moves_from_lidar
         return tuple(
             kind
             for kind in self.options.camera_labels
-            if (self.solids is not None if kind in contract.BOX_LABEL_KINDS else bool(self.lidar_ids))
+            if (
+                self.solids is not None or (kind == "dynamic" and from_lidar)
+                if kind in contract.BOX_LABEL_KINDS
+                else bool(self.lidar_ids)
+            )
         )
 
     @property

@@ -44,6 +44,7 @@ def depth_z(
     timestamps_us: np.ndarray,
     dynamic: np.ndarray,
     spacing_m: np.ndarray | None = None,
+    hiding: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """The depth label of ``view`` (see the module docstring).
 
@@ -54,6 +55,9 @@ def depth_z(
         dynamic: the points on moving objects (``dynamic_flag``), bool [N].
         spacing_m: the lidar's spacing between neighbouring returns at each point, across and along its
             rows, m [N,2] (None: not known; see :func:`visibility.visible_pixels`).
+        hiding: more points that hide what lies behind them but label nothing, fixed frame, float64
+            [H,3], and their spacing, m [H,2] (without boxes: the movers' points drawn by
+            :func:`mover_mask`, where the sweeps around the frame saw them). None: none.
 
     Returns:
         float32 [height,width]: z in metres of the nearest visible point per pixel, 0 where none.
@@ -69,7 +73,12 @@ def depth_z(
     spacing = None if spacing_m is None else spacing_m[usable]
     dt_s = (view.timestamp_us - np.asarray(timestamps_us, dtype=np.int64)[stale]) * 1e-6
     stale_spacing = None if spacing_m is None else spacing_m[stale]
-    rows, cols, lines = visible_pixels(view, xyz_world_m[usable], spacing, xyz_world_m[stale], dt_s, stale_spacing)
+    labelled_m = xyz_world_m[usable]
+    if hiding is not None and spacing is not None:
+        labelled_m, spacing = np.concatenate([labelled_m, hiding[0]]), np.concatenate([spacing, hiding[1]])
+    rows, cols, lines = visible_pixels(view, labelled_m, spacing, xyz_world_m[stale], dt_s, stale_spacing)
+    labels = rows < len(usable)  # the hiding points label nothing
+    rows, cols, lines = rows[labels], cols[labels], lines[labels]
     T = view.T_world_camera
     z_m = xyz_world_m[usable[rows]] @ T[2, :3] + T[2, 3]
     pixel = lines * width + cols

@@ -73,12 +73,15 @@ class PointData:
             which are on dynamic tracks (bool [N]): what camera labels are made from.
         spacing_m: the lidar's spacing between neighbouring returns at each point, across and along
             its rows (its range times its row's angular steps), m [N,2]; None where a lidar has no model.
+        unknown: the points whose motion the lidar could not judge (``Moved.unknown``), bool [N]; None:
+            not told.
     """
 
     generic: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     coloured: dict[str, int] = field(default_factory=dict)
     flag_seconds: float = 0.0
     colour_seconds: float = 0.0
+    unknown: np.ndarray | None = None
     xyz_fixed_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     timestamps_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     dynamic: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
@@ -132,6 +135,7 @@ def point_data(
             out.generic[lidar][DYNAMIC_FLAG] = dynamic[a:b].astype(np.int8)
             if unknown is not None:
                 out.generic[lidar][DYNAMIC_UNKNOWN] = unknown[a:b].astype(np.int8)
+        out.unknown = unknown
     if colouring is not None:
         started = time.perf_counter()
         rgb, coloured = colouring(xyz, times_us, dynamic, spacing_m=spacing)
