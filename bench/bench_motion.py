@@ -15,11 +15,20 @@ unit's returns of a sweep integrated from where that unit was in the middle of t
 order, then propagated once and every sweep segmented; its milliseconds a sweep and the resident
 memory it added.
 
+``--conversion`` measures what the flags cost a whole TbV conversion: a synthetic TbV log (seed 17,
+seven ring cameras at 20 fps, ``--conversion-seconds``) converted in one process (the dataset-run
+mode's one worker per log), alternately with ``--dynamic-source lidar`` (TbV's default) and
+``annotations`` (no flags), ``--repeat`` rounds: the wall times, the seconds the flags took
+(``dynamic_flag_seconds``: building the sweeps' images, flagging, and the flags on the points), and
+their share of the conversion; medians.
+
     python bench/bench_motion.py [--seeds 203,204,205] [--seconds 4] [--dufomap]
+    python bench/bench_motion.py --conversion [--conversion-seconds 5] [--repeat 3]
 """
 
 from __future__ import annotations
 
+import shutil
 import statistics
 import time
 import tracemalloc
@@ -144,13 +153,51 @@ def score(sweeps: list[dict[str, np.ndarray]]) -> dict:
     }
 
 
+def conversion_share(work: Path, seconds: float, repeat: int) -> None:
+    """What the lidar's flags cost a whole TbV conversion (see the module docstring)."""
+    from bench_argoverse2 import cached
+
+    from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+
+    root = work / f"tbv-cost-{seconds:g}s"
+    log_id = cached(
+        root,
+        f"{seconds:g} s TbV log",
+        lambda r: write_log(UPath(r), SynthConfig(seconds=seconds, seed=17, tbv=True)).log_id,
+    )
+    runs = []
+    for _ in range(repeat):
+        run = {}
+        for source in ("lidar", "annotations"):
+            out = work / "tbv-cost-out" / source
+            shutil.rmtree(out, ignore_errors=True)
+            started = time.perf_counter()
+            summary = convert_log(UPath(root), UPath(out), log_id, Argoverse2Options(split=None, dynamic_source=source))
+            run[f"{source} s"] = time.perf_counter() - started
+            if source == "lidar":
+                run["flags s"] = summary.dynamic_flag_seconds
+        run["flags share"] = run["flags s"] / run["lidar s"]
+        run["wall share"] = (run["lidar s"] - run["annotations s"]) / run["lidar s"]
+        runs.append(run)
+        print("  " + ", ".join(f"{k} {v:.3f}" for k, v in run.items()), flush=True)
+    print(f"{seconds:g} s TbV log with its cameras, one process, medians of {repeat}:")
+    for key in runs[0]:
+        print(f"  {key:<16} {statistics.median(r[key] for r in runs):.3f}")
+    shutil.rmtree(work / "tbv-cost-out", ignore_errors=True)
+
+
 def main() -> None:
     parser = bench_parser(__doc__, repeat=1)
     parser.add_argument("--seeds", default="203,204,205")
     parser.add_argument("--seconds", type=float, default=4.0)
     parser.add_argument("--dufomap", action="store_true", help="run DUFOMap side by side (pip install dufomap)")
+    parser.add_argument("--conversion", action="store_true", help="the flags' share of a whole TbV conversion")
+    parser.add_argument("--conversion-seconds", type=float, default=5.0)
     args = parser.parse_args()
     work = work_dir(args) / "motion"
+    if args.conversion:
+        conversion_share(work, args.conversion_seconds, args.repeat)
+        return
     rows = {}
     for seed in (int(s) for s in args.seeds.split(",")):
         config = SynthConfig(seconds=args.seconds, seed=seed, tbv=True, keep_truth=True, camera_fps=0, clear_paths=True)
