@@ -129,8 +129,8 @@ class FrameLabeller:
         # those, none: then any point may be on a mover
         self._lidar_movers = plan.dynamic_boxes is None and plan.moves_from_lidar
         self._unknown_motion = plan.dynamic_boxes is None and not self._lidar_movers
-        # the movers' points (xyz, times, spacing) of the sweep before the held one, the held one's and
-        # the next one's (``mask.dynamic`` from the lidar's movers)
+        # the movers' points (xyz, times, spacing, the ground under them) of the sweep before the held one,
+        # the held one's and the next one's (``mask.dynamic`` from the lidar's movers)
         self._around: list[tuple | None] = [None, None, None]
         self._kinds = [kind for kind in contract.CAMERA_LABEL_KINDS if kind in plan.label_kinds]
         self._streams: dict[tuple[str, str], CameraLabelStream] = {
