@@ -253,12 +253,15 @@ class SweepFlags:
         points_m: the returns, fixed frame, float64 [N,3].
         objects: which object each return belongs to (-1: the ground), int [N].
         dynamic: on a mover, bool [N].
-        samples: the returns tested, up to ``SAMPLES_PER_OBJECT`` of each object, int [M].
+        samples: up to ``SAMPLES_PER_OBJECT`` returns of each object, spread over all of it, int [M]: what
+            :func:`follow` compares (an object none of whose returns were tested, a car's sills and
+            wheels under 0.2 m, is carried all the same).
         settled: on an object other sweeps saw at its place (``SETTLED_SHARE`` of its samples), bool [N]:
             it is not carried from a mover next to it (:func:`follow`).
         unknown: on an object no other sweep could judge: fewer than ``JUDGED_SHARE`` of its samples were
             in view of one (hidden, between the rows, beyond the range), or none was tested, bool [N].
             ``not_judged`` leaves out the movers found all the same.
+        tested: on an object some of whose returns were tested (off the ground, facing the lidar), bool [N].
     """
 
     points_m: np.ndarray
@@ -267,6 +270,7 @@ class SweepFlags:
     samples: np.ndarray
     settled: np.ndarray
     unknown: np.ndarray
+    tested: np.ndarray
 
     @property
     def not_judged(self) -> np.ndarray:
@@ -325,12 +329,19 @@ def flag_sweep(
     size = np.bincount(label[picks], minlength=n_objects)
     hits = np.bincount(label[picks], evidence, n_objects)
     moving = (hits >= MIN_EVIDENCE) & (hits >= MIN_EVIDENCE_SHARE * size)
-    settled = np.bincount(label[picks], seen_at[picks], n_objects) >= SETTLED_SHARE * size
+    # settled: seen at its place, so tested (an object none of whose returns were tested is not)
+    settled = (size > 0) & (np.bincount(label[picks], seen_at[picks], n_objects) >= SETTLED_SHARE * size)
     judged = np.bincount(label[picks], in_view, n_objects) >= JUDGED_SHARE * np.maximum(size, 1)
     on_object = label >= 0
     of = np.maximum(label, 0)
     return SweepFlags(
-        xyz, label, on_object & moving[of], picks, on_object & settled[of], on_object & ~moving[of] & ~judged[of]
+        xyz,
+        label,
+        on_object & moving[of],
+        _samples(label, n_objects),
+        on_object & settled[of],
+        on_object & ~moving[of] & ~judged[of],
+        on_object & (size > 0)[of],
     )
 
 
@@ -362,7 +373,13 @@ def follow(flags: SweepFlags, reference: SweepFlags) -> np.ndarray:
     share = np.bincount(objects_sampled, np.isfinite(distance), n) / np.maximum(
         np.bincount(objects_sampled, minlength=n), 1
     )
-    return ok & (share >= FOLLOW_SHARE)[np.maximum(flags.objects, 0)] & ~flags.settled
+    # an object none of whose returns were tested (a car's sills under 0.2 m, an edge no row joins) is
+    # carried too, unless it is a fragment of fewer returns than an object needs to be flagged on its
+    # own: that is no shape to follow (two returns of a parked car beside a passing one lie within a
+    # metre of it as well; the real AV2 sample has one)
+    tested = np.bincount(flags.objects[ok], flags.tested[ok], n) > 0
+    carried = (share >= FOLLOW_SHARE) & (tested | (np.bincount(flags.objects[ok], minlength=n) >= MIN_EVIDENCE))
+    return ok & carried[np.maximum(flags.objects, 0)] & ~flags.settled
 
 
 #: The sweeps each sweep is tested against, by their distance in sweeps (a slow mover needs the far
