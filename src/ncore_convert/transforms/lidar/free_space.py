@@ -51,8 +51,7 @@ class SweepSight:
         sight = np.asarray(points_m, np.float64) - origins_m
         range_m = np.linalg.norm(sight, axis=1)
         elevation = np.arcsin(np.clip(sight[:, 2] / np.maximum(range_m, 1e-9), -1.0, 1.0))
-        beam_ids, beam_of = np.unique(np.asarray(beams), return_inverse=True)
-        n_rows = len(beam_ids)
+        beam_of, n_rows = _rank(np.asarray(beams, np.int64))
         beam_el = np.bincount(beam_of, elevation, n_rows) / np.maximum(np.bincount(beam_of, minlength=n_rows), 1)
         order = np.argsort(beam_el)
         row_of_beam = np.empty(n_rows, np.int64)
@@ -164,10 +163,11 @@ def ground_clearance_m(xyz_m: np.ndarray) -> np.ndarray:
         return np.zeros(0)
     cell -= cell.min(axis=0)
     shape = tuple(cell.max(axis=0) + 1)
-    lowest = np.full(shape, np.inf)
-    np.minimum.at(lowest, (cell[:, 0], cell[:, 1]), xyz_m[:, 2])
-    ground = ndimage.minimum_filter(lowest, size=3, mode="nearest")
-    return xyz_m[:, 2] - ground[cell[:, 0], cell[:, 1]]
+    flat = cell[:, 0] * shape[1] + cell[:, 1]  # flat indices: ufunc.at and gathers are several times faster
+    lowest = np.full(shape[0] * shape[1], np.inf)
+    np.minimum.at(lowest, flat, xyz_m[:, 2])
+    ground = ndimage.minimum_filter(lowest.reshape(shape), size=3, mode="nearest").ravel()
+    return xyz_m[:, 2] - ground[flat]
 
 
 #: Two neighbouring returns (rows or columns) are one surface when the line between them leans at
@@ -232,11 +232,27 @@ def _flanks(sight: SweepSight, picks: np.ndarray) -> np.ndarray:
     return np.stack([at[row, (col - 1) % n_cols], at[row, (col + 1) % n_cols]], axis=1)
 
 
+def _rank(ids: np.ndarray) -> tuple[np.ndarray, int]:
+    """Each of ``ids`` (non-negative ints [N], a beam's laser number) as its rank among the distinct
+    ones, int [N], and how many there are (``np.unique``'s inverse, without its sort)."""
+    present = np.bincount(ids) > 0 if len(ids) else np.zeros(0, bool)
+    rank = np.cumsum(present) - 1
+    return rank[ids], int(present.sum())
+
+
+def _grouped(label: np.ndarray) -> np.ndarray:
+    """The order that groups ``label`` (non-negative ints below 2**32 [N]) by value, stable: a radix
+    sort of two 16-bit passes (numpy sorts 16-bit keys by radix; a stable sort of int64 keys is a
+    merge sort, seven times slower on a sweep's objects), int [N]."""
+    low = np.argsort((label & 0xFFFF).astype(np.uint16), kind="stable")
+    return low[np.argsort((label[low] >> 16).astype(np.uint16), kind="stable")]
+
+
 def _samples(label: np.ndarray, n_objects: int) -> np.ndarray:
     """Up to about ``SAMPLES_PER_OBJECT`` returns of each object (``label`` [N], -1: none), spread
     over it: indices, int [M]."""
     members = np.flatnonzero(label >= 0)
-    members = members[np.argsort(label[members], kind="stable")]  # grouped by object, in order
+    members = members[_grouped(label[members])]  # grouped by object, in order
     size = np.bincount(label[members], minlength=n_objects)
     first = np.concatenate([[0], np.cumsum(size)[:-1]])
     of = label[members]
@@ -261,7 +277,8 @@ class SweepFlags:
         unknown: on an object no other sweep could judge: fewer than ``JUDGED_SHARE`` of its samples were
             in view of one (hidden, between the rows, beyond the range), or none was tested, bool [N].
             ``not_judged`` leaves out the movers found all the same.
-        tested: on an object some of whose returns were tested (off the ground, facing the lidar), bool [N].
+        followable: per object, whether :func:`follow` may carry it: some of its returns were tested (off
+            the ground, facing the lidar), or it has ``MIN_EVIDENCE`` returns at least, bool [objects].
     """
 
     points_m: np.ndarray
@@ -270,7 +287,7 @@ class SweepFlags:
     samples: np.ndarray
     settled: np.ndarray
     unknown: np.ndarray
-    tested: np.ndarray
+    followable: np.ndarray
 
     @property
     def not_judged(self) -> np.ndarray:
@@ -341,7 +358,11 @@ def flag_sweep(
         _samples(label, n_objects),
         on_object & settled[of],
         on_object & ~moving[of] & ~judged[of],
-        on_object & (size > 0)[of],
+        # an object none of whose returns were tested (a car's sills under 0.2 m, an edge no row joins)
+        # may be carried too, unless it is a fragment of fewer returns than an object needs to be
+        # flagged on its own: that is no shape to follow (two returns of a parked car beside a passing
+        # one lie within a metre of it as well; the real AV2 sample has one)
+        (size > 0) | (np.bincount(label[on_object], minlength=n_objects) >= MIN_EVIDENCE),
     )
 
 
@@ -363,23 +384,17 @@ def follow(flags: SweepFlags, reference: SweepFlags) -> np.ndarray:
     (a car driving ahead at the ego's speed hides its own trail from every earlier sweep) is found
     from the sweeps that did."""
     movers = reference.points_m[reference.dynamic][::FOLLOW_STRIDE]
-    ok = flags.objects >= 0
-    if not len(movers) or not ok.any():
-        return np.zeros(len(ok), bool)
+    n = len(flags.followable)
+    if not len(movers) or not n:
+        return np.zeros(len(flags.objects), bool)
     sample = flags.samples
-    distance, _ = cKDTree(movers).query(flags.points_m[sample], distance_upper_bound=FOLLOW_M)
-    n = int(flags.objects.max()) + 1
+    xyz_m = flags.points_m[sample]
+    distance, _ = cKDTree(movers).query(xyz_m, distance_upper_bound=FOLLOW_M)
+    hit = np.isfinite(distance)
     objects_sampled = flags.objects[sample]
-    share = np.bincount(objects_sampled, np.isfinite(distance), n) / np.maximum(
-        np.bincount(objects_sampled, minlength=n), 1
-    )
-    # an object none of whose returns were tested (a car's sills under 0.2 m, an edge no row joins) is
-    # carried too, unless it is a fragment of fewer returns than an object needs to be flagged on its
-    # own: that is no shape to follow (two returns of a parked car beside a passing one lie within a
-    # metre of it as well; the real AV2 sample has one)
-    tested = np.bincount(flags.objects[ok], flags.tested[ok], n) > 0
-    carried = (share >= FOLLOW_SHARE) & (tested | (np.bincount(flags.objects[ok], minlength=n) >= MIN_EVIDENCE))
-    return ok & carried[np.maximum(flags.objects, 0)] & ~flags.settled
+    share = np.bincount(objects_sampled, hit, n) / np.maximum(np.bincount(objects_sampled, minlength=n), 1)
+    carried = (share >= FOLLOW_SHARE) & flags.followable
+    return (flags.objects >= 0) & carried[np.maximum(flags.objects, 0)] & ~flags.settled
 
 
 #: The sweeps each sweep is tested against, by their distance in sweeps (a slow mover needs the far
