@@ -14,6 +14,7 @@ time (``synth.raycast.seen_through``), each labelled pixel sampled on a 3 x 3 gr
 - depth: labelled pixels per frame; the median |error| (the smallest over the samples); occlusion
   errors (more than 0.5 m behind everything the pixel shows) and stale surfaces (more than 0.5 m in
   front of it);
+- the conversion's wall time (one process) and its label jobs' seconds (``label_seconds``);
 - ``mask.dynamic`` (default run): recall (the moving objects' true pixels the mask holds: objects
   faster than 0.2 m/s at the frame's time, every fourth pixel), the mask's area over the truth's,
   and its IoU.
@@ -24,6 +25,7 @@ time (``synth.raycast.seen_through``), each labelled pixel sampled on a 3 x 3 gr
 from __future__ import annotations
 
 import statistics
+import time
 
 import numpy as np
 from bench_argoverse2 import bench_parser, work_dir
@@ -133,7 +135,9 @@ def main() -> None:
             options = Argoverse2Options(
                 split=None, camera_ids=CAMERAS, camera_labels=kinds, dynamic_source=source, ego_masks="none"
             )
-            convert_log(UPath(root / "src"), UPath(folder), truth.log_id, options)
+            started = time.perf_counter()
+            summary = convert_log(UPath(root / "src"), UPath(folder), truth.log_id, options)
+            row[f"{source} s"], row[f"{source} label s"] = time.perf_counter() - started, summary.label_seconds
             loader = _loader(folder, truth.log_id)
             row.update({f"{source} {k}": v for k, v in depth_figures(truth, loader).items()})
             if "dynamic" in kinds:

@@ -14,8 +14,9 @@ at the frames' times (:mod:`views`).
 
 Without cuboids (TbV), which points move comes from the lidar itself (``--dynamic-source lidar``, the
 default there; ``transforms.lidar.free_space``): the points it saw move, and those it could not
-judge, label depth only within ``camera_labels.DYNAMIC_DT_US`` of their frame, the others at any time
-of their sweep, and the movers' points near the frame hide what lies behind them; ``mask.dynamic``
+judge, label depth only within ``camera_labels.DYNAMIC_DT_US`` of their frame, the others (of the
+sweep nearest the frame and the sweeps either side) at any time, and the movers' points near the
+frame hide what lies behind them; ``mask.dynamic``
 draws the movers the sweeps before and after the frame saw (:func:`mover_mask`). With
 ``--dynamic-source annotations`` (no flags), every point is treated as possibly moving, so the depth
 labels are sparser but never show where a car was 50 ms earlier; the component metadata says so.
@@ -130,8 +131,10 @@ class FrameLabeller:
         self._lidar_movers = plan.dynamic_boxes is None and plan.moves_from_lidar
         self._unknown_motion = plan.dynamic_boxes is None and not self._lidar_movers
         # the movers' points (xyz, times, spacing, the ground under them) of the sweep before the held one,
-        # the held one's and the next one's (``mask.dynamic`` from the lidar's movers)
+        # the held one's and the next one's (``mask.dynamic`` from the lidar's movers), and their static
+        # points (xyz, spacing: the depth labels)
         self._around: list[tuple | None] = [None, None, None]
+        self._statics: list[tuple | None] = [None, None, None]
         self._kinds = [kind for kind in contract.CAMERA_LABEL_KINDS if kind in plan.label_kinds]
         self._streams: dict[tuple[str, str], CameraLabelStream] = {
             (kind, cam): writer.add_camera_label(kind, cam, "EXTERNAL", {})
@@ -179,13 +182,16 @@ class FrameLabeller:
         middle_us = float(np.median(timestamps_us)) if len(timestamps_us) else np.nan
         if self._first_sweep_us is None and len(timestamps_us):
             self._first_sweep_us = float(np.min(timestamps_us))
-        movers = None
+        movers = statics = None
         if self._lidar_movers:
             spacing = _spacing_or_widest(xyz_world_m, self._lidar_origins(timestamps_us), spacing_m)
             ground_z_m = xyz_world_m[:, 2] - ground_clearance_m(xyz_world_m)
             movers = (xyz_world_m[dynamic], timestamps_us[dynamic], spacing[dynamic], ground_z_m[dynamic])
+            still = ~dynamic if unknown is None else ~dynamic & ~unknown
+            statics = (xyz_world_m[still], spacing[still])
         if self._held is not None and np.isfinite(middle_us):
             self._around[2] = movers
+            self._statics[2] = statics
             self._label_until((self._held[5] + middle_us) / 2)
         if self._unknown_motion:
             dynamic = np.ones(len(timestamps_us), dtype=bool)
@@ -193,6 +199,7 @@ class FrameLabeller:
             dynamic = dynamic | unknown
         if np.isfinite(middle_us):
             self._around = [self._around[1], movers, None]
+            self._statics = [self._statics[1], statics, None]
             self._covers, self._sight = {}, None  # the held sweep's cover maps and range image
             origins = self._lidar_origins(timestamps_us)
             self._held = (
@@ -214,7 +221,12 @@ class FrameLabeller:
         """Label the frames after the last sweep's middle (with it) and set each label's metadata."""
         self._label_until(np.inf)
         depth_meta = dict(DEPTH_GENERATOR)
-        if self._unknown_motion:
+        if self._lidar_movers:
+            depth_meta["from"] += (
+                "; and the static points (neither dynamic_flag nor dynamic_flag_unknown) of the sweeps either side;"
+                " the points the lidar saw move or could not judge only within dynamic_points_within_us"
+            )
+        elif self._unknown_motion:
             depth_meta["moving_objects"] = (
                 "unknown (no cuboids): every point is used only within"
                 f" {camera_labels.DYNAMIC_DT_US / 1000:g} ms of its frame"
@@ -255,10 +267,27 @@ class FrameLabeller:
             meta = {"no_measurement": reason}
         else:
             movers = self._movers_near(view.timestamp_us)
-            depth = camera_labels.depth_z(view, *points[:4], hiding=None if movers is None else movers[:2])
+            hiding = None if movers is None else movers[:2]
+            depth = camera_labels.depth_z(view, *self._with_statics_around(view, points[:4]), hiding=hiding)
             meta = {"sweep_median_time_us": round(self._held[5])}
         self._streams["depth", cam].store_label(depth, view.timestamp_us, meta)
         self.labels += 1
+
+    def _with_statics_around(self, view, points: tuple) -> tuple:
+        """The held sweep's ``points`` (xyz, times, dynamic, spacing) and, with the lidar's movers, the
+        static points of the sweeps before and after it that ``view`` may see: a static point is still
+        there at the frame's time, whichever sweep saw it (three sweeps' points: about 2.5x the labelled
+        pixels of the held sweep's alone, and fewer occlusion errors: the denser points hide more of
+        what lies behind them; docs/motion.md)."""
+        xyz, times_us, dynamic, spacing = points
+        for other in (self._statics[0], self._statics[2]):
+            if other is None or spacing is None:
+                continue
+            near, _ = in_view(view, other[0], VIEW_MARGIN)
+            xyz, spacing = np.concatenate([xyz, other[0][near]]), np.concatenate([spacing, other[1][near]])
+            times_us = np.concatenate([times_us, np.full(len(near), view.timestamp_us, times_us.dtype)])
+            dynamic = np.concatenate([dynamic, np.zeros(len(near), bool)])
+        return xyz, times_us, dynamic, spacing
 
     def _movers_near(self, t_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The lidar's movers' points of the sweeps around the held one measured within a sweep of
