@@ -22,8 +22,15 @@ mode's one worker per log), alternately with ``--dynamic-source lidar`` (TbV's d
 (``dynamic_flag_seconds``: building the sweeps' images, flagging, and the flags on the points), and
 their share of the conversion; medians.
 
+``--both`` measures what ``--dynamic-source both`` adds to the annotations on AV2: a synthetic AV2
+log per seed whose annotators missed every other moving track (their rows taken out of
+``annotations.feather``, as for a class outside the taxonomy), converted with ``annotations`` and
+with ``both``; per point against the truth: SA, DA over every mover, DA over the unannotated movers,
+and the standing tracks' points flagged.
+
     python bench/bench_motion.py [--seeds 203,204,205] [--seconds 4] [--dufomap]
     python bench/bench_motion.py --conversion [--conversion-seconds 5] [--repeat 3]
+    python bench/bench_motion.py --both [--seeds 203,204,205] [--seconds 4]
 """
 
 from __future__ import annotations
@@ -186,6 +193,70 @@ def conversion_share(work: Path, seconds: float, repeat: int) -> None:
     shutil.rmtree(work / "tbv-cost-out", ignore_errors=True)
 
 
+def both_gain(work: Path, seeds: list[int], seconds: float) -> None:
+    """What ``--dynamic-source both`` adds to annotations that miss movers (see the module docstring)."""
+    import pyarrow.compute
+    import pyarrow.feather
+    from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
+
+    from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
+    from ncore_convert.sources import argoverse2 as av2
+    from ncore_convert.synth.feather import write_feather_table
+
+    rows = {}
+    for seed in seeds:
+        root = work / f"both-{seed}"
+        shutil.rmtree(root, ignore_errors=True)
+        config = SynthConfig(seconds=seconds, seed=seed, keep_truth=True, camera_fps=0, clear_paths=True)
+        truth = write_log(UPath(root / "src" / "val"), config)
+        movers = [b for b in truth.scene.boxes if b.annotated and b.moved_m(0.0, seconds) > 1.0]
+        missed = {b.track_uuid for b in movers[::2]}
+        path = truth.log_dir / "annotations.feather"
+        table = pyarrow.feather.read_table(str(path))
+        kept = table.filter(
+            pyarrow.compute.invert(pyarrow.compute.is_in(table["track_uuid"], pyarrow.array(list(missed))))
+        )
+        write_feather_table(UPath(path), av2.ANNOTATIONS_SCHEMA, kept.to_pydict())
+        index_missed = np.array([b.track_uuid in missed for b in truth.scene.boxes] + [False])
+        standing = np.array([b.annotated and b.moved_m(0.0, seconds) == 0.0 for b in truth.scene.boxes] + [False])
+        row = {}
+        for source in ("annotations", "both"):
+            out = root / source
+            options = Argoverse2Options(split="val", dynamic_source=source, camera_ids=())
+            convert_log(UPath(root / "src"), UPath(out), truth.log_id, options)
+            loader = SequenceLoaderV4(SequenceComponentGroupsReader([UPath(out / f"{truth.log_id}.json")]))
+            sources = [loader.get_point_clouds_source(unit) for unit in av2.LIDARS]
+            counts = np.zeros(7)
+            for k, sweep in enumerate(truth.sweeps):
+                moving = truth.sweep_returns(k, MOVING_MPS)["moving"]
+                for u, points in enumerate(sources):
+                    flag = points.get_pc_generic_data(k, "dynamic_flag") == 1
+                    mine = sweep.unit == u
+                    truly, box = moving[mine], sweep.box_index[mine]
+                    unannotated = truly & index_missed[box]
+                    counts += [
+                        (~flag & ~truly).sum(),
+                        (~truly).sum(),
+                        (flag & truly).sum(),
+                        truly.sum(),
+                        (flag & unannotated).sum(),
+                        unannotated.sum(),
+                        (flag & standing[box]).sum(),
+                    ]
+            row[f"{source} SA"], row[f"{source} DA"] = counts[0] / counts[1], counts[2] / counts[3]
+            row[f"{source} DA unannotated"] = counts[4] / max(counts[5], 1)
+            row[f"{source} standing flagged"] = counts[6]
+        rows[seed] = row
+        print(
+            f"  seed {seed} ({len(missed)} of {len(movers)} moving tracks unannotated): "
+            + ", ".join(f"{k} {v:.4f}" for k, v in row.items()),
+            flush=True,
+        )
+    print(f"{seconds:g} s synthetic AV2 logs, seeds {seeds}: medians")
+    for key in next(iter(rows.values())):
+        print(f"  {key:<34} {statistics.median(r[key] for r in rows.values()):.4f}")
+
+
 def main() -> None:
     parser = bench_parser(__doc__, repeat=1)
     parser.add_argument("--seeds", default="203,204,205")
@@ -193,8 +264,12 @@ def main() -> None:
     parser.add_argument("--dufomap", action="store_true", help="run DUFOMap side by side (pip install dufomap)")
     parser.add_argument("--conversion", action="store_true", help="the flags' share of a whole TbV conversion")
     parser.add_argument("--conversion-seconds", type=float, default=5.0)
+    parser.add_argument("--both", action="store_true", help="what --dynamic-source both adds to annotations")
     args = parser.parse_args()
     work = work_dir(args) / "motion"
+    if args.both:
+        both_gain(work, [int(s) for s in args.seeds.split(",")], args.seconds)
+        return
     if args.conversion:
         conversion_share(work, args.conversion_seconds, args.repeat)
         return
