@@ -11,8 +11,10 @@ lands before the place. A ray without a return proves nothing either (a dark or 
 return nothing), nor does a bracket whose rays end before the place (it was hidden then).
 
 A point with such evidence marks its object: :func:`flag_sweep` groups a sweep's points off the
-ground into objects (touching voxels) and flags every point of an object that enough of its points
-prove moved. The ground never moves.
+ground into objects (depth clustering in the sweep's own image, :func:`objects`) and flags every
+point of an object that enough of its points prove moved; an object too few of whose points other
+sweeps had in view is not judged (``SweepFlags.unknown``). The ground never moves.
+:class:`MotionWindow` carries movers between neighbouring sweeps (:func:`follow`).
 """
 
 from __future__ import annotations
