@@ -3,7 +3,7 @@ against the generator's truth: which scene object each return hit, and whether i
 0.2 m/s at the return's own time.
 
 The generator's returns go in as the lidar measured them (each unit's points in the city frame, where
-the unit was as it fired, its beam); the sweeps stream through ``MotionWindow``. Per seed: SA (static
+the unit was as it fired, its beam); the sweeps stream through ``motion_window.MotionWindow``. Per seed: SA (static
 returns not flagged / static returns), DA (moving returns flagged / moving returns), HA (their
 harmonic mean), DA on the first and the last sweep, the milliseconds a sweep (building the sweeps'
 images; flagging) and the most memory the stream held (numpy's arrays, tracemalloc; a run of its
@@ -46,7 +46,7 @@ from bench_argoverse2 import bench_parser, work_dir
 from upath import UPath
 
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
-from ncore_convert.transforms.lidar import free_space
+from ncore_convert.transforms.lidar import free_space, motion_window
 
 MOVING_MPS = 0.2  #: issue 53: a return is on a mover when its object moves faster than this at its time
 
@@ -104,11 +104,11 @@ def _figures(sweeps: list[dict[str, np.ndarray]], flagged: list[np.ndarray]) -> 
 
 
 def _stream(sweeps: list[dict[str, np.ndarray]], keep: bool = True) -> tuple[list, float, float]:
-    """Stream ``sweeps`` through ``MotionWindow``, each sweep's images built as it arrives: the flags
+    """Stream ``sweeps`` through ``motion_window.MotionWindow``, each sweep's images built as it arrives: the flags
     (index, ``SweepFlags``; none unless ``keep``: a converter hands each on), the seconds building and
     flagging."""
     built = spent = 0.0
-    window, flagged = free_space.MotionWindow(), []
+    window, flagged = motion_window.MotionWindow(), []
     for s in sweeps:
         started = time.perf_counter()
         units = [
@@ -136,7 +136,7 @@ def peak_mb(sweeps: list[dict[str, np.ndarray]]) -> float:
 
 
 def score(sweeps: list[dict[str, np.ndarray]]) -> dict:
-    """Stream ``sweeps`` through ``MotionWindow`` and score it."""
+    """Stream ``sweeps`` through ``motion_window.MotionWindow`` and score it."""
     flagged, built, spent = _stream(sweeps)
     by_sweep, unknown = [None] * len(sweeps), [None] * len(sweeps)
     for k, flags in flagged:

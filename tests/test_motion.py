@@ -28,7 +28,7 @@ from ncore_convert.converters.argoverse2.plan import plan_log
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.synth.raycast import cast_rays
-from ncore_convert.transforms.lidar import free_space, vlp32c
+from ncore_convert.transforms.lidar import free_space, motion_window, vlp32c
 from ncore_convert.validate.readback import world_points
 
 LIDAR_M = np.array([0.0, 0.0, 2.0])  #: the analytic lidar's place
@@ -130,13 +130,13 @@ def test_lidar_flags_against_the_generators_truth(moving_log):
 
 def _hidden(truth, k: int, picks: np.ndarray) -> np.ndarray:
     """Which returns ``picks`` (indices into sweep ``k``'s) no sweep the window tests them against
-    (``free_space.OFFSETS`` away) had a line of sight to, in truth: from where each of its units was
+    (``motion_window.OFFSETS`` away) had a line of sight to, in truth: from where each of its units was
     (the middle of its sweep), at the time it looked that way (its return nearest in azimuth), the
     generator's scene ray-cast toward the place stops more than 0.3 m short of it, or the place lies
     outside the unit's rows (the elevations its returns span). bool [len(picks)]."""
     places = truth.sweep_returns(k)["xyz_m"][picks]
     seen = np.zeros(len(picks), bool)
-    for j in (k + d for d in free_space.OFFSETS if 0 <= k + d < len(truth.sweeps)):
+    for j in (k + d for d in motion_window.OFFSETS if 0 <= k + d < len(truth.sweeps)):
         other, times_s = truth.sweep_returns(j), (truth.sweeps[j].time_ns - truth.t0_ns) * 1e-9
         for u in (0, 1):
             mine = other["unit"] == u

@@ -1,6 +1,6 @@
 """AV2 / TbV ``--dynamic-source lidar|both``: which points move, from the lidar itself (issue 53;
-docs/motion.md). The sweeps stream through :class:`~ncore_convert.transforms.lidar.free_space.MotionWindow`,
-which needs the sweeps up to ``max(free_space.OFFSETS)`` after each: :func:`with_motion` holds the
+docs/motion.md). The sweeps stream through :class:`~ncore_convert.transforms.lidar.motion_window.MotionWindow`,
+which needs the sweeps up to ``max(motion_window.OFFSETS)`` after each: :func:`with_motion` holds the
 frames that long and hands each on with what moved in it.
 
 Each unit's sweep is seen from where that unit was as it fired each return (its mount on the rig at
@@ -16,7 +16,7 @@ import numpy as np
 
 from ncore_convert import contract
 from ncore_convert.transforms.geometry import Trajectory, transform_points
-from ncore_convert.transforms.lidar import free_space
+from ncore_convert.transforms.lidar import free_space, motion_window
 from ncore_convert.transforms.lidar.frames import LidarFrame, LidarGeometry, Moved
 from ncore_convert.transforms.timebase import NS_PER_US
 
@@ -32,7 +32,7 @@ MOTION_META = {
     " either side, ended beyond it), grouped into objects by depth clustering in its own sweep, carried to the"
     " objects that continue a mover in the sweeps next to it",
     "parameters": {
-        "sweep_offsets": list(free_space.OFFSETS),
+        "sweep_offsets": list(motion_window.OFFSETS),
         "beyond_m": free_space.BEYOND_M,
         "beyond_fraction": free_space.BEYOND_FRACTION,
         "column_deg": float(np.degrees(free_space.COLUMN_RAD)),
@@ -46,9 +46,9 @@ MOTION_META = {
         "join_depth_m": free_space.JOIN_DEPTH_M,
         "join_depth_fraction": free_space.JOIN_DEPTH_FRACTION,
         "max_row_gap_deg": float(np.degrees(free_space.MAX_ROW_GAP_RAD)),
-        "follow_m": free_space.FOLLOW_M,
-        "follow_share": free_space.FOLLOW_SHARE,
-        "follow_stride": free_space.FOLLOW_STRIDE,
+        "follow_m": motion_window.FOLLOW_M,
+        "follow_share": motion_window.FOLLOW_SHARE,
+        "follow_stride": motion_window.FOLLOW_STRIDE,
         "settled_share": free_space.SETTLED_SHARE,
     },
     "judged_share": free_space.JUDGED_SHARE,
@@ -83,9 +83,9 @@ def with_motion(
     """``frames`` (sweep time ns, frame, how its units' rays are made, every row's beam), each handed
     on with what moved in it and what could not be judged (:class:`Moved`, per row of
     ``frame.rows[unit]``; a non-finite row: neither) and the seconds spent finding it since the
-    previous one. Holds the frames a :class:`free_space.MotionWindow` needs
+    previous one. Holds the frames a :class:`motion_window.MotionWindow` needs
     ahead; memory does not grow with the log."""
-    window = free_space.MotionWindow()
+    window = motion_window.MotionWindow()
     held: dict[int, tuple] = {}
     spent = 0.0
 
