@@ -120,6 +120,9 @@ CAMERA_LABEL_KINDS = ("depth", "dynamic", "instance")
 CAMERA_LABEL_QUALIFIED = {"depth": "depth.z", "dynamic": "mask.dynamic", "instance": "segmentation.instance"}
 #: The kinds made from the annotated boxes (the others from the lidar points).
 BOX_LABEL_KINDS = ("dynamic", "instance")
+#: ``mask.dynamic``'s component metadata ``generator`` when it is made from the movers the lidar itself
+#: found (TbV: no boxes), not from annotated boxes
+MOVER_MASK_GENERATOR = "ncore-convert transforms.camera.mover_mask"
 
 
 def camera_label_id(kind: str, camera_id: str) -> str:

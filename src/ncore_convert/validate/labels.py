@@ -8,6 +8,7 @@ import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from ncore.impl.data.types import LabelCategory
 
+from ncore_convert import contract
 from ncore_convert.transforms.camera.models import FTheta, Pinhole
 from ncore_convert.transforms.objects.boxes import box_edges, near_plane_crossings
 from ncore_convert.transforms.objects.dynamic import HOLD_S
@@ -34,15 +35,17 @@ def check_camera_labels(
     finite and >= 0 (0: no measurement); a mask's pixels lie within the projections of the boxes
     they name (``held``: the sequence's cuboids, :func:`held_boxes`, made once per sequence): an
     instance's within its track's, a dynamic pixel's
-    within a dynamic track's."""
+    within a dynamic track's (not a ``mask.dynamic`` made from the lidar's own movers: it names no box)."""
     camera = loader.get_camera_sensor(camera_id)
     frames_end_us = np.sort(camera.frames_timestamps_us[:, 1])
     width, height = (int(v) for v in camera.model_parameters.resolution)
     found = loader.query_camera_labels(camera_id)
     instances = _instance_tables(found)
     projection = stored_camera(camera.model_parameters)
-    boxes_checked = held is not None and projection is not None
     for labels in found:
+        # a mask made from the lidar's own movers (TbV) names no box to lie within
+        from_boxes = (labels.labels_generic_meta_data or {}).get("generator") != contract.MOVER_MASK_GENERATOR
+        boxes_checked = held is not None and projection is not None and from_boxes
         descriptor = labels.label_descriptor
         category = descriptor.label_type.category
         name = f"camera {camera_id}: label {descriptor.default_instance_name}"
@@ -80,7 +83,7 @@ def check_camera_labels(
             "; ".join(problems[:3])
             or f"{len(labelled)} labels decoded ({width}x{height}), median {np.median(labelled):.2%} of pixels set",
         )
-        if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and held is not None:
+        if category in (LabelCategory.MASK, LabelCategory.SEGMENTATION) and held is not None and from_boxes:
             report.add(
                 f"{name}: within the projected boxes",
                 not outside,

@@ -78,7 +78,7 @@ DYNAMIC_RULE = (
 
 #: ``mask.dynamic`` without boxes (TbV, ``--dynamic-source lidar``): what its metadata says.
 LIDAR_MOVERS = {
-    "generator": "ncore-convert transforms.camera.mover_mask",
+    "generator": contract.MOVER_MASK_GENERATOR,
     "from": "the points the lidar itself saw move (dynamic_flag from lidar free space) of the sweep nearest the"
     " frame and the sweeps either side, each drawn where it was at its own time, grown by the lidar's spacing"
     " there, if measured within a sweep period (less 5 ms) of the frame: a mover is drawn where the sweeps"
