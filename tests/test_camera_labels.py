@@ -520,8 +520,9 @@ def test_tbv_dynamic_masks_cover_the_movers(tbv_labelled):
     """``mask.dynamic`` on TbV from the lidar's movers, every second frame against the movers' true
     silhouettes (objects faster than 0.2 m/s at the frame's time, every fourth pixel): it holds >= 97 %
     of their pixels (recall first) and covers less than twice their area. Frames with no sweep on one
-    side are all 1 and say why, and the sequence validates. (Footprints that stopped at the points, not reaching the ground, held
-    0.83 on bench seed 211: the lidar above does not see a near car's lower body.)"""
+    side are all 1 and say why, and the sequence validates. (Footprints that stopped at the points,
+    not reaching the ground, held 0.83 on bench seed 211: the lidar above does not see a near car's
+    lower body.)"""
     run = tbv_labelled["lidar"]
     truth, loader = run.truth, run.loader
     held = true_n = ours_n = 0
