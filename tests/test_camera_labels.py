@@ -562,6 +562,7 @@ class _Labels:
 
     def __init__(self, stamps_us, data, descriptor):
         self.label_timestamps_us, self._data, self.label_descriptor = np.array(stamps_us, np.uint64), data, descriptor
+        self.labels_generic_meta_data = {}  # the component's metadata, as the library's CameraLabels has it
 
     def get_label(self, ts):
         data = self._data(ts)
