@@ -96,16 +96,11 @@ def mask_figures(truth, loader) -> dict:
             width, height = pinhole.resolution_px
             v, u = np.mgrid[0:height:4, 0:width:4] + 0.5
             _, box = seen_through(truth.scene, T_camera_city, pinhole, t_s, u.reshape(-1), v.reshape(-1))
-            speed = np.r_[[_speed(b, t_s) for b in truth.scene.boxes], 0.0]
+            speed = np.r_[[b.speed_mps(t_s) for b in truth.scene.boxes], 0.0]
             moving = (speed[box] > MOVING_MPS).reshape(u.shape)
             held, true_n = held + np.sum(ours & moving), true_n + np.sum(moving)
             ours_n, union = ours_n + np.sum(ours), union + np.sum(ours | moving)
     return {"mask recall": held / max(true_n, 1), "mask area/true": ours_n / max(true_n, 1), "mask IoU": held / union}
-
-
-def _speed(box, t_s: float) -> float:
-    moving = box.move_from_s <= t_s <= box.move_until_s
-    return float(np.linalg.norm(box.velocity_mps)) if moving else 0.0
 
 
 def main() -> None:

@@ -539,7 +539,7 @@ def test_tbv_dynamic_masks_cover_the_movers(tbv_labelled):
             t_s = (int(ts) * 1000 - truth.t0_ns) * 1e-9
             T_camera_city = truth.scene.ego.T_ego_city(np.array([t_s]))[0] @ truth.T_sensor_ego[cam]
             scene_box = _box_truth(truth.scene, T_camera_city, t_s, pinhole, 4)
-            speed = np.r_[[_speed(b, t_s) for b in truth.scene.boxes], 0.0]
+            speed = np.r_[[b.speed_mps(t_s) for b in truth.scene.boxes], 0.0]
             moving = speed[scene_box] > 0.2
             ours = label.get_data()[::4, ::4] == 1
             held, true_n, ours_n = held + np.sum(ours & moving), true_n + np.sum(moving), ours_n + np.sum(ours)
@@ -550,11 +550,6 @@ def test_tbv_dynamic_masks_cover_the_movers(tbv_labelled):
     # failed every such frame before it knew the masks' generator)
     report = validate_sequence(UPath(run.seq_dir / f"{truth.log_id}.json"))
     assert report.ok, [c for c in report.checks if not c.ok][:3]
-
-
-def _speed(box, t_s: float) -> float:
-    """A scene object's true speed at ``t_s``, m/s."""
-    return float(np.linalg.norm(box.velocity_mps)) if box.move_from_s <= t_s <= box.move_until_s else 0.0
 
 
 class _Labels:

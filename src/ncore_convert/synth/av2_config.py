@@ -128,9 +128,7 @@ class SynthTruth:
         speed = np.zeros(len(t_s))
         for b in np.unique(sweep.box_index[sweep.box_index >= 0]):
             m = sweep.box_index == b
-            box = self.scene.boxes[b]
-            moving = (t_s[m] >= box.move_from_s) & (t_s[m] <= box.move_until_s)
-            speed[m] = np.where(moving, np.linalg.norm(box.velocity_mps), 0.0)
+            speed[m] = self.scene.boxes[b].speed_mps(t_s[m])
         return {
             "xyz_m": xyz_m,
             "origin_m": origin_m,

@@ -148,6 +148,13 @@ class Box:
             return -self.dims_m / 2, self.dims_m / 2
         return self.shape.lo_m, self.shape.hi_m
 
+    def speed_mps(self, t_s: np.ndarray | float) -> np.ndarray:
+        """The true speed at times ``t_s`` (s [N] or scalar), m/s: its velocity's within the span it
+        moves, else 0."""
+        t_s = np.asarray(t_s, dtype=np.float64)
+        moving = (t_s >= self.move_from_s) & (t_s <= self.move_until_s)
+        return np.where(moving, np.linalg.norm(self.velocity_mps), 0.0)
+
     def moved_m(self, t_lo_s: float, t_hi_s: float) -> float:
         """The true distance travelled between two times (the truth a motion test is scored on)."""
         return float(np.linalg.norm(self.center_m(t_hi_s) - self.center_m(t_lo_s)))

@@ -251,7 +251,7 @@ def _write_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: 
         if any(contract.camera_label_id(k, cam) in job.label_ids for k in plan.label_kinds)
     ]
     labeller = FrameLabeller(plan, writer, cameras)
-    for _, _, data in _sweeps(plan, None, motion=plan.dynamic_boxes is None):  # TbV: the lidar's movers
+    for _, _, data in _sweeps(plan, None, motion=plan.label_movers_from_lidar):
         labeller.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic, data.spacing_m, data.unknown)
     labeller.finish()
     result.camera_labels += labeller.labels

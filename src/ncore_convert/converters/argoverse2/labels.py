@@ -30,6 +30,7 @@ the boxes, and the static points would label pixels through them.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -101,6 +102,16 @@ def _spacing_or_widest(xyz_world_m: np.ndarray, origins_m: np.ndarray, spacing_m
     return np.linalg.norm(xyz_world_m - origins_m, axis=1)[:, None] * WIDEST_STEPS_RAD
 
 
+@dataclass(frozen=True)
+class _SweepPoints:
+    """What a sweep lends the frames near it, with the lidar's movers: its movers' points (xyz, fixed
+    frame [M,3]; times, µs [M]; spacing, m [M,2]; the ground's height under each, m [M]) and its static
+    points (xyz [S,3], spacing [S,2]): neither flagged nor unknown."""
+
+    movers: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    statics: tuple[np.ndarray, np.ndarray]
+
+
 def instance_table(plan: LogPlan) -> tuple[np.ndarray, dict[str, dict]]:
     """The sequence's instance index of every track of ``plan.solids`` (int [S+T], 1 upwards, by
     sorted track id: the same in every camera), and the table index -> track id, class and whether
@@ -128,13 +139,10 @@ class FrameLabeller:
         self._plan = plan
         # without cuboids (TbV), the movers the lidar itself found (--dynamic-source lidar) or, without
         # those, none: then any point may be on a mover
-        self._lidar_movers = plan.dynamic_boxes is None and plan.moves_from_lidar
+        self._lidar_movers = plan.label_movers_from_lidar
         self._unknown_motion = plan.dynamic_boxes is None and not self._lidar_movers
-        # the movers' points (xyz, times, spacing, the ground under them) of the sweep before the held one,
-        # the held one's and the next one's (``mask.dynamic`` from the lidar's movers), and their static
-        # points (xyz, spacing: the depth labels)
-        self._around: list[tuple | None] = [None, None, None]
-        self._statics: list[tuple | None] = [None, None, None]
+        # with the lidar's movers: the sweep before the held one, the held one and the next one
+        self._around: list[_SweepPoints | None] = [None, None, None]
         self._kinds = [kind for kind in contract.CAMERA_LABEL_KINDS if kind in plan.label_kinds]
         self._streams: dict[tuple[str, str], CameraLabelStream] = {
             (kind, cam): writer.add_camera_label(kind, cam, "EXTERNAL", {})
@@ -182,24 +190,24 @@ class FrameLabeller:
         middle_us = float(np.median(timestamps_us)) if len(timestamps_us) else np.nan
         if self._first_sweep_us is None and len(timestamps_us):
             self._first_sweep_us = float(np.min(timestamps_us))
-        movers = statics = None
+        sweep = None
         if self._lidar_movers:
             spacing = _spacing_or_widest(xyz_world_m, self._lidar_origins(timestamps_us), spacing_m)
             ground_z_m = xyz_world_m[:, 2] - ground_clearance_m(xyz_world_m)
-            movers = (xyz_world_m[dynamic], timestamps_us[dynamic], spacing[dynamic], ground_z_m[dynamic])
             still = ~dynamic if unknown is None else ~dynamic & ~unknown
-            statics = (xyz_world_m[still], spacing[still])
+            sweep = _SweepPoints(
+                (xyz_world_m[dynamic], timestamps_us[dynamic], spacing[dynamic], ground_z_m[dynamic]),
+                (xyz_world_m[still], spacing[still]),
+            )
         if self._held is not None and np.isfinite(middle_us):
-            self._around[2] = movers
-            self._statics[2] = statics
+            self._around[2] = sweep
             self._label_until((self._held[5] + middle_us) / 2)
         if self._unknown_motion:
             dynamic = np.ones(len(timestamps_us), dtype=bool)
         elif unknown is not None:
             dynamic = dynamic | unknown
         if np.isfinite(middle_us):
-            self._around = [self._around[1], movers, None]
-            self._statics = [self._statics[1], statics, None]
+            self._around = [self._around[1], sweep, None]
             self._covers, self._sight = {}, None  # the held sweep's cover maps and range image
             origins = self._lidar_origins(timestamps_us)
             self._held = (
@@ -248,46 +256,53 @@ class FrameLabeller:
             views = camera_views(self._plan, cam, stamps_ns, pinhole, self._usable[cam])
             points = None
             if self._held is not None:  # once per camera and sweep: the points its middle frame may see
-                near, _ = in_view(views[len(views) // 2], self._held[0], VIEW_MARGIN)
+                middle = views[len(views) // 2]
+                near, _ = in_view(middle, self._held[0], VIEW_MARGIN)
                 points = tuple(None if a is None else a[near] for a in self._held[:5])
+                if self._lidar_movers:
+                    points = self._with_statics_around(middle, points)
             for view in views:
                 reason = self._no_measurement(view.timestamp_us)
+                movers = None if reason else self._movers_near(view.timestamp_us)
                 for kind in self._kinds:
                     if kind == "depth":
-                        self._store_depth(cam, view, points, reason)
+                        self._store_depth(cam, view, points, reason, movers)
                 if self._lidar_movers and "dynamic" in self._kinds:
-                    self._store_lidar_movers(cam, view, reason)
+                    self._store_lidar_movers(cam, view, reason, movers)
                 elif any(kind in contract.BOX_LABEL_KINDS for kind in self._kinds):
                     self._store_boxes(cam, view, None if reason else points, reason)
         self.seconds += time.perf_counter() - started
 
-    def _store_depth(self, cam: str, view, points: tuple | None, reason: str) -> None:
+    def _store_depth(self, cam: str, view, points: tuple | None, reason: str, movers: tuple | None) -> None:
+        """The depth label of one frame from the held ``points``; ``movers`` (:meth:`_movers_near`)
+        hide what lies behind them."""
         if reason:  # still one label per frame: an empty one, saying why
             depth = np.zeros(view.pinhole.resolution_px[::-1], np.float32)
             meta = {"no_measurement": reason}
         else:
-            movers = self._movers_near(view.timestamp_us)
             hiding = None if movers is None else movers[:2]
-            depth = camera_labels.depth_z(view, *self._with_statics_around(view, points[:4]), hiding=hiding)
+            depth = camera_labels.depth_z(view, *points[:4], hiding=hiding)
             meta = {"sweep_median_time_us": round(self._held[5])}
         self._streams["depth", cam].store_label(depth, view.timestamp_us, meta)
         self.labels += 1
 
     def _with_statics_around(self, view, points: tuple) -> tuple:
-        """The held sweep's ``points`` (xyz, times, dynamic, spacing) and, with the lidar's movers, the
-        static points of the sweeps before and after it that ``view`` may see: a static point is still
-        there at the frame's time, whichever sweep saw it (three sweeps' points: about 2.5x the labelled
-        pixels of the held sweep's alone, and fewer occlusion errors: the denser points hide more of
-        what lies behind them; docs/motion.md)."""
-        xyz, times_us, dynamic, spacing = points
-        for other in (self._statics[0], self._statics[2]):
+        """The held sweep's ``points`` (xyz, times, dynamic, spacing; origins) and the static points of
+        the sweeps before and after it that ``view`` may see: a static point is still there at the
+        frame's time, whichever sweep saw it (three sweeps' points: about 2.5x the labelled pixels of
+        the held sweep's alone, and fewer occlusion errors: the denser points hide more of what lies
+        behind them; docs/motion.md). The origins are left out (None): only box labels read them, and
+        there are none with the lidar's movers."""
+        xyz, times_us, dynamic, spacing = points[:4]
+        for other in (self._around[0], self._around[2]):
             if other is None or spacing is None:
                 continue
-            near, _ = in_view(view, other[0], VIEW_MARGIN)
-            xyz, spacing = np.concatenate([xyz, other[0][near]]), np.concatenate([spacing, other[1][near]])
+            still_m, still_spacing = other.statics
+            near, _ = in_view(view, still_m, VIEW_MARGIN)
+            xyz, spacing = np.concatenate([xyz, still_m[near]]), np.concatenate([spacing, still_spacing[near]])
             times_us = np.concatenate([times_us, np.full(len(near), view.timestamp_us, times_us.dtype)])
             dynamic = np.concatenate([dynamic, np.zeros(len(near), bool)])
-        return xyz, times_us, dynamic, spacing
+        return xyz, times_us, dynamic, spacing, None
 
     def _movers_near(self, t_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The lidar's movers' points of the sweeps around the held one measured within a sweep of
@@ -296,14 +311,15 @@ class FrameLabeller:
         (:func:`mover_mask`). None: no lidar movers."""
         if not self._lidar_movers:
             return None
-        around = [a for a in self._around if a is not None]
+        around = [a.movers for a in self._around if a is not None]
         xyz, times_us, spacing, ground_z_m = (np.concatenate([a[k] for a in around]) for k in range(4))
         near = np.abs(times_us - t_us) < SWEEP_PERIOD_US - camera_labels.DYNAMIC_DT_US
         return xyz[near], spacing[near], ground_z_m[near]
 
-    def _store_lidar_movers(self, cam: str, view, reason: str) -> None:
+    def _store_lidar_movers(self, cam: str, view, reason: str, movers: tuple | None) -> None:
         """``mask.dynamic`` of one frame from the movers the lidar found in the sweeps around it
-        (:func:`mover_mask`); all 1 where there is no sweep near it (``reason``)."""
+        (``movers``: :meth:`_movers_near`, :func:`mover_mask`); all 1 where there is no sweep near it
+        (``reason``)."""
         width, height = view.pinhole.resolution_px
         if not reason and None in (self._around[0], self._around[2]) and len(self._plan.sweep_timestamps_ns) > 1:
             # the first sweep's frames before its middle, the last one's after it: no sweep on one side
@@ -313,7 +329,7 @@ class FrameLabeller:
         if reason:
             mask, meta = np.ones((height, width), bool), {"moving_objects_unknown": reason}
         else:
-            mask = mover_mask(view, *self._movers_near(view.timestamp_us))
+            mask = mover_mask(view, *movers)
             meta = {"sweep_median_time_us": round(self._held[5])}
         self._streams["dynamic", cam].store_label(mask, view.timestamp_us, meta)
         self.labels += 1

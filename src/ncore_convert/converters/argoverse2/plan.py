@@ -136,6 +136,12 @@ class LogPlan:
         return self.dynamic_source in ("lidar", "both") and bool(self.lidar_ids)
 
     @property
+    def label_movers_from_lidar(self) -> bool:
+        """Whether the camera labels take their movers from what the lidar itself saw move (no annotated
+        movers, flags from the lidar: TbV); else from the annotated movers (``dynamic_boxes``)."""
+        return self.dynamic_boxes is None and self.moves_from_lidar
+
+    @property
     def sweep_timestamps_ns(self) -> np.ndarray:
         return self.inputs.sweep_timestamps_ns if self.lidar_ids else np.zeros(0, dtype=np.int64)
 
@@ -143,12 +149,11 @@ class LogPlan:
     def label_kinds(self) -> tuple[str, ...]:
         """The ``--camera-labels`` kinds written: depth needs the lidars, the masks the annotated boxes
         (``dynamic`` without them: the movers the lidar itself found)."""
-        from_lidar = self.dynamic_boxes is None and self.moves_from_lidar
         return tuple(
             kind
             for kind in self.options.camera_labels
             if (
-                self.solids is not None or (kind == "dynamic" and from_lidar)
+                self.solids is not None or (kind == "dynamic" and self.label_movers_from_lidar)
                 if kind in contract.BOX_LABEL_KINDS
                 else bool(self.lidar_ids)
             )

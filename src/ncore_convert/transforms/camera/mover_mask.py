@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ncore_convert.transforms.camera.labels import rectangles_cover
+from ncore_convert.transforms.camera.labels import footprints
 from ncore_convert.transforms.camera.visibility import MIN_DEPTH_M, CameraView
 
 
@@ -36,15 +36,10 @@ def mover_mask(view: CameraView, xyz_world_m: np.ndarray, spacing_m: np.ndarray,
     top, foot = (p @ T[:3, :3].T + T[:3, 3] for p in (xyz_world_m, foot_m))
     ahead = (top[:, 2] > MIN_DEPTH_M) & (foot[:, 2] > MIN_DEPTH_M)
     (u0, v0), (u1, v1) = view.pinhole.project(top[ahead]), view.pinhole.project(foot[ahead])
-    half_px = spacing_m[ahead] / top[ahead, 2:3] * np.asarray(view.pinhole.focal_length_px) / 2.0 + 1.0
+    size_px = spacing_m[ahead] / top[ahead, 2:3] * np.asarray(view.pinhole.focal_length_px)
     ok = np.isfinite(u0) & np.isfinite(v0) & np.isfinite(u1) & np.isfinite(v1)
-    (v_top, v_low), (u_left, u_right) = (np.sort(np.stack([a[ok], b[ok]]), axis=0) for a, b in ((v0, v1), (u0, u1)))
-    half_px = half_px[ok]
-    mask = rectangles_cover(  # as footprints(), stretched from the point to its foot
-        np.floor(v_top - half_px[:, 1]),
-        np.floor(v_low + half_px[:, 1]),
-        np.floor(u_left - half_px[:, 0]),
-        np.floor(u_right + half_px[:, 0]),
-        (height, width),
-    )
+    # each point's footprint stretched from it to its foot: one centred between them, as much larger
+    reach_px = np.abs(np.stack([u1 - u0, v1 - v0], axis=1))
+    centre_u, centre_v = (u0 + u1) / 2.0, (v0 + v1) / 2.0
+    mask = footprints(centre_u[ok], centre_v[ok], (size_px + reach_px)[ok], (height, width))
     return mask if view.usable is None else mask & view.usable

@@ -45,6 +45,11 @@ class Moved:
     parked: tuple[DynamicBoxes, np.ndarray, np.ndarray] | None = None
     unknown: dict[str, np.ndarray] | None = None
 
+    def taken(self, index: dict[str, np.ndarray]) -> Moved:
+        """The same, at each lidar's rows ``index`` (int [M] per lidar: each stored ray's row)."""
+        unknown = None if self.unknown is None else {lidar: self.unknown[lidar][i] for lidar, i in index.items()}
+        return replace(self, found={lidar: self.found[lidar][i] for lidar, i in index.items()}, unknown=unknown)
+
     def standing(self, xyz_m: np.ndarray, timestamps_us: np.ndarray) -> np.ndarray:
         """Which points (fixed frame, float64 [N,3], at ``timestamps_us``) lie in a standing track's
         box (``parked``), bool [N]."""
@@ -239,13 +244,7 @@ def lidar_frame(
         for lidar, how in geometry.items()
     }
     if moved is not None:  # each ray's row's
-        moved = replace(
-            moved,
-            found={lidar: moved.found[lidar][rays[lidar].source_index] for lidar in geometry},
-            unknown=None
-            if moved.unknown is None
-            else {lidar: moved.unknown[lidar][rays[lidar].source_index] for lidar in geometry},
-        )
+        moved = moved.taken({lidar: rays[lidar].source_index for lidar in geometry})
     data = point_data(
         xyz_fixed, {lidar: rays[lidar].timestamp_us for lidar in geometry}, boxes, colouring, spacing, moved
     )
