@@ -74,11 +74,26 @@ def test_retry_failed_redoes_only_the_failures(two_logs, tmp_path):
     first_good = store_mtimes(out, truths[0].log_id)
     result = run(src, out, "--retry-failed")
     assert result.exit_code == 0, result.output
-    assert f"skip  {truths[0].log_id}: not a failure of the last run" in result.output
+    assert f"skip  {truths[0].log_id}: converted by an earlier run, not a failure" in result.output
     assert f"ok    {truths[1].log_id}" in result.output
+    assert "1 converted, 1 skipped, 0 failed;" in result.output  # the skipped log is the converted one
     assert store_mtimes(out, truths[0].log_id) == first_good
     assert {e["status"] for e in report(out)["logs"].values()} == {"ok"}
     assert "exclude each other" in run(src, out, "--retry-failed", "--overwrite").output
+
+
+def test_retry_failed_counts_the_logs_it_never_attempted_apart(two_logs, tmp_path):
+    """A log no earlier run attempted is neither skipped as converted nor converted: it is counted
+    apart, and its report entry is not written."""
+    root, truths = two_logs
+    out = tmp_path / "out"
+    assert run(root, out, log_id=truths[1].log_id).exit_code == 0
+    result = run(root, out, "--retry-failed")
+    assert result.exit_code == 0, result.output
+    assert f"skip  {truths[0].log_id}: never attempted" in result.output
+    assert f"skip  {truths[1].log_id}: converted by an earlier run" in result.output
+    assert "0 converted, 1 skipped, 0 failed, 1 never attempted;" in result.output, result.output
+    assert set(report(out)["logs"]) == {truths[1].log_id}
 
 
 def test_report_records_status_times_bytes_and_the_converter(two_logs, tmp_path):

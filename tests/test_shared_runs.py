@@ -158,9 +158,9 @@ def test_the_first_signal_asks_the_run_to_stop_and_a_second_ends_it_at_once():
     code = textwrap.dedent(
         """
         import os, signal, threading, time
-        from ncore_convert.run.runner import _stopped_by_signals
+        from ncore_convert.run.stop import deferred
         stop, received = threading.Event(), []
-        with _stopped_by_signals(stop, received):
+        with deferred(stop, received):
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.2)
             print("stop" if stop.is_set() and received == ["SIGINT"] else "no stop", flush=True)
@@ -170,7 +170,8 @@ def test_the_first_signal_asks_the_run_to_stop_and_a_second_ends_it_at_once():
         """
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=50)
-    assert proc.returncode == 130 and proc.stdout == "stop\n", proc.stdout + proc.stderr
+    expected = "stop\nSIGTERM: a second signal; run stopped at once (exit 130)\n"
+    assert proc.returncode == 130 and proc.stdout == expected, proc.stdout + proc.stderr
 
 
 # ------------------------------------------------------------------------------------------------

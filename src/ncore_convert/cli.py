@@ -11,7 +11,6 @@ found by the command in ``DATASET_PACKAGES``. The tool commands (:mod:`ncore_con
 from __future__ import annotations
 
 import importlib
-import os
 import sys
 from dataclasses import asdict, dataclass
 from functools import partial
@@ -31,8 +30,11 @@ from ncore_convert.cli_tools import (
 )
 from ncore_convert.contract import BOX_LABEL_KINDS
 from ncore_convert.errors import SourceError
+from ncore_convert.run import stop
 from ncore_convert.run.executors import ExecutorKind
 from ncore_convert.run.pool import JobPool, default_workers
+from ncore_convert.run.report import report_name
+from ncore_convert.run.stop import STOPPED_EXIT
 from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
 
 #: The package each dataset command's converter lives in: its workers import it while the main
@@ -245,8 +247,14 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
     (unless --no-validate) and published by the runner on the chosen executor. ``option_values``
     build the dataset's options (with the group's sensor selection)."""
     root, out = obj.require_paths()
+    report_file = report_name(obj.shard)
+
+    def last_lines(results: list, signal_name: str) -> list[str]:
+        stopped = f"{signal_name}: run stopped; the report lists every log it published (exit {STOPPED_EXIT})"
+        return [_counts(results) + f"; output and {report_file} in {out}", stopped]
+
+    stop.set_farewell(partial(last_lines, []))  # a stop before the run loop: no log started
     with obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
-        from ncore_convert.run.report import report_name
         from ncore_convert.run.runner import RunInterrupted, run_logs, shard_logs
         from ncore_convert.validate.tree import convert_and_validate
 
@@ -263,7 +271,6 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
             task = partial(convert_and_validate, task, source_root=root)
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
-        interrupted = None
         try:
             results = run_logs(
                 out,
@@ -275,32 +282,31 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
                 fingerprint=fingerprint,
                 mode=obj.mode,
                 input_dir=partial(dataset.input_dir, root, options),
-                report_file=report_name(obj.shard),
+                report_file=report_file,
                 verbose=obj.verbose,
             )
         except OSError as err:  # the output storage itself fails (full, read-only): not even the report is kept
             raise click.ClickException(f"{out}: {err.strerror or err}; run stopped") from None
-        except RunInterrupted as stop:
-            interrupted, results = stop, stop.results
-    click.echo(_counts(results) + f"; output and {report_name(obj.shard)} in {out}")
-    if interrupted is not None:
-        click.echo(f"{interrupted.signal_name}: run stopped; the report lists every log it published (exit 130)")
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(130)  # at once: a log being planned in a thread of this process is abandoned, not awaited
+        except RunInterrupted as interrupted:
+            # at once: every process of the run is killed, a log being planned in a thread is abandoned
+            stop.end(last_lines(interrupted.results, interrupted.signal_name))
+    click.echo(_counts(results) + f"; output and {report_file} in {out}")
     failed = sum(not r.ok for r in results)
     sys.exit(2 if any(r.usage_error for r in results) else 1 if failed else 0)
 
 
 def _counts(results: list) -> str:
-    """The run's last line: converted, skipped, failed, and the logs left to other runs or abandoned."""
+    """The run's last line: converted, skipped, failed, and the logs never attempted (--retry-failed),
+    left to other runs or abandoned."""
     left = sum(r.elsewhere is not None for r in results)
     abandoned = sum(r.abandoned for r in results)
     failed = sum(not r.ok and not r.abandoned for r in results)
     skipped = sum(r.skipped for r in results)
-    converted = len(results) - failed - skipped - left - abandoned
+    not_attempted = sum(r.not_attempted for r in results)
+    converted = len(results) - failed - skipped - left - abandoned - not_attempted
     return (
         f"{converted} converted, {skipped} skipped, {failed} failed"
+        + (f", {not_attempted} never attempted" if not_attempted else "")
         + (f", {left} left to other runs on this output" if left else "")
         + (f", {abandoned} abandoned" if abandoned else "")
     )

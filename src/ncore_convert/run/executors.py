@@ -168,5 +168,5 @@ class RayExecutor:
                     reason = f"Ray task failed: {type(err).__name__}: {err}".replace("\n", " ")
                     yield LogResult(log_id, False, error=reason)
         finally:
-            for ref in pending:  # interrupted: do not leave tasks running on the cluster
-                ray.cancel(ref)
+            for ref in pending:  # interrupted: kill the tasks' worker processes (a task may be uploading)
+                ray.cancel(ref, force=True)

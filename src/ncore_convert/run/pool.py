@@ -15,6 +15,7 @@ import contextlib
 import itertools
 import multiprocessing as mp
 import multiprocessing.forkserver
+import multiprocessing.resource_tracker
 import os
 import signal
 import sys
@@ -97,6 +98,22 @@ if os.environ.get(_FORK_SERVER) == str(os.getppid()):
     _die_with_parent()
 
 
+@contextlib.contextmanager
+def _sigint_blocked():
+    """Block SIGINT in this thread while the fork server and the resource tracker start: they keep
+    the mask, and so does every worker forked from the fork server, so a Ctrl-C sent to the process
+    group reaches the run alone (which stops them), never a process importing its preload (a
+    KeyboardInterrupt traceback). A SIGINT sent meanwhile is delivered to the run when unblocked."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _call(fn: Callable[..., Any], args: tuple, run_id: int) -> tuple[Any, int, list[int]]:
     """Run a job; return its result, the frames and the totals it reported (the parent delivers
     what is still in the pipe when the run ends)."""
@@ -162,7 +179,10 @@ class JobPool:
             sys.warnoptions.append(_QUIET_TRACKER)
         os.environ.pop(_FORK_SERVER, None)  # inherited from another run's worker: this run's mark wins
         with _environment({**WORKER_ENVIRONMENT, _FORK_SERVER: str(os.getpid())}):
-            multiprocessing.forkserver.ensure_running()
+            # the tracker first: its start unblocks SIGINT again (multiprocessing.resource_tracker)
+            multiprocessing.resource_tracker.ensure_running()
+            with _sigint_blocked():
+                multiprocessing.forkserver.ensure_running()
         self._ctx = ctx
         self._progress: dict[int, Progress] = {}
         self._delivered: dict[int, int] = {}

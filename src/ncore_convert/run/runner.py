@@ -18,7 +18,6 @@ import errno
 import os
 import re
 import shutil
-import signal
 import tempfile
 import threading
 import time
@@ -35,6 +34,7 @@ from ncore_convert.errors import SourceError, UsageError, ValidationFailed
 from ncore_convert.run.claims import Claims
 from ncore_convert.run.pool import Progress
 from ncore_convert.run.report import REPORT_NAME, RunReport
+from ncore_convert.run.stop import deferred
 from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
 
 
@@ -84,6 +84,13 @@ class LogResult:
     elsewhere: str | None = None  #: left to another run on the output folder, and why (not recorded)
     abandoned: bool = False  #: stopped unfinished by an interruption (not recorded; its .partial stays)
     failure_warnings: list[str] | None = None  #: the warnings a failed log gave before it failed
+    kept_entry: bool = False  #: --retry-failed: converted by an earlier run (skipped; its entry stays)
+    not_attempted: bool = False  #: --retry-failed: no earlier run attempted it (not converted, not recorded)
+
+    @property
+    def recorded(self) -> bool:
+        """Whether the run's report records this result."""
+        return self.elsewhere is None and not self.abandoned and not self.kept_entry and not self.not_attempted
 
     @property
     def warnings(self) -> list[str]:
@@ -118,6 +125,7 @@ class RunControl:
     stop: threading.Event = field(default_factory=threading.Event)
     publish_lock: threading.Lock = field(default_factory=threading.Lock)
     published: dict[str, LogResult] = field(default_factory=dict)  #: every log published, by id
+    received: list[str] = field(default_factory=list)  #: the signals that stopped the run
 
     @contextlib.contextmanager
     def publishing(self, log_id: str):
@@ -255,33 +263,6 @@ class RunInterrupted(Exception):
         self.results = results
 
 
-#: The signals that stop a run (Ctrl-C; what Slurm and Kubernetes send before they kill).
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-@contextlib.contextmanager
-def _stopped_by_signals(stop: threading.Event, received: list[str]):
-    """While the block runs, the first SIGINT/SIGTERM sets ``stop`` (the run ends its logs in flight
-    and records what it published); a second one ends the process at once (exit 130). Only in the
-    main thread, where Python delivers signals."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame) -> None:
-        if stop.is_set():
-            os._exit(130)
-        received.append(signal.Signals(signum).name)
-        stop.set()
-
-    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-
-
 def run_logs(
     output_root: UPath,
     log_ids: Iterable[str],
@@ -300,7 +281,8 @@ def run_logs(
 
     Each log is claimed before it starts (:class:`~ncore_convert.run.claims.Claims`): a log another
     live run holds, or that one converted since this run started, is left to it (``elsewhere``).
-    SIGINT/SIGTERM: see :func:`_stopped_by_signals`; the run then raises :class:`RunInterrupted`.
+    SIGINT/SIGTERM (:func:`~ncore_convert.run.stop.deferred`): the first one stops the run, which
+    abandons its logs in flight, records what it published and raises :class:`RunInterrupted`.
 
     Args:
         fingerprint: converter name, version and options; a log converted with the same
@@ -311,11 +293,47 @@ def run_logs(
         report_file: the report's name in ``output_root`` (one per shard, see ``run.report.report_name``).
         verbose: print the traceback of each failed log under its one-line error.
     """
+    control = RunControl()
+    with deferred(control.stop, control.received):  # from here on, a signal stops the run as below
+        results = _run(
+            output_root,
+            list(log_ids),
+            task,
+            executor,
+            echo,
+            show_progress,
+            fingerprint,
+            mode,
+            input_dir,
+            report_file,
+            verbose,
+            control,
+        )
+    if control.received:
+        raise RunInterrupted(control.received[0], results)
+    return results
+
+
+def _run(
+    output_root,
+    log_ids,
+    task,
+    executor,
+    echo,
+    show_progress,
+    fingerprint,
+    mode,
+    input_dir,
+    report_file,
+    verbose,
+    control: RunControl,
+) -> list[LogResult]:
+    """:func:`run_logs`' work, under its signal handling: returns the results in the order asked
+    for, also when ``control.stop`` was set."""
     output_root.mkdir(parents=True, exist_ok=True)
     report = RunReport(output_root, fingerprint or {}, report_file)
     report.ensure()
     at_start = dict(report.logs)
-    log_ids = list(log_ids)
     overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
     counts = {"ok": 0, "failed": 0, "skipped": 0}
     results: list[LogResult] = []
@@ -327,7 +345,7 @@ def run_logs(
 
     def finish(result: LogResult, lines: list[str]) -> None:
         say(lines)
-        if result.elsewhere is None and not result.abandoned:
+        if result.recorded:
             input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
             output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
             report.record(result, input_bytes, output_bytes)
@@ -348,40 +366,52 @@ def run_logs(
             return "converted by another run meanwhile"
         return None
 
-    received: list[str] = []
     with Claims(output_root) as claims:
+        control.claims, control.gate = claims, gate
         todo = []
         for log_id in log_ids:
-            if mode == "retry-failed" and (report.previous(log_id) or {}).get("status") != "failed":
-                say([f"skip  {log_id}: not a failure of the last run"])
-                overall.update(1)  # its report entry stays as it was
-            elif mode == "resume" and report.is_done(log_id, output_root):
-                finish(
-                    LogResult(log_id, True, skipped=True),
-                    [f"skip  {log_id}: already converted with the same converter version and options"],
-                )
+            if control.stop.is_set():
+                break
+            if (skip := _not_to_convert(report, output_root, log_id, mode)) is not None:
+                finish(*skip)
             else:
                 todo.append(log_id)
-        control = RunControl(claims, gate)
-        with _stopped_by_signals(control.stop, received):
-            for result in executor.results(task, output_root, todo, show_progress, control) if todo else ():
-                if control.stop.is_set() and not result.ok:  # it failed because the run stops
-                    result.abandoned = True
+        for result in executor.results(task, output_root, todo, show_progress, control) if todo else ():
+            if control.stop.is_set() and not result.ok:  # it failed because the run stops
+                result.abandoned = True
+            finish(result, _lines(result, verbose))
+            if control.stop.is_set():
+                break
+        if control.stop.is_set():  # stop the work in flight, then record what was published before it
+            say([f"{control.received[0]}: stopping; no new log starts, the logs in flight are abandoned"])
+            with control.publish_lock:  # a publish under way ends first; none starts after
+                finished = {r.log_id for r in results}
+                published = [r for log_id, r in control.published.items() if log_id not in finished]
+            executor.abandon()
+            for result in published:
                 finish(result, _lines(result, verbose))
-                if control.stop.is_set():
-                    break
-            if control.stop.is_set():  # stop the work in flight, then record what was published before it
-                say([f"{received[0]}: stopping; no new log starts, the logs in flight are abandoned"])
-                with control.publish_lock:  # a publish under way ends first; none starts after
-                    finished = {r.log_id for r in results}
-                    published = [r for log_id, r in control.published.items() if log_id not in finished]
-                executor.abandon()
-                for result in published:
-                    finish(result, _lines(result, verbose))
     overall.close()
-    if received:
-        raise RunInterrupted(received[0], _in_order(results, log_ids))
     return _in_order(results, log_ids)
+
+
+def _not_to_convert(
+    report: RunReport, output_root: UPath, log_id: str, mode: Mode
+) -> tuple[LogResult, list[str]] | None:
+    """A log this run does not convert, with its line: converted already (resume), or, retrying
+    the failures, converted by an earlier run or never attempted; None to convert it."""
+    previous = (report.previous(log_id) or {}).get("status")
+    if mode == "retry-failed" and previous in ("ok", "skipped"):
+        return LogResult(log_id, True, skipped=True, kept_entry=True), [
+            f"skip  {log_id}: converted by an earlier run, not a failure"
+        ]
+    if mode == "retry-failed" and previous != "failed":
+        return LogResult(log_id, True, not_attempted=True), [
+            f"skip  {log_id}: never attempted (run without --retry-failed to convert it)"
+        ]
+    if mode == "resume" and report.is_done(log_id, output_root):
+        line = f"skip  {log_id}: already converted with the same converter version and options"
+        return LogResult(log_id, True, skipped=True), [line]
+    return None
 
 
 def _lines(result: LogResult, verbose: bool) -> list[str]:

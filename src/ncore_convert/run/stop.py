@@ -1,0 +1,210 @@
+"""How a run stops on SIGINT or SIGTERM, from the entry module's first statement to its exit.
+
+:func:`install` (the first statement of :mod:`ncore_convert.entry`, before any worker, fork server,
+thread or Ray connection exists) routes both signals here for the life of the process and makes
+the process a child subreaper (Linux), so that every process the run starts stays its descendant
+even when its parent (the fork server) dies first.
+
+- While a run loop takes stops itself (:func:`deferred`, the whole of ``runner.run_logs``), the
+  first signal only sets the run's stop event: the loop abandons its logs in flight, records what it
+  published, and ends the process with :func:`end`.
+- At any other moment (importing, planning, the pool's start, printing the last lines), and on a
+  second signal, the process ends at once with :func:`end`.
+
+:func:`end` kills every descendant of the process (fork server, workers: SIGKILL, so nothing of the
+run writes after it), waits for multiprocessing's resource tracker to exit on its own (it unlinks
+what the killed workers left), prints the run's last lines, and exits 130.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import NoReturn
+
+#: The signals that stop a run (Ctrl-C; what Slurm and Kubernetes send before they kill).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: The exit status of a stopped run (128 + SIGINT, as shells report Ctrl-C).
+STOPPED_EXIT = 130
+#: How long :func:`end` waits for the resource tracker to exit once every other process is gone.
+TRACKER_WAIT_S = 2.0
+_PR_SET_CHILD_SUBREAPER = 36
+
+
+def _default_farewell(signal_name: str) -> list[str]:
+    return [f"{signal_name}: run stopped before any log started (exit {STOPPED_EXIT})"]
+
+
+class _State:
+    """The process's stop state: the run loop that takes signals, if any, and its last lines."""
+
+    def __init__(self) -> None:
+        self.deferring: tuple[threading.Event, list[str]] | None = None
+        self.farewell: Callable[[str], list[str]] = _default_farewell
+
+
+_state = _State()
+
+
+def install() -> None:
+    """Route SIGINT and SIGTERM to this module for the life of the process; on Linux, adopt the
+    orphans of the process's descendants (PR_SET_CHILD_SUBREAPER), so that :func:`end` finds them."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, _handler)
+    with contextlib.suppress(OSError, AttributeError):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_CHILD_SUBREAPER, 1)
+
+
+def set_farewell(lines: Callable[[str], list[str]]) -> None:
+    """What an immediate stop prints (given the signal's name): the run's counts once it knows its output."""
+    _state.farewell = lines
+
+
+def _handler(signum: int, frame) -> None:
+    name = signal.Signals(signum).name
+    if _state.deferring is None:
+        end(_state.farewell(name))
+    event, received = _state.deferring
+    if event.is_set():  # the run is already stopping: a second signal ends it at once
+        end([f"{name}: a second signal; run stopped at once (exit {STOPPED_EXIT})"])
+    received.append(name)
+    event.set()
+
+
+@contextlib.contextmanager
+def deferred(event: threading.Event, received: list[str]) -> Iterator[None]:
+    """While the block runs, the first SIGINT/SIGTERM appends its name to ``received`` and sets
+    ``event`` (the run ends its logs in flight and records what it published); a second one ends
+    the process at once (:func:`end`). Only in the main thread, where Python delivers signals."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, _handler) for sig in STOP_SIGNALS}
+    outer, _state.deferring = _state.deferring, (event, received)
+    try:
+        yield
+    finally:
+        _state.deferring = outer
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def end(lines: list[str]) -> NoReturn:
+    """Kill every descendant process, print ``lines`` (after what stdout still buffers) and exit 130
+    at once: threads of this process that are planning or writing are not awaited."""
+    _no_new_processes()
+    with contextlib.suppress(Exception):  # a handler may interrupt a print: never raise on the way out
+        sys.stdout.flush()
+        sys.stderr.flush()
+    _silence_stderr()  # the threads left running meet dead workers: their tracebacks are not the run's
+    kill_descendants()
+    with contextlib.suppress(OSError):
+        os.write(sys.stdout.fileno() if sys.stdout else 1, "".join(f"{line}\n" for line in lines).encode())
+    _await_tracker()
+    os._exit(STOPPED_EXIT)
+
+
+def _refuse(*args, **kwargs) -> NoReturn:
+    raise RuntimeError("the run is stopping: no process starts")
+
+
+def _no_new_processes() -> None:
+    """From now on, a thread of this process (a pool's management thread replacing a killed worker)
+    cannot start a fork server or a resource tracker again."""
+    from multiprocessing import forkserver, resource_tracker
+
+    forkserver._forkserver.ensure_running = _refuse
+    resource_tracker._resource_tracker.ensure_running = _refuse
+
+
+def _silence_stderr() -> None:
+    threading.excepthook = lambda args: None
+    with contextlib.suppress(OSError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+
+
+def _live_children() -> dict[int, list[int]]:
+    """Every live (not zombie) process by its parent's pid, from ``/proc`` (empty elsewhere)."""
+    children: dict[int, list[int]] = {}
+    with contextlib.suppress(OSError):
+        for entry in os.scandir("/proc"):
+            if not entry.name.isdigit():
+                continue
+            try:
+                with open(f"/proc/{entry.name}/stat") as f:
+                    state, ppid = f.read().rsplit(")", 1)[1].split()[:2]
+            except (OSError, ValueError):
+                continue  # gone meanwhile
+            if state != "Z":
+                children.setdefault(int(ppid), []).append(int(entry.name))
+    return children
+
+
+def descendants(pid: int) -> set[int]:
+    """The live descendants of a process (Linux; empty where ``/proc`` cannot be read)."""
+    children, found, todo = _live_children(), set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            if child not in found:
+                found.add(child)
+                todo.append(child)
+    return found
+
+
+def _tracker_pid() -> int | None:
+    from multiprocessing import resource_tracker
+
+    return getattr(resource_tracker._resource_tracker, "_pid", None)
+
+
+def kill_descendants() -> None:
+    """SIGKILL every descendant but the resource tracker, until none is left: a process forked
+    while its parent was being killed is adopted by this one (the subreaper) and found on the next
+    pass. Zombies are reaped."""
+    spare = {_tracker_pid()}
+    for _ in range(100):
+        alive = descendants(os.getpid()) - spare
+        if not alive:
+            break
+        for pid in alive:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+        time.sleep(0.005)
+    _reap()
+
+
+def _reap() -> None:
+    with contextlib.suppress(ChildProcessError):
+        while os.waitpid(-1, os.WNOHANG)[0]:
+            pass
+
+
+def _await_tracker() -> None:
+    """Close this process's end of the resource tracker's pipe and wait for the tracker to exit (it
+    does once no process holds the pipe: every other descendant is dead); kill it after TRACKER_WAIT_S."""
+    from multiprocessing import resource_tracker
+
+    tracker = resource_tracker._resource_tracker
+    pid, fd = getattr(tracker, "_pid", None), getattr(tracker, "_fd", None)
+    if pid is None:
+        return
+    with contextlib.suppress(OSError, TypeError):
+        os.close(fd)
+    deadline = time.monotonic() + TRACKER_WAIT_S
+    while time.monotonic() < deadline:
+        try:
+            if os.waitpid(pid, os.WNOHANG)[0]:
+                return
+        except ChildProcessError:  # not this process's child (or reaped already)
+            return
+        time.sleep(0.005)
+    with contextlib.suppress(OSError):
+        os.kill(pid, signal.SIGKILL)
