@@ -295,103 +295,72 @@ def run_logs(
     """
     control = RunControl()
     with deferred(control.stop, control.received):  # from here on, a signal stops the run as below
-        results = _run(
-            output_root,
-            list(log_ids),
-            task,
-            executor,
-            echo,
-            show_progress,
-            fingerprint,
-            mode,
-            input_dir,
-            report_file,
-            verbose,
-            control,
-        )
+        log_ids = list(log_ids)
+        output_root.mkdir(parents=True, exist_ok=True)
+        report = RunReport(output_root, fingerprint or {}, report_file)
+        report.ensure()
+        at_start = dict(report.logs)
+        overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
+        counts = {"ok": 0, "failed": 0, "skipped": 0}
+        results: list[LogResult] = []
+
+        def say(lines: list[str]) -> None:
+            with tqdm.external_write_mode():  # messages above the bars
+                for line in lines:
+                    echo(line)
+
+        def finish(result: LogResult, lines: list[str]) -> None:
+            say(lines)
+            if result.recorded:
+                input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
+                output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
+                report.record(result, input_bytes, output_bytes)
+                counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
+            claims.release(result.log_id)  # after the report holds it: another run re-reads it
+            overall.set_postfix(counts, refresh=False)
+            overall.update(1)
+            results.append(result)
+
+        def gate(log_id: str) -> str | None:
+            holder = claims.acquire(log_id)
+            if holder is not None:
+                return f"being converted by another run ({holder.describe()})"
+            report.refresh()
+            changed = report.previous(log_id) != at_start.get(log_id)  # another run recorded it since
+            if report.is_done(log_id, output_root) and (mode == "resume" or changed):
+                claims.release(log_id)
+                return "converted by another run meanwhile"
+            return None
+
+        with Claims(output_root) as claims:
+            control.claims, control.gate = claims, gate
+            todo = []
+            for log_id in log_ids:
+                if control.stop.is_set():
+                    break
+                if (skip := _not_to_convert(report, output_root, log_id, mode)) is not None:
+                    finish(*skip)
+                else:
+                    todo.append(log_id)
+            for result in executor.results(task, output_root, todo, show_progress, control) if todo else ():
+                if control.stop.is_set() and not result.ok:  # it failed because the run stops
+                    result.abandoned = True
+                finish(result, _lines(result, verbose))
+                if control.stop.is_set():
+                    break
+            if control.stop.is_set():  # stop the work in flight, then record what was published before it
+                say([f"{control.received[0]}: stopping; no new log starts, the logs in flight are abandoned"])
+                with control.publish_lock:  # a publish under way ends first; none starts after
+                    finished = {r.log_id for r in results}
+                    published = [r for log_id, r in control.published.items() if log_id not in finished]
+                executor.abandon()
+                for result in published:
+                    finish(result, _lines(result, verbose))
+        overall.close()
+    results = _in_order(results, log_ids)
     if control.received:
         raise RunInterrupted(control.received[0], results)
     return results
-
-
-def _run(
-    output_root,
-    log_ids,
-    task,
-    executor,
-    echo,
-    show_progress,
-    fingerprint,
-    mode,
-    input_dir,
-    report_file,
-    verbose,
-    control: RunControl,
-) -> list[LogResult]:
-    """:func:`run_logs`' work, under its signal handling: returns the results in the order asked
-    for, also when ``control.stop`` was set."""
-    output_root.mkdir(parents=True, exist_ok=True)
-    report = RunReport(output_root, fingerprint or {}, report_file)
-    report.ensure()
-    at_start = dict(report.logs)
-    overall = tqdm(total=len(log_ids), desc="logs", unit="log", disable=not show_progress, dynamic_ncols=True)
-    counts = {"ok": 0, "failed": 0, "skipped": 0}
-    results: list[LogResult] = []
-
-    def say(lines: list[str]) -> None:
-        with tqdm.external_write_mode():  # messages above the bars
-            for line in lines:
-                echo(line)
-
-    def finish(result: LogResult, lines: list[str]) -> None:
-        say(lines)
-        if result.recorded:
-            input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
-            output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
-            report.record(result, input_bytes, output_bytes)
-            counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
-        claims.release(result.log_id)  # after the report holds it: another run re-reads it
-        overall.set_postfix(counts, refresh=False)
-        overall.update(1)
-        results.append(result)
-
-    def gate(log_id: str) -> str | None:
-        holder = claims.acquire(log_id)
-        if holder is not None:
-            return f"being converted by another run ({holder.describe()})"
-        report.refresh()
-        changed = report.previous(log_id) != at_start.get(log_id)  # another run recorded it since
-        if report.is_done(log_id, output_root) and (mode == "resume" or changed):
-            claims.release(log_id)
-            return "converted by another run meanwhile"
-        return None
-
-    with Claims(output_root) as claims:
-        control.claims, control.gate = claims, gate
-        todo = []
-        for log_id in log_ids:
-            if control.stop.is_set():
-                break
-            if (skip := _not_to_convert(report, output_root, log_id, mode)) is not None:
-                finish(*skip)
-            else:
-                todo.append(log_id)
-        for result in executor.results(task, output_root, todo, show_progress, control) if todo else ():
-            if control.stop.is_set() and not result.ok:  # it failed because the run stops
-                result.abandoned = True
-            finish(result, _lines(result, verbose))
-            if control.stop.is_set():
-                break
-        if control.stop.is_set():  # stop the work in flight, then record what was published before it
-            say([f"{control.received[0]}: stopping; no new log starts, the logs in flight are abandoned"])
-            with control.publish_lock:  # a publish under way ends first; none starts after
-                finished = {r.log_id for r in results}
-                published = [r for log_id, r in control.published.items() if log_id not in finished]
-            executor.abandon()
-            for result in published:
-                finish(result, _lines(result, verbose))
-    overall.close()
-    return _in_order(results, log_ids)
 
 
 def _not_to_convert(
