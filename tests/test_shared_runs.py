@@ -13,10 +13,12 @@ The first two are unit tests; the others run the installed command, as a user or
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -29,6 +31,7 @@ from conftest import av2_args, av2_command, run_cli
 from upath import UPath
 
 from ncore_convert.run import claims as claims_module
+from ncore_convert.run import report as report_module
 from ncore_convert.run.claims import Claims, Holder, claim_path
 from ncore_convert.run.report import RunReport
 from ncore_convert.run.runner import LogResult
@@ -109,6 +112,61 @@ def test_a_run_whose_claim_was_taken_over_knows_it(tmp_path, monkeypatch):
         assert claim_path(UPath(tmp_path), "log").exists(), "a lost claim is the other run's: left alone"
     finally:
         me.close()
+
+
+def _full_disk(*args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_full_disk_leaves_no_temporary_file_of_a_claim_or_the_report(tmp_path, monkeypatch):
+    """ENOSPC while a claim's or the report's temporary file is written: the error reaches the run,
+    the temporary file does not stay (issue 65: a 0-byte claim .tmp was left for good)."""
+    claims = Claims(UPath(tmp_path))
+    try:
+        with monkeypatch.context() as m:
+            m.setattr(claims_module.os, "fsync", _full_disk)
+            with pytest.raises(OSError, match="No space"):
+                claims.acquire("log")
+        report = RunReport(UPath(tmp_path), {"name": "test"})
+        with monkeypatch.context() as m:
+            m.setattr(report_module, "flush_to_disk", _full_disk)
+            with pytest.raises(OSError, match="No space"):
+                report.record(LogResult("log", True), 0, 0)
+    finally:
+        claims.close()
+    assert not list(tmp_path.iterdir()), list(tmp_path.iterdir())
+
+
+def test_a_run_removes_what_dead_runs_left_and_nothing_of_live_ones(tmp_path, monkeypatch):
+    """Claims, temporary files, .partial folders and staging folders of runs that are gone are
+    removed at a run's start; those of live runs (this process, another host's fresh claim) stay."""
+    monkeypatch.setattr(claims_module.tempfile, "gettempdir", lambda: str(tmp_path / "tmp"))
+    out, tmp = tmp_path / "out", tmp_path / "tmp"
+    out.mkdir()
+    tmp.mkdir()
+    host, dead = socket.gethostname(), _dead_pid()
+    dead_tag = f".w-{host}-{dead}-x-0123abcd."
+    _forge(out, "a", {"run_id": "0123456789ab", "host": host, "pid": dead, "pid_started": None})
+    _forge(out, "b", {"run_id": "bbbbbbbbbbbb", "host": "elsewhere", "pid": 1, "pid_started": None})
+    gone = [f".a.claim{dead_tag}tmp", f".conversion-report.json{dead_tag}tmp", f".c.claim{dead_tag}stale"]
+    for name in gone:
+        (out / name).write_text("")
+    (out / ".a.0123456789ab.partial").mkdir()  # its run is dead
+    (out / ".b.bbbbbbbbbbbb.partial").mkdir()  # its run holds b (a fresh claim on another host)
+    (out / ".c.cccccccccccc.partial").mkdir()  # no claim: no run is writing it
+    live_tmp = out / f".d.claim{claims_module.writer_tag()}tmp"  # this process is writing it
+    live_tmp.write_text("")
+    (tmp / f"{claims_module.STAGING_PREFIX}{dead_tag}x1").mkdir()
+    (tmp / f"{claims_module.STAGING_PREFIX}{claims_module.writer_tag()}x2").mkdir()
+    claims = Claims(UPath(out))
+    try:
+        removed = claims.remove_dead_leftovers()
+    finally:
+        claims.close()
+    left = sorted(p.name for p in out.iterdir())
+    assert left == sorted([".b.claim", ".b.bbbbbbbbbbbb.partial", live_tmp.name]), left
+    assert len(removed) == 1 + len(gone) + 2 + 1, removed
+    assert [p.name.endswith("x2") for p in tmp.iterdir()] == [True]
 
 
 def test_concurrent_report_merges_keep_every_entry(tmp_path):

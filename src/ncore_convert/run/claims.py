@@ -17,9 +17,13 @@ ETag (object storage). A run that finds its own claim taken over does not publis
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import re
+import shutil
 import socket
+import tempfile
 import threading
 import time
 import uuid
@@ -52,6 +56,10 @@ def claim_path(output_root: UPath, log_id: str) -> UPath:
     return output_root / f".{log_id}.claim"
 
 
+#: A log's unfinished folder written by a run (``runner.convert_one``): ``.<log_id>.<run_id>.partial``.
+_PARTIAL = re.compile(r"^\.(?P<log>.+)\.(?P<run>[0-9a-f]{12})\.partial$")
+
+
 def _process_started(pid: int) -> str | None:
     """A process's start time in clock ticks since boot (Linux), None where it cannot be read."""
     try:
@@ -70,6 +78,39 @@ def _process_exists(holder: Holder) -> bool:
         pass
     started = _process_started(holder.pid)
     return holder.pid_started is None or started is None or started == holder.pid_started
+
+
+def _alive(holder: Holder, age_s: float) -> bool:
+    """Whether a claim's (or a temporary file's) writer still runs: on this host, its process;
+    elsewhere, judged by the age of what it wrote."""
+    if holder.host == socket.gethostname():
+        return _process_exists(holder)
+    return age_s < STALE_S
+
+
+#: The prefix of a log's local staging folder (output on object storage), in the system's temp folder.
+STAGING_PREFIX = "ncore-convert-staging."
+_WRITER = re.compile(r"\.w-(?P<host>[^/]+)-(?P<pid>\d+)-(?P<started>\d+|x)-[0-9a-f]{8}\.")
+
+
+def writer_tag() -> str:
+    """A name part for a temporary file or folder: ``.w-<host>-<pid>-<start time>-<random>.``, from
+    which a later run judges whether its writer is gone (:func:`writer_gone`)."""
+    pid = os.getpid()
+    return f".w-{socket.gethostname()}-{pid}-{_process_started(pid) or 'x'}-{uuid.uuid4().hex[:8]}."
+
+
+def writer_gone(path: str) -> bool:
+    """Whether the process that named ``path`` with :func:`writer_tag` is gone (False for other names)."""
+    found = _WRITER.search(os.path.basename(path))
+    if found is None:
+        return False
+    try:
+        age_s = max(0.0, time.time() - os.lstat(path).st_mtime)
+    except FileNotFoundError:
+        return False
+    started = None if found["started"] == "x" else found["started"]
+    return not _alive(Holder("", found["host"], int(found["pid"]), started), age_s)
 
 
 class Claims:
@@ -119,7 +160,7 @@ class Claims:
             holder, age_s, token = found
             if holder.run_id == self.me.run_id:  # our own (a retried task of this run)
                 return self._took(log_id, token)
-            if self._alive(holder, age_s):
+            if _alive(holder, age_s):
                 return holder
             token = self._take_over(path, holder, token)
             if token is not False:
@@ -185,12 +226,6 @@ class Claims:
             if log_id in self._held:
                 self._held[log_id] = new
 
-    # --- judging another run's claim ---
-    def _alive(self, holder: Holder, age_s: float) -> bool:
-        if holder.host == self.me.host:
-            return _process_exists(holder)
-        return age_s < STALE_S
-
     # --- storage ---
     def _text(self) -> bytes:
         return json.dumps({**asdict(self.me), "claimed": time.time()}).encode()
@@ -218,26 +253,34 @@ class Claims:
     def _create(self, path: UPath) -> str | None | bool:
         """Create the claim if it does not exist: its ETag (None on a file system), or False."""
         if is_local(path):
-            tmp = f"{path.path}.{self.me.run_id}.{threading.get_ident()}.tmp"
-            with open(tmp, "wb") as f:
-                f.write(self._text())
-                f.flush()
-                os.fsync(f.fileno())
+            tmp = f"{path.path}{writer_tag()}tmp"
             try:
-                os.link(tmp, path.path)
-                return None
-            except FileExistsError:
-                return False
-            except OSError:  # a file system without hard links (some FUSE and SMB mounts)
-                return self._create_exclusive(path)
-            finally:
-                os.unlink(tmp)
+                with open(tmp, "wb") as f:
+                    f.write(self._text())
+                    f.flush()
+                    os.fsync(f.fileno())
+                return self._link(tmp, path)
+            finally:  # also when the write failed (a full disk)
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(tmp)
         try:
             return self._write(path, None, create=True)
         except OSError as err:
             if precondition_failed(err):
                 return False
             raise
+
+    def _link(self, tmp: str, path: UPath) -> None | bool:
+        """Hard-link a complete temporary claim to the claim's name: None, or False if it exists."""
+        try:
+            os.link(tmp, path.path)
+            return None
+        except FileExistsError:
+            return False
+        except OSError as err:
+            if err.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            return self._create_exclusive(path)  # a file system without hard links (some FUSE and SMB mounts)
 
     def _create_exclusive(self, path: UPath) -> None | bool:
         """``O_CREAT | O_EXCL``: atomic on local file systems and NFSv3+; a reader may see the claim
@@ -266,7 +309,11 @@ class Claims:
                 if precondition_failed(err) or isinstance(err, FileNotFoundError):
                     return False
                 raise
-        aside = f"{path.path}.{self.me.run_id}.stale"
+        return self._create(path) if self._remove_stale(path, stale) else False
+
+    def _remove_stale(self, path: UPath, stale: Holder) -> bool:
+        """Remove a gone run's claim on a file system, atomically: False if it changed meanwhile."""
+        aside = f"{path.path}{writer_tag()}stale"
         try:
             os.rename(path.path, aside)  # only one run moves a given file
         except FileNotFoundError:
@@ -278,4 +325,46 @@ class Claims:
             os.unlink(aside)
             return False
         os.unlink(aside)
-        return self._create(path)
+        return True
+
+    # --- what dead runs left ---
+    def remove_dead_leftovers(self) -> list[str]:
+        """Remove what runs that are gone left in a local output folder (their claims, temporary
+        files, and the ``.partial`` folders no live run with their run id holds the log of) and in
+        this host's temp folder (staging folders); returns the names removed."""
+        removed = []
+        if is_local(self.root) and self.root.is_dir():
+            entries = list(os.scandir(self.root.path))
+            for entry in entries:  # claims first: a .partial is kept only for a live claim
+                if entry.name.startswith(".") and entry.name.endswith(".claim") and self._claim_gone(entry.path):
+                    removed.append(entry.name)
+            live = self._live_claims()
+            for entry in entries:
+                if entry.name.startswith(".") and writer_gone(entry.path):
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(entry.path)
+                        removed.append(entry.name)
+                elif (partial := _PARTIAL.match(entry.name)) and (partial["log"], partial["run"]) not in live:
+                    shutil.rmtree(entry.path, ignore_errors=True)
+                    removed.append(entry.name)
+        for entry in os.scandir(tempfile.gettempdir()):
+            if entry.name.startswith(STAGING_PREFIX) and writer_gone(entry.path):
+                shutil.rmtree(entry.path, ignore_errors=True)
+                removed.append(entry.path)
+        return removed
+
+    def _claim_gone(self, path: str) -> bool:
+        found = self._read(UPath(path))
+        if found is None or found[0].run_id == self.me.run_id or _alive(found[0], found[1]):
+            return False
+        return self._remove_stale(UPath(path), found[0])
+
+    def _live_claims(self) -> set[tuple[str, str]]:
+        """(log id, run id) of every claim in the output folder (the gone ones are removed first)."""
+        live = set()
+        for entry in os.scandir(self.root.path):
+            if entry.name.startswith(".") and entry.name.endswith(".claim"):
+                found = self._read(UPath(entry.path))
+                if found is not None:
+                    live.add((entry.name[1 : -len(".claim")], found[0].run_id))
+        return live

@@ -17,11 +17,11 @@ import fcntl
 import json
 import os
 import time
-import uuid
 from datetime import UTC, datetime
 
 from upath import UPath
 
+from ncore_convert.run.claims import writer_tag
 from ncore_convert.storage import flush_to_disk, is_local, precondition_failed
 
 REPORT_NAME = "conversion-report.json"
@@ -123,10 +123,14 @@ class RunReport:
         if is_local(self.path):
             with self._locked():
                 logs = {**self._read()[0], **updates}
-                tmp = self.path.parent / f".{self.path.name}.{uuid.uuid4().hex[:8]}.tmp"
-                tmp.write_text(self._text(logs))
-                flush_to_disk(tmp)
-                tmp.rename(self.path)
+                tmp = self.path.parent / f".{self.path.name}{writer_tag()}tmp"
+                try:
+                    tmp.write_text(self._text(logs))
+                    flush_to_disk(tmp)
+                    tmp.rename(self.path)
+                finally:  # also when the write failed (a full disk)
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(tmp.path)
             self.logs = logs
             return
         for attempt in range(MERGE_ATTEMPTS):

@@ -31,7 +31,7 @@ from upath import UPath
 
 from ncore_convert.contract import SAFE_NAME
 from ncore_convert.errors import SourceError, UsageError, ValidationFailed
-from ncore_convert.run.claims import Claims
+from ncore_convert.run.claims import STAGING_PREFIX, Claims, writer_tag
 from ncore_convert.run.pool import Progress
 from ncore_convert.run.report import REPORT_NAME, RunReport
 from ncore_convert.run.stop import deferred
@@ -159,7 +159,7 @@ def convert_one(
     if not SAFE_NAME.match(log_id):  # sources check the names they list; this guards every other caller
         return LogResult(log_id, False, error=f"{log_id!r} is not a safe output folder name; nothing written")
     final = output_root / log_id
-    staging = None if is_local(output_root) else tempfile.mkdtemp(prefix=f"ncore-convert-{log_id[:40]}-")
+    staging = None if is_local(output_root) else tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{writer_tag()}")
     run_tag = f".{control.claims.me.run_id}" if control is not None and control.claims is not None else ""
     work = output_root / f".{log_id}{run_tag}.partial" if staging is None else UPath(staging) / log_id
     if staging is None:  # this run holds the log: unfinished folders of earlier runs go
@@ -334,6 +334,7 @@ def run_logs(
 
         with Claims(output_root) as claims:
             control.claims, control.gate = claims, gate
+            claims.remove_dead_leftovers()
             todo = []
             for log_id in log_ids:
                 if control.stop.is_set():
