@@ -112,10 +112,6 @@ class CuboidColumns:
         fields = {name: getattr(self, name)[keep] for name in self.__dataclass_fields__ if name != "stored"}
         return CuboidColumns([self.stored[i] for i in keep], **fields)
 
-    def bboxes(self) -> np.ndarray:
-        """NCore's box rows (centroid, dim, rot), float32 [N,9], as ``is_within_3d_bboxes`` takes them."""
-        return np.concatenate([self.centroid_m, self.dim_m, self.rot_rad], axis=1).astype(np.float32)
-
 
 def _first_malformed(stored: list) -> str:
     keys = ("track_id", "class_id", "timestamp_us", "reference_frame_id", "reference_frame_timestamp_us", "source")

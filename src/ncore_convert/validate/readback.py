@@ -18,20 +18,17 @@ from ncore.data.v4 import (
     SequenceComponentGroupsReader,
     SequenceLoaderV4,
 )
-from ncore.impl.common.transformations import is_within_3d_bboxes
 from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE, ScenarioManifest
-from ncore_convert.transforms.objects.boxes import PointGrid, box_corners
+from ncore_convert.transforms.objects.boxes import PointGrid, box_corners, count_in_box_band
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.cuboids import CuboidColumns
 from ncore_convert.validate.poses import sensor_poses
 
 #: Frames sampled over a sensor for the checks that need motion-compensated points.
 SAMPLED_FRAMES = 5
-#: added to a box's half diagonal for the prefilter of box_point_counts (points are float32 there)
-BOUND_MARGIN_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -145,16 +142,17 @@ def _T_reference_world(loader: SequenceLoaderV4, frame_id: str, t_us: int) -> np
 
 
 def box_point_counts(
-    loader: SequenceLoaderV4, boxes: CuboidColumns, xyz_world_m: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """How many of the points (world, float64 [N,3]) lie inside each box, int [B], and the box centres
-    in world, float64 [B,3]; each box is tested in its own reference frame at its reference time
-    (one pose per reference frame and time; only the points in the cube around the box's bounding
-    sphere go to NCore's ``is_within_3d_bboxes``). A box whose reference frame cannot be posed at its
-    time counts -1 and has a NaN centre."""
-    counts, centres = np.zeros(len(boxes), dtype=np.int64), np.zeros((len(boxes), 3))
-    bboxes = boxes.bboxes()
-    radius_m = 0.5 * np.linalg.norm(boxes.dim_m, axis=1) + BOUND_MARGIN_M
+    loader: SequenceLoaderV4, boxes: CuboidColumns, xyz_world_m: np.ndarray, margin_m: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How many of the points (world, float64 [N,3]) lie inside each box shrunk and grown by its
+    ``margin_m`` (metres [B], 0 without: both are then the exact count;
+    :func:`~ncore_convert.transforms.objects.boxes.count_in_box_band`), int [B] each, and the box
+    centres in world, float64 [B,3]. Each box is tested in float64 in its own reference frame at its
+    reference time (one pose per reference frame and time). A box whose reference frame cannot be
+    posed at its time counts -1 and has a NaN centre."""
+    inner, outer, centres = np.zeros(len(boxes), np.int64), np.zeros(len(boxes), np.int64), np.zeros((len(boxes), 3))
+    margin_m = np.zeros(len(boxes)) if margin_m is None else margin_m
+    R_box_ref = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix() if len(boxes) else np.zeros((0, 3, 3))
     groups: dict[tuple[str, int], list[int]] = {}
     for k, key in enumerate(zip(boxes.reference_frame_id, boxes.reference_frame_timestamp_us.tolist(), strict=True)):
         groups.setdefault(key, []).append(k)
@@ -162,15 +160,14 @@ def box_point_counts(
         try:
             T_ref_world = _T_reference_world(loader, frame_id, t_us)
         except (KeyError, ValueError, AssertionError):  # the cuboid checks name the unposed reference frame
-            counts[members], centres[members] = -1, np.nan
+            inner[members], outer[members], centres[members] = -1, -1, np.nan
             continue
-        xyz_ref = ((xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3]).astype(np.float32)
-        points = PointGrid(xyz_ref)
+        points = PointGrid((xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3])
         centres[members] = boxes.centroid_m[members] @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
         for k in members:
-            candidates = xyz_ref[points.near(boxes.centroid_m[k], float(radius_m[k]))]
-            counts[k] = int(is_within_3d_bboxes(candidates, bboxes[k : k + 1]).sum())
-    return counts, centres
+            half_m = np.asarray(boxes.dim_m[k], dtype=np.float64) / 2
+            inner[k], outer[k] = count_in_box_band(points, boxes.centroid_m[k], R_box_ref[k], half_m, margin_m[k])
+    return inner, outer, centres
 
 
 def box_corners_world(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:

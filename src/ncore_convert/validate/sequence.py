@@ -92,7 +92,7 @@ def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) ->
         if not len(boxes):
             continue
         xyz_world, sensor_world = sequence.world_points(lidar_id, i)
-        counts, centres = box_point_counts(loader, boxes, xyz_world)
+        _, counts, centres = box_point_counts(loader, boxes, xyz_world)
         is_near = np.linalg.norm(centres - sensor_world, axis=1) <= OCCUPANCY_RANGE_M
         near += int(is_near.sum())
         held += int((counts[is_near] > 0).sum())

@@ -232,3 +232,22 @@ def points_in_box(points: PointGrid, centre_m: np.ndarray, R_box_frame: np.ndarr
     """
     near = points.near(centre_m, float(np.linalg.norm(half_m)))  # no point further is inside
     return near[in_box(points.xyz_m[near], centre_m, R_box_frame, half_m)]
+
+
+def count_in_box_band(
+    points: PointGrid, centre_m: np.ndarray, R_box_frame: np.ndarray, half_m: np.ndarray, margin_m: float
+) -> tuple[int, int]:
+    """How many of ``points`` lie inside one box shrunk by ``margin_m`` on every face, and inside it
+    grown by ``margin_m`` (faces included): (inner, outer), inner <= outer. A point that may have
+    moved by up to ``margin_m`` was inside the box for inner <= n <= outer of the counts n it could
+    give; with ``margin_m`` 0 both are the :func:`in_box` count.
+
+    Args:
+        centre_m: [3]; R_box_frame: box axes -> frame [3,3]; half_m: half sizes [3]; frame and metres
+            of ``points``; margin_m: >= 0, metres.
+    """
+    near = points.near(centre_m, float(np.linalg.norm(half_m + margin_m)))
+    local = np.abs((points.xyz_m[near] - centre_m) @ R_box_frame)
+    outer = np.all(local <= half_m + margin_m, axis=1)
+    inner = np.all(local[outer] <= half_m - margin_m, axis=1)
+    return int(inner.sum()), int(outer.sum())
