@@ -1,0 +1,80 @@
+"""Faults planted in a converted sequence's directory store, just beyond the validator's bands (issue
+65): edits for ``zarr`` groups, applied by ``tests/test_validate.py`` and ``bench/bench_planted_faults.py``.
+
+Each takes the sequence's zarr root group (one store: ``--store-type directory --profile default``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import zarr
+
+from ncore_convert.validate.source import round_trip_margin_m
+
+
+def frame_key(group: zarr.Group, lidar: str, index: int) -> str:
+    return sorted(group[f"lidars/{lidar}/frames"].group_keys(), key=int)[index]
+
+
+def _frame(group: zarr.Group, lidar: str, index: int) -> zarr.Group:
+    return group[f"lidars/{lidar}/frames/{frame_key(group, lidar, index)}"]
+
+
+def remove_ray(group: zarr.Group, lidar: str, index: int, ray: int) -> None:
+    """Delete one ray (and its return) from a lidar frame: every per-ray array loses its row."""
+    frame = _frame(group, lidar, index)
+    for path in ("ray_bundle/direction", "ray_bundle/model_element", "ray_bundle/timestamp_us"):
+        if path in frame:
+            _delete_row(frame[path], ray, axis=0)
+    for name in frame["generic_data"].array_keys() if "generic_data" in frame else ():
+        _delete_row(frame[f"generic_data/{name}"], ray, axis=0)
+    for path in ("ray_bundle_returns/distance_m", "ray_bundle_returns/intensity"):
+        _delete_row(frame[path], ray, axis=1)
+    frame["ray_bundle"].attrs["n_rays"] = frame["ray_bundle/timestamp_us"].shape[0]
+    packed = frame["ray_bundle_returns_valid_mask_packed"]
+    n = frame["ray_bundle/timestamp_us"].shape[0] + 1
+    valid = np.delete(np.unpackbits(packed[:])[:n], ray)
+    repacked = np.packbits(valid)
+    packed.resize(repacked.shape)
+    packed[:] = repacked
+
+
+def _delete_row(array: zarr.Array, row: int, axis: int) -> None:
+    values = np.delete(array[:], row, axis=axis)
+    array.resize(values.shape)
+    array[:] = values
+
+
+def shorten_rays(group: zarr.Group, lidar: str, index: int, by_m) -> None:
+    """Shorten every return of a frame by ``by_m(distance_m)`` metres (float32 [N] -> [N])."""
+    distance = _frame(group, lidar, index)["ray_bundle_returns/distance_m"]
+    values = distance[:].astype(np.float64)
+    distance[:] = (values - by_m(values)).astype(np.float32)
+
+
+#: Half the diagonal of the largest box the generator annotates (a bus, 12 x 2.6 x 3.5 m), metres.
+BOX_HALF_DIAGONAL_M = 6.5
+
+
+def margin_times(k: float, lever_m: float, speed_mps: float, turn_rate_radps: float, reach_extra_m: float):
+    """``by_m`` for :func:`shorten_rays`: ``k`` times the validator's ε of a box the return can lie on.
+    The check's ε of a box is taken at its reach (its centre's distance from the rig origin, plus half
+    its diagonal, plus the lidars' lever arm); for a return on the box, that reach is at most its
+    distance plus two lever arms plus twice ``reach_extra_m`` (half the largest box diagonal)."""
+
+    def by_m(distance_m):
+        reach_m = distance_m + 2 * lever_m + 2 * reach_extra_m
+        return k * round_trip_margin_m(reach_m, speed_mps, turn_rate_radps)
+
+    return by_m
+
+
+def shift_times(group: zarr.Group, lidar: str, index: int, steps_us: int) -> None:
+    """Shift every per-ray time of a frame by ``steps_us`` µs steps."""
+    times = _frame(group, lidar, index)["ray_bundle/timestamp_us"]
+    times[:] = (times[:].astype(np.int64) + steps_us).astype(np.uint64)
+
+
+def shift_box(observations: list, row: int, by_m: float) -> None:
+    """Move one cuboid observation's centre by ``by_m`` along its reference frame's x axis."""
+    observations[row]["bbox3"]["centroid"][0] += by_m
