@@ -13,6 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
+from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert import contract
@@ -35,9 +36,15 @@ RunJobs = Callable[[list[tuple[Callable, tuple]]], list]
 UNIT_TOLERANCE = 1e-4  #: |‖direction‖ − 1| allowed (directions are stored as float32)
 #: A frame interval more than this times the median is a dropped frame; less than 1/this, a shifted one.
 GAP_FACTOR = 1.5
-OCCUPANCY_RANGE_M = 30.0  #: boxes whose centre is within this range of the lidar are expected to hold points
-OCCUPANCY_MIN_FRACTION = 0.5  #: of those boxes, at least this fraction must hold a point
+OCCUPANCY_RANGE_M = 30.0  #: boxes whose centre is within this range of the lidar are looked at
 OCCUPANCY_MIN_BOXES = 5  #: fewer near boxes than this: the occupancy check is not decisive
+#: Gross misregistrations the occupancy is compared with (a plausibility heuristic, docs/validation.md):
+#: the frame's points turned about the lidar, in its own axes, by these xyz Euler angles (degrees):
+#: yawed a quarter, half and three quarters round, and upside down.
+OCCUPANCY_ALTERNATIVES_DEG = ((0, 0, 90), (0, 0, 180), (0, 0, 270), (180, 0, 0))
+#: The occupancy fails when an alternative holds more near boxes than the stored registration by more
+#: than this many binomial standard deviations (boxes hold points or not, as occlusion decides).
+OCCUPANCY_SIGMAS = 3.0
 
 
 def _regularity(report: Report, name: str, end_us: np.ndarray) -> None:
@@ -82,11 +89,13 @@ def _uncovered(loader: SequenceLoaderV4, sensor_id: str, spans_us: np.ndarray) -
     return [i for i in range(len(spans_us)) if not _covered(loader, sensor_id, spans_us[i])]
 
 
-def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> tuple[int, int]:
-    """(near boxes holding a point, near boxes) over the sampled frames of one lidar."""
+def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> tuple[int, int, int]:
+    """(near boxes holding a point, near boxes, the most near boxes any of the
+    OCCUPANCY_ALTERNATIVES_DEG holds) over the sampled frames of one lidar."""
     loader = sequence.loader
     frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us
-    held = near = 0
+    turns = Rotation.from_euler("xyz", OCCUPANCY_ALTERNATIVES_DEG, degrees=True).as_matrix()
+    held, near, held_turned = 0, 0, np.zeros(len(turns), dtype=np.int64)
     for i in sample_frames(len(frames_us)):
         boxes = boxes_at(cuboids, int(frames_us[i, 0]), int(frames_us[i, 1]))
         if not len(boxes):
@@ -96,7 +105,14 @@ def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) ->
         is_near = np.linalg.norm(centres - sensor_world, axis=1) <= OCCUPANCY_RANGE_M
         near += int(is_near.sum())
         held += int((counts[is_near] > 0).sum())
-    return held, near
+        if not is_near.any():
+            continue
+        R_sensor_world = sensor_poses(loader, lidar_id, "world", frames_us[i, 1:2])[0][:3, :3]
+        for k, turn in enumerate(turns):  # about the lidar, in its own axes
+            R_turn_world = R_sensor_world @ turn @ R_sensor_world.T
+            _, turned, _ = box_point_counts(loader, boxes, (xyz_world - sensor_world) @ R_turn_world.T + sensor_world)
+            held_turned[k] += int((turned[is_near] > 0).sum())
+    return held, near, int(held_turned.max())
 
 
 def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> bool:
@@ -157,14 +173,18 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> boo
 
 
 def _check_occupancy(report: Report, sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> None:
-    held, near = _occupancy(sequence, lidar_id, cuboids)
+    """A plausibility heuristic: the stored registration fills the near boxes with points at least as
+    well as gross misregistrations do, within OCCUPANCY_SIGMAS binomial standard deviations."""
+    held, near, best_turned = _occupancy(sequence, lidar_id, cuboids)
     decisive = near >= OCCUPANCY_MIN_BOXES
-    ok = not decisive or held >= OCCUPANCY_MIN_FRACTION * near
+    share = (held + best_turned) / (2 * near) if near else 0.0
+    slack = OCCUPANCY_SIGMAS * np.sqrt(near * share * (1 - share))
+    ok = not decisive or best_turned - held <= slack
     report.add(
         f"lidar {lidar_id}: cuboids hold points",
         ok,
-        f"{held} of {near} boxes within {OCCUPANCY_RANGE_M:.0f} m hold a point"
-        + ("" if decisive else " (too few boxes to decide)"),
+        f"{held} of {near} boxes within {OCCUPANCY_RANGE_M:.0f} m hold a point; turned about the lidar"
+        f" (yaw 90/180/270°, upside down) at most {best_turned}" + ("" if decisive else " (too few boxes to decide)"),
     )
 
 
