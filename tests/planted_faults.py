@@ -6,10 +6,18 @@ Each takes the sequence's zarr root group (one store: ``--store-type directory -
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import zarr
+from scipy.spatial.transform import Rotation
+from upath import UPath
 
-from ncore_convert.validate.source import round_trip_margin_m
+from ncore_convert.transforms.objects.boxes import in_box
+from ncore_convert.validate.cuboids import read_cuboids
+from ncore_convert.validate.poses import sensor_poses
+from ncore_convert.validate.readback import boxes_at, open_sequence, sample_frames
+from ncore_convert.validate.source import rig_motion_bounds, round_trip_margin_m
 
 
 def frame_key(group: zarr.Group, lidar: str, index: int) -> str:
@@ -56,17 +64,44 @@ def shorten_rays(group: zarr.Group, lidar: str, index: int, by_m) -> None:
 BOX_HALF_DIAGONAL_M = 6.5
 
 
-def margin_times(k: float, lever_m: float, speed_mps: float, turn_rate_radps: float, reach_extra_m: float):
+def band_multiple(sequence_json: Path, lidar: str, index: int, k: float):
     """``by_m`` for :func:`shorten_rays`: ``k`` times the validator's ε of a box the return can lie on.
     The check's ε of a box is taken at its reach (its centre's distance from the rig origin, plus half
     its diagonal, plus the lidars' lever arm); for a return on the box, that reach is at most its
-    distance plus two lever arms plus twice ``reach_extra_m`` (half the largest box diagonal)."""
+    distance plus two lever arms plus a whole diagonal of the largest box."""
+    loader = open_sequence(UPath(sequence_json)).loader
+    frames_us = loader.get_lidar_sensor(lidar).frames_timestamps_us
+    speed_mps, turn_rate_radps = rig_motion_bounds(loader, int(frames_us[index, 0]), int(frames_us[index, 1]))
+    lever_m = max(
+        float(np.linalg.norm(loader.pose_graph.evaluate_poses(u, "rig", np.zeros(1, np.uint64))[0][:3, 3]))
+        for u in loader.lidar_ids
+    )
 
     def by_m(distance_m):
-        reach_m = distance_m + 2 * lever_m + 2 * reach_extra_m
+        reach_m = distance_m + 2 * lever_m + 2 * BOX_HALF_DIAGONAL_M
         return k * round_trip_margin_m(reach_m, speed_mps, turn_rate_radps)
 
     return by_m
+
+
+def a_ray_inside_a_box(sequence_json: Path, lidar: str = "up_lidar") -> tuple[int, int, int]:
+    """(frame index, ray index, cuboid row) of a ray inside an annotated box, on the first sweep the
+    interior check samples (read back as the check reads it)."""
+    sequence = open_sequence(UPath(sequence_json))
+    cuboids = read_cuboids(sequence.reader)
+    frames_us = sequence.loader.get_lidar_sensor(lidar).frames_timestamps_us
+    frame = int(sample_frames(len(frames_us))[0])
+    boxes = boxes_at(cuboids, int(frames_us[frame, 0]), int(frames_us[frame, 1]))
+    xyz_world, _ = sequence.world_points(lidar, frame)
+    T_rig_world = sensor_poses(sequence.loader, "rig", "world", boxes.reference_frame_timestamp_us[:1])[0]
+    xyz_rig = (xyz_world - T_rig_world[:3, 3]) @ T_rig_world[:3, :3]
+    R_box_rig = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix()
+    for k in range(len(boxes)):
+        inside = np.flatnonzero(in_box(xyz_rig, boxes.centroid_m[k], R_box_rig[k], boxes.dim_m[k] / 2))
+        if len(inside):
+            row = next(i for i, stored in enumerate(cuboids.stored) if stored is boxes.stored[k])
+            return frame, int(inside[len(inside) // 2]), row
+    raise AssertionError(f"{sequence_json}: no ray inside a box on the first sampled sweep")
 
 
 def shift_times(group: zarr.Group, lidar: str, index: int, steps_us: int) -> None:

@@ -13,8 +13,7 @@ import pytest
 import zarr
 from conftest import synth_and_convert
 from ncore.impl.data.stores import consolidate_compressed_metadata
-from planted_faults import BOX_HALF_DIAGONAL_M, margin_times, remove_ray, shift_box, shift_times, shorten_rays
-from scipy.spatial.transform import Rotation
+from planted_faults import a_ray_inside_a_box, band_multiple, remove_ray, shift_box, shift_times, shorten_rays
 from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options
@@ -24,13 +23,8 @@ from ncore_convert.run.runner import convert_one
 from ncore_convert.synth.argoverse2 import SynthConfig
 from ncore_convert.synth.opencood import SynthConfig as OpenCoodConfig
 from ncore_convert.synth.opencood import write_dataset
-from ncore_convert.transforms.objects.boxes import in_box
 from ncore_convert.validate.coregister import check_coregistration
-from ncore_convert.validate.cuboids import read_cuboids
-from ncore_convert.validate.poses import sensor_poses
-from ncore_convert.validate.readback import boxes_at, open_sequence, sample_frames
 from ncore_convert.validate.sequence import validate_sequence
-from ncore_convert.validate.source import rig_motion_bounds
 from ncore_convert.validate.tree import convert_and_validate, find_sequences, validate_tree
 
 
@@ -520,28 +514,8 @@ def test_the_conversion_command_validates_unless_told_not_to(tmp_path):
 INTERIOR = "source: points inside each box match num_interior_pts"
 
 
-def _a_box_with_a_ray_inside(converted) -> tuple[int, int, int]:
-    """(up_lidar frame index, ray index, cuboid row) of a ray inside an annotated box, on the first
-    sweep the interior check samples (read back as the check reads it)."""
-    sequence = open_sequence(next(converted.seq_dir.glob("*.json")))
-    cuboids = read_cuboids(sequence.reader)
-    frames_us = sequence.loader.get_lidar_sensor("up_lidar").frames_timestamps_us
-    frame = int(sample_frames(len(frames_us))[0])
-    boxes = boxes_at(cuboids, int(frames_us[frame, 0]), int(frames_us[frame, 1]))
-    xyz_world, _ = sequence.world_points("up_lidar", frame)
-    R_rig_world = sensor_poses(sequence.loader, "rig", "world", boxes.reference_frame_timestamp_us[:1])[0]
-    xyz_rig = (xyz_world - R_rig_world[:3, 3]) @ R_rig_world[:3, :3]
-    R_box_rig = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix()
-    for k in range(len(boxes)):
-        inside = np.flatnonzero(in_box(xyz_rig, boxes.centroid_m[k], R_box_rig[k], boxes.dim_m[k] / 2))
-        if len(inside):
-            row = next(i for i, s in enumerate(cuboids.stored) if s is boxes.stored[k])
-            return frame, int(inside[len(inside) // 2]), row
-    raise AssertionError("no ray inside a box on the sampled sweep")
-
-
 def test_one_interior_point_removed_is_caught(directory_log, tmp_path):
-    frame, ray, _ = _a_box_with_a_ray_inside(directory_log)
+    frame, ray, _ = a_ray_inside_a_box(next(directory_log.seq_dir.glob("*.json")))
     failures = corrupt(
         directory_log,
         tmp_path,
@@ -555,16 +529,10 @@ def test_one_interior_point_removed_is_caught(directory_log, tmp_path):
 def test_points_moved_by_twice_the_band_are_caught_and_by_half_of_it_not(directory_log, tmp_path):
     """Every return of a sampled frame shortened by k x ε (the check's own ε at the return's reach):
     k = 2 leaves face points outside the grown box, k = 0.5 stays within every band."""
-    frame, _, _ = _a_box_with_a_ray_inside(directory_log)
-    sequence = open_sequence(next(directory_log.seq_dir.glob("*.json")))
-    frames_us = sequence.loader.get_lidar_sensor("up_lidar").frames_timestamps_us
-    motion = rig_motion_bounds(sequence.loader, int(frames_us[frame, 0]), int(frames_us[frame, 1]))
-    lever_m = max(
-        np.linalg.norm(sequence.loader.pose_graph.evaluate_poses(u, "rig", np.zeros(1, np.uint64))[0][:3, 3])
-        for u in ("up_lidar", "down_lidar")
-    )
+    sequence_json = next(directory_log.seq_dir.glob("*.json"))
+    frame, _, _ = a_ray_inside_a_box(sequence_json)
     for k, caught in ((2.0, True), (0.5, False)):
-        by_m = margin_times(k, lever_m, *motion, reach_extra_m=BOX_HALF_DIAGONAL_M)
+        by_m = band_multiple(sequence_json, "up_lidar", frame, k)
         failures = corrupt(
             directory_log,
             tmp_path / str(k),
@@ -576,7 +544,7 @@ def test_points_moved_by_twice_the_band_are_caught_and_by_half_of_it_not(directo
 
 
 def test_a_box_shifted_five_millimetres_is_caught(directory_log, tmp_path):
-    _, _, row = _a_box_with_a_ray_inside(directory_log)
+    _, _, row = a_ray_inside_a_box(next(directory_log.seq_dir.glob("*.json")))
     failures = corrupt(
         directory_log,
         tmp_path,
