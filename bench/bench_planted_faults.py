@@ -42,6 +42,8 @@ from ncore_convert.validate.poses import sensor_poses  # noqa: E402
 from ncore_convert.validate.readback import open_sequence, world_points  # noqa: E402
 from ncore_convert.validate.source import (  # noqa: E402
     FLOAT32_ROUNDINGS,
+    TIME_FLOORS,
+    TIME_STEP_S,
     UNIT_ROUNDOFF_F32,
     rig_motion_bounds,
     round_trip_margin_m,
@@ -57,7 +59,7 @@ def cli(args: list[str], env: dict | None = None) -> subprocess.CompletedProcess
 
 def convert(work: Path, seed: int, seconds: float, store: bool) -> tuple[Path, Path]:
     """Generate and convert (without validation) one AV2 log; (its sequence json, the source root)."""
-    root, out = work / f"src-{seed}", work / f"out-{seed}"
+    root, out = work / f"src-{seed}", work / f"out-{seed}{'-directory' if store else ''}"
     if not out.exists():
         cli(
             ["synth", "argoverse2", "--out", str(root / "val"), "--seconds", str(seconds), "--seed", str(seed)]
@@ -99,7 +101,7 @@ def displacement(sequence_json: Path, root: Path) -> dict:
         reach_m = np.linalg.norm(source[k], axis=1) + lever_m
         eps_m = round_trip_margin_m(reach_m, speed, turn)
         d_all.append(d_m), r_all.append(reach_m - lever_m), eps_all.append(eps_m)
-        time_share.append((speed + turn * reach_m) * 1e-6 / eps_m)
+        time_share.append(TIME_FLOORS * (speed + turn * reach_m) * TIME_STEP_S / eps_m)
     d, r, eps, share = (np.concatenate(a) for a in (d_all, r_all, eps_all, time_share))
     bins = [(0, 10), (10, 30), (30, 60), (60, 100), (100, 400)]
     by_range = {f"{lo}-{hi} m": float(d[(r >= lo) & (r < hi)].max(initial=0) * 1e6) for lo, hi in bins}

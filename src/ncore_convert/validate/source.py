@@ -32,11 +32,13 @@ from ncore_convert.validate.report import Report
 #: from its source position by at most round_trip_margin_m of its range: float32 roundings, each at
 #: most one unit roundoff (2**-24) of the range (the converter's decompensation in float32: 3 for the
 #: matrix elements, 12 for the products and sums; the stored float32 direction and distance and
-#: NCore's product of them: 3; NCore's float32 compensation to the frame end: 3 + 12), and the per-point
-#: times stored floored to the µs (the rig's motion over at most one µs). The box test itself runs in float64.
+#: NCore's product of them: 3; NCore's float32 compensation to the frame end: 3 + 12), and two floors
+#: of a time to the µs (the point's own time, and the box's reference time, the sweep's): the rig's
+#: motion over at most one µs each. The box test itself runs in float64.
 FLOAT32_ROUNDINGS = 33
 UNIT_ROUNDOFF_F32 = 2.0**-24
-TIME_STEP_S = 1e-6  #: the stored per-point time's step (µs), floored from the source's ns
+TIME_STEP_S = 1e-6  #: the stored times' step (µs), floored from the source's ns
+TIME_FLOORS = 2  #: the point's time and the box's reference time
 #: the rig's speed and turn rate are taken from its poses at this spacing over each sampled sweep
 MOTION_SAMPLE_US = 1000
 #: An observation's centre (m), size (m) and rotation-matrix elements are its annotation row's, up to
@@ -192,9 +194,10 @@ def _boxes_as_annotated(report: Report, cuboids: CuboidColumns, annotations: av2
 def round_trip_margin_m(range_m: np.ndarray, speed_mps: float, turn_rate_radps: float) -> np.ndarray:
     """How far the conversion and the read-back can move a returned point at ``range_m`` (metres [B],
     from the rig origin plus the lidars' lever arm), while the rig moves at up to ``speed_mps`` and turns
-    at up to ``turn_rate_radps``: the float32 roundings and the µs floor of the point's time (see
-    FLOAT32_ROUNDINGS), metres [B]."""
-    return (speed_mps + turn_rate_radps * range_m) * TIME_STEP_S + FLOAT32_ROUNDINGS * UNIT_ROUNDOFF_F32 * range_m
+    at up to ``turn_rate_radps``: the float32 roundings and the µs floors of the point's time and the
+    box's reference time (see FLOAT32_ROUNDINGS), metres [B]."""
+    time_m = TIME_FLOORS * (speed_mps + turn_rate_radps * range_m) * TIME_STEP_S
+    return time_m + FLOAT32_ROUNDINGS * UNIT_ROUNDOFF_F32 * range_m
 
 
 def rig_motion_bounds(loader: SequenceLoaderV4, start_us: int, end_us: int) -> tuple[float, float]:
