@@ -38,7 +38,7 @@ from planted_faults import a_ray_inside_a_box, band_multiple, remove_ray, shift_
 from ncore_convert import contract  # noqa: E402
 from ncore_convert.sources import argoverse2 as av2  # noqa: E402
 from ncore_convert.transforms.timebase import floor_us  # noqa: E402
-from ncore_convert.validate.poses import sensor_poses  # noqa: E402
+from ncore_convert.validate.poses import lever_arm_m, sensor_poses  # noqa: E402
 from ncore_convert.validate.readback import open_sequence, world_points  # noqa: E402
 from ncore_convert.validate.source import (  # noqa: E402
     FLOAT32_ROUNDINGS,
@@ -81,10 +81,7 @@ def displacement(sequence_json: Path, root: Path) -> dict:
     loader = sequence.loader
     meta = loader.generic_meta_data
     log_dir = av2.log_dir(UPath(root), meta.get(contract.AV2_SPLIT), meta[contract.AV2_LOG_ID])
-    lever_m = max(
-        float(np.linalg.norm(loader.pose_graph.evaluate_poses(u, "rig", np.zeros(1, np.uint64))[0][:3, 3]))
-        for u in av2.LIDARS
-    )
+    lever_m = lever_arm_m(loader, av2.LIDARS)
     d_all, r_all, eps_all, time_share = [], [], [], []
     for ts in av2.list_sweep_timestamps_ns(log_dir):
         source = av2.read_sweep(log_dir, int(ts)).xyz_ego_m.astype(np.float64)

@@ -15,7 +15,7 @@ from upath import UPath
 
 from ncore_convert.transforms.objects.boxes import in_box
 from ncore_convert.validate.cuboids import read_cuboids
-from ncore_convert.validate.poses import sensor_poses
+from ncore_convert.validate.poses import lever_arm_m, sensor_poses
 from ncore_convert.validate.readback import boxes_at, open_sequence, sample_frames
 from ncore_convert.validate.source import rig_motion_bounds, round_trip_margin_m
 
@@ -72,10 +72,7 @@ def band_multiple(sequence_json: Path, lidar: str, index: int, k: float):
     loader = open_sequence(UPath(sequence_json)).loader
     frames_us = loader.get_lidar_sensor(lidar).frames_timestamps_us
     speed_mps, turn_rate_radps = rig_motion_bounds(loader, int(frames_us[index, 0]), int(frames_us[index, 1]))
-    lever_m = max(
-        float(np.linalg.norm(loader.pose_graph.evaluate_poses(u, "rig", np.zeros(1, np.uint64))[0][:3, 3]))
-        for u in loader.lidar_ids
-    )
+    lever_m = lever_arm_m(loader, loader.lidar_ids)
 
     def by_m(distance_m):
         reach_m = distance_m + 2 * lever_m + 2 * BOX_HALF_DIAGONAL_M

@@ -31,3 +31,11 @@ def sensor_poses(loader: SequenceLoaderV4, sensor_id: str, target: str, timestam
     t_us = np.asarray(timestamps_us, dtype=np.uint64)
     T_sensor_world = loader.pose_graph.evaluate_poses(sensor_id, "world", t_us).astype(np.float64)
     return T_world_dataset_global(loader)[None] @ T_sensor_world if target == "world_global" else T_sensor_world
+
+
+def lever_arm_m(loader: SequenceLoaderV4, sensor_ids) -> float:
+    """The largest distance of the sensors from the rig origin (their static ``T_sensor_rig``), metres."""
+    return max(
+        float(np.linalg.norm(loader.pose_graph.evaluate_poses(s, "rig", np.zeros(1, dtype=np.uint64))[0][:3, 3]))
+        for s in sensor_ids
+    )

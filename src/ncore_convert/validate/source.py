@@ -24,7 +24,7 @@ from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.pcd import read_pcd_header
 from ncore_convert.transforms.timebase import floor_us, in_window
 from ncore_convert.validate.cuboids import CuboidColumns
-from ncore_convert.validate.poses import sensor_poses
+from ncore_convert.validate.poses import lever_arm_m, sensor_poses
 from ncore_convert.validate.readback import OpenSequence, box_point_counts, boxes_at, sample_frames
 from ncore_convert.validate.report import Report
 
@@ -216,12 +216,6 @@ def rig_motion_bounds(loader: SequenceLoaderV4, start_us: int, end_us: int) -> t
     return float(speed.max()), float(turn.max())
 
 
-def _lever_arm_m(loader: SequenceLoaderV4, lidar_ids: tuple[str, ...]) -> float:
-    """The lidars' largest distance from the rig origin (metres)."""
-    T = [loader.pose_graph.evaluate_poses(u, "rig", np.zeros(1, dtype=np.uint64))[0] for u in lidar_ids]
-    return max(float(np.linalg.norm(t[:3, 3])) for t in T)
-
-
 def _interior_points(
     report: Report, sequence: OpenSequence, cuboids: CuboidColumns, interior: av2_annotations.InteriorPoints
 ) -> None:
@@ -235,7 +229,7 @@ def _interior_points(
     loader = sequence.loader
     frames_us = loader.get_lidar_sensor(av2.LIDARS[0]).frames_timestamps_us
     sampled = sample_frames(len(frames_us))
-    lever_m = _lever_arm_m(loader, av2.LIDARS)
+    lever_m = lever_arm_m(loader, av2.LIDARS)
     checked, off, widest = 0, [], 0.0
     for i in sampled:
         boxes = boxes_at(cuboids, int(frames_us[i, 0]), int(frames_us[i, 1]))
