@@ -39,7 +39,7 @@ from ncore_convert import contract  # noqa: E402
 from ncore_convert.sources import argoverse2 as av2  # noqa: E402
 from ncore_convert.transforms.timebase import floor_us  # noqa: E402
 from ncore_convert.validate.poses import lever_arm_m, sensor_poses  # noqa: E402
-from ncore_convert.validate.readback import open_sequence, world_points  # noqa: E402
+from ncore_convert.validate.readback import open_sequence, sample_frames, world_points  # noqa: E402
 from ncore_convert.validate.source import (  # noqa: E402
     FLOAT32_ROUNDINGS,
     TIME_FLOORS,
@@ -135,6 +135,11 @@ def planted(sequence_json: Path, root: Path, work: Path, edit, label: str, envs:
     return {name: failed_checks(copy / sequence_json.name, root, env) for name, env in envs.items()}
 
 
+def _apply_all(edits, group) -> None:
+    for edit in edits:
+        edit(group)
+
+
 def edit_cuboids(edit):
     def apply(group):
         attrs = group["cuboids/default/cuboids"].attrs
@@ -166,11 +171,14 @@ def main() -> None:
         print(f"  unplanted, {name}: {sorted(failed_checks(sequence_json, root, env)) or 'passes'}")
     frame, ray, row = a_ray_inside_a_box(sequence_json)
     faults = [("one interior point removed", partial(remove_ray, lidar="up_lidar", index=frame, ray=ray))]
-    for k in (0.25, 0.5, 1.0, 1.5, 2.0, 4.0, 16.0, 64.0):
-        by_m = band_multiple(sequence_json, "up_lidar", frame, k)
-        faults.append(
-            (f"returns shortened by {k:g} eps", partial(shorten_rays, lidar="up_lidar", index=frame, by_m=by_m))
-        )
+    n_frames = len(open_sequence(UPath(sequence_json)).loader.get_lidar_sensor("up_lidar").frames_timestamps_us)
+    for k in (0.25, 0.5, 1.0, 1.5, 2.0, 4.0, 16.0, 64.0):  # every frame the check samples, both lidars
+        edits = [
+            partial(shorten_rays, lidar=unit, index=int(i), by_m=band_multiple(sequence_json, unit, int(i), k))
+            for unit in av2.LIDARS
+            for i in sample_frames(n_frames)
+        ]
+        faults.append((f"returns shortened by {k:g} eps", partial(_apply_all, edits)))
     for d_m in (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 5e-3, 2e-2):
         faults.append((f"box shifted {d_m * 1e3:g} mm", edit_cuboids(partial(shift_box, row=row, by_m=d_m))))
     for n in (1, -1, 10, 1000):

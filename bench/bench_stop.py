@@ -53,7 +53,7 @@ def main() -> None:
             out = work / "out"
             shutil.rmtree(out, ignore_errors=True)
             command = [*prefix, str(BIN), "--no-progress", *workers, "--root-dir", str(root), "--output-dir", str(out)]
-            result = trial(command + ["argoverse2-v4", "--split", "val"], out, moment, signum, group)
+            result = trial(command + ["argoverse2-v4", "--split", "val"], out, moment, signum, group, args.pid1)
             quiet = all(STOP_LINES.match(line) for line in result.output.strip().splitlines())
             ok = result.clean and quiet
             clean += ok

@@ -65,9 +65,11 @@ def _listing(out: Path) -> dict[str, tuple[int, int]]:
     return listing
 
 
-def trial(command: list[str], out: Path, moment_s: float, signum: int, group: bool) -> Trial:
+def trial(command: list[str], out: Path, moment_s: float, signum: int, group: bool, child: bool = False) -> Trial:
     """Start ``command`` (stdout piped, in a process group of its own), send ``signum`` at
-    ``moment_s`` (to the process, or to its group with ``group``), and look again AFTER_S later."""
+    ``moment_s`` (to the process, or to its group with ``group``; with ``child``, to the command's
+    first child instead: the run that ``unshare --pid --fork`` started as PID 1 of its namespace, as a
+    container runtime signals a container), and look again AFTER_S later."""
     mark = uuid.uuid4().hex
     env = {**os.environ, "NCORE_CONVERT_TRIAL": mark}
     started = time.monotonic()
@@ -77,7 +79,11 @@ def trial(command: list[str], out: Path, moment_s: float, signum: int, group: bo
     time.sleep(max(0.0, started + moment_s - time.monotonic()))
     sent = time.monotonic()
     if proc.poll() is None:
-        (os.killpg if group else os.kill)(proc.pid, signum)
+        target = proc.pid
+        if child and not group:
+            children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+            target = int(children[0]) if children else proc.pid
+        (os.killpg if group else os.kill)(target, signum)
     try:
         stdout, stderr = proc.communicate(timeout=60)  # ends when every holder of the pipes is gone
     except subprocess.TimeoutExpired:
