@@ -118,8 +118,11 @@ def displacement(sequence_json: Path, root: Path) -> dict:
 
 def failed_checks(sequence_json: Path, root: Path, env: dict | None) -> set[str]:
     with tempfile.NamedTemporaryFile(suffix=".json") as f:
-        cli(["validate", str(sequence_json), "--source", str(root), "--json", f.name], env=env)
-        reports = json.loads(Path(f.name).read_text())
+        done = cli(["validate", str(sequence_json), "--source", str(root), "--json", f.name], env=env)
+        text = Path(f.name).read_text()
+    if not text:  # the validator itself failed
+        return {f"validate failed: {(done.stderr.strip().splitlines() or ['?'])[-1][:160]}"}
+    reports = json.loads(text)
     return {c["name"] for r in reports for c in r["checks"] if not c["ok"]}
 
 
