@@ -24,6 +24,7 @@ from ncore_convert.synth.argoverse2 import SynthConfig
 from ncore_convert.synth.opencood import SynthConfig as OpenCoodConfig
 from ncore_convert.synth.opencood import write_dataset
 from ncore_convert.validate.coregister import check_coregistration
+from ncore_convert.validate.readback import sample_frames
 from ncore_convert.validate.sequence import validate_sequence
 from ncore_convert.validate.tree import convert_and_validate, find_sequences, validate_tree
 
@@ -559,3 +560,9 @@ def test_point_times_shifted_by_one_microsecond_step_are_caught(directory_log, t
     outside the frame."""
     failures = corrupt(directory_log, tmp_path, partial(shift_times, lidar="down_lidar", index=2, steps_us=1))
     assert list(failures) == ["lidar down_lidar: point times within frames"], failures
+    # against the source, the interior check meets a sampled frame NCore will not compensate: it
+    # fails and says why (the validation itself used to end with NCore's AssertionError)
+    sampled = int(sample_frames(6)[0])
+    shift = partial(shift_times, lidar="down_lidar", index=sampled, steps_us=1)
+    failures = corrupt(directory_log, tmp_path / "source", shift, source=source_root(directory_log))
+    assert "point times outside the frame, not compensated" in failures[INTERIOR], failures

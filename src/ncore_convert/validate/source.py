@@ -241,9 +241,13 @@ def _interior_points(
         same_sweep = [_frame_starting_at(loader, unit, int(frames_us[i, 0])) for unit in av2.LIDARS]
         if None in same_sweep:  # a unit lacks this sweep: the frame counts above already fail
             continue
-        xyz_world = np.concatenate(
-            [sequence.world_points(u, f)[0] for u, f in zip(av2.LIDARS, same_sweep, strict=True)]
-        )
+        try:
+            xyz_world = np.concatenate(
+                [sequence.world_points(u, f)[0] for u, f in zip(av2.LIDARS, same_sweep, strict=True)]
+            )
+        except AssertionError:  # NCore refuses to compensate points timed outside their frame
+            off.append(f"sweep at {int(frames_us[i, 0])} µs: point times outside the frame, not compensated")
+            continue
         reach_m = np.linalg.norm(boxes.centroid_m, axis=1) + 0.5 * np.linalg.norm(boxes.dim_m, axis=1) + lever_m
         margin_m = round_trip_margin_m(reach_m, *rig_motion_bounds(loader, int(frames_us[i, 0]), int(frames_us[i, 1])))
         inner, outer, _ = box_point_counts(loader, boxes, xyz_world, margin_m)
