@@ -23,8 +23,7 @@ from upath import UPath
 from ncore_convert.contract import ScenarioManifest
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.transforms.sampling import spread_indices
-from ncore_convert.validate.cuboids import CuboidColumns, read_cuboids
-from ncore_convert.validate.readback import boxes_at, inside_boxes, open_sequence, read_manifest, world_points
+from ncore_convert.validate.readback import open_sequence, read_manifest, world_points
 from ncore_convert.validate.report import Report
 
 FRAMES = 3  #: common frames compared, spread over the scenario
@@ -47,20 +46,6 @@ class AgentLidar:
     sequence_json: UPath
     loader: SequenceLoaderV4
     lidar_id: str
-    cuboids: CuboidColumns | None  #: the sequence's labelled objects (movers are no registration evidence)
-
-    def static_points(self, frame_end_us: int) -> tuple[np.ndarray, np.ndarray]:
-        """The frame's points in ``world_global`` outside every labelled box (grown by MATCH_M), and
-        the lidar's position there: a moving car is seen at different places by agents whose frames
-        differ by milliseconds, and would pull the registration towards a wrong one."""
-        frame = self.frame_ending_at(frame_end_us)
-        xyz, origin = world_points(self.loader, self.lidar_id, frame, "world_global")
-        if self.cuboids is None or not len(self.cuboids):
-            return xyz, origin
-        span = self.loader.get_lidar_sensor(self.lidar_id).frames_timestamps_us[frame]
-        boxes = boxes_at(self.cuboids, int(span[0]), int(span[1]))
-        xyz_world, _ = world_points(self.loader, self.lidar_id, frame, "world")
-        return xyz[~inside_boxes(self.loader, boxes, xyz_world, MATCH_M)], origin
 
     def frame_ends_us(self) -> np.ndarray:
         return self.loader.get_lidar_sensor(self.lidar_id).frames_timestamps_us[:, 1]
@@ -72,19 +57,16 @@ class AgentLidar:
 def scenario_lidars(manifest_path: UPath, manifest: ScenarioManifest) -> list[AgentLidar]:
     """Every written agent's lidar, from ``scenario.json`` (either layout), the OpenCOOD ego first."""
     folder = UPath(manifest_path).parent
-    loaders: dict[str, tuple[SequenceLoaderV4, CuboidColumns | None]] = {}  # the scenario layout shares one
+    loaders: dict[str, SequenceLoaderV4] = {}  # one per sequence: the scenario layout shares one
     lidars = []
     for agent in manifest.agents:
         if not agent.written or ocd.LIDAR not in agent.sensors:
             continue
         sequence = folder / manifest.sequence_of(agent)
         if str(sequence) not in loaders:
-            opened = open_sequence(sequence)
-            loaders[str(sequence)] = (opened.loader, read_cuboids(opened.reader))
+            loaders[str(sequence)] = open_sequence(sequence).loader
         lidar_id = manifest.prefix_of(agent) + ocd.LIDAR
-        lidars.append(
-            AgentLidar(str(agent.agent_id), sequence, *loaders[str(sequence)][:1], lidar_id, loaders[str(sequence)][1])
-        )
+        lidars.append(AgentLidar(str(agent.agent_id), sequence, loaders[str(sequence)], lidar_id))
     ego = str(manifest.ego_agent_id)
     return sorted(lidars, key=lambda a: a.agent_id != ego)
 
@@ -205,8 +187,10 @@ def check_coregistration(manifest_path: UPath) -> Report:
         picks = common[spread_indices(len(common), FRAMES)]
         peaks = []
         for t in picks:
-            a_xyz, a_origin = other.static_points(int(t))
-            b_xyz, b_origin = reference.static_points(int(t))
+            a_xyz, a_origin = world_points(other.loader, other.lidar_id, other.frame_ending_at(t), "world_global")
+            b_xyz, b_origin = world_points(
+                reference.loader, reference.lidar_id, reference.frame_ending_at(t), "world_global"
+            )
             if (peak := registration_peak(a_xyz, a_origin, b_xyz, b_origin)) is not None:
                 peaks.append(peak)
         if not peaks:

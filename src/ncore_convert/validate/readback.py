@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert.contract import DEFAULT_INSTANCE, ScenarioManifest
-from ncore_convert.transforms.objects.boxes import PointGrid, box_corners, count_in_box_band, points_in_box
+from ncore_convert.transforms.objects.boxes import PointGrid, box_corners, count_in_box_band
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.validate.cuboids import CuboidColumns
 from ncore_convert.validate.poses import sensor_poses
@@ -168,27 +168,6 @@ def box_point_counts(
             half_m = np.asarray(boxes.dim_m[k], dtype=np.float64) / 2
             inner[k], outer[k] = count_in_box_band(points, boxes.centroid_m[k], R_box_ref[k], half_m, margin_m[k])
     return inner, outer, centres
-
-
-def inside_boxes(loader: SequenceLoaderV4, boxes: CuboidColumns, xyz_world_m: np.ndarray, grow_m: float) -> np.ndarray:
-    """Whether each point (world, float64 [N,3]) lies inside any of the boxes grown by ``grow_m``
-    (metres) on every face, bool [N]; each box in its own reference frame at its reference time (a
-    box whose reference frame cannot be posed holds nothing)."""
-    inside = np.zeros(len(xyz_world_m), dtype=bool)
-    R_box_ref = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix() if len(boxes) else np.zeros((0, 3, 3))
-    groups: dict[tuple[str, int], list[int]] = {}
-    for k, key in enumerate(zip(boxes.reference_frame_id, boxes.reference_frame_timestamp_us.tolist(), strict=True)):
-        groups.setdefault(key, []).append(k)
-    for (frame_id, t_us), members in groups.items():
-        try:
-            T_ref_world = _T_reference_world(loader, frame_id, t_us)
-        except (KeyError, ValueError, AssertionError):
-            continue
-        points = PointGrid((xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3])
-        for k in members:
-            half_m = np.asarray(boxes.dim_m[k], dtype=np.float64) / 2 + grow_m
-            inside[points_in_box(points, boxes.centroid_m[k], R_box_ref[k], half_m)] = True
-    return inside
 
 
 def box_corners_world(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
