@@ -33,7 +33,15 @@ from scipy.spatial import cKDTree
 from upath import UPath
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from planted_faults import a_ray_inside_a_box, band_multiple, remove_ray, shift_box, shift_times, shorten_rays  # noqa: E402
+from planted_faults import (  # noqa: E402
+    a_ray_inside_a_box,
+    band_multiple,
+    edit_cuboids,
+    remove_ray,
+    shift_box,
+    shift_times,
+    shorten_rays,
+)
 
 from ncore_convert import contract  # noqa: E402
 from ncore_convert.sources import argoverse2 as av2  # noqa: E402
@@ -141,16 +149,6 @@ def planted(sequence_json: Path, root: Path, work: Path, edit, label: str, envs:
 def _apply_all(edits, group) -> None:
     for edit in edits:
         edit(group)
-
-
-def edit_cuboids(edit):
-    def apply(group):
-        attrs = group["cuboids/default/cuboids"].attrs
-        observations = attrs["cuboid_track_observations"]
-        edit(observations)
-        attrs["cuboid_track_observations"] = observations
-
-    return apply
 
 
 def main() -> None:

@@ -107,6 +107,20 @@ def shift_times(group: zarr.Group, lidar: str, index: int, steps_us: int) -> Non
     times[:] = (times[:].astype(np.int64) + steps_us).astype(np.uint64)
 
 
+def edit_cuboids(edit):
+    """A store edit: ``edit(observations)`` on the stored JSON objects of the default cuboids
+    component (``cuboids/default/cuboids``, attribute ``cuboid_track_observations``: NCore's
+    documented layout)."""
+
+    def apply(group):
+        attrs = group["cuboids/default/cuboids"].attrs
+        observations = attrs["cuboid_track_observations"]
+        edit(observations)
+        attrs["cuboid_track_observations"] = observations
+
+    return apply
+
+
 def shift_box(observations: list, row: int, by_m: float) -> None:
     """Move one cuboid observation's centre by ``by_m`` along its reference frame's x axis."""
     observations[row]["bbox3"]["centroid"][0] += by_m

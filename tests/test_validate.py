@@ -13,7 +13,15 @@ import pytest
 import zarr
 from conftest import synth_and_convert
 from ncore.impl.data.stores import consolidate_compressed_metadata
-from planted_faults import a_ray_inside_a_box, band_multiple, remove_ray, shift_box, shift_times, shorten_rays
+from planted_faults import (
+    a_ray_inside_a_box,
+    band_multiple,
+    edit_cuboids,
+    remove_ray,
+    shift_box,
+    shift_times,
+    shorten_rays,
+)
 from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options
@@ -206,20 +214,6 @@ def test_the_lidars_checked_in_pool_workers_give_the_same_checks(directory_log):
     assert {"lidar up_lidar: unit directions", "lidar up_lidar: cuboids hold points", "source: cuboids"} <= {
         c.name for c in pooled.checks
     }
-
-
-def edit_cuboids(edit):
-    """A store edit: ``edit(observations)`` on the stored JSON objects of the default cuboids
-    component (``cuboids/default/cuboids``, attribute ``cuboid_track_observations``: NCore's
-    documented layout)."""
-
-    def apply(group):
-        attrs = group["cuboids/default/cuboids"].attrs
-        observations = attrs["cuboid_track_observations"]
-        edit(observations)
-        attrs["cuboid_track_observations"] = observations
-
-    return apply
 
 
 def _track_rows(observations: list, row: int) -> list[int]:
