@@ -7,8 +7,19 @@ lidars) must land on the other agent's points as well as under any nearby wrong 
 0.5-2 m, yaws of 1-5 degrees about the agent's lidar) does: the fraction of structure points within
 MATCH_M of the other agent's must be at least MIN_RATIO of the best alternative's. This makes the
 test independent of point density and viewpoint (a roadside unit sees roofs a car sees the sides
-of). Ground is left out because a horizontal shift of a flat ground still lands on ground. The
-agents are compared at the same instant, so moving objects co-register too.
+of). Ground is left out because a horizontal shift of a flat ground still lands on ground.
+
+The agents are compared at the same frame end, but not at the same instant: each ray has its own
+time in a sweep, and two lidars sweep a moving car at different phases (a car at 10 m/s moves 1 m
+in a 100 ms sweep), so the movers' points would pull towards a wrong registration. Points whose
+stored ``dynamic_flag`` is 1 (inside a moving track's box grown by 0.5 m) are therefore left out; a
+sequence without the flag is compared whole, and the line says so.
+
+Each fraction is a sample of the scan columns that hit shared structure: the points of one column
+lie on one surface and rise and fall together. The comparison decides only when both agents'
+shared structure is dense (median horizontal spacing of its columns at most MAX_SPACING_M, finer
+than the smallest alternative shift); a few sparse columns (a low-resolution lidar far away) are
+too few independent samples, and the line says it was not decisive.
 """
 
 from __future__ import annotations
@@ -20,6 +31,7 @@ from ncore.data.v4 import SequenceLoaderV4
 from scipy.spatial import cKDTree
 from upath import UPath
 
+from ncore_convert import contract
 from ncore_convert.contract import ScenarioManifest
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.transforms.sampling import spread_indices
@@ -46,6 +58,19 @@ class AgentLidar:
     sequence_json: UPath
     loader: SequenceLoaderV4
     lidar_id: str
+
+    def static_points(self, frame_end_us: int) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The frame's points in ``world_global`` (float64 [N,3]) without those flagged dynamic, the
+        lidar's position there (float64 [3]), and whether the frame carried the flag."""
+        frame = self.frame_ending_at(frame_end_us)
+        xyz_m, origin_m = world_points(self.loader, self.lidar_id, frame, "world_global")
+        source = self.loader.get_point_clouds_source(self.lidar_id)
+        if not source.has_pc_generic_data(frame, contract.DYNAMIC_FLAG):
+            return xyz_m, origin_m, False
+        dynamic = np.asarray(source.get_pc_generic_data(frame, contract.DYNAMIC_FLAG)) == 1
+        if len(dynamic) != len(xyz_m):  # "dynamic_flag per ray" reports the mismatch
+            return xyz_m, origin_m, False
+        return xyz_m[~dynamic], origin_m, True
 
     def frame_ends_us(self) -> np.ndarray:
         return self.loader.get_lidar_sensor(self.lidar_id).frames_timestamps_us[:, 1]
@@ -119,7 +144,7 @@ class Peak:
     best_alternative: float  #: the same fraction under the best alternative registration
     best_label: str
     points: int
-    spacing_m: float  #: median distance between B's shared structure points
+    spacing_m: float  #: median horizontal spacing of the sparser agent's shared structure columns
 
     @property
     def decisive(self) -> bool:
@@ -150,10 +175,10 @@ def registration_peak(a_xyz: np.ndarray, a_origin: np.ndarray, b_xyz: np.ndarray
     a_shared, b_shared = shared(a_struct), shared(b_struct)
     if len(a_shared) < MIN_POINTS or len(b_shared) < MIN_POINTS:
         return None
-    tree = cKDTree(b_shared)
-    spacing = horizontal_spacing_m(b_shared)
-    if spacing > MAX_SPACING_M:  # too sparse to resolve the alternatives
+    spacing = max(horizontal_spacing_m(b_shared), horizontal_spacing_m(a_shared))
+    if spacing > MAX_SPACING_M:  # too few independent columns to resolve the alternatives
         return Peak(float("nan"), float("nan"), "", len(a_shared), spacing)
+    tree = cKDTree(b_shared)
     local = a_shared - a_origin
 
     def overlap(T: np.ndarray) -> float:
@@ -185,21 +210,23 @@ def check_coregistration(manifest_path: UPath) -> Report:
             report.add(name, False, "no common frame time")
             continue
         picks = common[spread_indices(len(common), FRAMES)]
-        peaks = []
+        peaks, flagged = [], True
         for t in picks:
-            a_xyz, a_origin = world_points(other.loader, other.lidar_id, other.frame_ending_at(t), "world_global")
-            b_xyz, b_origin = world_points(
-                reference.loader, reference.lidar_id, reference.frame_ending_at(t), "world_global"
-            )
+            a_xyz, a_origin, a_flagged = other.static_points(int(t))
+            b_xyz, b_origin, b_flagged = reference.static_points(int(t))
+            flagged &= a_flagged and b_flagged
             if (peak := registration_peak(a_xyz, a_origin, b_xyz, b_origin)) is not None:
                 peaks.append(peak)
+        movers = "dynamic points left out" if flagged else "no dynamic_flag: moving objects compared too"
         if not peaks:
-            report.add(name, True, f"fewer than {MIN_POINTS} shared structure points: not decisive")
+            report.add(name, True, f"fewer than {MIN_POINTS} shared structure points ({movers}): not decisive")
             continue
         if not any(p.decisive for p in peaks):
             spacing = min(p.spacing_m for p in peaks)
             report.add(
-                name, True, f"shared structure too sparse to decide (point spacing {spacing:.2f} m > {MAX_SPACING_M} m)"
+                name,
+                True,
+                f"shared structure too sparse to decide (column spacing {spacing:.2f} m > {MAX_SPACING_M} m; {movers})",
             )
             continue
         peaks = [p for p in peaks if p.decisive]
@@ -209,6 +236,6 @@ def check_coregistration(manifest_path: UPath) -> Report:
             worst.ratio >= MIN_RATIO,
             f"{worst.overlap:.0%} of {worst.points} shared structure points land within {MATCH_M} m;"
             f" best nearby alternative ({worst.best_label}) {worst.best_alternative:.0%}"
-            f" (worst of {len(peaks)} frame(s); must be >= {MIN_RATIO:.0%} of it)",
+            f" (worst of {len(peaks)} frame(s); must be >= {MIN_RATIO:.0%} of it; {movers})",
         )
     return report
