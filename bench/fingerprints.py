@@ -72,7 +72,7 @@ CONVERSIONS = {
 }
 
 
-def _hashes(root: Path, skip: tuple[str, ...] = ()) -> list[str]:
+def tree_hashes(root: Path, skip: tuple[str, ...] = ()) -> list[str]:
     return [
         f"{hashlib.sha256(p.read_bytes()).hexdigest()}  {p.relative_to(root)}"
         for p in sorted(root.rglob("*"))
@@ -94,7 +94,7 @@ def main() -> None:
         run = [cli, "--no-progress", "--workers", "2", "--root-dir", str(sources / source), "--output-dir"]
         subprocess.run([*run, str(outputs / name), *command], check=True, capture_output=True)
     for kind, root, skip in (("outputs", outputs, ("conversion-report.json",)), ("sources", sources, ())):
-        lines = _hashes(root, skip)
+        lines = tree_hashes(root, skip)
         (args.work / f"{kind}.sha").write_text("\n".join(lines) + "\n")
         print(f"{len(lines)} {kind} hashed: {args.work / f'{kind}.sha'}", flush=True)
 

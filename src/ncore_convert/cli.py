@@ -20,7 +20,14 @@ import click
 from upath import UPath
 
 from ncore_convert import __version__
-from ncore_convert.cli_options import NOISE_FLAGS, av2_family_options, noise_settings, off_flag, opencood_options
+from ncore_convert.cli_options import (
+    NOISE_FLAGS,
+    av2_family_options,
+    noise_settings,
+    off_flag,
+    open_input,
+    opencood_options,
+)
 from ncore_convert.cli_tools import (
     evaluate_lidar_model_command,
     export_opencood_command,
@@ -35,6 +42,7 @@ from ncore_convert.run.executors import ExecutorKind
 from ncore_convert.run.pool import JobPool, default_workers
 from ncore_convert.run.report import report_name
 from ncore_convert.run.stop import STOPPED_EXIT
+from ncore_convert.sources import objects
 from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
 
 #: The package each dataset command's converter lives in: its workers import it while the main
@@ -61,15 +69,15 @@ class GroupOptions:
     ray_address: str | None
     validate: bool
     verbose: bool
+    anonymous: bool = False
+    read_ahead_mb: int = objects.DEFAULT_RUN_BUDGET_MB
 
     def require_paths(self) -> tuple[UPath, UPath]:
         if not self.root_dir:
             raise click.UsageError("--root-dir is required for conversion commands (give it before the command)")
         if not self.output_dir:
             raise click.UsageError("--output-dir is required for conversion commands (give it before the command)")
-        root = UPath(self.root_dir)
-        if not root.is_dir():
-            raise click.UsageError(f"--root-dir {self.root_dir}: directory not found")
+        root = open_input(self.root_dir, "--root-dir", self.anonymous)
         return root, UPath(self.output_dir)
 
     def make_executor(self, preload: list[str]):
@@ -159,6 +167,18 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     " before publishing it; a log that fails is not published and counts as failed.",
 )
 @off_flag("--verbose", "-v", help="Print the traceback of each failed log under its one-line error.")
+@off_flag(
+    "--anonymous",
+    help="Read the input (--root-dir, validate --source) without credentials, as a public bucket allows"
+    " (s3fs anon=True). The output is always written with your credentials.",
+)
+@click.option(
+    "--read-ahead-mb",
+    type=click.IntRange(min=1),
+    default=objects.DEFAULT_RUN_BUDGET_MB,
+    help="Input bytes the run's processes on this machine hold fetched ahead, in total (each process an"
+    " equal share; each Ray task all of it).",
+)
 @click.pass_context
 def cli(
     ctx,
@@ -177,6 +197,8 @@ def cli(
     ray_address,
     validate,
     verbose,
+    anonymous,
+    read_ahead_mb,
 ):
     """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences.
 
@@ -205,6 +227,8 @@ def cli(
         ray_address=ray_address,
         validate=validate,
         verbose=verbose,
+        anonymous=anonymous,
+        read_ahead_mb=read_ahead_mb,
     )
     if overwrite and retry_failed:
         raise click.UsageError("--overwrite and --retry-failed exclude each other")
@@ -254,7 +278,11 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
         return [_counts(results) + f"; output and {report_file} in {out}", stopped]
 
     stop.set_farewell(partial(last_lines, []))  # a stop before the run loop: no log started
-    with obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
+    # named before the workers start, so that they inherit them: the spool (fetched files kept for a
+    # log's later jobs) and each process's share of the read-ahead
+    processes = 1 if obj.executor == "ray" else obj.workers + 1
+    objects.share_budget(obj.read_ahead_mb * 2**20 // processes)
+    with objects.run_spool(), obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
         from ncore_convert.run.runner import RunInterrupted, run_logs, shard_logs
         from ncore_convert.validate.tree import convert_and_validate
 

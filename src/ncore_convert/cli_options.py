@@ -26,6 +26,7 @@ from ncore_convert.contract import (
 )
 from ncore_convert.converters.common import PRESET_DEFAULTS
 from ncore_convert.errors import SourceError
+from ncore_convert.sources import access
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
 from ncore_convert.transforms.camera.ego_mask import EgoBox
 from ncore_convert.transforms.noise import ASYNC_MODES, DOFS, MODELS, PROCESSES
@@ -315,3 +316,26 @@ def opencood_options(dataset: str) -> Callable:
         noise_options,
         camera_labels_option,
     )
+
+
+class AccessError(click.ClickException):
+    """The input cannot be read (a credential problem, an unreachable store): one line, exit 2."""
+
+    exit_code = 2
+
+
+def open_input(url: str, option: str, anonymous: bool) -> UPath:
+    """The input folder ``url`` given as ``option``, checked to exist: a usage error if it does
+    not, an AccessError naming the fix for a credential problem."""
+    try:
+        root = access.input_root(url, anonymous)
+        found = root.is_dir()
+    except ValueError as err:
+        raise click.UsageError(str(err)) from None
+    except Exception as err:  # noqa: BLE001 - the store's own errors (botocore's are not OSErrors)
+        line = access.access_problem(err, f"{option} {url}", anonymous)
+        cause = str(err).splitlines()[0] if str(err) else ""
+        raise AccessError(line or f"{option} {url}: cannot be read ({type(err).__name__}: {cause})") from None
+    if not found:
+        raise click.UsageError(f"{option} {url}: directory not found")
+    return root

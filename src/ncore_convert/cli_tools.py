@@ -9,7 +9,7 @@ from collections.abc import Callable
 import click
 from upath import UPath
 
-from ncore_convert.cli_options import off_flag, options
+from ncore_convert.cli_options import off_flag, open_input, options
 from ncore_convert.contract import MANIFEST
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
 
@@ -38,7 +38,8 @@ def out_option(help: str) -> Callable:
     help="Also write every check of every sequence to this JSON file.",
 )
 @off_flag("--details", help="Print every check with its detail, not only the failed ones.")
-def validate_command(path, source_root, json_file, details):
+@click.pass_obj
+def validate_command(obj, path, source_root, json_file, details):
     """Check converted sequences and cooperative scenarios (PATH: a <sequence_id>.json, a scenario.json
     (its folder), or an output folder to search).
 
@@ -49,9 +50,8 @@ def validate_command(path, source_root, json_file, details):
 
     from ncore_convert.validate.tree import validate_tree
 
-    if source_root is not None and not UPath(source_root).is_dir():
-        raise click.UsageError(f"--source {source_root}: directory not found")
-    reports = validate_tree(UPath(path), UPath(source_root) if source_root else None)
+    source = open_input(source_root, "--source", obj.anonymous) if source_root is not None else None
+    reports = validate_tree(UPath(path), source)
     if not reports:
         raise click.UsageError(f"no sequence meta (<sequence_id>.json) under {path}")
     width = max(len(r.sequence) for r in reports)

@@ -35,6 +35,7 @@ from ncore_convert.run.claims import STAGING_PREFIX, Claims, writer_tag
 from ncore_convert.run.pool import Progress
 from ncore_convert.run.report import REPORT_NAME, RunReport
 from ncore_convert.run.stop import deferred
+from ncore_convert.sources import objects
 from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
 
 
@@ -317,6 +318,8 @@ def run_logs(
                 report.record(result, input_bytes, output_bytes)
                 counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
             claims.release(result.log_id)  # after the report holds it: another run re-reads it
+            if input_dir:
+                objects.release(input_dir(result.log_id))  # the files kept for its later jobs
             overall.set_postfix(counts, refresh=False)
             overall.update(1)
             results.append(result)

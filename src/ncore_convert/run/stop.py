@@ -105,6 +105,9 @@ def end(lines: list[str]) -> NoReturn:
         sys.stderr.flush()
     _silence_stderr()  # the threads left running meet dead workers: their tracebacks are not the run's
     kill_descendants()
+    if (objects := sys.modules.get("ncore_convert.sources.objects")) is not None:
+        with contextlib.suppress(Exception):
+            objects.remove_spool()  # the fetched files the run kept for its logs' later jobs
     with contextlib.suppress(OSError):
         os.write(sys.stdout.fileno() if sys.stdout else 1, "".join(f"{line}\n" for line in lines).encode())
     _await_tracker()

@@ -13,6 +13,7 @@ Every reader raises :class:`SourceError` naming the file and the cause on bad in
 from __future__ import annotations
 
 import io
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +23,7 @@ import pyarrow.feather as feather
 from upath import UPath
 
 from ncore_convert.errors import SourceError
+from ncore_convert.sources import objects
 from ncore_convert.sources.files import check_safe_names, jpeg_defect, list_folders, read_bytes, unreadable
 from ncore_convert.storage import is_local
 from ncore_convert.transforms.geometry import se3_from_quat_wxyz
@@ -65,19 +67,27 @@ ANNOTATIONS_SCHEMA = pa.schema(
 )
 
 
-def read_table(path: UPath, schema: pa.Schema, columns: list[str] | None = None) -> pa.Table:
+def read_table(
+    path: UPath,
+    schema: pa.Schema,
+    columns: list[str] | None = None,
+    data: bytes | None = None,
+    listing: dict[str, objects.ObjectInfo] | None = None,
+) -> pa.Table:
     """Read a feather file and check that it has the columns and types of ``schema``.
 
-    Local files are memory-mapped; remote ones (s3://, ...) are streamed through fsspec.
+    ``data``: the file's bytes, already fetched (:mod:`sources.objects`). Without them, a local file
+    is memory-mapped and a remote one (s3://, ...) fetched whole in one request, checked against
+    its folder's ``listing`` entry and kept for the log's later readers.
     """
     path = UPath(path)
     wanted = columns or schema.names
     try:
-        if is_local(path):
+        if data is None and is_local(path):
             table = feather.read_table(path.path, columns=wanted, memory_map=True, use_threads=False)
         else:
-            with path.open("rb") as f:
-                table = feather.read_table(f, columns=wanted, use_threads=False)
+            source = pa.BufferReader(data if data is not None else objects.fetch(path, listing, keep=True))
+            table = feather.read_table(source, columns=wanted, use_threads=False)
         table.validate(full=True)  # a damaged body must not reach numpy as garbage offsets
     except (FileNotFoundError, PermissionError) as err:
         raise unreadable(path, err) from None
@@ -162,30 +172,22 @@ def image_path(log_dir: UPath, camera: str, timestamp_ns: int) -> UPath:
     return log_dir / "sensors" / "cameras" / camera / f"{timestamp_ns}.jpg"
 
 
-def read_jpeg(log_dir: UPath, camera: str, timestamp_ns: int) -> bytes:
-    """The encoded bytes of one image, checked to be a JPEG (SourceError naming the file if not)."""
+def read_jpeg(log_dir: UPath, camera: str, timestamp_ns: int, data: bytes | None = None) -> bytes:
+    """The encoded bytes of one image (``data``: already fetched), checked to be a JPEG
+    (SourceError naming the file if not)."""
     path = image_path(log_dir, camera, timestamp_ns)
-    data = read_bytes(path)
+    data = read_bytes(path) if data is None else data
     if (defect := jpeg_defect(data)) is not None:
         raise SourceError(path, defect)
     return data
 
 
-def read_jpeg_grey(log_dir: UPath, camera: str, timestamp_ns: int, reduction: int) -> np.ndarray:
-    """One image decoded greyscale at 1/``reduction`` of its size (JPEG DCT scaling: only what that
-    size needs is decoded), float32 [h,w] grey levels; SourceError naming the file if it does not decode."""
-    return _decode_reduced(log_dir, camera, timestamp_ns, reduction, "L").astype(np.float32)
-
-
-def read_jpeg_rgb(log_dir: UPath, camera: str, timestamp_ns: int, reduction: int) -> np.ndarray:
-    """One image decoded in colour at 1/``reduction`` of its size, uint8 [h,w,3]; SourceError naming
-    the file if it does not decode."""
-    return _decode_reduced(log_dir, camera, timestamp_ns, reduction, "RGB")
-
-
-def _decode_reduced(log_dir: UPath, camera: str, timestamp_ns: int, reduction: int, mode: str) -> np.ndarray:
-    path = image_path(log_dir, camera, timestamp_ns)
-    data = read_jpeg(log_dir, camera, timestamp_ns)
+def decode_jpeg(path: UPath, data: bytes, reduction: int, mode: str) -> np.ndarray:
+    """One image's bytes decoded at 1/``reduction`` of its size (JPEG DCT scaling: only what that
+    size needs is decoded) in PIL ``mode`` ("L": grey, "RGB"), uint8 [h,w] or [h,w,3]; SourceError
+    naming ``path`` if it is not a JPEG or does not decode."""
+    if (defect := jpeg_defect(data)) is not None:
+        raise SourceError(path, defect)
     try:
         with PIL.Image.open(io.BytesIO(data)) as image:
             image.draft(mode, (image.width // reduction, image.height // reduction))
@@ -194,27 +196,46 @@ def _decode_reduced(log_dir: UPath, camera: str, timestamp_ns: int, reduction: i
         raise SourceError(path, f"JPEG does not decode ({err})") from None
 
 
-def _timestamps_from_stems(directory: UPath, suffix: str) -> np.ndarray:
-    if not directory.is_dir():
-        return np.zeros(0, dtype=np.int64)
+def _timestamps_from_stems(
+    directory: UPath, suffix: str, listing: dict[str, objects.ObjectInfo] | None = None
+) -> np.ndarray:
+    """The timestamps in the file names ``<timestamp_ns><suffix>`` of a folder (int64, sorted; empty
+    without the folder). A remote folder is listed once, and its files' sizes and ETags are added
+    to ``listing``."""
+    if is_local(directory):
+        if not directory.is_dir():
+            return np.zeros(0, dtype=np.int64)
+        names = [p.name for p in directory.iterdir()]
+    else:
+        try:
+            found = objects.list_folder(directory)
+        except FileNotFoundError:
+            return np.zeros(0, dtype=np.int64)
+        if listing is not None:
+            listing.update(found)
+        names = [name.rsplit("/", 1)[-1] for name in found]
     stamps = []
-    for p in directory.iterdir():
-        if p.name.endswith(suffix):
-            stem = p.name[: -len(suffix)]
+    for name in names:
+        if name.endswith(suffix):
+            stem = name[: -len(suffix)]
             if not stem.isdigit():
-                raise SourceError(p, f"file name is not <timestamp_ns>{suffix}")
+                raise SourceError(directory / name, f"file name is not <timestamp_ns>{suffix}")
             stamps.append(int(stem))
     return np.sort(np.array(stamps, dtype=np.int64))
 
 
-def list_sweep_timestamps_ns(log_dir: UPath) -> np.ndarray:
-    """Sweep reference timestamps (ns, int64, sorted) from ``sensors/lidar/*.feather``."""
-    return _timestamps_from_stems(log_dir / "sensors" / "lidar", ".feather")
+def list_sweep_timestamps_ns(log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None) -> np.ndarray:
+    """Sweep reference timestamps (ns, int64, sorted) from ``sensors/lidar/*.feather`` (a remote
+    folder's sizes and ETags added to ``listing``)."""
+    return _timestamps_from_stems(log_dir / "sensors" / "lidar", ".feather", listing)
 
 
-def list_image_timestamps_ns(log_dir: UPath, camera: str) -> np.ndarray:
-    """Image timestamps (ns, int64, sorted) of one camera; empty if the camera folder is absent."""
-    return _timestamps_from_stems(log_dir / "sensors" / "cameras" / camera, ".jpg")
+def list_image_timestamps_ns(
+    log_dir: UPath, camera: str, listing: dict[str, objects.ObjectInfo] | None = None
+) -> np.ndarray:
+    """Image timestamps (ns, int64, sorted) of one camera; empty if the camera folder is absent (a
+    remote folder's sizes and ETags added to ``listing``)."""
+    return _timestamps_from_stems(log_dir / "sensors" / "cameras" / camera, ".jpg", listing)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -331,13 +352,14 @@ class Sweep:
         return len(self.laser_number)
 
 
-def read_sweep(log_dir: UPath, timestamp_ns: int, with_offsets: bool = True) -> Sweep:
-    """Read one sweep (without ``offset_ns``: a TbV sweep, which has no such column).
+def read_sweep(log_dir: UPath, timestamp_ns: int, with_offsets: bool = True, data: bytes | None = None) -> Sweep:
+    """Read one sweep (without ``offset_ns``: a TbV sweep, which has no such column); ``data``: its
+    file's bytes, already fetched.
 
     Raises SourceError on a bad schema or laser_number outside 0..63."""
     path = sweep_path(log_dir, timestamp_ns)
     columns = None if with_offsets else [n for n in LIDAR_SCHEMA.names if n != "offset_ns"]
-    table = read_table(path, LIDAR_SCHEMA, columns=columns)
+    table = read_table(path, LIDAR_SCHEMA, columns=columns, data=data)
     # float16 is exact in float32; column-major keeps per-axis math contiguous
     xyz = np.empty((table.num_rows, 3), dtype=np.float32, order="F")
     for k, c in enumerate(("x", "y", "z")):
@@ -351,15 +373,59 @@ def read_sweep(log_dir: UPath, timestamp_ns: int, with_offsets: bool = True) -> 
     return Sweep(timestamp_ns, xyz, column(table, "intensity"), laser_number, offset_ns, path)
 
 
-def count_sweep_points(log_dir: UPath, timestamp_ns: int) -> int:
-    """Rows of a sweep file (its ``laser_number`` column only is read)."""
-    return read_table(sweep_path(log_dir, timestamp_ns), LIDAR_SCHEMA, columns=["laser_number"]).num_rows
+def read_sweeps(
+    log_dir: UPath,
+    timestamps_ns: Iterable[int],
+    with_offsets: bool = True,
+    listing: dict[str, objects.ObjectInfo] | None = None,
+    keep: bool = True,
+) -> Iterator[Sweep]:
+    """:func:`read_sweep` of each sweep in turn, the files fetched ahead (:func:`objects.read_ahead`;
+    ``keep``: spooled, as other jobs of the log read the sweeps again)."""
+    stamps = [int(t) for t in timestamps_ns]
+    fetched = objects.read_ahead([sweep_path(log_dir, t) for t in stamps], listing, keep)
+    for t, (_, data) in zip(stamps, fetched, strict=True):
+        if isinstance(data, SourceError):
+            raise data
+        yield read_sweep(log_dir, t, with_offsets, data)
 
 
-def read_sweep_offset_range_ns(log_dir: UPath, timestamp_ns: int) -> tuple[int, int]:
-    """(min, max) of a sweep's ``offset_ns`` column without reading the points."""
+def read_images(
+    log_dir: UPath,
+    camera: str,
+    timestamps_ns: Iterable[int],
+    listing: dict[str, objects.ObjectInfo] | None = None,
+    keep: bool = False,
+) -> Iterator[tuple[UPath, bytes | SourceError]]:
+    """Each image's bytes in turn, fetched ahead (:func:`objects.read_ahead`; ``keep``: spooled for
+    the camera's copy job), or its SourceError."""
+    return objects.read_ahead([image_path(log_dir, camera, int(t)) for t in timestamps_ns], listing, keep)
+
+
+def count_sweep_points(
+    log_dir: UPath, timestamps_ns: Iterable[int], listing: dict[str, objects.ObjectInfo] | None = None
+) -> int:
+    """Rows of the sweep files (their ``laser_number`` column only is read; remote files are fetched
+    ahead, checked against their ``listing`` entries)."""
+    paths = [sweep_path(log_dir, int(t)) for t in timestamps_ns]
+    if is_local(log_dir):
+        return sum(read_table(path, LIDAR_SCHEMA, columns=["laser_number"]).num_rows for path in paths)
+    rows = 0
+    for path, data in objects.read_ahead(paths, listing):
+        if isinstance(data, SourceError):
+            raise data
+        rows += read_table(path, LIDAR_SCHEMA, columns=["laser_number"], data=data).num_rows
+    return rows
+
+
+def read_sweep_offset_range_ns(
+    log_dir: UPath, timestamp_ns: int, listing: dict[str, objects.ObjectInfo] | None = None
+) -> tuple[int, int]:
+    """(min, max) of a sweep's ``offset_ns`` column without converting the points (a remote file is
+    fetched whole, checked against its ``listing`` entry)."""
     path = sweep_path(log_dir, timestamp_ns)
-    offsets = column(read_table(path, LIDAR_SCHEMA, columns=["offset_ns"]), "offset_ns")
+    data = None if is_local(path) else objects.fetch(path, listing, keep=True)
+    offsets = column(read_table(path, LIDAR_SCHEMA, columns=["offset_ns"], data=data), "offset_ns")
     if offsets.size == 0:
         return 0, 0
     return int(offsets.min()), int(offsets.max())

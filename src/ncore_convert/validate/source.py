@@ -20,6 +20,7 @@ from ncore_convert import contract
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
+from ncore_convert.sources import objects
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.pcd import read_pcd_header
 from ncore_convert.transforms.timebase import floor_us, in_window
@@ -124,7 +125,8 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
         return
     options = meta.get(contract.CONVERTER, {}).get("options", {})
     window_us = _window(meta)
-    sweeps = _in_window_ns(av2.list_sweep_timestamps_ns(log_dir), window_us)
+    files = objects.list_folder(log_dir)  # remote sizes and ETags: fetched bytes are checked against them
+    sweeps = _in_window_ns(av2.list_sweep_timestamps_ns(log_dir, files), window_us)
     for lidar_id in sorted(loader.lidar_ids):
         _count(
             report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count, len(sweeps)
@@ -133,7 +135,7 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
         lidar_meta = sequence.sensor_meta()
         not_stored = sum(sum(lidar_meta[u][contract.POINTS_NOT_STORED].values()) for u in av2.LIDARS)
         stored = sum(_stored_points(loader, u) for u in av2.LIDARS)
-        source = sum(av2.count_sweep_points(log_dir, int(t)) for t in sweeps)
+        source = av2.count_sweep_points(log_dir, sweeps, files)
         report.add(
             "source: lidar points",
             stored + not_stored == source,
@@ -147,12 +149,12 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
             _count(report, f"{camera} images", loader.get_camera_sensor(camera).frames_count, images)
         elif images and _camera_selected(options, camera):
             report.add(f"source: {camera} images", False, f"0 converted, {images} in the source")
-    interior = av2_annotations.read_interior_points(log_dir)
+    interior = av2_annotations.read_interior_points(log_dir, files)
     if interior is not None and window_us is not None:
         interior = interior.subset(in_window(floor_us(interior.timestamps_ns), window_us))
     _count(report, "cuboids", len(cuboids), 0 if interior is None else len(interior.counts))
     if interior is not None:
-        annotations = av2_annotations.read_annotations(log_dir)
+        annotations = av2_annotations.read_annotations(log_dir, files)
         if window_us is not None:
             annotations = annotations.subset(in_window(floor_us(annotations.timestamps_ns), window_us))
         _boxes_as_annotated(report, cuboids, annotations)

@@ -15,6 +15,7 @@ from ncore_convert.converters.argoverse2.masks import reduced_size, reduction
 from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.converters.argoverse2.views import camera_views, usable_pixels
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import objects
 from ncore_convert.transforms.camera.colours import DYNAMIC_DT_US, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 
@@ -44,7 +45,9 @@ class SweepColours:
         self._decode = lru_cache(maxsize=4 * max(1, len(self._cameras)))(self._read)
 
     def _read(self, cam: str, timestamp_ns: int) -> np.ndarray:
-        return av2.read_jpeg_rgb(self._plan.inputs.log_dir, cam, timestamp_ns, self._cameras[cam][0])
+        inputs = self._plan.inputs
+        path = av2.image_path(inputs.log_dir, cam, timestamp_ns)
+        return av2.decode_jpeg(path, objects.fetch(path, inputs.files), self._cameras[cam][0], "RGB")
 
     def frames(self, t_lo_us: int, t_hi_us: int) -> list[ColourFrame]:
         """Every camera frame from ``t_lo_us - FRAME_MARGIN_US`` to ``t_hi_us + FRAME_MARGIN_US``."""

@@ -23,7 +23,7 @@ from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.motion import LIDAR_FLAGS, with_motion
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
 from ncore_convert.converters.common import Counts, LidarStore
-from ncore_convert.errors import warnings_kept
+from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
@@ -167,8 +167,9 @@ def _frames(plan: LogPlan) -> Iterator[tuple[int, LidarFrame, dict[str, LidarGeo
     row's ``laser_number``)."""
     calibration = plan.lidar_calibration
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
-    for sweep_ns in plan.sweep_timestamps_ns:
-        sweep = av2.read_sweep(plan.inputs.log_dir, int(sweep_ns), not plan.options.tbv)
+    inputs = plan.inputs
+    for sweep in av2.read_sweeps(inputs.log_dir, plan.sweep_timestamps_ns, not plan.options.tbv, inputs.files):
+        sweep_ns = sweep.timestamp_ns
         times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
         frame, geometry = sweep_frame(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
         yield int(sweep_ns), frame, geometry, sweep.laser_number
@@ -264,9 +265,13 @@ def _write_camera(
     """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
     started = time.perf_counter()
     stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam], plan.cameras[cam], plan.ego_masks[cam]))
-    for image_ns in plan.inputs.image_timestamps_ns[cam]:
-        t_us = floor_us(int(image_ns))
-        stream.store_frame(av2.read_jpeg(plan.inputs.log_dir, cam, int(image_ns)), "jpeg", (t_us, t_us))
+    stamps_ns = plan.inputs.image_timestamps_ns[cam]
+    images = av2.read_images(plan.inputs.log_dir, cam, stamps_ns, plan.inputs.files)
+    for image_ns, (_, data) in zip(stamps_ns.tolist(), images, strict=True):
+        if isinstance(data, SourceError):
+            raise data
+        t_us = floor_us(image_ns)
+        stream.store_frame(av2.read_jpeg(plan.inputs.log_dir, cam, image_ns, data), "jpeg", (t_us, t_us))
         result.images += 1
         progress(1)
     result.camera_seconds += time.perf_counter() - started

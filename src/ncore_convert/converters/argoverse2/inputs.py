@@ -14,6 +14,7 @@ from upath import UPath
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
+from ncore_convert.sources import objects
 from ncore_convert.transforms.geometry import Trajectory, invert_se3
 from ncore_convert.transforms.lidar import timing as lidar_timing
 from ncore_convert.transforms.timebase import NS_PER_US, ceil_us, floor_us
@@ -34,6 +35,7 @@ class LogInputs:
     sweep_timestamps_ns: np.ndarray
     image_timestamps_ns: dict[str, np.ndarray]
     annotations: av2_annotations.Annotations | None
+    files: dict[str, objects.ObjectInfo]  #: remote sweeps' and images' sizes and ETags, from their folders' listings
 
 
 def read_log_inputs(
@@ -41,15 +43,17 @@ def read_log_inputs(
 ) -> LogInputs:
     """Read a log's small inputs; ``intrinsics``: already read (TbV reads them to pick the cameras)."""
     pose_timestamps_ns, T_ego_city = av2.read_ego_poses(log_dir)
+    files = objects.list_folder(log_dir)  # the annotations; the sweeps' and images' folders add theirs
     return LogInputs(
         log_dir=log_dir,
         pose_timestamps_ns=pose_timestamps_ns,
         T_ego_city=T_ego_city,
         T_sensor_ego=av2.read_sensor_extrinsics(log_dir),
         intrinsics=intrinsics if intrinsics is not None else av2.read_intrinsics(log_dir),
-        sweep_timestamps_ns=av2.list_sweep_timestamps_ns(log_dir),
-        image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam) for cam in camera_ids},
-        annotations=av2_annotations.read_annotations(log_dir),
+        sweep_timestamps_ns=av2.list_sweep_timestamps_ns(log_dir, files),
+        image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam, files) for cam in camera_ids},
+        annotations=av2_annotations.read_annotations(log_dir, files),
+        files=files,
     )
 
 
@@ -130,7 +134,7 @@ def sensor_time_range_us(
         hi.append(ceil_us(int(inputs.sweep_timestamps_ns[-1]) + int(lidar_timing.SWEEP_SPAN_MS[1] * 1e6)))
     elif with_lidar:
         for sweep_ns in {int(inputs.sweep_timestamps_ns[0]), int(inputs.sweep_timestamps_ns[-1])}:
-            first_ns, last_ns = av2.read_sweep_offset_range_ns(inputs.log_dir, sweep_ns)
+            first_ns, last_ns = av2.read_sweep_offset_range_ns(inputs.log_dir, sweep_ns, inputs.files)
             lo.append(floor_us(sweep_ns + min(first_ns, 0)))
             hi.append(ceil_us(sweep_ns + last_ns))
     for cam in camera_ids:

@@ -16,6 +16,7 @@ from upath import UPath
 
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import objects
 from ncore_convert.transforms.geometry import Trajectory
 from ncore_convert.transforms.lidar import timing as lidar_timing
 from ncore_convert.transforms.lidar import vlp32c
@@ -90,13 +91,20 @@ def sweep_times_ns(
     return times_ns
 
 
-def read_covered_sweep(log_dir: UPath, timestamp_ns: int, T_rig_world: Trajectory, with_offsets: bool) -> av2.Sweep:
-    """Read a sweep; with offset_ns, check that the trajectory covers all its point times
-    (SourceError if not). Reconstructed times are checked when they are computed."""
-    sweep = av2.read_sweep(log_dir, timestamp_ns, with_offsets)
+def read_covered_sweeps(
+    log_dir: UPath,
+    timestamps_ns: list[int],
+    T_rig_world: Trajectory,
+    with_offsets: bool,
+    listing: dict[str, objects.ObjectInfo] | None = None,
+) -> list[av2.Sweep]:
+    """Read sweeps (fetched ahead); with offset_ns, check that the trajectory covers all their point
+    times (SourceError if not). Reconstructed times are checked when they are computed."""
+    sweeps = list(av2.read_sweeps(log_dir, timestamps_ns, with_offsets, listing))
     if with_offsets:
-        _check_covered(sweep, timestamp_ns + sweep.offset_ns.astype(np.int64), T_rig_world)
-    return sweep
+        for sweep in sweeps:
+            _check_covered(sweep, sweep.timestamp_ns + sweep.offset_ns.astype(np.int64), T_rig_world)
+    return sweeps
 
 
 @dataclass(frozen=True)
@@ -147,6 +155,7 @@ def calibrate_lidars(
     T_sensor_rig: dict[str, np.ndarray],
     model_units: list[str],
     timing: TriggerTiming | None = None,
+    listing: dict[str, objects.ObjectInfo] | None = None,
 ) -> LidarCalibration:
     """Decide the unit split, then derive the structured model of each unit in ``model_units``.
 
@@ -156,7 +165,8 @@ def calibrate_lidars(
     given), each hypothesis gets its own reconstructed firing times.
     """
     picks = spread_indices(len(sweep_timestamps_ns), CALIBRATION_SWEEPS)
-    sweeps = [read_covered_sweep(log_dir, int(sweep_timestamps_ns[i]), T_rig_world, timing is None) for i in picks]
+    stamps = [int(sweep_timestamps_ns[i]) for i in picks]
+    sweeps = read_covered_sweeps(log_dir, stamps, T_rig_world, timing is None, listing)
     knots = _unit_knots(sweeps, T_rig_world, T_sensor_rig, timing) if timing is not None else {}
     spread: dict[tuple[str, str], float] = {}
     halves: dict[tuple[str, str], list] = {}

@@ -18,8 +18,10 @@ import numpy as np
 import PIL.Image
 from upath import UPath
 
+from ncore_convert.errors import SourceError
 from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import objects
 from ncore_convert.sources.masks import read_mask_folder
 from ncore_convert.transforms.camera import ego_mask
 from ncore_convert.transforms.camera.models import Pinhole
@@ -92,6 +94,7 @@ def _estimate(
     T_camera_ego: np.ndarray,
     box: ego_mask.EgoBox,
     require_agreement: bool = True,
+    listing: dict[str, objects.ObjectInfo] | None = None,
 ) -> EgoMask:
     """One camera's estimate; ``require_agreement``: as in ``ego_mask.estimate`` (False only to
     measure the agreement test)."""
@@ -112,13 +115,18 @@ def _estimate(
             }
         )
 
+    def grey(fetched: tuple[UPath, bytes | SourceError]) -> np.ndarray:
+        path, data = fetched
+        if isinstance(data, SourceError):
+            raise data
+        return av2.decode_jpeg(path, data, scale, "L").astype(np.float32)
+
     def decoded(indices: np.ndarray) -> np.ndarray:
-        # in two threads (decoding frees the GIL), so that the log's last camera, alone on the
-        # workers, still uses two cores for it
+        # fetched ahead, decoded in two threads (decoding frees the GIL), so that the log's last
+        # camera, alone on the workers, still uses two cores for it
+        fetched = av2.read_images(log_dir, camera, stamps_ns[indices], listing, keep=True)  # the copy job reads them
         with ThreadPoolExecutor(2) as threads:
-            return np.stack(
-                list(threads.map(lambda i: av2.read_jpeg_grey(log_dir, camera, int(stamps_ns[i]), scale), indices))
-            )
+            return np.stack(list(threads.map(grey, fetched)))
 
     picks = spread_indices(len(stamps_ns), SAMPLES)
     frames = decoded(picks)
@@ -179,6 +187,7 @@ def plan_ego_masks(
     warnings: list[str],
     box: ego_mask.EgoBox,
     run_jobs: Callable[[list[Job]], list] | None = None,
+    listing: dict[str, objects.ObjectInfo] | None = None,
 ) -> dict[str, EgoMask]:
     """Every camera's ego mask under ``--ego-masks`` ``option`` (``estimate``, ``none`` or a folder).
 
@@ -187,6 +196,7 @@ def plan_ego_masks(
         warnings: fallbacks are reported here, one line per kind of fallback; a camera that must
             see the body (``ego_mask.BodyPrior.must_see``) but gets no mask is always one.
         box: the nominal ego vehicle of the prior.
+        listing: the remote images' sizes and ETags (``LogInputs.files``).
         run_jobs: runs the per-camera estimates (``JobPool.run``: the conversion's worker processes,
             idle while a log is planned); None: threads in this process. The result does not
             depend on it.
@@ -202,7 +212,7 @@ def plan_ego_masks(
             else EgoMask({"method": "user", "decision": "no file: no mask"})
             for cam in cameras
         }
-    jobs = [(_estimate_job, (log_dir, cam, *inputs, box)) for cam, inputs in cameras.items()]
+    jobs = [(_estimate_job, (log_dir, cam, *inputs, box, True, listing)) for cam, inputs in cameras.items()]
     if run_jobs is None:  # threads: JPEG decoding and most array work free the GIL
         with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
             estimated = list(pool.map(lambda job: job[0](*job[1]), jobs))

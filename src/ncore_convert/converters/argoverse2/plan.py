@@ -244,6 +244,7 @@ def _plan_log(
             mask_warnings,
             EgoBox(*options.ego_box_m),
             run_jobs,
+            inputs.files,
         )
         plan = _plan_rest(log_dir, log_id, options, inputs, camera_ids, lidar_ids, window_us, warnings)
         ego_masks = masks.result()
@@ -273,7 +274,7 @@ def _plan_rest(
         model_units = lidar_ids if options.lidar_model_source == "empirical" else []
         timing = _trigger_timing(inputs) if options.tbv else None
         lidar_calibration = calibrate_lidars(
-            log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig, model_units, timing
+            log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig, model_units, timing, inputs.files
         )
         split = lidar_calibration.unit_split
         if split.margin < UNIT_DECISION_MIN_MARGIN:
