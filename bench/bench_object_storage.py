@@ -165,7 +165,7 @@ def main() -> None:
                         counts = (dict(proxy.counts), proxy.bytes_out, proxy.busy_s / wall, dict(proxy.faults))
                         again = sorted(k for k, n in proxy.keys.items() if n > 1 and k[0] == "GET")
                         heads = sorted(k[1] for k in proxy.keys if k[0] == "HEAD")
-                        print(f"{name}, D = {delay:g} ms: fetched more than once {again[:5]} ({len(again)}); HEAD {heads[:5]}")
+                        print(f"{name}, D = {delay:g} ms: fetched again {again[:3]} ({len(again)}); HEAD {heads[:3]}")
                         if args.output == "local":
                             same = tree_fingerprint(Path(out)) == local_fp
                         else:

@@ -1,7 +1,8 @@
 """An HTTP proxy in front of an S3 server (moto) that holds each response's first byte ``delay_ms``
 (one cloud round trip), counts requests by kind (HEAD, GET, LIST, PUT: every write, multipart parts
 included) and the bytes of GET bodies, and can answer a seeded share of requests with 503 SlowDown
-or drop their connections. Used by ``tests/test_object_reads.py`` and ``bench/bench_object_storage.py``.
+or drop their connections, or refuse every request with an S3 error code (``refuse``). Used by
+``tests/test_object_reads.py`` and ``bench/bench_object_storage.py``.
 
     with LatencyProxy(upstream="http://127.0.0.1:5000", delay_ms=50) as proxy:
         env["AWS_ENDPOINT_URL"] = proxy.url
@@ -50,9 +51,19 @@ class LatencyProxy:
     """
 
     def __init__(
-        self, upstream: str, delay_ms: float = 0.0, slow_down: float = 0.0, drop: float = 0.0, seed: int = 0
+        self,
+        upstream: str,
+        delay_ms: float = 0.0,
+        slow_down: float = 0.0,
+        drop: float = 0.0,
+        seed: int = 0,
+        refuse: str | None = None,
     ) -> None:
         self.upstream = upstream.rstrip("/")
+        self.refuse = refuse
+        self.unsigned: collections.Counter = collections.Counter()  #: requests without credentials, by kind
+        self.signed_paths: set[str] = set()  #: the paths of the requests with credentials
+        self.order: list[tuple[str, str]] = []  #: (kind, path) of every request, in arrival order
         self.delay_s = delay_ms / 1000.0
         self.slow_down, self.drop = slow_down, drop
         self._random = random.Random(seed)
@@ -75,6 +86,9 @@ class LatencyProxy:
             self.counts.clear()
             self.keys.clear()
             self.faults.clear()
+            self.unsigned.clear()
+            self.signed_paths.clear()
+            self.order.clear()
             self.bytes_out = 0
             self.busy_s = 0.0
 
@@ -128,9 +142,19 @@ class LatencyProxy:
     async def _answer(self, request: web.Request) -> web.StreamResponse:
         kind = request_kind(request.method, request.path_qs)
         body = await request.read()
+        path = urlsplit(request.path_qs).path
         with self._lock:
             self.counts[kind] += 1
-            self.keys[(kind, urlsplit(request.path_qs).path)] += 1
+            self.keys[(kind, path)] += 1
+            self.order.append((kind, path))
+            if "Authorization" not in request.headers and "X-Amz-Signature" not in request.query:
+                self.unsigned[kind] += 1
+            else:
+                self.signed_paths.add(path)
+        if self.refuse is not None:
+            status = 400 if self.refuse == "ExpiredToken" else 403
+            body = f"<Error><Code>{self.refuse}</Code><Message>refused by the proxy</Message></Error>"
+            return web.Response(status=status, body=body.encode(), content_type="application/xml")
         fault = self._fault()
         if fault == "503":
             with self._lock:

@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import os
 import socket
-from urllib.parse import urlsplit
+import urllib.error
+import urllib.request
 
 from upath import UPath
 
@@ -34,7 +35,7 @@ INVALID_CODES = {
     "TokenRefreshRequired",
     "InvalidClientTokenId",
 }
-METADATA_PROBE_S = 1.0  #: how long the metadata service may take to accept a connection
+METADATA_PROBE_S = 1.0  #: how long the metadata service may take to answer
 
 
 def input_root(url: str, anonymous: bool = False) -> UPath:
@@ -61,16 +62,22 @@ def _error_code(err: BaseException) -> str | None:
 
 
 def _metadata_service_silent() -> str | None:
-    """The instance metadata service's address if it does not accept a connection within
+    """The instance metadata service's address if it does not answer a token request within
     METADATA_PROBE_S (botocore then finds no credentials and says only that), else None."""
     if os.environ.get("AWS_EC2_METADATA_DISABLED", "").lower() == "true":
         return None
     endpoint = os.environ.get("AWS_EC2_METADATA_SERVICE_ENDPOINT", "http://169.254.169.254/")
-    parts = urlsplit(endpoint)
+    request = urllib.request.Request(
+        endpoint.rstrip("/") + "/latest/api/token", method="PUT", headers={"X-aws-ec2-metadata-token-ttl-seconds": "60"}
+    )
     try:
-        socket.create_connection((parts.hostname, parts.port or 80), timeout=METADATA_PROBE_S).close()
+        urllib.request.urlopen(request, timeout=METADATA_PROBE_S).close()
+    except urllib.error.HTTPError:
+        return None  # it answered
     except TimeoutError:
         return endpoint
+    except urllib.error.URLError as err:
+        return endpoint if isinstance(err.reason, TimeoutError | socket.timeout) else None
     except OSError:
         return None
     return None

@@ -1,0 +1,175 @@
+"""Reading the input from a bucket (``sources/objects.py``, ``sources/access.py``): one GET per
+object and no HEAD, every byte once, anonymous input, one line per credential problem, and a
+conversion through a proxy that refuses and drops requests. A moto S3 server behind
+``tests/latency_proxy.py`` (no delay: the counts do not depend on it) stands for the bucket."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import socket
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import av2_command
+from latency_proxy import LatencyProxy
+from upath import UPath
+
+from ncore_convert.synth.argoverse2 import SynthConfig, write_log
+
+CREDENTIALS = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN", "AWS_PROFILE")
+
+
+def hashes(root: Path) -> dict[str, str]:
+    """Every output file's SHA-256 by relative path (the run report aside: it holds wall times)."""
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "conversion-report.json"
+    }
+
+
+def public_read(endpoint_url: str, bucket: str) -> None:
+    """A bucket policy that lets anyone list the bucket and read its objects (a public dataset's)."""
+    import botocore.session
+
+    statements = [
+        {"Effect": "Allow", "Principal": "*", "Action": "s3:ListBucket", "Resource": f"arn:aws:s3:::{bucket}"},
+        {"Effect": "Allow", "Principal": "*", "Action": "s3:GetObject", "Resource": f"arn:aws:s3:::{bucket}/*"},
+    ]
+    client = botocore.session.get_session().create_client("s3", endpoint_url=endpoint_url)
+    client.put_bucket_policy(Bucket=bucket, Policy=json.dumps({"Version": "2012-10-17", "Statement": statements}))
+
+
+@pytest.fixture(scope="module")
+def bucket_log(s3_env, tmp_path_factory):
+    """A small synthetic AV2 log in a bucket (``s3://datasets/av2/val``), and its local conversion."""
+    import s3fs
+
+    tmp = tmp_path_factory.mktemp("objects")
+    truth = write_log(UPath(tmp / "src" / "val"), SynthConfig(seconds=0.3, seed=43, camera_fps=5, camera_scale=4))
+    fs = s3fs.S3FileSystem(skip_instance_cache=True)
+    fs.mkdir("datasets")
+    fs.put(str(tmp / "src" / "val") + "/", "datasets/av2/val/", recursive=True)
+    public_read(s3_env["AWS_ENDPOINT_URL"], "datasets")
+    files = {str(p.relative_to(tmp / "src")): p.stat().st_size for p in (tmp / "src").rglob("*") if p.is_file()}
+    local = subprocess.run(
+        av2_command(str(tmp / "src"), str(tmp / "local")), capture_output=True, text=True, env=s3_env
+    )
+    assert local.returncode == 0, local.stdout + local.stderr
+    return truth, files, hashes(tmp / "local"), tmp
+
+
+def convert_through(proxy: LatencyProxy, env: dict, out: str, *group_options: str) -> subprocess.CompletedProcess:
+    env = {**env, "AWS_ENDPOINT_URL": proxy.url}
+    command = av2_command("s3://datasets/av2", out, "--workers", "2", *group_options)
+    return subprocess.run(command, capture_output=True, text=True, timeout=600, env=env)
+
+
+def test_each_object_is_fetched_once_by_one_get_and_no_head(s3_env, bucket_log, tmp_path):
+    """The default command from the bucket: one GET per object (the ego-mask sample, calibration,
+    label and validation reads take the spooled copies), no HEAD, the source's bytes once, a few
+    LISTs, and the local conversion's output."""
+    _, files, local, _ = bucket_log
+    with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
+        run = convert_through(proxy, s3_env, str(tmp_path / "out"))
+        assert run.returncode == 0, run.stdout + run.stderr
+        gets = {path: n for (kind, path), n in proxy.keys.items() if kind == "GET"}
+        assert proxy.counts["HEAD"] == 0, sorted(p for k, p in proxy.keys if k == "HEAD")[:5]
+        assert sorted(gets) == sorted(f"/datasets/av2/{name}" for name in files)
+        assert set(gets.values()) == {1}, sorted(p for p, n in gets.items() if n > 1)[:5]
+        assert proxy.bytes_out == sum(files.values())
+        folders = {str(Path(name).parent) for name in files}
+        assert proxy.counts["LIST"] <= 2 * len(folders) + 6, proxy.counts
+        assert proxy.counts["PUT"] == 0
+    assert hashes(tmp_path / "out") == local
+
+
+def test_a_flaky_bucket_converts_to_the_same_output(s3_env, bucket_log, tmp_path):
+    """5 % of requests answered 503 SlowDown and 3 % of connections dropped (seeded; the bench runs
+    the issue's 2 % and 1 % on a larger log), input from and output to the bucket: the retries carry
+    the run, and the output is the local conversion's."""
+    import s3fs
+
+    _, _, local, _ = bucket_log
+    with LatencyProxy(s3_env["AWS_ENDPOINT_URL"], slow_down=0.05, drop=0.03, seed=66) as proxy:
+        run = convert_through(proxy, s3_env, "s3://converted/flaky")
+        assert run.returncode == 0, run.stdout + run.stderr
+        assert proxy.faults["503"] > 0 and proxy.faults["drop"] > 0, proxy.faults
+    fs = s3fs.S3FileSystem(skip_instance_cache=True)
+    fs.get("converted/flaky/", str(tmp_path / "got") + "/", recursive=True)
+    assert hashes(tmp_path / "got") == local
+
+
+def no_credentials(env: dict, **extra: str) -> dict:
+    return {**{k: v for k, v in env.items() if k not in CREDENTIALS}, "AWS_EC2_METADATA_DISABLED": "true", **extra}
+
+
+def one_line_error(run: subprocess.CompletedProcess) -> str:
+    """The run's error line; the run must exit 2 with that one line and no traceback."""
+    lines = [line for line in (run.stdout + run.stderr).splitlines() if line.strip()]
+    assert run.returncode == 2 and len(lines) == 1 and "Traceback" not in run.stderr, run.stdout + run.stderr
+    return lines[0]
+
+
+def test_anonymous_input_converts_without_any_credentials(s3_env, bucket_log, tmp_path):
+    """No credentials for the input: --anonymous reads the public bucket unsigned and converts, while
+    the output (to the bucket) is written with the caller's credentials; with no credentials and
+    no --anonymous, one line names --anonymous."""
+    import s3fs
+
+    _, _, local, _ = bucket_log
+    env = no_credentials(s3_env, AWS_CONFIG_FILE=os.devnull, AWS_SHARED_CREDENTIALS_FILE=os.devnull)
+    with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
+        refused = convert_through(proxy, env, str(tmp_path / "refused"))
+        assert "--anonymous" in one_line_error(refused) and "no credentials found" in refused.stderr
+        proxy.reset()
+        run = convert_through(proxy, s3_env, "s3://converted/anonymous", "--anonymous", "--no-validate")
+        assert run.returncode == 0, run.stdout + run.stderr
+        read = {path for _, path in proxy.order if path.startswith("/datasets")}
+        written = {path for _, path in proxy.order if path.startswith("/converted")}
+        assert read and not read & proxy.signed_paths, sorted(read & proxy.signed_paths)[:3]
+        assert proxy.counts["PUT"] > 0 and written <= proxy.signed_paths, sorted(written - proxy.signed_paths)[:3]
+    s3fs.S3FileSystem(skip_instance_cache=True).get("converted/anonymous/", str(tmp_path / "got") + "/", recursive=True)
+    assert hashes(tmp_path / "got") == local
+
+
+@pytest.mark.parametrize(
+    "code, anonymous, expected",
+    [
+        (
+            "InvalidAccessKeyId",
+            False,
+            "the credentials were refused (InvalidAccessKeyId: invalid or expired); renew them",
+        ),
+        ("ExpiredToken", False, "the credentials were refused (ExpiredToken: invalid or expired); renew them"),
+        ("AccessDenied", True, "access denied to an anonymous reader (not a public bucket); drop --anonymous"),
+    ],
+)
+def test_each_credential_problem_is_one_line(s3_env, bucket_log, tmp_path, code, anonymous, expected):
+    with LatencyProxy(s3_env["AWS_ENDPOINT_URL"], refuse=code) as proxy:
+        run = convert_through(proxy, s3_env, str(tmp_path / "out"), *(["--anonymous"] if anonymous else []))
+    assert one_line_error(run) == f"Error: --root-dir s3://datasets/av2: {expected}"
+
+
+def test_a_silent_metadata_service_is_named(s3_env, bucket_log, tmp_path):
+    """No credentials, and an instance metadata service that accepts connections but never answers."""
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(16)
+        endpoint = f"http://127.0.0.1:{silent.getsockname()[1]}/"
+        env = no_credentials(
+            s3_env,
+            AWS_EC2_METADATA_DISABLED="false",
+            AWS_EC2_METADATA_SERVICE_ENDPOINT=endpoint,
+            AWS_METADATA_SERVICE_TIMEOUT="1",
+            AWS_METADATA_SERVICE_NUM_ATTEMPTS="1",
+            AWS_CONFIG_FILE=os.devnull,
+            AWS_SHARED_CREDENTIALS_FILE=os.devnull,
+        )
+        with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
+            run = convert_through(proxy, env, str(tmp_path / "out"))
+    line = one_line_error(run)
+    assert f"the instance metadata service ({endpoint}) did not answer within 1 s" in line and "--anonymous" in line
