@@ -116,11 +116,11 @@ def one_line_error(run: subprocess.CompletedProcess) -> str:
 
 def test_anonymous_input_converts_without_any_credentials(s3_env, bucket_log, tmp_path):
     """No credentials for the input: --anonymous reads the public bucket unsigned and converts, while
-    the output (to the bucket) is written with the caller's credentials; with no credentials and
-    no --anonymous, one line names --anonymous."""
+    the output (to the bucket) is written with the caller's credentials, the sequence's JSON strictly
+    last; with no credentials and no --anonymous, one line names --anonymous."""
     import s3fs
 
-    _, _, local, _ = bucket_log
+    truth, _, local, _ = bucket_log
     env = no_credentials(s3_env, AWS_CONFIG_FILE=os.devnull, AWS_SHARED_CREDENTIALS_FILE=os.devnull)
     with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
         refused = convert_through(proxy, env, str(tmp_path / "refused"))
@@ -132,6 +132,9 @@ def test_anonymous_input_converts_without_any_credentials(s3_env, bucket_log, tm
         written = {path for _, path in proxy.order if path.startswith("/converted")}
         assert read and not read & proxy.signed_paths, sorted(read & proxy.signed_paths)[:3]
         assert proxy.counts["PUT"] > 0 and written <= proxy.signed_paths, sorted(written - proxy.signed_paths)[:3]
+        sequence = f"/converted/anonymous/{truth.log_id}/"
+        puts = [path for kind, path in proxy.order if kind == "PUT" and path.startswith(sequence)]
+        assert puts[-1] == f"{sequence}{truth.log_id}.json" and puts.count(puts[-1]) == 1, puts[-3:]
     s3fs.S3FileSystem(skip_instance_cache=True).get("converted/anonymous/", str(tmp_path / "got") + "/", recursive=True)
     assert hashes(tmp_path / "got") == local
 

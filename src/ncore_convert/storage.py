@@ -62,10 +62,11 @@ def publish(work: UPath, final: UPath, flushed: bool = False) -> None:
     """Move a finished sequence folder into place, replacing any previous ``final``.
 
     Local: flushed to disk (unless the caller did, ``flushed``), then renamed (atomic within one
-    file system). Object store (``work``
-    is a local staging folder): the files are uploaded, the folder's top-level files (the
-    sequence meta ``<log_id>.json`` that readers open first) last; an upload that fails removes
-    what it wrote. Either way ``final`` never looks complete before it is.
+    file system). Object store (``work`` is a local staging folder): every data object is uploaded
+    (concurrently), and only once all are complete, the folder's top-level JSON files (the
+    sequence meta ``<log_id>.json`` that readers open first): a reader never finds the JSON before
+    the stores it names. An upload that fails removes what it wrote (s3fs aborts a multipart
+    upload that fails). Either way ``final`` never looks complete before it is.
     """
     remove_tree(final)
     if is_local(final):
@@ -75,8 +76,8 @@ def publish(work: UPath, final: UPath, flushed: bool = False) -> None:
         _fsync(final.parent.path, os.O_RDONLY | os.O_DIRECTORY)  # the rename itself (not the siblings)
         return
     files = sorted(p for p in Path(work.path).rglob("*") if p.is_file())
-    last = [p for p in files if p.parent == Path(work.path)]
-    first = [p for p in files if p.parent != Path(work.path)]
+    last = [p for p in files if p.parent == Path(work.path) and p.suffix == ".json"]
+    first = [p for p in files if p not in last]
     try:
         for batch in (first, last):
             if batch:
