@@ -176,3 +176,41 @@ def test_a_silent_metadata_service_is_named(s3_env, bucket_log, tmp_path):
             run = convert_through(proxy, env, str(tmp_path / "out"))
     line = one_line_error(run)
     assert f"the instance metadata service ({endpoint}) did not answer within 1 s" in line and "--anonymous" in line
+
+
+def test_a_cooperative_scenario_from_the_bucket_converts_as_locally(s3_env, tmp_path):
+    """OPV2V from the bucket: no HEAD, each object fetched whole once (the PCDs' header read again
+    by validation's point counts, a ranged GET of its first 64 KiB), and the local output."""
+    import s3fs
+
+    synth = ["synth", "opv2v", "--out", str(tmp_path / "src"), "--frames", "3", "--cavs", "2"]
+    made = subprocess.run([*av2_command("x", "y")[:1], *synth, "--lidar-columns", "64", "--render-step", "8"])
+    assert made.returncode == 0
+    fs = s3fs.S3FileSystem(skip_instance_cache=True)
+    fs.mkdir("cooperative")
+    fs.put(str(tmp_path / "src") + "/", "cooperative/opv2v/", recursive=True)
+    files = [p.relative_to(tmp_path / "src").as_posix() for p in (tmp_path / "src").rglob("*") if p.is_file()]
+    convert = ["--no-progress", "--workers", "2", "--output-dir"]
+    local = subprocess.run(
+        [*av2_command("x", "y")[:1], "--root-dir", str(tmp_path / "src"), *convert, str(tmp_path / "local")]
+        + ["opv2v-v4", "--split", "test"],
+        capture_output=True,
+        text=True,
+        env=s3_env,
+    )
+    assert local.returncode == 0, local.stdout + local.stderr
+    with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
+        run = subprocess.run(
+            [*av2_command("x", "y")[:1], "--root-dir", "s3://cooperative/opv2v", *convert, str(tmp_path / "out")]
+            + ["opv2v-v4", "--split", "test"],
+            capture_output=True,
+            text=True,
+            env={**s3_env, "AWS_ENDPOINT_URL": proxy.url},
+        )
+        assert run.returncode == 0, run.stdout + run.stderr
+        assert proxy.counts["HEAD"] == 0, sorted(p for k, p in proxy.keys if k == "HEAD")[:5]
+        gets = {path: n for (kind, path), n in proxy.keys.items() if kind == "GET"}
+        assert sorted(gets) == sorted(f"/cooperative/opv2v/{name}" for name in files)
+        twice = {path for path, n in gets.items() if n == 2}
+        assert max(gets.values()) <= 2 and all(path.endswith(".pcd") for path in twice), sorted(twice)[:3]
+    assert hashes(tmp_path / "out") == hashes(tmp_path / "local")

@@ -1,6 +1,11 @@
 """Source files as bytes: reading with clear causes (``errors.SourceError``), folder listings with
 safe names, and cheap completeness checks of encoded images.
 
+A remote file (s3://, ...) is one request: a GET of the whole object, or a ranged GET of its head
+(:func:`get_remote`; on S3 conditional on the folder listing's ETag and checked against its size),
+never a HEAD first. Each process counts its remote GETs and bytes (:data:`COUNTS`);
+:mod:`sources.objects` fetches many ahead and keeps what a log reads again.
+
 Images are stored byte-identical, so the converter never decodes them; the checks catch the damage
 that interrupted downloads cause (a file cut short, or not an image at all) from the first and last
 bytes only.
@@ -8,6 +13,10 @@ bytes only.
 
 from __future__ import annotations
 
+import threading
+from dataclasses import dataclass
+
+import fsspec.asyn
 from upath import UPath
 
 from ncore_convert.contract import SAFE_NAME
@@ -47,15 +56,109 @@ def unreadable(path: object, err: OSError) -> SourceError:
 
 def read_bytes(path: UPath, max_bytes: int = -1) -> bytes:
     """A file's bytes (its first ``max_bytes`` only, if given); SourceError naming it if it is
-    missing or unreadable."""
+    missing or unreadable. A remote file is one GET (:func:`get_remote`), never a HEAD first."""
+    if not is_local(path):
+        if getattr(path.fs, "async_impl", False):
+            return fsspec.asyn.sync(path.fs.loop, get_remote, path, None, max_bytes)
+        try:
+            data = path.fs.cat_file(path.path) if max_bytes < 0 else path.fs.cat_file(path.path, 0, max_bytes)
+        except Exception as err:  # noqa: BLE001 - every failure becomes the file's one-line error
+            raise remote_error(path, err) from None
+        count_fetch(path, data)
+        return data
     try:
-        if is_local(path):  # plain open is ~3x cheaper per file than going through fsspec
-            with open(path.path, "rb") as f:
-                return f.read(max_bytes)
-        with path.open("rb") as f:
+        with open(path.path, "rb") as f:  # plain open is ~3x cheaper per file than going through fsspec
             return f.read(max_bytes)
     except OSError as err:
         raise unreadable(path, err) from None
+
+
+# ----------------------------------------------------------------------------------------------
+# Remote objects: one request each, counted
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """One object as its folder's listing gave it: size in bytes, and the ETag (None where the
+    store gives none)."""
+
+    size: int
+    etag: str | None = None
+
+
+@dataclass
+class Counts:
+    """Remote fetches of this process: requests (GETs, LISTs), bytes, and files fetched again."""
+
+    gets: int = 0
+    lists: int = 0
+    bytes: int = 0
+    refetched: int = 0
+    spooled: int = 0  #: files written to the spool
+    spool_hits: int = 0  #: files read from the spool instead of fetched
+
+
+COUNTS = Counts()
+
+_seen: set[str] = set()  #: objects fetched by this process (a second fetch counts in ``refetched``)
+_lock = threading.Lock()
+
+
+def key(path: UPath) -> str:
+    """The name a listing files an object under: its protocol and path."""
+    return f"{path.protocol}://{path.path}" if not is_local(path) else path.path
+
+
+def checked(path: UPath, data: bytes, info: ObjectInfo | None) -> bytes:
+    if info is not None and len(data) != info.size:
+        raise SourceError(path, f"object is {len(data)} bytes, its listing says {info.size} (short, or changed)")
+    return data
+
+
+def count_fetch(path: UPath, data: bytes) -> None:
+    with _lock:
+        COUNTS.gets += 1
+        COUNTS.bytes += len(data)
+        name = key(path)
+        if name in _seen:
+            COUNTS.refetched += 1
+        _seen.add(name)
+
+
+def remote_error(path: UPath, err: Exception) -> SourceError:
+    response = getattr(err.__cause__, "response", None) or getattr(err, "response", None) or {}
+    code = response.get("Error", {}).get("Code")
+    status = response.get("ResponseMetadata", {}).get("HTTPStatusCode")
+    if code == "PreconditionFailed" or status == 412:
+        return SourceError(path, "object changed since its folder was listed (ETag differs)")
+    if isinstance(err, OSError):
+        return unreadable(path, err)
+    return SourceError(path, f"unreadable ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})")
+
+
+async def get_remote(path: UPath, info: ObjectInfo | None, max_bytes: int = -1) -> bytes:
+    """One GET of the whole object, or of its first ``max_bytes`` (S3: conditional on the listing's
+    ETag ``info``, and checked against its size; never s3fs's ``_cat_file``, which asks for the
+    size first, a HEAD, when it may split a large object)."""
+    fs = path.fs
+    try:
+        if hasattr(fs, "_call_s3"):
+            bucket, name, version = fs.split_path(path.path)
+            condition = {"IfMatch": info.etag} if info is not None and info.etag else {}
+            version_kw = {"VersionId": version} if version else {}
+            part = {"Range": f"bytes=0-{max_bytes - 1}"} if max_bytes >= 0 else {}
+            response = await fs._call_s3("get_object", Bucket=bucket, Key=name, **condition, **version_kw, **part)
+            try:
+                data = await response["Body"].read()
+            finally:
+                response["Body"].close()
+        else:
+            data = await fs._cat_file(path.path, **({"start": 0, "end": max_bytes} if max_bytes >= 0 else {}))
+    except Exception as err:  # noqa: BLE001 - every failure becomes the object's one-line error
+        raise remote_error(path, err) from None
+    count_fetch(path, data)
+    return checked(path, data, info) if max_bytes < 0 else data
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

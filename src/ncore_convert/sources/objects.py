@@ -37,13 +37,12 @@ import shutil
 import tempfile
 import threading
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 from upath import UPath
 
 from ncore_convert.errors import SourceError
-from ncore_convert.sources.files import read_bytes, unreadable
+from ncore_convert.sources.files import COUNTS, ObjectInfo, checked, get_remote, key, read_bytes
 from ncore_convert.storage import is_local
 
 DEFAULT_RUN_BUDGET_MB = 256  #: ``--read-ahead-mb``: bytes held ahead by a run's processes on one machine
@@ -56,30 +55,6 @@ SPOOL_ENV = "NCORE_CONVERT_SPOOL"  #: the run's spool folder (set by the command
 SPOOL_BUDGET_BYTES = 2 * 2**30  #: bytes one process may write to the spool
 
 
-@dataclass(frozen=True)
-class ObjectInfo:
-    """One object as its folder's listing gave it: size in bytes, and the ETag (None where the
-    store gives none)."""
-
-    size: int
-    etag: str | None = None
-
-
-@dataclass
-class Counts:
-    """Remote fetches of this process: requests (GETs, LISTs), bytes, and files fetched again."""
-
-    gets: int = 0
-    lists: int = 0
-    bytes: int = 0
-    refetched: int = 0
-    spooled: int = 0  #: files written to the spool
-    spool_hits: int = 0  #: files read from the spool instead of fetched
-
-
-COUNTS = Counts()
-
-_seen: set[str] = set()  #: objects fetched by this process (a second fetch counts in ``refetched``)
 _lock = threading.Lock()
 _spool = {"root": None, "written": 0}
 
@@ -93,11 +68,6 @@ def share_budget(budget_bytes: int) -> None:
 def budget_bytes() -> int:
     """This process's read-ahead share, in bytes."""
     return int(os.environ.get(BUDGET_ENV) or DEFAULT_BUDGET_BYTES)
-
-
-def key(path: UPath) -> str:
-    """The name a listing files an object under: its protocol and path."""
-    return f"{path.protocol}://{path.path}" if not is_local(path) else path.path
 
 
 def list_folder(directory: UPath) -> dict[str, ObjectInfo]:
@@ -203,55 +173,6 @@ def exists(path: UPath, listing: dict[str, ObjectInfo] | None) -> bool:
     return path.exists()
 
 
-def _checked(path: UPath, data: bytes, info: ObjectInfo | None) -> bytes:
-    if info is not None and len(data) != info.size:
-        raise SourceError(path, f"object is {len(data)} bytes, its listing says {info.size} (short, or changed)")
-    return data
-
-
-def _count(path: UPath, data: bytes) -> None:
-    with _lock:
-        COUNTS.gets += 1
-        COUNTS.bytes += len(data)
-        name = key(path)
-        if name in _seen:
-            COUNTS.refetched += 1
-        _seen.add(name)
-
-
-def _remote_error(path: UPath, err: Exception) -> SourceError:
-    response = getattr(err.__cause__, "response", None) or getattr(err, "response", None) or {}
-    code = response.get("Error", {}).get("Code")
-    status = response.get("ResponseMetadata", {}).get("HTTPStatusCode")
-    if code == "PreconditionFailed" or status == 412:
-        return SourceError(path, "object changed since its folder was listed (ETag differs)")
-    if isinstance(err, OSError):
-        return unreadable(path, err)
-    return SourceError(path, f"unreadable ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})")
-
-
-async def _get_remote(path: UPath, info: ObjectInfo | None) -> bytes:
-    """One GET of the whole object (S3: conditional on the listing's ETag; never s3fs's
-    ``_cat_file``, which asks for the size first, a HEAD, when it may split a large object)."""
-    fs = path.fs
-    try:
-        if hasattr(fs, "_call_s3"):
-            bucket, name, version = fs.split_path(path.path)
-            condition = {"IfMatch": info.etag} if info is not None and info.etag else {}
-            version_kw = {"VersionId": version} if version else {}
-            response = await fs._call_s3("get_object", Bucket=bucket, Key=name, **condition, **version_kw)
-            try:
-                data = await response["Body"].read()
-            finally:
-                response["Body"].close()
-        else:
-            data = await fs._cat_file(path.path)
-    except Exception as err:  # noqa: BLE001 - every failure becomes the object's one-line error
-        raise _remote_error(path, err) from None
-    _count(path, data)
-    return _checked(path, data, info)
-
-
 _local_pool: concurrent.futures.ThreadPoolExecutor | None = None
 
 
@@ -264,23 +185,16 @@ def _local_threads() -> concurrent.futures.ThreadPoolExecutor:
 
 
 def _start(path: UPath, info: ObjectInfo | None) -> concurrent.futures.Future:
-    if is_local(path):
-        return _local_threads().submit(read_bytes, path)
-    if (data := _spooled(path, info)) is not None:
-        future: concurrent.futures.Future = concurrent.futures.Future()
-        future.set_result(data)
-        return future
-    fs = path.fs
-    if getattr(fs, "async_impl", False):
-        return asyncio.run_coroutine_threadsafe(_get_remote(path, info), fs.loop)
-    future = concurrent.futures.Future()  # a synchronous store: read in place
-    try:
-        data = fs.cat_file(path.path)
-        _count(path, data)
-        future.set_result(_checked(path, data, info))
-    except Exception as err:  # noqa: BLE001
-        future.set_exception(err if isinstance(err, SourceError) else _remote_error(path, err))
-    return future
+    """A file's fetch under way: the spooled copy, a GET on fsspec's loop, or a read in a thread
+    (local files, and stores without an async interface)."""
+    if not is_local(path):
+        if (data := _spooled(path, info)) is not None:
+            done: concurrent.futures.Future = concurrent.futures.Future()
+            done.set_result(data)
+            return done
+        if getattr(path.fs, "async_impl", False):
+            return asyncio.run_coroutine_threadsafe(get_remote(path, info), path.fs.loop)
+    return _local_threads().submit(lambda: checked(path, read_bytes(path), info))
 
 
 def fetch(path: UPath, listing: dict[str, ObjectInfo] | None = None, keep: bool = False) -> bytes:

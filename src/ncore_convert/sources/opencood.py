@@ -18,8 +18,10 @@ import yaml
 from upath import UPath
 
 from ncore_convert.errors import SourceError
+from ncore_convert.sources import objects
 from ncore_convert.sources.files import list_folders, png_defect, read_bytes
 from ncore_convert.sources.pcd import read_pcd_with_header, red_from_rgb
+from ncore_convert.storage import is_local
 
 SPLITS = {
     "opv2v": ("train", "validate", "test", "test_culvercity"),
@@ -57,10 +59,11 @@ def load_yaml(path: UPath) -> dict:
     return parse_yaml(read_bytes(UPath(path)), path)
 
 
-def read_text(path: UPath) -> str:
-    """A file's UTF-8 text (what OpenCOOD's YAML files are); SourceError naming it otherwise."""
+def read_text(path: UPath, data: bytes | None = None) -> str:
+    """A file's UTF-8 text (what OpenCOOD's YAML files are; ``data``: its bytes, already fetched);
+    SourceError naming it otherwise."""
     try:
-        return read_bytes(UPath(path)).decode("utf-8")
+        return (read_bytes(UPath(path)) if data is None else data).decode("utf-8")
     except UnicodeDecodeError as err:
         raise SourceError(path, f"not UTF-8 text ({err.reason} at byte {err.start})") from None
 
@@ -126,9 +129,18 @@ def opencood_ego(agent_ids: list[str]) -> str:
     return opencood_order(agent_ids)[0]
 
 
-def list_frame_keys(agent_dir: UPath) -> list[str]:
-    """Frame keys of an agent: the stems of ``<key>.yaml`` (``*_additional.yaml`` and others skipped)."""
-    return sorted((p.stem for p in agent_dir.iterdir() if p.suffix == ".yaml" and _KEY.match(p.stem)), key=int)
+def list_frame_keys(agent_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None) -> list[str]:
+    """Frame keys of an agent: the stems of ``<key>.yaml`` (``*_additional.yaml`` and others skipped);
+    a remote folder is listed once, its files' sizes and ETags added to ``listing``."""
+    if is_local(agent_dir):
+        names = [p.name for p in agent_dir.iterdir()]
+    else:
+        found = objects.list_folder(agent_dir)
+        if listing is not None:
+            listing.update(found)
+        names = [name.rsplit("/", 1)[-1] for name in found]
+    stems = (name[: -len(".yaml")] for name in names if name.endswith(".yaml"))
+    return sorted((stem for stem in stems if _KEY.match(stem)), key=int)
 
 
 @dataclass(frozen=True)
@@ -275,10 +287,11 @@ def yaml_path(agent_dir: UPath, key: str) -> UPath:
     return agent_dir / f"{key}.yaml"
 
 
-def read_agent_frame(agent_dir: UPath, key: str) -> AgentFrame:
-    """Read ``<agent_dir>/<key>.yaml`` (SourceError naming the file on a missing key or bad value)."""
+def read_agent_frame(agent_dir: UPath, key: str, raw: bytes | None = None) -> AgentFrame:
+    """Read ``<agent_dir>/<key>.yaml`` (``raw``: its bytes, already fetched; SourceError naming the
+    file on a missing key or bad value)."""
     path = yaml_path(agent_dir, key)
-    data = load_yaml(path)
+    data = load_yaml(path) if raw is None else parse_yaml(raw, path)
     cords, intrinsic = {}, {}
     for index in range(len(CAMERAS)):
         entry = data.get(f"camera{index}")
@@ -307,14 +320,20 @@ def camera_path(agent_dir: UPath, key: str, index: int) -> UPath:
     return agent_dir / f"{key}_camera{index}.png"
 
 
-def read_png(agent_dir: UPath, key: str, index: int) -> bytes:
-    """The encoded bytes of ``<key>_camera<index>.png``, checked to be a complete PNG (SourceError
-    naming the file if it is missing, unreadable, not a PNG or cut short)."""
+def read_png(agent_dir: UPath, key: str, index: int, data: bytes | None = None) -> bytes:
+    """The encoded bytes of ``<key>_camera<index>.png`` (``data``: already fetched), checked to be a
+    complete PNG (SourceError naming the file if it is missing, unreadable, not a PNG or cut short)."""
     path = camera_path(agent_dir, key, index)
-    data = read_bytes(path)
+    data = read_bytes(path) if data is None else data
     if (defect := png_defect(data)) is not None:
         raise SourceError(path, defect)
     return data
+
+
+def fetch_png(agent_dir: UPath, key: str, index: int, listing: dict | None) -> bytes:
+    """:func:`read_png`, the file fetched by its folder's ``listing`` entry and kept for the
+    scenario's later jobs (:func:`objects.fetch`)."""
+    return read_png(agent_dir, key, index, objects.fetch(camera_path(agent_dir, key, index), listing, keep=True))
 
 
 def decode_png_rgb(data: bytes) -> np.ndarray:
@@ -348,10 +367,11 @@ class Sweep:
         return f"x y z {self.field} {'binary' if self.binary else 'ascii'}"
 
 
-def read_points(agent_dir: UPath, key: str) -> Sweep:
-    """``<key>.pcd``: x, y, z and the intensity (SourceError naming the file if it lacks them)."""
+def read_points(agent_dir: UPath, key: str, data: bytes | None = None) -> Sweep:
+    """``<key>.pcd``: x, y, z and the intensity (``data``: its bytes, already fetched; SourceError
+    naming the file if it lacks them)."""
     path = pcd_path(agent_dir, key)
-    header, columns = read_pcd_with_header(path)
+    header, columns = read_pcd_with_header(path, data)
     missing = [f for f in ("x", "y", "z") if f not in columns]
     field = next((f for f in PCD_INTENSITY_FIELDS if f in columns), None)
     if missing or field is None:
@@ -367,6 +387,12 @@ def read_points(agent_dir: UPath, key: str) -> Sweep:
             bad = intensity[outside][0]
             raise SourceError(path, f"PCD intensity {bad} outside [0, 1] (CARLA's ray-cast intensity)")
     return Sweep(xyz, intensity, field, header.data == "binary")
+
+
+def fetch_points(agent_dir: UPath, key: str, listing: dict | None) -> Sweep:
+    """:func:`read_points`, the file fetched by its folder's ``listing`` entry and kept for the
+    scenario's later jobs (:func:`objects.fetch`)."""
+    return read_points(agent_dir, key, objects.fetch(pcd_path(agent_dir, key), listing, keep=True))
 
 
 def png_size(data: bytes) -> tuple[int, int]:

@@ -100,9 +100,9 @@ def read_pcd(path: UPath) -> dict[str, np.ndarray]:
     return read_pcd_with_header(path)[1]
 
 
-def read_pcd_with_header(path: UPath) -> tuple[PcdHeader, dict[str, np.ndarray]]:
-    """:func:`read_pcd` and the file's header."""
-    raw = read_bytes(UPath(path))
+def read_pcd_with_header(path: UPath, data: bytes | None = None) -> tuple[PcdHeader, dict[str, np.ndarray]]:
+    """:func:`read_pcd` and the file's header; ``data``: the file's bytes, already fetched."""
+    raw = read_bytes(UPath(path)) if data is None else data
     lines, offset = _header_lines(path, raw)
     header = _parse_header(path, lines)
     body = raw[offset:]

@@ -9,8 +9,6 @@ which are in each lidar's metadata and are added back.
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
 from scipy.spatial.transform import Rotation
@@ -82,11 +80,11 @@ def _accounted(report: Report, what: str, converted: int, skipped: dict[str, str
     )
 
 
-def _left_out(report: Report, sensor_id: str, record: dict, paths: list[UPath]) -> None:
+def _left_out(report: Report, sensor_id: str, record: dict, paths: list[UPath], listing: dict) -> None:
     """A sensor the converter left out for unreadable frames declares every source file it has
     (``contract.SENSORS_NOT_WRITTEN``); one left out for another reason (no calibration) is reported."""
     declared = {UPath(f).name for f in record.get("files", {})}
-    present = [p.name for p in paths if p.exists()]
+    present = [p.name for p in paths if objects.exists(p, listing)]
     undeclared = [name for name in present if name not in declared] if declared else []
     report.add(
         f"source: {sensor_id} not written, every file declared",
@@ -285,7 +283,8 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
     options = meta.get(contract.CONVERTER, {}).get("options", {})
     agents = list(meta[contract.AGENTS])
     prefixed = len(agents) > 1 or options.get("layout") == "scenario"
-    keys = {a: ocd.list_frame_keys(scenario_dir / a) for a in ocd.list_agents(scenario_dir)}
+    files: dict = {}  # remote files' sizes and ETags: existence is read from the listings
+    keys = {a: ocd.list_frame_keys(scenario_dir / a, files) for a in ocd.list_agents(scenario_dir)}
     if (window_us := _window(meta)) is not None:
         dt_s = meta["carla_fixed_delta_seconds"]
         keys = {
@@ -298,9 +297,9 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
         prefix = contract.agent_prefix(agent) if prefixed else ""
         agent_dir = scenario_dir / agent
         lidar_id = prefix + ocd.LIDAR
-        read_keys = [k for k in keys[agent] if _vehicle_ids(str(agent_dir), k) is not None]  # readable YAMLs
+        read_keys = [k for k in keys[agent] if _vehicle_ids(agent_dir, k, files) is not None]  # readable YAMLs
         if lidar_id in left_out:
-            _left_out(report, lidar_id, left_out[lidar_id], [ocd.pcd_path(agent_dir, k) for k in read_keys])
+            _left_out(report, lidar_id, left_out[lidar_id], [ocd.pcd_path(agent_dir, k) for k in read_keys], files)
         elif lidar_id in loader.lidar_ids:
             lidar = loader.get_lidar_sensor(lidar_id)
             skipped = sensor_meta[lidar_id].get(contract.SKIPPED_FRAMES, {})
@@ -324,33 +323,42 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
                 _accounted(report, f"{prefix}{camera} images", converted, skipped, len(keys[agent]))
             elif prefix + camera in left_out:
                 paths = [ocd.camera_path(agent_dir, k, index) for k in read_keys]
-                _left_out(report, prefix + camera, left_out[prefix + camera], paths)
+                _left_out(report, prefix + camera, left_out[prefix + camera], paths, files)
             elif _camera_selected(options, camera):
-                if images := sum(ocd.camera_path(agent_dir, k, index).exists() for k in keys[agent]):
+                if images := sum(objects.exists(ocd.camera_path(agent_dir, k, index), files) for k in keys[agent]):
                     report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")
     reference = next((a for a in agents if meta[contract.AGENTS][a].get("opencood_ego")), agents[0])
-    readable = [k for k in keys[reference] if _vehicle_ids(str(scenario_dir / reference), k) is not None]
-    labels = sum(len(_labelled(scenario_dir, keys, key)) for key in readable)  # the reference's frames
+    readable = [k for k in keys[reference] if _vehicle_ids(scenario_dir / reference, k, files) is not None]
+    labels = sum(len(_labelled(scenario_dir, keys, key, files)) for key in readable)  # the reference's frames
     _count(report, "cuboids (every agent's labels per frame, plus the CAVs)", n_cuboids, labels)
 
 
-def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str) -> set[int]:
+def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str, listing: dict) -> set[int]:
     """Actor ids at one frame key: every agent's labelled vehicles and the CAVs themselves (an agent
     whose YAML is unreadable adds nothing, as in the converter, which skipped and declared it)."""
     ids: set[int] = set()
     for agent, agent_keys in keys.items():
-        if key in agent_keys and (vehicles := _vehicle_ids(str(scenario_dir / agent), key)) is not None:
+        if key in agent_keys and (vehicles := _vehicle_ids(scenario_dir / agent, key, listing)) is not None:
             ids.update(vehicles)
             if not ocd.is_infrastructure(agent):
                 ids.add(int(agent))
     return ids
 
 
-@lru_cache(maxsize=8192)
-def _vehicle_ids(agent_dir: str, key: str) -> frozenset[int] | None:
-    """The vehicles one agent's YAML labels, None if it is unreadable (cached: every agent's
-    sequence of a scenario needs them all)."""
-    try:
-        return frozenset(ocd.read_agent_frame(UPath(agent_dir), key).vehicles.actor_ids.tolist())
-    except SourceError:
-        return None
+_VEHICLES: dict[tuple[str, str], frozenset[int] | None] = {}  #: (agent folder, key) -> its YAML's vehicles
+
+
+def _vehicle_ids(agent_dir: UPath, key: str, listing: dict) -> frozenset[int] | None:
+    """The vehicles one agent's YAML labels, None if it is unreadable (kept: every agent's sequence
+    of a scenario needs them all; a remote YAML is fetched by its ``listing`` entry, or taken from
+    the run's spool)."""
+    cache_key = (str(agent_dir), key)
+    if cache_key not in _VEHICLES:
+        if len(_VEHICLES) > 8192:
+            _VEHICLES.clear()
+        try:
+            raw = objects.fetch(ocd.yaml_path(agent_dir, key), listing)
+            _VEHICLES[cache_key] = frozenset(ocd.read_agent_frame(agent_dir, key, raw).vehicles.actor_ids.tolist())
+        except SourceError:
+            _VEHICLES[cache_key] = None
+    return _VEHICLES[cache_key]

@@ -22,6 +22,7 @@ from ncore_convert.converters.opencood.plan import plan_scenario
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, Names, OpenCoodOptions, ScenarioPlan
 from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
+from ncore_convert.sources import objects
 from ncore_convert.sources import opencood as src
 from ncore_convert.transforms import carla
 from ncore_convert.transforms.camera.colours import ColourFrame, point_colours
@@ -128,7 +129,7 @@ def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t
     out = []
     for cam in agent.camera_ids:
         try:
-            data = src.read_png(agent.agent_dir, key, agent.camera_index[cam])
+            data = src.fetch_png(agent.agent_dir, key, agent.camera_index[cam], agent.files)
         except SourceError:
             continue
         view = camera_view(agent, frame, t_us, cam, T_box, half)
@@ -162,7 +163,7 @@ def _pictured(agent: AgentPlan, key: str) -> list[str]:
     out = []
     for cam in agent.camera_ids:
         try:
-            src.read_png(agent.agent_dir, key, agent.camera_index[cam])
+            src.fetch_png(agent.agent_dir, key, agent.camera_index[cam], agent.files)
         except SourceError:
             continue
         out.append(cam)
@@ -209,10 +210,18 @@ def _write_sensors(
         )
         lidar = LidarStore(writer.add_lidar(names.sensor(src.LIDAR), meta), coloured)
         skipped = dict(agent.skipped_keys)
+        paths = [
+            p for key in agent.keys for p in (src.pcd_path(agent.agent_dir, key), src.yaml_path(agent.agent_dir, key))
+        ]
+        fetched = objects.read_ahead(paths, agent.files, keep=True)  # each tick's PCD and YAML, in turn
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
+            (_, pcd), (yaml_file, yaml) = next(fetched), next(fetched)
             try:
-                sweep = src.read_points(agent.agent_dir, key)
-                yaml_text = src.read_text(src.yaml_path(agent.agent_dir, key))
+                for data in (pcd, yaml):
+                    if isinstance(data, SourceError):
+                        raise data
+                sweep = src.read_points(agent.agent_dir, key, pcd)
+                yaml_text = src.read_text(yaml_file, yaml)
             except SourceError as err:
                 counts.warnings.append(f"{err}; lidar frame skipped")
                 skipped[key] = err.cause
@@ -279,9 +288,14 @@ def _write_sensors(
         }
         stream = writer.add_camera(names.sensor(cam), meta)
         skipped = {}
-        for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
+        paths = [src.camera_path(agent.agent_dir, key, index) for key in agent.keys]
+        # kept when the lidar job (labels, colours) reads the pictures too
+        fetched = objects.read_ahead(paths, agent.files, keep=bool(boxes or plan.options.lidar_rgb))
+        for frame, (key, t_us, (_, image)) in enumerate(zip(agent.keys, agent.timestamps_us, fetched, strict=True)):
             try:
-                data = src.read_png(agent.agent_dir, key, index)
+                if isinstance(image, SourceError):
+                    raise image
+                data = src.read_png(agent.agent_dir, key, index, image)
             except SourceError as err:
                 skipped[key] = err.cause
                 counts.warnings.append(f"{err}; image skipped")

@@ -84,7 +84,7 @@ def _model_frames(agent: AgentPlan) -> list[np.ndarray]:
     directions = []
     for key in [agent.keys[i] for i in spread_indices(len(agent.keys), MODEL_FRAMES)]:
         try:
-            sweep = src.read_points(agent.agent_dir, key)
+            sweep = src.fetch_points(agent.agent_dir, key, agent.files)
         except SourceError:
             continue
         xyz = carla.points_right_handed(sweep.xyz_m.astype(np.float64))

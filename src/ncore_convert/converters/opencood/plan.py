@@ -25,6 +25,7 @@ from ncore_convert.converters.opencood.lidar_model import with_lidar_model
 from ncore_convert.converters.opencood.noise import AgentNoise, opencood_loaded, plan_noise
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, Boxes, OpenCoodOptions, ScenarioPlan
 from ncore_convert.errors import SourceError, UsageError, warnings_kept
+from ncore_convert.sources import objects
 from ncore_convert.sources import opencood as src
 from ncore_convert.sources.files import require_folder
 from ncore_convert.transforms import carla
@@ -53,13 +54,17 @@ def _files_text(damaged: dict[str, str]) -> str:
 
 
 def _read_frames(
-    agent_dir: UPath, keys: list[str], warnings: list[str], skipped: dict[str, str]
+    agent_dir: UPath, keys: list[str], warnings: list[str], skipped: dict[str, str], listing: dict
 ) -> list[src.AgentFrame]:
-    """The readable frames; an unreadable YAML is a warning and ``skipped[key]`` (its cause)."""
+    """The readable frames (fetched ahead, and kept for the lidar job, which stores their text); an
+    unreadable YAML is a warning and ``skipped[key]`` (its cause)."""
     frames = []
-    for key in keys:
+    fetched = objects.read_ahead([src.yaml_path(agent_dir, key) for key in keys], listing, keep=True)
+    for key, (_, data) in zip(keys, fetched, strict=True):
         try:
-            frames.append(src.read_agent_frame(agent_dir, key))
+            if isinstance(data, SourceError):
+                raise data
+            frames.append(src.read_agent_frame(agent_dir, key, data))
         except SourceError as err:
             warnings.append(f"{err}; frame skipped")
             skipped[key] = err.cause
@@ -115,9 +120,12 @@ def plan_agent(
     dt_s: float,
     warnings: list[str],
     skipped_keys: dict[str, str] | None = None,
+    listing: dict | None = None,
 ) -> AgentPlan:
     """Trajectory and calibration of one agent from its frames (at least two); ``skipped_keys``:
-    the keys whose YAML could not be read, with the cause."""
+    the keys whose YAML could not be read, with the cause; ``listing``: the remote files' sizes
+    and ETags (the first readable lidar frame and image are fetched by it and kept)."""
+    listing = {k: v for k, v in (listing or {}).items() if k.startswith(objects.key(agent_dir) + "/")}
     keys = [f.path.stem for f in frames]
     lidar_pose_carla = np.array([f.lidar_pose for f in frames], dtype=np.float64)
     T_lidar_world_global = carla.right_handed_pose(lidar_pose_carla)
@@ -131,7 +139,7 @@ def plan_agent(
     T_sensor_rig = {src.LIDAR: T_lidar_rig}
     intrinsics, camera_index, not_written = {}, {}, {}
     if lidar_ids:  # a lidar is written only if one of its frames reads
-        first, damaged = _first_readable([partial(src.read_points, agent_dir, key) for key in keys])
+        first, damaged = _first_readable([partial(src.fetch_points, agent_dir, key, listing) for key in keys])
         if first is None:
             not_written[src.LIDAR] = _left_out(agent_dir, src.LIDAR, "lidar frame", damaged, warnings)
             lidar_ids = []
@@ -142,7 +150,7 @@ def plan_agent(
             warnings.append(f"{agent_dir}: no calibration for camera{index} ({cam}); camera not written")
             not_written[cam] = {"reason": f"no frame YAML calibrates camera{index}", "files": {}}
             continue
-        first, damaged = _first_readable([partial(src.read_png, agent_dir, keys[i], index) for i in with_cam])
+        first, damaged = _first_readable([partial(src.fetch_png, agent_dir, keys[i], index, listing) for i in with_cam])
         if first is None:
             not_written[cam] = _left_out(agent_dir, f"camera{index} ({cam})", "image", damaged, warnings)
             continue
@@ -173,6 +181,7 @@ def plan_agent(
         lidar_ids=lidar_ids,
         mounts=mounts,
         skipped_keys=dict(skipped_keys or {}),
+        files=listing,
         sensors_not_written=not_written,
         cameras=cameras,
         speed_mps=np.array([f.ego_speed_kmh / 3.6 for f in frames]),
@@ -237,7 +246,8 @@ def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, war
     protocol = src.read_protocol(scenario_dir)
     dt_s = protocol.fixed_delta_seconds
     folders = src.list_agents(scenario_dir)
-    keys = {a: src.list_frame_keys(scenario_dir / a) for a in folders}
+    files: dict = {}  # the remote agent folders' sizes and ETags, from one listing each
+    keys = {a: src.list_frame_keys(scenario_dir / a, files) for a in folders}
     all_keys = sorted(set().union(*keys.values()), key=int)
     if not all_keys:
         raise SourceError(scenario_dir, "no frame YAMLs (<key>.yaml) in any agent folder")
@@ -258,14 +268,16 @@ def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, war
                 " skipped for this agent"
             )
         skipped_keys[agent] = {}
-        agent_frames = _read_frames(scenario_dir / agent, keys[agent], warnings, skipped_keys[agent])
+        agent_frames = _read_frames(scenario_dir / agent, keys[agent], warnings, skipped_keys[agent], files)
         if not agent_frames:
             warnings.append(f"{scenario_dir / agent}: no readable frame; agent not written")
             continue
         frames[agent] = agent_frames
     if not frames:
         raise SourceError(scenario_dir, "no agent has a readable frame")
-    agents = {a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a]) for a, f in frames.items()}
+    agents = {
+        a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a], files) for a, f in frames.items()
+    }
     left_out = {a: {"agent": _unread_yamls(scenario_dir / a, skipped_keys[a])} for a in folders if a not in frames}
     for agent_id, agent in list(agents.items()):
         if agent.sensors_not_written and not agent.lidar_ids and not agent.camera_ids:

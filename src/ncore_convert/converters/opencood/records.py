@@ -75,6 +75,7 @@ class AgentPlan:
     lidar_model: SpinningLidarModel | None = None  #: the CARLA lidar's structured model (None: raw rays only)
     lidar_model_meta: dict = field(default_factory=dict)  #: how it was derived, or why there is none
     speed_mps: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: the YAMLs' ego_speed [N], m/s (NaN: none)
+    files: dict = field(default_factory=dict)  #: remote files' sizes and ETags from the folder's listing
 
     @property
     def kind(self) -> str:
