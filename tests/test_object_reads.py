@@ -214,3 +214,42 @@ def test_a_cooperative_scenario_from_the_bucket_converts_as_locally(s3_env, tmp_
         twice = {path for path, n in gets.items() if n == 2}
         assert max(gets.values()) <= 2 and all(path.endswith(".pcd") for path in twice), sorted(twice)[:3]
     assert hashes(tmp_path / "out") == hashes(tmp_path / "local")
+
+
+def test_the_reader_checks_each_object_against_its_listing_and_bounds_its_spool(s3_env, monkeypatch):
+    """In this process: objects fetched ahead in order; one whose length differs from the listing's,
+    or replaced since the listing (ETag), fails naming it; the spool keeps what fits in its bound,
+    counts the rest, and a second read takes the kept one from it without a request."""
+    import s3fs
+
+    from ncore_convert.errors import SourceError
+    from ncore_convert.sources import objects
+
+    fs = s3fs.S3FileSystem(skip_instance_cache=True)
+    fs.mkdir("reader")
+    for i in range(4):
+        fs.pipe(f"reader/f/{i}.bin", bytes([i]) * 1000)
+    folder = UPath("s3://reader/f")
+    listing = objects.list_folder(folder)
+    paths = [folder / f"{i}.bin" for i in range(4)]
+    assert [objects.key(p) in listing for p in paths] == [True] * 4
+    monkeypatch.setenv(objects.SPOOL_ENV, str(UPath(os.environ.get("TMPDIR", "/tmp")) / f"spool-test-{os.getpid()}"))
+    monkeypatch.setattr(objects, "SPOOL_BUDGET_BYTES", 2500)
+    monkeypatch.setitem(objects._spool, "root", None)
+    monkeypatch.setitem(objects._spool, "written", 0)
+    before = dict(vars(objects.COUNTS))
+    got = list(objects.read_ahead(paths, listing, keep=True))
+    assert [data for _, data in got] == [bytes([i]) * 1000 for i in range(4)]
+    assert objects.COUNTS.gets - before["gets"] == 4
+    assert objects.COUNTS.spooled - before["spooled"] == 2 and objects.COUNTS.not_kept - before["not_kept"] == 2
+    assert "2 input file(s) not kept" in objects.not_kept_since(before["not_kept"])
+    assert objects.fetch(paths[0], listing) == bytes([0]) * 1000
+    assert objects.COUNTS.gets - before["gets"] == 4 and objects.COUNTS.spool_hits - before["spool_hits"] == 1
+    objects.release(folder)
+    objects.remove_spool()
+    short = {objects.key(paths[1]): objects.ObjectInfo(999, None)}
+    with pytest.raises(SourceError, match=r"1\.bin: object is 1000 bytes, its listing says 999"):
+        objects.fetch(paths[1], short)
+    fs.pipe("reader/f/2.bin", b"replaced" * 125)  # the same length, another ETag
+    with pytest.raises(SourceError, match=r"2\.bin: object changed since its folder was listed"):
+        objects.fetch(paths[2], listing)

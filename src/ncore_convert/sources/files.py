@@ -97,6 +97,7 @@ class Counts:
     refetched: int = 0
     spooled: int = 0  #: files written to the spool
     spool_hits: int = 0  #: files read from the spool instead of fetched
+    not_kept: int = 0  #: files a later job reads again, not spooled (the spool was full): fetched again
 
 
 COUNTS = Counts()

@@ -20,10 +20,10 @@ lidar job, the label jobs and validation read it; an image of the ego-mask sampl
 job copies it) is fetched with ``keep=True``: its checked bytes are also written to the run's
 spool on local disk (``$NCORE_CONVERT_SPOOL``, a folder the command makes per run; per process
 otherwise), where every process of the run on this machine finds it by the object's path and
-ETag. A log's spooled files are removed when the log ends (:func:`release`). The spool holds at
-most ``SPOOL_BUDGET_BYTES`` per process; a file past that is fetched again when needed, and
-counted (``Counts.refetched``). Requests, bytes and spool hits are counted per process
-(:data:`COUNTS`).
+ETag. A log's spooled files are removed when the log ends (:func:`release`). The spool holds about
+``SPOOL_BUDGET_BYTES`` at most; a file past that is fetched again when needed, counted
+(``Counts.not_kept``) and reported in the log's warnings (:func:`not_kept_since`). Requests, bytes
+and spool hits are counted per process (:data:`COUNTS`).
 """
 
 from __future__ import annotations
@@ -52,10 +52,10 @@ MAX_AHEAD = 64  #: files in flight or held ahead per reader
 LOCAL_THREADS = 4  #: threads reading local files ahead
 UNKNOWN_SIZE = 8 * 2**20  #: what a file not in any listing counts against the budget
 SPOOL_ENV = "NCORE_CONVERT_SPOOL"  #: the run's spool folder (set by the command for its processes)
-SPOOL_BUDGET_BYTES = 2 * 2**30  #: bytes one process may write to the spool
+SPOOL_BUDGET_BYTES = 4 * 2**30  #: bytes the run's spool holds at most (about: each process measures it)
 
 
-_lock = threading.Lock()
+_lock = threading.RLock()  #: re-entrant: the spool bound measures the spool under it
 _spool = {"root": None, "written": 0}
 
 
@@ -120,12 +120,24 @@ def _spooled(path: UPath, info: ObjectInfo | None) -> bytes | None:
     return data
 
 
+def _spool_bytes() -> int:
+    """What the run's spool holds now, in bytes (every process's files; released logs' are gone)."""
+    return sum(p.stat().st_size for p in spool_root().rglob("*") if p.is_file())
+
+
 def _keep(path: UPath, info: ObjectInfo | None, data: bytes) -> None:
-    """Write a fetched object to the spool (atomically: a reader sees all of it or none), within
-    this process's share."""
+    """Write a fetched object to the spool (atomically: a reader sees all of it or none) while the
+    spool holds less than SPOOL_BUDGET_BYTES: this process counts what it wrote since it last
+    measured the spool, and measures again when that would pass the bound. A file not kept is
+    counted (``COUNTS.not_kept``): the later job fetches it again."""
     where = _spool_path(path, info)
+    if where is None:
+        return
     with _lock:
-        if where is None or _spool["written"] + len(data) > SPOOL_BUDGET_BYTES:
+        if _spool["written"] + len(data) > SPOOL_BUDGET_BYTES:
+            _spool["written"] = _spool_bytes()
+        if _spool["written"] + len(data) > SPOOL_BUDGET_BYTES:
+            COUNTS.not_kept += 1
             return
         _spool["written"] += len(data)
         COUNTS.spooled += 1
@@ -147,6 +159,18 @@ def run_spool() -> Iterator[Path]:
     finally:
         remove_spool()
         os.environ.pop(SPOOL_ENV, None)
+
+
+def not_kept_since(before: int) -> str | None:
+    """The warning for the files this process could not keep since ``COUNTS.not_kept`` was
+    ``before``, or None."""
+    n = COUNTS.not_kept - before
+    if n <= 0:
+        return None
+    return (
+        f"{n} input file(s) not kept for the log's later jobs (the run's spool under {spool_root()} holds"
+        f" {SPOOL_BUDGET_BYTES / 2**30:g} GiB at most): they are fetched again"
+    )
 
 
 def release(directory: UPath) -> None:

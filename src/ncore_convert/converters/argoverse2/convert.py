@@ -28,6 +28,7 @@ from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
 from ncore_convert.sources import argoverse2_map as av2_map
+from ncore_convert.sources import objects
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
 from ncore_convert.transforms.lidar.frames import (
     LidarFrame,
@@ -279,7 +280,7 @@ def _write_camera(
 
 def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress: Callable[[int], None]) -> JobResult:
     """Write the jobs of one independent part (see :func:`log_jobs`) with one writer; runs in a worker."""
-    result = JobResult()
+    result, not_kept = JobResult(), objects.COUNTS.not_kept
     with warnings_kept(result.warnings):
         writer = _open_writer(plan, output_dir, base=BASE_JOB in jobs)
         for job in jobs:
@@ -293,6 +294,8 @@ def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress:
                 (cam,) = job.sensor_ids
                 _write_camera(plan, writer, cam, result, progress)
         result.meta = writer.finalize(with_meta=plan.options.sequence_meta)
+    if (line := objects.not_kept_since(not_kept)) is not None:
+        result.warnings.append(line)
     return result
 
 
@@ -355,7 +358,10 @@ def convert_log(
     """
     started = time.perf_counter()
     progress = progress or Progress()
+    not_kept = objects.COUNTS.not_kept
     plan = plan_log(root_dir, log_id, options, pool.run if pool else None)
+    if (line := objects.not_kept_since(not_kept)) is not None:
+        plan.warnings.append(line)
     progress.total(plan.n_frames)
     parts = log_jobs(plan, pool.workers if pool else 1)
     output_dir.mkdir(parents=True, exist_ok=True)

@@ -310,9 +310,12 @@ def _write_sensors(
 
 def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id: str, progress: Progress) -> Counts:
     """One sequence holding ``agent_ids`` (one agent, or all of them prefixed), written by one writer."""
-    counts = Counts()
+    counts, not_kept = Counts(), objects.COUNTS.not_kept
     with warnings_kept(counts.warnings):
-        return _write_sequence(plan, agent_ids, out_dir, sequence_id, progress, counts)
+        _write_sequence(plan, agent_ids, out_dir, sequence_id, progress, counts)
+    if (line := objects.not_kept_since(not_kept)) is not None:
+        counts.warnings.append(line)
+    return counts
 
 
 def _write_sequence(
