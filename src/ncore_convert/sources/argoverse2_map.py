@@ -11,6 +11,7 @@ import numpy as np
 from upath import UPath
 
 from ncore_convert.errors import SourceError
+from ncore_convert.sources.files import read_bytes
 
 VECTOR_MAP_KEYS = ("pedestrian_crossings", "lane_segments", "drivable_areas")
 
@@ -50,7 +51,7 @@ def read_log_map(log_dir: UPath) -> LogMap | None:
     vector_path = _one(map_dir, "log_map_archive_*.json")
     raster_path = _one(map_dir, "*_ground_height_surface____*.npy")
     sim2_path = _one(map_dir, "*___img_Sim2_city.json")
-    vector_json = vector_path.read_bytes()
+    vector_json = read_bytes(vector_path)
     try:
         vector = json.loads(vector_json)
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
@@ -58,13 +59,13 @@ def read_log_map(log_dir: UPath) -> LogMap | None:
     if not isinstance(vector, dict) or any(key not in vector for key in VECTOR_MAP_KEYS):
         raise SourceError(vector_path, f"a vector map needs the keys {list(VECTOR_MAP_KEYS)}")
     try:
-        raster = np.load(io.BytesIO(raster_path.read_bytes()), allow_pickle=False)
+        raster = np.load(io.BytesIO(read_bytes(raster_path)), allow_pickle=False)
     except (ValueError, OSError) as err:
         raise SourceError(raster_path, f"not a .npy array ({err})") from None
     if raster.dtype != np.float16 or raster.ndim != 2:
         raise SourceError(raster_path, f"expected a 2-D float16 raster, got {raster.dtype} {raster.shape}")
     try:
-        sim2 = json.loads(sim2_path.read_bytes())
+        sim2 = json.loads(read_bytes(sim2_path))
         ok = len(sim2["R"]) == 4 and len(sim2["t"]) == 2 and float(sim2["s"]) > 0
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as err:
         raise SourceError(sim2_path, f"not a Sim(2) JSON with R, t, s ({err})") from None
