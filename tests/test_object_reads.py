@@ -253,3 +253,21 @@ def test_the_reader_checks_each_object_against_its_listing_and_bounds_its_spool(
     fs.pipe("reader/f/2.bin", b"replaced" * 125)  # the same length, another ETag
     with pytest.raises(SourceError, match=r"2\.bin: object changed since its folder was listed"):
         objects.fetch(paths[2], listing)
+
+
+def test_a_stop_aborts_the_multipart_uploads_of_the_sequence_being_published(s3_env, monkeypatch):
+    """``stop.end`` aborts the unfinished multipart uploads under the folders this process is
+    uploading to, and no other."""
+    import s3fs
+
+    from ncore_convert import storage
+
+    fs = s3fs.S3FileSystem(skip_instance_cache=True)
+    fs.mkdir("uploads")
+    for key in ("out/log_a/log_a.ncore4.zarr.itar", "out/log_b/log_b.ncore4.zarr.itar"):
+        upload = fs.call_s3("create_multipart_upload", Bucket="uploads", Key=key)
+        fs.call_s3("upload_part", Bucket="uploads", Key=key, UploadId=upload["UploadId"], PartNumber=1, Body=b"x")
+    monkeypatch.setattr(storage, "_uploading", {UPath("s3://uploads/out/log_a")})
+    storage.abort_uploads_in_flight()
+    left = fs.call_s3("list_multipart_uploads", Bucket="uploads").get("Uploads", [])
+    assert [u["Key"] for u in left] == ["out/log_b/log_b.ncore4.zarr.itar"]

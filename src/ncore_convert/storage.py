@@ -6,8 +6,10 @@ place; object stores (s3://, gs://, ...) make an object durable when it is close
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import threading
 from pathlib import Path
 
 from upath import UPath
@@ -75,6 +77,18 @@ def publish(work: UPath, final: UPath, flushed: bool = False) -> None:
         work.rename(final)
         _fsync(final.parent.path, os.O_RDONLY | os.O_DIRECTORY)  # the rename itself (not the siblings)
         return
+    _uploading.add(final)
+    try:
+        _upload(work, final)
+    finally:
+        _uploading.discard(final)
+
+
+#: the remote sequence folders this process is uploading (a stop aborts their multipart uploads)
+_uploading: set[UPath] = set()
+
+
+def _upload(work: UPath, final: UPath) -> None:
     files = sorted(p for p in Path(work.path).rglob("*") if p.is_file())
     last = [p for p in files if p.parent == Path(work.path) and p.suffix == ".json"]
     first = [p for p in files if p not in last]
@@ -89,3 +103,34 @@ def publish(work: UPath, final: UPath, flushed: bool = False) -> None:
 
 def _remote(final: UPath, work: UPath, local_file: Path) -> str:
     return f"{final.path}/{local_file.relative_to(work.path).as_posix()}"
+
+
+def abort_uploads(final: UPath) -> int:
+    """Abort the unfinished multipart uploads under a remote sequence folder (the run holds the
+    log's claim, so they are its own); the number aborted. Stores without multipart uploads: 0."""
+    fs = final.fs
+    if is_local(final) or not hasattr(fs, "call_s3"):
+        return 0
+    bucket, prefix, _ = fs.split_path(final.path)
+    listed = fs.call_s3("list_multipart_uploads", Bucket=bucket, Prefix=prefix.rstrip("/") + "/")
+    uploads = listed.get("Uploads", [])
+    for upload in uploads:
+        fs.call_s3("abort_multipart_upload", Bucket=bucket, Key=upload["Key"], UploadId=upload["UploadId"])
+    return len(uploads)
+
+
+def abort_uploads_in_flight(timeout_s: float = 3.0) -> None:
+    """For a stop that ends the process at once: abort the multipart uploads of the sequences this
+    process is uploading, within ``timeout_s`` (an upload's parts stay invisible either way)."""
+    folders = list(_uploading)
+    if not folders:
+        return
+
+    def abort() -> None:
+        for final in folders:
+            with contextlib.suppress(Exception):
+                abort_uploads(final)
+
+    worker = threading.Thread(target=abort, daemon=True)
+    worker.start()
+    worker.join(timeout_s)

@@ -105,6 +105,8 @@ def end(lines: list[str]) -> NoReturn:
         sys.stderr.flush()
     _silence_stderr()  # the threads left running meet dead workers: their tracebacks are not the run's
     kill_descendants()
+    if (storage := sys.modules.get("ncore_convert.storage")) is not None:
+        storage.abort_uploads_in_flight()  # a publish to a bucket under way: no multipart upload left
     if (objects := sys.modules.get("ncore_convert.sources.objects")) is not None:
         with contextlib.suppress(Exception):
             objects.remove_spool()  # the fetched files the run kept for its logs' later jobs
