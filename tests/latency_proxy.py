@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import logging
 import random
 import socket
 import threading
@@ -109,6 +110,7 @@ class LatencyProxy:
 
     def _serve(self) -> None:
         asyncio.set_event_loop(self._loop)
+        logging.getLogger("aiohttp.server").setLevel(logging.CRITICAL)  # a dropped connection is on purpose
         app = web.Application(client_max_size=2**31)
         app.router.add_route("*", "/{tail:.*}", self._handle)
         self._runner = web.AppRunner(app, access_log=None)

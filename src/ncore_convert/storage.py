@@ -84,6 +84,9 @@ def publish(work: UPath, final: UPath, flushed: bool = False) -> None:
         _uploading.discard(final)
 
 
+#: files uploaded at once: s3fs reads a file under 100 MB whole into memory before its PUT, so this
+#: bounds what an upload holds (a sequence's stores are tens of MB each; more in flight buys little)
+UPLOAD_CONCURRENCY = 4
 #: the remote sequence folders this process is uploading (a stop aborts their multipart uploads)
 _uploading: set[UPath] = set()
 
@@ -95,7 +98,8 @@ def _upload(work: UPath, final: UPath) -> None:
     try:
         for batch in (first, last):
             if batch:
-                final.fs.put([str(p) for p in batch], [_remote(final, work, p) for p in batch])
+                local, remote = [str(p) for p in batch], [_remote(final, work, p) for p in batch]
+                final.fs.put(local, remote, batch_size=UPLOAD_CONCURRENCY)
     except BaseException:
         remove_tree(final)
         raise
