@@ -229,7 +229,7 @@ def test_the_reader_checks_each_object_against_its_listing_and_bounds_its_spool(
     fs.mkdir("reader")
     for i in range(4):
         fs.pipe(f"reader/f/{i}.bin", bytes([i]) * 1000)
-    folder = UPath("s3://reader/f")
+    folder = UPath("s3://reader/f", client_kwargs={"endpoint_url": s3_env["AWS_ENDPOINT_URL"]})  # not a cached client
     listing = objects.list_folder(folder)
     paths = [folder / f"{i}.bin" for i in range(4)]
     assert [objects.key(p) in listing for p in paths] == [True] * 4
@@ -267,7 +267,26 @@ def test_a_stop_aborts_the_multipart_uploads_of_the_sequence_being_published(s3_
     for key in ("out/log_a/log_a.ncore4.zarr.itar", "out/log_b/log_b.ncore4.zarr.itar"):
         upload = fs.call_s3("create_multipart_upload", Bucket="uploads", Key=key)
         fs.call_s3("upload_part", Bucket="uploads", Key=key, UploadId=upload["UploadId"], PartNumber=1, Body=b"x")
-    monkeypatch.setattr(storage, "_uploading", {UPath("s3://uploads/out/log_a")})
+    endpoint = {"client_kwargs": {"endpoint_url": s3_env["AWS_ENDPOINT_URL"]}}  # not another module's server
+    monkeypatch.setattr(storage, "_uploading", {UPath("s3://uploads/out/log_a", **endpoint)})
     storage.abort_uploads_in_flight()
     left = fs.call_s3("list_multipart_uploads", Bucket="uploads").get("Uploads", [])
     assert [u["Key"] for u in left] == ["out/log_b/log_b.ncore4.zarr.itar"]
+
+
+def test_a_folder_of_more_than_a_thousand_objects_is_listed_whole(s3_env):
+    """S3 lists 1,000 keys a page: the reader's one listing of a folder follows the pages (two LIST
+    requests for 1,100 objects) and gives every object its size."""
+    import s3fs
+
+    from ncore_convert.sources import objects
+
+    fs = s3fs.S3FileSystem(skip_instance_cache=True)
+    fs.mkdir("paged")
+    fs.pipe({f"paged/cam/{i:06d}.jpg": b"x" * (i % 7 + 1) for i in range(1100)})
+    with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
+        folder = UPath("s3://paged/cam", client_kwargs={"endpoint_url": proxy.url})
+        listing = objects.list_folder(folder)
+        assert proxy.counts == {"LIST": 2}, proxy.counts
+    assert len(listing) == 1100
+    assert listing[objects.key(folder / "000013.jpg")].size == 13 % 7 + 1

@@ -207,10 +207,7 @@ def _timestamps_from_stems(
             return np.zeros(0, dtype=np.int64)
         names = [p.name for p in directory.iterdir()]
     else:
-        try:
-            found = objects.list_folder(directory)
-        except FileNotFoundError:
-            return np.zeros(0, dtype=np.int64)
+        found = objects.list_folder(directory)
         if listing is not None:
             listing.update(found)
         names = [name.rsplit("/", 1)[-1] for name in found]
@@ -243,15 +240,18 @@ def list_image_timestamps_ns(
 # ----------------------------------------------------------------------------------------------
 
 
-def read_ego_poses(log_dir: UPath) -> tuple[np.ndarray, np.ndarray]:
-    """Ego poses from ``city_SE3_egovehicle.feather`` (av2's ``city_SE3_ego``).
+def read_ego_poses(
+    log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ego poses from ``city_SE3_egovehicle.feather`` (av2's ``city_SE3_ego``); ``listing``: the
+    log folder's (a remote file is checked against it).
 
     Returns:
         timestamps_ns: int64 [N], strictly increasing.
         T_ego_city: float64 [N,4,4], maps ego-frame points to the city frame.
     """
     path = poses_path(log_dir)
-    table = read_table(path, POSES_SCHEMA)
+    table = read_table(path, POSES_SCHEMA, listing=listing)
     if table.num_rows < 2:
         raise SourceError(path, f"needs at least 2 poses, has {table.num_rows}")
     timestamps_ns = column(table, "timestamp_ns")
@@ -272,11 +272,13 @@ def _check_increasing(path: UPath, timestamps_ns: np.ndarray) -> None:
         )
 
 
-def read_sensor_extrinsics(log_dir: UPath) -> dict[str, np.ndarray]:
+def read_sensor_extrinsics(
+    log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None
+) -> dict[str, np.ndarray]:
     """Static extrinsics by sensor name: ``T_sensor_ego`` (av2's ``ego_SE3_sensor``), float64 [4,4],
     maps sensor-frame points to the ego frame."""
     path = extrinsics_path(log_dir)
-    table = read_table(path, EXTRINSICS_SCHEMA)
+    table = read_table(path, EXTRINSICS_SCHEMA, listing=listing)
     names = table.column("sensor_name").to_pylist()
     _check_sensor_names(path, names)
     return dict(zip(names, poses_from_table(path, table), strict=True))
@@ -305,10 +307,12 @@ class CameraIntrinsics:
     height_px: int
 
 
-def read_intrinsics(log_dir: UPath) -> dict[str, CameraIntrinsics]:
+def read_intrinsics(
+    log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None
+) -> dict[str, CameraIntrinsics]:
     """Camera intrinsics by camera name from ``calibration/intrinsics.feather``."""
     path = intrinsics_path(log_dir)
-    rows = read_table(path, INTRINSICS_SCHEMA).to_pylist()
+    rows = read_table(path, INTRINSICS_SCHEMA, listing=listing).to_pylist()
     _check_sensor_names(path, [row["sensor_name"] for row in rows])
     out = {}
     for row in rows:

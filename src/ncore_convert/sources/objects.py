@@ -72,12 +72,16 @@ def budget_bytes() -> int:
 
 def list_folder(directory: UPath) -> dict[str, ObjectInfo]:
     """The files directly in ``directory`` with their sizes and ETags, from one listing (remote; no
-    request per file), keyed by :func:`key`; {} for a local folder (the OS checks local reads)."""
+    request per file; the store's pages of 1,000 keys followed), keyed by :func:`key`; {} for a
+    local folder (the OS checks local reads) and for a remote one that does not exist."""
     if is_local(directory):
         return {}
     with _lock:
         COUNTS.lists += 1
-    entries = directory.fs.ls(directory.path, detail=True, refresh=True)
+    try:
+        entries = directory.fs.ls(directory.path, detail=True, refresh=True)
+    except FileNotFoundError:
+        return {}
     out = {}
     for entry in entries:
         if entry.get("type") == "file":

@@ -42,14 +42,16 @@ def read_log_inputs(
     log_dir: UPath, camera_ids: list[str], intrinsics: dict[str, av2.CameraIntrinsics] | None = None
 ) -> LogInputs:
     """Read a log's small inputs; ``intrinsics``: already read (TbV reads them to pick the cameras)."""
-    pose_timestamps_ns, T_ego_city = av2.read_ego_poses(log_dir)
-    files = objects.list_folder(log_dir)  # the annotations; the sweeps' and images' folders add theirs
+    # remote sizes and ETags, every file read checked against them: the log folder's and the
+    # calibration's listings here; the sweeps' and images' folders add theirs
+    files = {**objects.list_folder(log_dir), **objects.list_folder(log_dir / "calibration")}
+    pose_timestamps_ns, T_ego_city = av2.read_ego_poses(log_dir, files)
     return LogInputs(
         log_dir=log_dir,
         pose_timestamps_ns=pose_timestamps_ns,
         T_ego_city=T_ego_city,
-        T_sensor_ego=av2.read_sensor_extrinsics(log_dir),
-        intrinsics=intrinsics if intrinsics is not None else av2.read_intrinsics(log_dir),
+        T_sensor_ego=av2.read_sensor_extrinsics(log_dir, files),
+        intrinsics=intrinsics if intrinsics is not None else av2.read_intrinsics(log_dir, files),
         sweep_timestamps_ns=av2.list_sweep_timestamps_ns(log_dir, files),
         image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam, files) for cam in camera_ids},
         annotations=av2_annotations.read_annotations(log_dir, files),
