@@ -202,17 +202,8 @@ def _timestamps_from_stems(
     """The timestamps in the file names ``<timestamp_ns><suffix>`` of a folder (int64, sorted; empty
     without the folder). A remote folder is listed once, and its files' sizes and ETags are added
     to ``listing``."""
-    if is_local(directory):
-        if not directory.is_dir():
-            return np.zeros(0, dtype=np.int64)
-        names = [p.name for p in directory.iterdir()]
-    else:
-        found = objects.list_folder(directory)
-        if listing is not None:
-            listing.update(found)
-        names = [name.rsplit("/", 1)[-1] for name in found]
     stamps = []
-    for name in names:
+    for name in objects.file_names(directory, listing):
         if name.endswith(suffix):
             stem = name[: -len(suffix)]
             if not stem.isdigit():

@@ -91,6 +91,17 @@ def list_folder(directory: UPath) -> dict[str, ObjectInfo]:
     return out
 
 
+def file_names(directory: UPath, listing: dict[str, ObjectInfo] | None = None) -> list[str]:
+    """The names of the files in a folder ([] without it): a local folder's entries, or a remote
+    folder's one listing, whose sizes and ETags are added to ``listing``."""
+    if is_local(directory):
+        return [p.name for p in directory.iterdir()] if directory.is_dir() else []
+    found = list_folder(directory)
+    if listing is not None:
+        listing.update(found)
+    return [name.rsplit("/", 1)[-1] for name in found]
+
+
 def spool_root() -> Path:
     """The run's spool folder (``$NCORE_CONVERT_SPOOL``), or this process's own, made on first use."""
     with _lock:

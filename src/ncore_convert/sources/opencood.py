@@ -21,7 +21,6 @@ from ncore_convert.errors import SourceError
 from ncore_convert.sources import objects
 from ncore_convert.sources.files import list_folders, png_defect, read_bytes
 from ncore_convert.sources.pcd import read_pcd_with_header, red_from_rgb
-from ncore_convert.storage import is_local
 
 SPLITS = {
     "opv2v": ("train", "validate", "test", "test_culvercity"),
@@ -132,13 +131,7 @@ def opencood_ego(agent_ids: list[str]) -> str:
 def list_frame_keys(agent_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None) -> list[str]:
     """Frame keys of an agent: the stems of ``<key>.yaml`` (``*_additional.yaml`` and others skipped);
     a remote folder is listed once, its files' sizes and ETags added to ``listing``."""
-    if is_local(agent_dir):
-        names = [p.name for p in agent_dir.iterdir()]
-    else:
-        found = objects.list_folder(agent_dir)
-        if listing is not None:
-            listing.update(found)
-        names = [name.rsplit("/", 1)[-1] for name in found]
+    names = objects.file_names(agent_dir, listing)
     stems = (name[: -len(".yaml")] for name in names if name.endswith(".yaml"))
     return sorted((stem for stem in stems if _KEY.match(stem)), key=int)
 
