@@ -31,7 +31,9 @@ from ncore_convert.transforms.geometry import invert_se3
 from ncore_convert.transforms.lidar.range_image import RangeImage
 from ncore_convert.transforms.objects.boxes import in_box
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "av2-sample"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from samples import ensure as real_samples  # noqa: E402  (the manifest's samples, as the tests get them)
+
 LOG_ID = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 BODY_ABOVE_M = 0.3  #: an own point this far over its box's floor is the vehicle's body, not the street under it
 VEHICLE_CLASSES = ("REGULAR_VEHICLE", "LARGE_VEHICLE", "BUS", "BOX_TRUCK", "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER")
@@ -69,7 +71,7 @@ def ratios(log: UPath) -> list[tuple[str, float, float, float, float]]:
 
 
 def main() -> None:
-    found = ratios(UPath(SAMPLE) / "val" / LOG_ID)
+    found = ratios(UPath(real_samples()["av2-sample"]) / "val" / LOG_ID)
     r = np.array([x[2] for x in found])
     near = np.array([x[1] < 15.0 for x in found])
     print(f"real AV2 sample, {len(found)} vehicle views: box picture / own-point hull area")

@@ -5,7 +5,7 @@
    (the agents' sequences are the jobs). Prints wall time, agent-frames/s and lidar points/s.
 2. PCD parse rate, in points per second, of ``ncore_convert.sources.pcd.read_pcd`` against
    ``numpy.loadtxt`` on the same ASCII files, interleaved in the same run.
-3. Per real OPV2V frame (``../shared/data/opv2v-lidar-sample``, ~56k points): the PCD parse beside
+3. Per real OPV2V frame (the tests' ``opv2v-lidar-sample``, ~56k points): the PCD parse beside
    the lidar model's element assignment (nearest laser, nearest azimuth column), and their ratio;
    the rays as the nearest float32 direction and distance beside the bit-exact ones
    (``transforms.lidar.rays.rays.exact_rays``), and the model measured from 3 frames' points (issue 38).
@@ -112,13 +112,13 @@ def model_cost(repeat: int) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from conftest import find_opv2v_sample
     from ncore_convert.transforms.lidar.rays.rays import exact_rays
-    from test_carla_lidar import README_PROTOCOL
+    from test_carla_lidar import EXAMPLE_PROTOCOL
 
     from ncore_convert.sources.pcd import read_pcd
     from ncore_convert.transforms import carla
     from ncore_convert.transforms.lidar.rays import carla as carla_lidar
 
-    spec = carla_lidar.CarlaLidarSpec.from_protocol(README_PROTOCOL, 0.05)
+    spec = carla_lidar.CarlaLidarSpec.from_protocol(EXAMPLE_PROTOCOL, 0.05)
     model = carla_lidar.model(spec, np.pi)
     seconds: dict[str, list[float]] = {"parse": [], "nearest": [], "exact": [], "elements": [], "fit": []}
     points, inexact = [], []

@@ -1,4 +1,4 @@
-"""Depth labels on the five real OPV2V lidar frames (``../shared/data/opv2v-lidar-sample``): how
+"""Depth labels on the five real OPV2V lidar frames (``opv2v-lidar-sample`` of ``tests/samples.toml``): how
 many of the pixels that a real raw point facing the camera shows are labelled.
 
 The real frames take the first CAV's place in a synthetic OPV2V scenario (as the held-out test
@@ -40,7 +40,9 @@ from ncore_convert.sources.pcd import read_pcd
 from ncore_convert.synth import carla as synth_carla
 from ncore_convert.synth import opencood as synth
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "opv2v-lidar-sample"  #: ../shared beside the repo
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from samples import ensure as real_samples  # noqa: E402  (the manifest's samples, as the tests get them)
+
 CAMERAS = ("camera_front", "camera_right_rear", "camera_left_rear", "camera_back")
 FACING_DEG = 80.0
 NEIGHBOURS = 8
@@ -80,8 +82,9 @@ def camera_facing_pixels(points_m: np.ndarray, frame: dict, index: int) -> tuple
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", type=Path, default=None, help="where to write (default: a temporary directory)")
-    parser.add_argument("--sample", type=Path, default=SAMPLE, help="the real frames (default: %(default)s)")
+    parser.add_argument("--sample", type=Path, default=None, help="the real frames (default: the tests' samples cache)")
     args = parser.parse_args()
+    args.sample = args.sample or real_samples()["opv2v-lidar-sample"]
     if not (args.sample / "000070.pcd").is_file():
         sys.exit(f"{args.sample}: the real OPV2V sample is not there")
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-real-opv2v-"))

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import samples
 from click.testing import CliRunner
 from filelock import FileLock
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
@@ -87,50 +88,24 @@ def naive_compensate(
 
 
 def find_av2_sample() -> Path:
-    """The real AV2 sample: $NCORE_CONVERT_AV2_SAMPLE, else ../shared/data/av2-sample next to the repo
-    (or next to the repo's parent, for clones under /tmp), else /work/shared/data/av2-sample."""
-    candidates = [os.environ.get("NCORE_CONVERT_AV2_SAMPLE", "")]
-    candidates += [str(p / "shared" / "data" / "av2-sample") for p in (REPO.parent, REPO.parent.parent)]
-    candidates.append("/work/shared/data/av2-sample")
-    for c in candidates:
-        if c and (Path(c) / "val" / AV2_SAMPLE_LOG).is_dir():
-            return Path(c)
-    raise RuntimeError(
-        "real AV2 sample not found; set NCORE_CONVERT_AV2_SAMPLE to the folder holding val/" + AV2_SAMPLE_LOG
-    )
+    """The real AV2 sample's folder (``<it>/val/<AV2_SAMPLE_LOG>``), in the samples cache (tests/samples.py)."""
+    return samples.ensure()["av2-sample"]
 
 
 def find_opv2v_sample() -> Path:
-    """The real OPV2V lidar frames (``../shared/data/opv2v-lidar-sample``), found as the AV2 sample is."""
-    candidates = [p / "shared" / "data" / "opv2v-lidar-sample" for p in (REPO.parent, REPO.parent.parent)]
-    for c in candidates + [Path("/work/shared/data/opv2v-lidar-sample")]:
-        if (c / "000070.pcd").is_file():
-            return c
-    raise RuntimeError("../shared/data/opv2v-lidar-sample not found beside the repository")
+    """The real OPV2V lidar frames' folder (``000070.pcd`` ... ``000078.pcd``), in the samples cache."""
+    return samples.ensure()["opv2v-lidar-sample"]
 
 
-def find_reference() -> Path:
-    """The shared reference briefs (``consumers.md`` ...), found beside the repository as the AV2 sample is."""
-    for c in [str(p / "shared" / "reference") for p in (REPO.parent, REPO.parent.parent)] + ["/work/shared/reference"]:
-        if (Path(c) / "consumers.md").is_file():
-            return Path(c)
-    raise RuntimeError("../shared/reference/consumers.md not found beside the repository")
-
-
-def consumers_class_table() -> dict[str, str]:
-    """AV2 category -> NCore class, parsed from consumers.md's table (the spec, not our code)."""
-    table, inside = {}, False
-    for line in (find_reference() / "consumers.md").read_text().splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if cells[:2] == ["AV2", "NCore"]:
-            inside = True
-            continue
-        if inside and not line.startswith("  |"):
-            break
-        if inside and not set(cells[0]) <= set("-"):
-            for sources, ncore in ((cells[0], cells[1]), (cells[2], cells[3])):
-                table.update({name.strip(): ncore for name in sources.split(",")})
-    return table
+@pytest.hookimpl(tryfirst=True)
+def pytest_sessionstart(session) -> None:
+    """The real samples, checked (and fetched if need be) before any test runs, by the controller and
+    then by each xdist worker (a file lock in the cache): a sample no source can give stops the run
+    with one line, instead of failing every test that reads it."""
+    try:
+        samples.ensure()
+    except samples.SampleUnavailable as error:
+        pytest.exit(str(error), returncode=4)
 
 
 def free_port() -> int:

@@ -22,8 +22,9 @@ from ncore_convert.transforms.lidar import carla as carla_lidar
 from ncore_convert.transforms.lidar.model import angle_between_rad
 from ncore_convert.validate.sequence import validate_sequence
 
-#: The example protocol of the sample's README (a real OPV2V data_protocol.yaml's CAV lidar).
-README_PROTOCOL = {
+#: A CAV lidar as a real OPV2V ``data_protocol.yaml`` records it (another scenario than the five frames';
+#: no public file we can cite carries these values). The fit below checks them on the real frames.
+EXAMPLE_PROTOCOL = {
     "channels": 64,
     "upper_fov": 2,
     "lower_fov": -25,
@@ -48,7 +49,7 @@ def assert_every_ray_modelled(loader, params, far_mean_deg: float) -> None:
 
 
 def test_real_opv2v_frames_fit_the_protocol_model():
-    spec = carla_lidar.CarlaLidarSpec.from_protocol(README_PROTOCOL, 0.05)
+    spec = carla_lidar.CarlaLidarSpec.from_protocol(EXAMPLE_PROTOCOL, 0.05)
     assert spec.points_per_channel == 1016  # 1,300,000 / 20 / 64 = 1015.6, rounded as CARLA does
     frames, distances = [], []
     for path in sorted(find_opv2v_sample().glob("*.pcd")):
@@ -74,7 +75,7 @@ def test_real_opv2v_frames_fit_the_protocol_model():
     assert worst_row <= 0.02, worst_row
 
 
-@pytest.mark.parametrize("protocol", [None, {**README_PROTOCOL, "channels": 32}])
+@pytest.mark.parametrize("protocol", [None, {**EXAMPLE_PROTOCOL, "channels": 32}])
 def test_the_real_frames_give_their_model_from_the_points(protocol):
     """Without a protocol, or with one that says 32 channels: 64 lasers from +2 to -25 deg and 1016
     columns, measured from the real points alone, and within 0.01 deg of every far ray."""

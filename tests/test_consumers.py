@@ -216,7 +216,7 @@ def test_av2_class_names_and_label_source(av2):
     consumer = list(av2["consumer"].loader.get_cuboid_track_observations())
     assert {o.source for o in default} == {LabelSource.EXTERNAL}
     assert {o.source for o in consumer} == {LabelSource.AUTOLABEL}
-    assert {o.class_id for o in default} == {"car", "pedestrian", "bollard"}  # consumers.md's table
+    assert {o.class_id for o in default} == {"car", "pedestrian", "bollard"}  # NCore's AV2 converter's class map
     assert all(o.class_id == categories[o.track_id] for o in consumer)  # --class-names source
     for run in ("default", "consumer"):
         meta = _cuboids_meta(av2[run].loader)

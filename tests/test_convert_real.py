@@ -4,13 +4,39 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow.feather as feather
-from conftest import AV2_SAMPLE_LOG, consumers_class_table
+from conftest import AV2_SAMPLE_LOG
 from ncore.data.v4 import CuboidsComponent, LidarSensorComponent, PosesComponent
 from ncore.impl.common.transformations import PoseInterpolator, is_within_3d_bboxes
 from scipy.spatial.transform import Rotation
 
 from ncore_convert.contract import SOURCE_CLASS_BY_TRACK
 from ncore_convert.validate.readback import world_points
+
+#: AV2 category -> NCore class name, the tests' own statement of the mapping NCore's consumers expect.
+#: Public source: NVIDIA NCore's Argoverse 2 converter, ``AV2_CATEGORY_MAP`` in
+#: ``tools/data_converter/argoverse2/utils.py`` (github.com/NVIDIA/ncore, read at commit c95e4958).
+AV2_TO_NCORE_CLASS = {
+    **dict.fromkeys(["REGULAR_VEHICLE"], "car"),
+    **dict.fromkeys(["LARGE_VEHICLE", "BOX_TRUCK", "TRUCK", "TRUCK_CAB"], "truck"),
+    **dict.fromkeys(["VEHICULAR_TRAILER", "MESSAGE_BOARD_TRAILER", "TRAFFIC_LIGHT_TRAILER"], "trailer"),
+    **dict.fromkeys(["SCHOOL_BUS", "ARTICULATED_BUS", "BUS"], "bus"),
+    **dict.fromkeys(["RAILED_VEHICLE"], "vehicle"),
+    **dict.fromkeys(["PEDESTRIAN", "OFFICIAL_SIGNALER"], "pedestrian"),
+    **dict.fromkeys(["DOG", "ANIMAL"], "animal"),
+    **dict.fromkeys(["SIGN", "MOBILE_PEDESTRIAN_CROSSING_SIGN"], "sign"),
+    "MOTORCYCLE": "motorcycle",
+    "MOTORCYCLIST": "motorcyclist",
+    "BICYCLE": "bicycle",
+    "BICYCLIST": "bicyclist",
+    "WHEELED_DEVICE": "wheeled_device",
+    "WHEELED_RIDER": "wheeled_rider",
+    "STROLLER": "stroller",
+    "WHEELCHAIR": "wheelchair",
+    "CONSTRUCTION_CONE": "traffic_cone",
+    "CONSTRUCTION_BARREL": "barrier",
+    "STOP_SIGN": "stop_sign",
+    "BOLLARD": "bollard",
+}
 
 
 def test_opens_with_default_instance_names(real_log):
@@ -48,10 +74,10 @@ def test_point_count_preserved_per_unit(real_log, av2_sample_root):
 
 
 def test_class_names_follow_the_consumers_table_and_the_source_name_is_recoverable(real_log, av2_sample_root):
-    """--class-names ncore (default): every category maps as consumers.md's table says, and the
+    """--class-names ncore (default): every category maps as NCore's own converter maps it, and the
     cuboids' metadata gives back each track's AV2 category without the source."""
     table = feather.read_table(av2_sample_root / "val" / AV2_SAMPLE_LOG / "annotations.feather").to_pydict()
-    spec = consumers_class_table()
+    spec = AV2_TO_NCORE_CLASS
     assert len(spec) == 30 and spec["REGULAR_VEHICLE"] == "car" and spec["DOG"] == "animal"
     category = dict(zip(table["track_uuid"], table["category"], strict=True))
     observations = list(real_log.loader.get_cuboid_track_observations())
@@ -67,7 +93,7 @@ def test_all_cuboid_observations_present(real_log, av2_sample_root):
     assert len(observations) == table.num_rows == 11364
     first = observations[0]
     row = {k: v[0] for k, v in table.slice(0, 1).to_pydict().items()}
-    assert first.track_id == row["track_uuid"] and first.class_id == consumers_class_table()[row["category"]]
+    assert first.track_id == row["track_uuid"] and first.class_id == AV2_TO_NCORE_CLASS[row["category"]]
     assert first.timestamp_us == row["timestamp_ns"] // 1000
     np.testing.assert_allclose(first.bbox3.centroid, (row["tx_m"], row["ty_m"], row["tz_m"]))
     np.testing.assert_allclose(first.bbox3.dim, (row["length_m"], row["width_m"], row["height_m"]))

@@ -70,7 +70,8 @@ def test_unit_labels_come_from_the_data(request, fixture):
         assert np.median(angle_deg(direction.astype(np.float64), truth)) < 0.01
 
 
-#: consumers.md's class table, for the categories the generator writes (default --class-names ncore)
+#: NCore's AV2 converter's class map (test_convert_real.AV2_TO_NCORE_CLASS), for the categories the
+#: generator writes (default --class-names ncore)
 NCORE_CLASS = {"REGULAR_VEHICLE": "car", "PEDESTRIAN": "pedestrian", "BOLLARD": "bollard"}
 
 

@@ -43,7 +43,8 @@ wild_setting:
 """
 
 
-# --- OpenCOOD, re-stated from its documented behaviour (reference/opencood.md §5) --------------
+# --- OpenCOOD, re-stated from its code (DerrickXuNu/OpenCOOD, opencood/data_utils/datasets/basedataset.py:
+# time_delay_calculation, retrieve_base_data, reform_param and add_loc_noise) ----------------------
 
 
 class OpenCoodRestatement:
@@ -158,7 +159,8 @@ def test_opencood_model_matches_the_restatement_draw_for_draw(wild, max_cav):
 
 
 def test_opencood_real_mode_doc_defaults_give_0_or_1_frame_about_half_the_time():
-    """The brief's worked example: U(0,100) + 1.06/27 s + 10 ms -> 1 frame with P = 0.4926."""
+    """Worked from OpenCOOD's delay formula (no public source states the number): U(0,100) ms + 1.06/27 s
+    + 10 ms -> 1 frame with P = 0.4926."""
     wild = dict(OPENCOOD_CASES[3], loc_err=False)
     agents = [str(a) for a in range(1, 8)]
     delays = noise.opencood_delays(opencood_setting(wild), 4000, agents, agents[0])

@@ -1,6 +1,8 @@
 """``--preset``: each consumer's options by one flag (issue 27), read back as that consumer reads them.
 
-The consumers' conventions, restated from their loaders (../shared/reference/consumers.md):
+The consumers' conventions, restated from their public loaders: 3DGRUT's ``threedgrut/datasets/datasetNcore.py``
+(github.com/nv-tlabs/3dgrut), instant-nurec's ``instant_nurec/datasets/instantnurec_ncore.py``, and NCore's
+own tools and converters (github.com/NVIDIA/ncore, v19.5). NuRec's loader is not public: it is taken as 3DGUT's.
 
 - 3DGUT (3DGRUT's ``NCoreDataset``): builds ``ncore.sensors.CameraModel.from_parameters`` per
   camera, and its ``_get_camera_model_parameters_for_resolution`` gives intrinsics to the tracer only

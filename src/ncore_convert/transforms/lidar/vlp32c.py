@@ -1,6 +1,6 @@
 """Velodyne VLP-32C facts as they appear in Argoverse 2 sweeps (per *beam*, i.e. laser_number % 32).
 
-Measured on real AV2 sweeps (see ../shared/reference/argoverse2-tbv.md §3.1): AV2's laser_number is
+Measured on real AV2 sweeps (the real sample is held to them in ``tests/test_lidar_model.py``): AV2's laser_number is
 neither Velodyne's laser id nor elevation-sorted, so the tables are indexed by AV2 beam index.
 These are the nominal datasheet values that the measured medians round to.
 """
