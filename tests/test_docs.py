@@ -95,6 +95,14 @@ def test_readme_is_short_and_links_every_topic():
         assert f"](docs/{topic}.md)" in readme, f"README does not link docs/{topic}.md"
 
 
+def test_readme_table_cells_are_short():
+    """Every README table cell is at most 40 words: the details live in docs/cli.md and the topic pages."""
+    for line in (REPO / "README.md").read_text().splitlines():
+        if line.startswith("|"):
+            cells = [c for c in line.replace("\\|", "/").strip("|").split("|")]
+            assert max(len(c.split()) for c in cells) <= 40, line
+
+
 def _convert(tmp_path: Path, *flags: str) -> str:
     """Convert a tiny synthetic log through the installed command, stdout and stderr to one pipe."""
     root = tmp_path / "root"
