@@ -265,6 +265,9 @@ def main() -> None:
     parser.add_argument("--conversion", action="store_true", help="the flags' share of a whole TbV conversion")
     parser.add_argument("--conversion-seconds", type=float, default=5.0)
     parser.add_argument("--both", action="store_true", help="what --dynamic-source both adds to annotations")
+    parser.add_argument(
+        "--overlapping-traffic", action="store_true", help="the generator's old worlds (movers through parked cars)"
+    )
     args = parser.parse_args()
     work = work_dir(args) / "motion"
     if args.both:
@@ -275,7 +278,14 @@ def main() -> None:
         return
     rows = {}
     for seed in (int(s) for s in args.seeds.split(",")):
-        config = SynthConfig(seconds=args.seconds, seed=seed, tbv=True, keep_truth=True, camera_fps=0, clear_paths=True)
+        config = SynthConfig(
+            seconds=args.seconds,
+            seed=seed,
+            tbv=True,
+            keep_truth=True,
+            camera_fps=0,
+            clear_paths=not args.overlapping_traffic,
+        )
         truth = write_log(UPath(work / str(seed)), config)
         sweeps = [truth.sweep_returns(k, MOVING_MPS) for k in range(len(truth.sweeps))]
         rows[seed] = score(sweeps)

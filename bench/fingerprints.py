@@ -9,6 +9,10 @@ holds wall-clock times) and of every source file, one line each, sorted.
     python bench/fingerprints.py --work /tmp/fp-after         # on the new one
     diff /tmp/fp-before/outputs.sha /tmp/fp-after/outputs.sha
     diff /tmp/fp-before/sources.sha /tmp/fp-after/sources.sha
+
+The AV2 and TbV worlds are pinned to the overlapping traffic the fingerprints were first taken on
+(``synth --overlapping-traffic``; before that option existed, the generator's only world), so
+fingerprints of commits on either side of the generator's ``--clear-paths`` default compare.
 """
 
 from __future__ import annotations
@@ -80,6 +84,12 @@ def tree_hashes(root: Path, skip: tuple[str, ...] = ()) -> list[str]:
     ]
 
 
+def pinned_world(cli: str, dataset: str) -> list[str]:
+    """``--overlapping-traffic`` where this commit's ``synth <dataset>`` has it (else its world is that one)."""
+    help_text = subprocess.run([cli, "synth", dataset, "--help"], check=True, capture_output=True, text=True).stdout
+    return ["--overlapping-traffic"] if "--overlapping-traffic" in help_text else []
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", type=Path, required=True, help="folder for the sources, outputs and hash lists")
@@ -89,7 +99,8 @@ def main() -> None:
     shutil.rmtree(sources, ignore_errors=True)
     shutil.rmtree(outputs, ignore_errors=True)
     for folder, synth in SOURCES.items():
-        subprocess.run([cli, "synth", *synth, "--out", str(sources / folder)], check=True, capture_output=True)
+        world = pinned_world(cli, synth[0])
+        subprocess.run([cli, "synth", *synth, *world, "--out", str(sources / folder)], check=True, capture_output=True)
     for name, (source, command) in CONVERSIONS.items():
         run = [cli, "--no-progress", "--workers", "2", "--root-dir", str(sources / source), "--output-dir"]
         subprocess.run([*run, str(outputs / name), *command], check=True, capture_output=True)

@@ -101,6 +101,38 @@ def a_ray_inside_a_box(sequence_json: Path, lidar: str = "up_lidar") -> tuple[in
     raise AssertionError(f"{sequence_json}: no ray inside a box on the first sampled sweep")
 
 
+def a_frame_where_shortening_shows(sequence_json: Path, k: float, lidar: str = "up_lidar") -> int:
+    """The sampled sweep on which shortening every return by ``k`` x ε (:func:`band_multiple`) moves
+    the most returns out of their box's ε band. A return d inside its box's nearest face, met at
+    incidence θ, leaves the grown box when k·ε·cos θ > d + ε: the source's float16 points scatter
+    millimetres about a face, ε is tens of µm, so only the returns that happen to lie within about
+    ε of a face can show the fault, and a sweep may have none."""
+    sequence = open_sequence(UPath(sequence_json))
+    cuboids = read_cuboids(sequence.reader)
+    frames_us = sequence.loader.get_lidar_sensor(lidar).frames_timestamps_us
+    shown = {}
+    for frame in sample_frames(len(frames_us)).tolist():
+        boxes = boxes_at(cuboids, int(frames_us[frame, 0]), int(frames_us[frame, 1]))
+        xyz_world, sensor_world = sequence.world_points(lidar, frame)
+        T_rig_world = sensor_poses(sequence.loader, "rig", "world", boxes.reference_frame_timestamp_us[:1])[0]
+        xyz_rig = (xyz_world - T_rig_world[:3, 3]) @ T_rig_world[:3, :3]
+        rays_rig = (xyz_world - sensor_world) @ T_rig_world[:3, :3]
+        distance_m = np.linalg.norm(rays_rig, axis=1)
+        epsilon_m = band_multiple(sequence_json, lidar, frame, 1.0)(distance_m)
+        R_box_rig = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix()
+        shown[frame] = 0
+        for c in range(len(boxes)):
+            half = boxes.dim_m[c] / 2
+            inside = np.flatnonzero(in_box(xyz_rig, boxes.centroid_m[c], R_box_rig[c], half))
+            local = (xyz_rig[inside] - boxes.centroid_m[c]) @ R_box_rig[c]
+            depth_m = half - np.abs(local)
+            face = np.argmin(depth_m, axis=1)
+            cos = np.abs(np.einsum("nj,jn->n", rays_rig[inside] / distance_m[inside, None], R_box_rig[c][:, face]))
+            moved_m = k * epsilon_m[inside] * cos
+            shown[frame] += int(np.sum(moved_m > depth_m[np.arange(len(inside)), face] + epsilon_m[inside]))
+    return max(shown, key=shown.get)
+
+
 def shift_times(group: zarr.Group, lidar: str, index: int, steps_us: int) -> None:
     """Shift every per-ray time of a frame by ``steps_us`` µs steps."""
     times = _frame(group, lidar, index)["ray_bundle/timestamp_us"]

@@ -8,8 +8,9 @@ from upath import UPath
 
 from ncore_convert.synth import carla as synth_carla
 from ncore_convert.synth import opencood as synth_opencood
+from ncore_convert.synth.paths import EGO_FRONT_M, EGO_HALF_WIDTH_M, collide
 from ncore_convert.synth.raycast import cast_rays
-from ncore_convert.synth.scene import EGO_FRONT_M, EGO_HALF_WIDTH_M, GROUND_Z_M, Box, Scene, collide, make_scene
+from ncore_convert.synth.scene import GROUND_Z_M, Box, Scene, make_scene
 from ncore_convert.synth.shapes import CLEARANCE_M, MIRROR_OUT_M, shape_of
 from ncore_convert.transforms.objects.boxes import convex_span, slab_span
 

@@ -14,6 +14,7 @@ import zarr
 from conftest import synth_and_convert
 from ncore.impl.data.stores import consolidate_compressed_metadata
 from planted_faults import (
+    a_frame_where_shortening_shows,
     a_ray_inside_a_box,
     band_multiple,
     edit_cuboids,
@@ -523,9 +524,10 @@ def test_one_interior_point_removed_is_caught(directory_log, tmp_path):
 
 def test_points_moved_by_twice_the_band_are_caught_and_by_half_of_it_not(directory_log, tmp_path):
     """Every return of a sampled frame shortened by k x ε (the check's own ε at the return's reach):
-    k = 2 leaves face points outside the grown box, k = 0.5 stays within every band."""
+    k = 2 leaves face points outside the grown box, k = 0.5 stays within every band. The frame is
+    one where a point lies near enough a face to show it (:func:`a_frame_where_shortening_shows`)."""
     sequence_json = next(directory_log.seq_dir.glob("*.json"))
-    frame, _, _ = a_ray_inside_a_box(sequence_json)
+    frame = a_frame_where_shortening_shows(sequence_json, 2.0)
     for k, caught in ((2.0, True), (0.5, False)):
         by_m = band_multiple(sequence_json, "up_lidar", frame, k)
         failures = corrupt(

@@ -248,6 +248,12 @@ def synth_log_options(out_help: str, max_seconds: float | None) -> Callable:
             help="Divide every camera's size and focal length by this (the same field of view; pictures"
             " about 1/scale² as costly). 4 makes AV2's 2048 px cameras 512 px.",
         ),
+        click.option(
+            "--clear-paths/--overlapping-traffic",
+            default=True,
+            help="Nothing moves through a standing object (parked cars stand clear of passing traffic); or the"
+            " old worlds, whose passing cars drive through parked cars (objects that fuse, on purpose).",
+        ),
         object_options(),
     )
 

@@ -59,8 +59,9 @@ class SynthConfig:
     #: a car just ahead of the ego and one alongside it, at its speed (``synth.scene.make_scene``)
     close_range: bool = False
     #: nothing moves through a standing object: parked cars stand clear of the moving cars, pedestrians
-    #: who would walk through one are left out (``synth.scene.make_scene``)
-    clear_paths: bool = False
+    #: who would walk through one are left out (``synth.scene.make_scene``). False writes the old
+    #: overlapping traffic (cars through parked cars), for a test that wants fused objects on purpose
+    clear_paths: bool = True
 
     @property
     def cameras(self) -> tuple[str, ...]:

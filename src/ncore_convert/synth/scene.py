@@ -6,11 +6,12 @@ Times are seconds relative to the log start unless a name says otherwise.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ncore_convert.synth.paths import EGO_FRONT_M, EGO_HALF_WIDTH_M, clear_paths_of, collide
 from ncore_convert.synth.shapes import Shape, shape_of
 
 GROUND_Z_M = 45.0  #: city height of the ground plane
@@ -62,6 +63,12 @@ class EgoMotion:
         T[:, :3, :3] = rotation_zyx(yaw, pitch, roll)
         T[:, :3, 3] = np.stack([x, y, z], axis=1)
         return T
+
+    def lateral_m(self, xy_city_m: np.ndarray) -> np.ndarray:
+        """Signed distance of city points ([N,2], m) from the ego's path (its arc), left positive: [N]."""
+        radius = self.speed_mps / self.yaw_rate_rps
+        centre = CITY_ORIGIN_M[:2] + radius * np.array([-np.sin(self.yaw0_rad), np.cos(self.yaw0_rad)])
+        return radius - np.linalg.norm(np.asarray(xy_city_m) - centre, axis=-1)
 
 
 @dataclass(frozen=True)
@@ -188,7 +195,7 @@ def make_scene(
     traffic_rng: np.random.Generator,
     shapes: bool = False,
     close_range: bool = False,
-    clear_paths: bool = False,
+    clear_paths: bool = True,
 ) -> Scene:
     """Ego on a gentle arc with parked and moving cars, pedestrians, bollards and buildings.
 
@@ -203,7 +210,7 @@ def make_scene(
     and cyclists ride along the ego's lane. ``close_range``: a car drives just ahead of the ego
     (0.3-1.0 m from its front bumper) and one alongside it (1-2 m from its side), at its speed.
     Both draw from ``traffic_rng`` after everything else, so the rest of the scene is unchanged.
-    ``clear_paths``: nothing moves through a standing object (:func:`_clear_paths`). Without it, the
+    ``clear_paths``: nothing moves through anything else (:func:`synth.paths.clear_paths_of`). Without it, the
     cars in the next lane drive through the parked cars they pass (0-0.8 m of overlap) and pedestrians
     walk through parked cars and bollards; it is off by default only because the scenes every other
     test was measured on would change (issue 53's motion bench and tests use it).
@@ -305,75 +312,13 @@ def make_scene(
             speed = float(traffic_rng.uniform(3.0, 5.5))
             add(c, yaw, dims, "BICYCLIST", velocity=(speed * np.cos(yaw), speed * np.sin(yaw), 0.0), intensity=90)
     if clear_paths:
-        boxes = _clear_paths(boxes, seconds)
+        boxes = clear_paths_of(boxes, seconds, ego)
     if close_range:
         n_before = len(boxes)
         _add_close_traffic(traffic_rng, ego, along, add)
         close = boxes[n_before:]  # on the ego's lane and the next: no other car may drive through them
         boxes[:n_before] = [b for b in boxes[:n_before] if not any(collide(b, c, seconds) for c in close)]
     return Scene(ego, boxes)
-
-
-def collide(a: Box, b: Box, seconds: float, margin_m: float = 0.3) -> bool:
-    """Whether boxes ``a`` and ``b``, seen from above and grown by ``margin_m``, overlap at any
-    time of the log (every 50 ms): separating-axis test of two rectangles."""
-    corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], float)
-    times_s = np.arange(0.0, seconds + 0.05, 0.05)
-    axes = np.concatenate([a.rotation[:2, :2].T, b.rotation[:2, :2].T])  # each box's x and y
-    spans = []
-    for box in (a, b):
-        outline = (corners * (box.dims_m[:2] / 2 + margin_m)) @ box.rotation[:2, :2].T  # [4,2]
-        on_axes = outline @ axes.T  # [4 corners, 4 axes]
-        centre = box.center_m(times_s)[:, :2] @ axes.T  # [T, 4 axes]
-        spans.append((centre + on_axes.min(axis=0), centre + on_axes.max(axis=0)))
-    (lo_a, hi_a), (lo_b, hi_b) = spans
-    return bool(np.any(np.all((lo_a <= hi_b) & (lo_b <= hi_a), axis=1)))
-
-
-def _clear_paths(boxes: list[Box], seconds: float) -> list[Box]:
-    """``boxes`` with nothing moving through a standing object (a parked car, a bollard) during the log:
-    a parked car in a moving vehicle's way stands further from it (in 0.25 m steps, up to 2 m; else
-    it is left out; a bollard it then stands on is left out), a moving vehicle that would drive
-    through one before it is left out, and a pedestrian who would walk through a standing object is
-    left out. Real traffic goes round them, and a place two objects share is neither's (buildings
-    aside: the background)."""
-
-    def moving(b: Box) -> bool:
-        return bool(np.any(b.velocity_mps))
-
-    times_s = np.arange(0.0, seconds + 0.05, 0.05)
-    paths = {id(m): m.center_m(times_s)[:, :2] for m in boxes if moving(m)}
-
-    vehicles: list[Box] = []  # the moving vehicles, each clear of those before it
-    for m in boxes:
-        if (
-            moving(m)
-            and m.category not in ("PEDESTRIAN", "BICYCLIST")
-            and not any(collide(m, v, seconds) for v in vehicles)
-        ):
-            vehicles.append(m)
-    kept = {id(v) for v in vehicles}
-    boxes = [b for b in boxes if id(b) in kept or not moving(b) or b.category in ("PEDESTRIAN", "BICYCLIST")]
-    standing = []
-    for b in boxes:
-        if moving(b) or b.category == "BUILDING":
-            standing.append(b)
-            continue
-        for _ in range(9):
-            blocking = [m for m in vehicles if collide(b, m, seconds)]
-            if not blocking:
-                standing.append(b)
-                break
-            path = paths[id(blocking[0])]
-            away = b.center0_m[:2] - path[np.argmin(np.linalg.norm(path - b.center0_m[:2], axis=1))]
-            b = replace(b, center0_m=b.center0_m + np.append(0.25 * away / max(np.linalg.norm(away), 1e-9), 0.0))
-    parked = [b for b in standing if not moving(b) and b.category == "REGULAR_VEHICLE"]
-    standing = [b for b in standing if b.category != "BOLLARD" or not any(collide(b, car, seconds) for car in parked)]
-    still = [b for b in standing if not moving(b) and b.category != "BUILDING"]
-    return [b for b in standing if b.category != "PEDESTRIAN" or not any(collide(b, s, seconds) for s in still)]
-
-
-EGO_FRONT_M, EGO_HALF_WIDTH_M = 3.9, 0.98  #: the ego's front bumper ahead of its origin, its half width
 
 
 def _add_close_traffic(rng: np.random.Generator, ego: EgoMotion, along, add) -> None:
