@@ -140,14 +140,15 @@ def _walk_until_blocked(walker: Box, others: list[Box], ego: EgoPath, times_s: n
             out |= overlapping(w, other, times_s, WALK_MARGIN_M)
         return out
 
+    blocked = touching(walker)
+    if not blocked.any():
+        return walker
     vx, vy, vz = walker.velocity_mps
-    for velocity in ((vx, vy, vz), (-vx, -vy, vz), (-vy, vx, vz), (vy, -vx, vz)):
+    for velocity in ((-vx, -vy, vz), (-vy, vx, vz), (vy, -vx, vz)):
         turned = replace(walker, velocity_mps=np.array(velocity))
-        blocked = touching(turned)
-        if not blocked.any():
+        if not touching(turned).any():
             return turned
-        if velocity[0] == vx and velocity[1] == vy:
-            first = int(np.argmax(blocked))
+    first = int(np.argmax(blocked))
     if first == 0:
         return None
     walker = replace(walker, move_until_s=min(walker.move_until_s, float(times_s[first - 1])))
