@@ -5,8 +5,13 @@ the signal to the exit, processes of the run alive 3 s after the exit, paths und
 folder changed after the exit, and whether anything but the stop's lines was printed.
 
     python bench/bench_stop.py [--moments 0.3,0.6,0.9,1.2,1.5,2.0] [--pid1] [--work DIR]
+    python bench/bench_stop.py --window [--repeat 25]
 
 ``--pid1`` runs the command as PID 1 of a new PID namespace (``unshare --pid --fork``, root only).
+``--window`` measures the window before the stop handlers: from the command's start (its spawn) to
+the moment its SIGTERM is caught (``SigCgt`` in ``/proc/<pid>/status``; Python catches SIGINT from
+its own start-up, SIGTERM only once ``stop.install`` ran), median of ``--repeat`` runs of
+``ncore-convert --version``, beside the interpreter whose first statement installs a handler.
 """
 
 from __future__ import annotations
@@ -16,8 +21,10 @@ import re
 import shutil
 import signal
 import statistics
+import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -34,7 +41,16 @@ def main() -> None:
     parser.add_argument("--moments", default="0.3,0.6,0.9,1.2,1.5,2.0")
     parser.add_argument("--pid1", action="store_true")
     parser.add_argument("--work", type=Path, default=None)
+    parser.add_argument("--window", action="store_true")
+    parser.add_argument("--repeat", type=int, default=25)
     args = parser.parse_args()
+    if args.window:
+        handlers = statistics.median(_until_sigterm_caught([str(BIN), "--version"]) for _ in range(args.repeat))
+        first = "import signal, time; signal.signal(signal.SIGTERM, print); time.sleep(0.3)"
+        bare = statistics.median(_until_sigterm_caught([sys.executable, "-c", first]) for _ in range(args.repeat))
+        print(f"window before the stop handlers: median {handlers:.1f} ms from the spawn ({args.repeat} runs);")
+        print(f"the interpreter alone, a handler as its first statement: median {bare:.1f} ms")
+        return
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-stop-"))
     root = work / "source"
     if not (root / "val").exists():
@@ -70,6 +86,26 @@ def main() -> None:
         f"\n{clean} of {len(exits)} trials clean; signal to exit: median {statistics.median(exits):.2f} s,"
         f" max {max(exits):.2f} s"
     )
+
+
+def _sigterm_caught(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            caught = next(line for line in f if line.startswith("SigCgt:"))
+    except (OSError, StopIteration):
+        return False
+    return bool(int(caught.split()[1], 16) >> (signal.SIGTERM - 1) & 1)
+
+
+def _until_sigterm_caught(command: list[str]) -> float:
+    """Milliseconds from the spawn of ``command`` until its process catches SIGTERM (polled)."""
+    started = time.perf_counter()
+    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    while proc.poll() is None and not _sigterm_caught(proc.pid):
+        pass
+    seen = time.perf_counter()
+    proc.wait()
+    return (seen - started) * 1e3
 
 
 if __name__ == "__main__":

@@ -24,8 +24,11 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from typing import NoReturn
+
+TYPE_CHECKING = False  # typing is not imported at run time: the window before install() stays short
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterator
+    from typing import NoReturn
 
 #: The signals that stop a run (Ctrl-C; what Slurm and Kubernetes send before they kill).
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -68,14 +71,25 @@ def set_farewell(lines: Callable[[str], list[str]]) -> None:
 
 
 def _handler(signum: int, frame) -> None:
-    name = signal.Signals(signum).name
+    try:
+        name = signal.Signals(signum).name
+    except ValueError:
+        name = f"signal {signum}"
     if _state.deferring is None:
-        end(_state.farewell(name))
+        end(_farewell_lines(name))
     event, received = _state.deferring
     if event.is_set():  # the run is already stopping: a second signal ends it at once
         end([f"{name}: a second signal; run stopped at once (exit {STOPPED_EXIT})"])
     received.append(name)
     event.set()
+
+
+def _farewell_lines(name: str) -> list[str]:
+    """The run's last lines (:func:`set_farewell`), or the default ones if they cannot be made."""
+    try:
+        return list(_state.farewell(name))
+    except Exception:  # noqa: BLE001 - the way out never raises
+        return _default_farewell(name)
 
 
 @contextlib.contextmanager
@@ -98,22 +112,57 @@ def deferred(event: threading.Event, received: list[str]) -> Iterator[None]:
 
 def end(lines: list[str]) -> NoReturn:
     """Kill every descendant process, print ``lines`` (after what stdout still buffers) and exit 130
-    at once: threads of this process that are planning or writing are not awaited."""
-    _no_new_processes()
-    with contextlib.suppress(Exception):  # a handler may interrupt a print: never raise on the way out
-        sys.stdout.flush()
-        sys.stderr.flush()
-    _silence_stderr()  # the threads left running meet dead workers: their tracebacks are not the run's
-    kill_descendants()
-    if (storage := sys.modules.get("ncore_convert.storage")) is not None:
-        storage.abort_uploads_in_flight()  # a publish to a bucket under way: no multipart upload left
-    if (objects := sys.modules.get("ncore_convert.sources.objects")) is not None:
+    at once: threads of this process that are planning or writing are not awaited.
+
+    Nothing on this path imports or raises: it may run while any module is half imported (a signal
+    arrives as an import starts), so what it cleans up it finds among the modules already loaded (a
+    module not loaded has nothing to clean), each step on its own, and the exit comes whatever fails."""
+    try:
+        for step in (_ignore_signals, _no_new_processes, _flush, _silence_stderr, kill_descendants, _clean_up):
+            _attempt(step)
         with contextlib.suppress(Exception):
-            objects.remove_spool()  # the fetched files the run kept for its logs' later jobs
-    with contextlib.suppress(OSError):
-        os.write(sys.stdout.fileno() if sys.stdout else 1, "".join(f"{line}\n" for line in lines).encode())
-    _await_tracker()
-    os._exit(STOPPED_EXIT)
+            os.write(sys.stdout.fileno() if sys.stdout else 1, "".join(f"{line}\n" for line in lines).encode())
+        _attempt(_await_tracker)
+    finally:
+        os._exit(STOPPED_EXIT)
+
+
+def _attempt(step: Callable[[], object]) -> None:
+    with contextlib.suppress(Exception):
+        step()
+
+
+def _ignore_signals() -> None:
+    """A further signal while the process ends changes nothing (main thread only, where handlers run)."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+
+
+def _flush() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):  # a handler may interrupt a print
+            stream.flush()
+
+
+def _loaded(name: str, attribute: str):
+    """``attribute`` of the module ``name`` if that module is loaded and has it (a module that is
+    still importing may not have it yet), else None: never an import."""
+    return getattr(sys.modules.get(name), attribute, None)
+
+
+def _clean_up() -> None:
+    """What the run holds outside its processes: a publish's multipart uploads under way, and the
+    run's readers (their spools of fetched files). Each only if its module is loaded."""
+    for module, function in CLEAN_UP:
+        if callable(step := _loaded(module, function)):
+            _attempt(step)
+
+
+#: Module-level functions :func:`end` calls if their module is loaded (``(module, function)``).
+CLEAN_UP = (
+    ("ncore_convert.storage", "abort_uploads_in_flight"),  # a publish to a bucket: no multipart upload left
+    ("ncore_convert.sources.objects", "remove_spool"),  # the fetched files the run kept for its logs' later jobs
+)
 
 
 def _refuse(*args, **kwargs) -> NoReturn:
@@ -122,11 +171,14 @@ def _refuse(*args, **kwargs) -> NoReturn:
 
 def _no_new_processes() -> None:
     """From now on, a thread of this process (a pool's management thread replacing a killed worker)
-    cannot start a fork server or a resource tracker again."""
-    from multiprocessing import forkserver, resource_tracker
-
-    forkserver._forkserver.ensure_running = _refuse
-    resource_tracker._resource_tracker.ensure_running = _refuse
+    cannot start a fork server or a resource tracker again (if multiprocessing loaded them at all)."""
+    for module, instance in (
+        ("multiprocessing.forkserver", "_forkserver"),
+        ("multiprocessing.resource_tracker", "_resource_tracker"),
+    ):
+        if (found := _loaded(module, instance)) is not None:
+            with contextlib.suppress(Exception):
+                found.ensure_running = _refuse
 
 
 def _silence_stderr() -> None:
@@ -165,9 +217,7 @@ def descendants(pid: int) -> set[int]:
 
 
 def _tracker_pid() -> int | None:
-    from multiprocessing import resource_tracker
-
-    return getattr(resource_tracker._resource_tracker, "_pid", None)
+    return getattr(_loaded("multiprocessing.resource_tracker", "_resource_tracker"), "_pid", None)
 
 
 def kill_descendants() -> None:
@@ -195,9 +245,7 @@ def _reap() -> None:
 def _await_tracker() -> None:
     """Close this process's end of the resource tracker's pipe and wait for the tracker to exit (it
     does once no process holds the pipe: every other descendant is dead); kill it after TRACKER_WAIT_S."""
-    from multiprocessing import resource_tracker
-
-    tracker = resource_tracker._resource_tracker
+    tracker = _loaded("multiprocessing.resource_tracker", "_resource_tracker")
     pid, fd = getattr(tracker, "_pid", None), getattr(tracker, "_fd", None)
     if pid is None:
         return
