@@ -23,7 +23,8 @@ from bench_argoverse2 import bench_parser, work_dir
 from upath import UPath
 
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources.files import jpeg_defect, read_bytes
+from ncore_convert.sources.checks import jpeg_defect
+from ncore_convert.sources.store import read_local
 
 
 def sample_log() -> UPath:
@@ -70,8 +71,8 @@ def main() -> None:
             sweep, memory_map=True, use_threads=False
         ).validate(full=True),
         "read_sweep (all checks, to numpy)": lambda: av2.read_sweep(log, stamp),
-        "200 JPEGs read": lambda: each(images, read_bytes),
-        "200 JPEGs read + marker check": lambda: each(images, lambda p: jpeg_defect(read_bytes(p))),
+        "200 JPEGs read": lambda: each(images, read_local),
+        "200 JPEGs read + marker check": lambda: each(images, lambda p: jpeg_defect(read_local(p))),
     }
     times: dict[str, list[float]] = {name: [] for name in cases}
     for _ in range(args.repeat):  # interleaved: drift and noise hit every case alike

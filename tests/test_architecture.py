@@ -96,7 +96,9 @@ def under(module: str, *prefixes: str) -> bool:
 #: (modules the rule applies to, modules they must not import), as prefixes below the package.
 LAYER_RULES = [
     (("transforms",), ("sources", "converters", "writer", "validate", "run")),
-    (("sources",), ("converters", "writer", "validate")),
+    (("sources",), ("converters", "writer", "validate", "run", "storage")),
+    # the runner is dataset-agnostic: a dataset reader's internals reach it only through the tasks
+    (("run",), ("sources",)),
     (("validate", "preview", "evaluate"), ("converters",)),
     # the read-back views (NCore seen as a dataset's own layout) and the converters stay apart
     (("views",), ("converters", "writer", "run")),
@@ -358,9 +360,76 @@ def one_site_per_converter(found: dict[str, int]) -> dict[str, int]:
     return {dataset: n for dataset, n in sites.items() if n > 1}
 
 
+#: Constructors of state shared by the functions of a module (locks, pools, events).
+SHARED_STATE_CALLS = {"Lock", "RLock", "Semaphore", "Event", "Condition", "ThreadPoolExecutor", "ProcessPoolExecutor"}
+#: Methods that change a container in place.
+MUTATORS = {"append", "extend", "add", "update", "clear", "pop", "popitem", "setdefault", "remove", "discard", "insert"}
+
+
+def _called_name(node: ast.AST) -> str | None:
+    if isinstance(node, ast.Call):
+        return node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", None)
+    return None
+
+
+def _is_environ(node: ast.AST) -> bool:
+    return isinstance(node, ast.Attribute) and node.attr == "environ" or getattr(node, "id", None) == "environ"
+
+
+def module_state(trees: dict[str, ast.Module], prefix: str) -> dict[str, set[str]]:
+    """Per module under ``prefix``: module-level locks and pools, module-level names that a function
+    changes (``global``, item or attribute assignment, a mutating method), and environment writes."""
+    out: dict[str, set[str]] = {}
+    for module, tree in trees.items():
+        if not under(module, prefix):
+            continue
+        found = set()
+        names = set()
+        for node in tree.body:
+            targets = (
+                node.targets
+                if isinstance(node, ast.Assign)
+                else [node.target]
+                if isinstance(node, ast.AnnAssign)
+                else []
+            )
+            value = getattr(node, "value", None)
+            for target in targets:
+                if isinstance(target, ast.Name):
+                    names.add(target.id)
+                    if _called_name(value) in SHARED_STATE_CALLS:
+                        found.add(f"{target.id}: a module-level {_called_name(value)}")
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Global):
+                found.update(f"{n}: rebound by a function (global)" for n in node.names)
+            elif isinstance(node, ast.Assign | ast.AugAssign | ast.AnnAssign):
+                for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
+                    base = target.value if isinstance(target, ast.Subscript | ast.Attribute) else None
+                    if base is not None and _is_environ(base):
+                        found.add("os.environ: written")
+                    elif isinstance(base, ast.Name) and base.id in names:
+                        found.add(f"{base.id}: changed by a function")
+            elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+                owner = node.func.value
+                if node.func.attr in MUTATORS and _is_environ(owner) or node.func.attr == "putenv":
+                    found.add("os.environ: written")
+                elif node.func.attr in MUTATORS and isinstance(owner, ast.Name) and owner.id in names:
+                    found.add(f"{owner.id}: changed by a function")
+        if found:
+            out[module] = found
+    return out
+
+
 @pytest.fixture(scope="module")
 def project():
     return import_graph(PACKAGE)
+
+
+def test_the_input_side_keeps_no_module_state(project):
+    """``sources/`` holds no module-level lock, pool, counter or container that functions change,
+    and writes no environment variable: a reader's state lives in its ``Reader`` (issue 72)."""
+    _, trees = project
+    assert module_state(trees, "ncore_convert.sources") == {}
 
 
 def test_no_import_cycles(project):
@@ -493,6 +562,13 @@ def test_the_checks_find_known_violations(tmp_path):
             "class Counts(Tally):\n    frames: int = 0\n"
         ),
         "validate/look.py": "T = loader.pose_graph.evaluate_poses('rig', 'world', t)\n",
+        # state in a reader module: a lock, a counter changed by functions, a pool rebound, the environment
+        "sources/state.py": (
+            "import os, threading\n_lock = threading.Lock()\nSEEN = set()\nCOUNTS = {}\n_pool = None\nLIMIT = 3\n"
+            "def f(x):\n    global _pool\n    SEEN.add(x)\n    COUNTS[x] = 1\n    os.environ['A'] = '1'\n"
+            "    return LIMIT\n"
+        ),
+        "run/go.py": "from ncore_convert.sources import reader\n",
     }
     for rel, text in files.items():
         (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -504,10 +580,20 @@ def test_the_checks_find_known_violations(tmp_path):
     ]
     assert layer_violations(graph, "ncore_convert") == [
         "ncore_convert.transforms.geo imports ncore_convert.sources.reader",
+        "ncore_convert.run.go imports ncore_convert.sources.reader",
         "ncore_convert.validate.check imports ncore_convert.converters.a",
         "ncore_convert.views.look imports ncore_convert.converters.b",
         "ncore_convert.converters.c imports ncore_convert.views.look",
     ]
+    assert module_state(trees, "ncore_convert.sources") == {
+        "ncore_convert.sources.state": {
+            "_lock: a module-level Lock",
+            "SEEN: changed by a function",
+            "COUNTS: changed by a function",
+            "_pool: rebound by a function (global)",
+            "os.environ: written",
+        }
+    }
     assert ncore_writer_users(trees) == {"ncore_convert.converters.b"}
     assert loader_constructors(trees) == {"ncore_convert.validate.check"}
     assert av2_transform_names(trees) == {"ncore_convert.transforms.geo": {"city_SE3_ego"}}

@@ -35,7 +35,7 @@ from upath import UPath
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.run.runner import convert_one
-from ncore_convert.sources import files
+from ncore_convert.sources import store
 from ncore_convert.synth import opencood as synth_opencood
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.validate.tree import convert_and_validate
@@ -159,7 +159,7 @@ def unreadable(path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
                 raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
             return real_open(file, *args, **kwargs)
 
-        monkeypatch.setattr(files, "open", refusing_open, raising=False)
+        monkeypatch.setattr(store, "open", refusing_open, raising=False)
     return path
 
 

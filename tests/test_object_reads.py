@@ -1,4 +1,4 @@
-"""Reading the input from a bucket (``sources/objects.py``, ``sources/access.py``): one GET per
+"""Reading the input from a bucket (``sources/reader.py``, ``sources/access.py``): one GET per
 object and no HEAD, every byte once, anonymous input, one line per credential problem, and a
 conversion through a proxy that refuses and drops requests. A moto S3 server behind
 ``tests/latency_proxy.py`` (no delay: the counts do not depend on it) stands for the bucket."""
@@ -216,43 +216,45 @@ def test_a_cooperative_scenario_from_the_bucket_converts_as_locally(s3_env, tmp_
     assert hashes(tmp_path / "out") == hashes(tmp_path / "local")
 
 
-def test_the_reader_checks_each_object_against_its_listing_and_bounds_its_spool(s3_env, monkeypatch):
+def test_the_reader_checks_each_object_against_its_listing_and_bounds_its_spool(s3_env, monkeypatch, tmp_path):
     """In this process: objects fetched ahead in order; one whose length differs from the listing's,
     or replaced since the listing (ETag), fails naming it; the spool keeps what fits in its bound,
-    counts the rest, and a second read takes the kept one from it without a request."""
+    counts the rest, a second reader of the log (another job) takes the kept one from it without a
+    request, and closing the reader that named the spool removes it."""
     import s3fs
 
     from ncore_convert.errors import SourceError
-    from ncore_convert.sources import objects
+    from ncore_convert.sources import reader as reading
+    from ncore_convert.sources.store import ObjectInfo, key
 
     fs = s3fs.S3FileSystem(skip_instance_cache=True)
     fs.mkdir("reader")
     for i in range(4):
         fs.pipe(f"reader/f/{i}.bin", bytes([i]) * 1000)
     folder = UPath("s3://reader/f", client_kwargs={"endpoint_url": s3_env["AWS_ENDPOINT_URL"]})  # not a cached client
-    listing = objects.list_folder(folder)
-    paths = [folder / f"{i}.bin" for i in range(4)]
-    assert [objects.key(p) in listing for p in paths] == [True] * 4
-    monkeypatch.setenv(objects.SPOOL_ENV, str(UPath(os.environ.get("TMPDIR", "/tmp")) / f"spool-test-{os.getpid()}"))
-    monkeypatch.setattr(objects, "SPOOL_BUDGET_BYTES", 2500)
-    monkeypatch.setitem(objects._spool, "root", None)
-    monkeypatch.setitem(objects._spool, "written", 0)
-    before = dict(vars(objects.COUNTS))
-    got = list(objects.read_ahead(paths, listing, keep=True))
-    assert [data for _, data in got] == [bytes([i]) * 1000 for i in range(4)]
-    assert objects.COUNTS.gets - before["gets"] == 4
-    assert objects.COUNTS.spooled - before["spooled"] == 2 and objects.COUNTS.not_kept - before["not_kept"] == 2
-    assert "2 input file(s) not kept" in objects.not_kept_since(before["not_kept"])
-    assert objects.fetch(paths[0], listing) == bytes([0]) * 1000
-    assert objects.COUNTS.gets - before["gets"] == 4 and objects.COUNTS.spool_hits - before["spool_hits"] == 1
-    objects.release(folder)
-    objects.remove_spool()
-    short = {objects.key(paths[1]): objects.ObjectInfo(999, None)}
-    with pytest.raises(SourceError, match=r"1\.bin: object is 1000 bytes, its listing says 999"):
-        objects.fetch(paths[1], short)
-    fs.pipe("reader/f/2.bin", b"replaced" * 125)  # the same length, another ETag
-    with pytest.raises(SourceError, match=r"2\.bin: object changed since its folder was listed"):
-        objects.fetch(paths[2], listing)
+    monkeypatch.setattr(reading, "SPOOL_BUDGET_BYTES", 2500)
+    settings = reading.ReadSettings(spool_root=str(tmp_path))
+    with reading.Reader(settings) as log_reader:
+        listing = log_reader.list_folder(folder)
+        paths = [folder / f"{i}.bin" for i in range(4)]
+        assert [key(p) in listing for p in paths] == [True] * 4
+        got = list(log_reader.read_ahead(paths, listing, keep=True))
+        assert [data for _, data in got] == [bytes([i]) * 1000 for i in range(4)]
+        counts = log_reader.counts
+        assert (counts.lists, counts.gets, counts.bytes) == (1, 4, 4000)
+        assert counts.spooled == 2 and counts.not_kept == 2
+        assert "2 input file(s) not kept" in log_reader.not_kept_warning()
+        with reading.Reader(log_reader.shared()) as job_reader:  # another job of the log
+            assert job_reader.read(paths[0], listing) == bytes([0]) * 1000
+            assert (job_reader.counts.gets, job_reader.counts.spool_hits) == (0, 1)
+        assert log_reader.spool_dir.is_dir()  # a job's reader leaves the log's spool to its owner
+        short = {key(paths[1]): ObjectInfo(999, None)}
+        with pytest.raises(SourceError, match=r"1\.bin: object is 1000 bytes, its listing says 999"):
+            log_reader.read(paths[1], short)
+        fs.pipe("reader/f/2.bin", b"replaced" * 125)  # the same length, another ETag
+        with pytest.raises(SourceError, match=r"2\.bin: object changed since its folder was listed"):
+            log_reader.read(paths[2], listing)
+    assert list(tmp_path.iterdir()) == []  # the log's reader closed: its spool is gone
 
 
 def test_a_stop_aborts_the_multipart_uploads_of_the_sequence_being_published(s3_env, monkeypatch):
@@ -279,14 +281,16 @@ def test_a_folder_of_more_than_a_thousand_objects_is_listed_whole(s3_env):
     requests for 1,100 objects) and gives every object its size."""
     import s3fs
 
-    from ncore_convert.sources import objects
+    from ncore_convert.sources.reader import Reader
+    from ncore_convert.sources.store import key
 
     fs = s3fs.S3FileSystem(skip_instance_cache=True)
     fs.mkdir("paged")
     fs.pipe({f"paged/cam/{i:06d}.jpg": b"x" * (i % 7 + 1) for i in range(1100)})
     with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
         folder = UPath("s3://paged/cam", client_kwargs={"endpoint_url": proxy.url})
-        listing = objects.list_folder(folder)
+        with Reader() as reader:
+            listing = reader.list_folder(folder)
         assert proxy.counts == {"LIST": 2}, proxy.counts
     assert len(listing) == 1100
-    assert listing[objects.key(folder / "000013.jpg")].size == 13 % 7 + 1
+    assert listing[key(folder / "000013.jpg")].size == 13 % 7 + 1

@@ -439,8 +439,8 @@ def test_a_log_failing_validation_is_not_published_and_its_failures_are_reported
     truth = write_log(UPath(tmp_path / "src" / "val"), SynthConfig(seconds=0.6, seed=4, camera_fps=0))
     options = Argoverse2Options(split="val", store_type="directory", profile="default", camera_ids=())
 
-    def convert_then_flip(sequence_dir, log_id, progress=None):
-        summary = convert_log(UPath(tmp_path / "src"), sequence_dir, log_id, options)
+    def convert_then_flip(sequence_dir, log_id, progress=None, reader=None):
+        summary = convert_log(UPath(tmp_path / "src"), sequence_dir, log_id, options, reader=reader)
         edit_store(Path(sequence_dir.path), flip_up_lidar)
         return summary
 

@@ -10,8 +10,12 @@ found by the command in ``DATASET_PACKAGES``. The tool commands (:mod:`ncore_con
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import shutil
 import sys
+import tempfile
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from functools import partial
 from typing import get_args
@@ -37,13 +41,14 @@ from ncore_convert.cli_tools import (
 )
 from ncore_convert.contract import BOX_LABEL_KINDS
 from ncore_convert.errors import SourceError
+from ncore_convert.paths import is_local
 from ncore_convert.run import stop
 from ncore_convert.run.executors import ExecutorKind
 from ncore_convert.run.pool import JobPool, default_workers
 from ncore_convert.run.report import report_name
 from ncore_convert.run.stop import STOPPED_EXIT
-from ncore_convert.sources import objects
 from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
+from ncore_convert.sources.reader import DEFAULT_RUN_BUDGET_MB, SPOOL_PREFIX, ReadSettings
 
 #: The package each dataset command's converter lives in: its workers import it while the main
 #: process starts up.
@@ -70,7 +75,7 @@ class GroupOptions:
     validate: bool
     verbose: bool
     anonymous: bool = False
-    read_ahead_mb: int = objects.DEFAULT_RUN_BUDGET_MB
+    read_ahead_mb: int = DEFAULT_RUN_BUDGET_MB
 
     def require_paths(self) -> tuple[UPath, UPath]:
         if not self.root_dir:
@@ -175,7 +180,7 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
 @click.option(
     "--read-ahead-mb",
     type=click.IntRange(min=1),
-    default=objects.DEFAULT_RUN_BUDGET_MB,
+    default=DEFAULT_RUN_BUDGET_MB,
     help="Input bytes the run's processes on this machine hold fetched ahead, in total (each process an"
     " equal share; each Ray task all of it).",
 )
@@ -278,11 +283,8 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
         return [_counts(results) + f"; output and {report_file} in {out}", stopped]
 
     stop.set_farewell(partial(last_lines, []))  # a stop before the run loop: no log started
-    # named before the workers start, so that they inherit them: the spool (fetched files kept for a
-    # log's later jobs) and each process's share of the read-ahead
-    processes = 1 if obj.executor == "ray" else obj.workers + 1
-    objects.share_budget(obj.read_ahead_mb * 2**20 // processes)
-    with objects.run_spool(), obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
+    with _run_reading(obj, root) as reading, obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
+        from ncore_convert.converters.common import read_log
         from ncore_convert.run.runner import RunInterrupted, run_logs, shard_logs
         from ncore_convert.validate.tree import convert_and_validate
 
@@ -297,6 +299,7 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
         task = partial(dataset.convert, root, options=options)
         if obj.validate:
             task = partial(convert_and_validate, task, source_root=root)
+        task = partial(read_log, task, reading=reading)  # each log's reader, closed with the log
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
         try:
@@ -321,6 +324,27 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
     click.echo(_counts(results) + f"; output and {report_file} in {out}")
     failed = sum(not r.ok for r in results)
     sys.exit(2 if any(r.usage_error for r in results) else 1 if failed else 0)
+
+
+@contextlib.contextmanager
+def _run_reading(obj: GroupOptions, root: UPath) -> Iterator[ReadSettings]:
+    """The readers' settings for a run: each process's share of ``--read-ahead-mb``, and for a remote
+    input converted on this machine the run's spool folder, where every process of a log finds the
+    files its other jobs fetched. The folder is removed when the run ends, also when it is stopped
+    (``stop.at_end``); each log's reader removes its own part of it when the log ends."""
+    processes = 1 if obj.executor == "ray" else obj.workers + 1
+    budget = max(1, obj.read_ahead_mb * 2**20 // processes)
+    if is_local(root) or obj.executor == "ray":  # nothing spooled, or each Ray task keeps its own
+        yield ReadSettings(budget)
+        return
+    spool_root = tempfile.mkdtemp(prefix=SPOOL_PREFIX)
+    remove = partial(shutil.rmtree, spool_root, ignore_errors=True)
+    forget = stop.at_end(remove)
+    try:
+        yield ReadSettings(budget, spool_root)
+    finally:
+        remove()
+        forget()
 
 
 def _counts(results: list) -> str:

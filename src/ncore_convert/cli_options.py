@@ -28,6 +28,7 @@ from ncore_convert.converters.common import PRESET_DEFAULTS
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import access
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
+from ncore_convert.sources.reader import Reader
 from ncore_convert.transforms.camera.ego_mask import EgoBox
 from ncore_convert.transforms.noise import ASYNC_MODES, DOFS, MODELS, PROCESSES
 
@@ -146,8 +147,11 @@ lidar_model_source_option = choice(
 
 
 def _ego_masks_option(ctx, param, value: str) -> str:
-    if value in ("estimate", "none") or UPath(value).is_dir():
+    if value in ("estimate", "none"):
         return value
+    with Reader() as reader:  # one listing of the folder (never a HEAD)
+        if reader.is_folder(UPath(value)):
+            return value
     raise click.BadParameter(f"{value!r} is neither 'estimate', 'none' nor a folder of <camera_id>.png masks")
 
 
@@ -329,7 +333,8 @@ def open_input(url: str, option: str, anonymous: bool) -> UPath:
     not, an AccessError naming the fix for a credential problem."""
     try:
         root = access.input_root(url, anonymous)
-        found = root.is_dir()
+        with Reader() as reader:  # one listing (never a HEAD)
+            found = reader.is_folder(root)
     except ValueError as err:
         raise click.UsageError(str(err)) from None
     except Exception as err:  # noqa: BLE001 - the store's own errors (botocore's are not OSErrors)

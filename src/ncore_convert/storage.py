@@ -14,9 +14,7 @@ from pathlib import Path
 
 from upath import UPath
 
-
-def is_local(path: UPath) -> bool:
-    return path.protocol in ("", "file", "local")
+from ncore_convert.paths import is_local
 
 
 def flush_to_disk(path: UPath) -> None:

@@ -10,6 +10,7 @@ from typing import Any
 from upath import UPath
 
 from ncore_convert.contract import PRESETS, CameraModel, ClassNames, CuboidLabelSource, Preset, WorldGlobalMode
+from ncore_convert.sources.reader import Reader, ReadSettings
 from ncore_convert.transforms.lidar.frames import LidarCounts, StoredRays
 
 
@@ -85,6 +86,17 @@ def select_sensors(requested: tuple[str, ...] | None, known: tuple[str, ...], ki
     return [s for s in known if s in requested]
 
 
+def read_log(task: Callable[..., Any], sequence_dir: UPath, log_id: str, *, reading: ReadSettings, **kwargs) -> Any:
+    """A log task (``Dataset.convert``, or it with its validation) with the log's reader: made for
+    the log (``reading``: the run's settings), handed to the task, and closed when the log ends
+    (which removes what its spool kept). Its requests are added to the summary's (the workers'),
+    its listings' bytes being the remote input's size (``listed_bytes``)."""
+    with Reader(reading) as reader:
+        summary = task(sequence_dir, log_id, reader=reader, **kwargs)
+        summary.reads = reader.counts.plus(summary.reads)
+    return summary
+
+
 class Tally:
     """Mixin for counter dataclasses: :meth:`add` adds up (numbers) or concatenates (lists) the
     fields of the dataclass that derives from Tally directly, so its subclasses (a whole-log
@@ -93,7 +105,11 @@ class Tally:
     def add(self, other: Tally) -> None:
         counted = next(c for c in type(self).__mro__ if Tally in c.__bases__)
         for f in fields(counted):
-            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+            mine, theirs = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(mine, dict):  # counts by name (a reader's requests)
+                setattr(self, f.name, {k: mine.get(k, 0) + theirs.get(k, 0) for k in mine | theirs})
+            else:
+                setattr(self, f.name, mine + theirs)
 
 
 @dataclass
@@ -114,6 +130,7 @@ class Counts(Tally):
     camera_labels: int = 0  #: camera labels written (``--camera-labels``)
     label_seconds: float = 0.0  #: making and storing the camera labels
     warnings: list[str] = field(default_factory=list)
+    reads: dict[str, int] = field(default_factory=dict)  #: input requests and bytes (``sources.reader.ReadCounts``)
 
 
 class LidarStore:

@@ -31,7 +31,8 @@ from dataclasses import asdict, dataclass
 
 from upath import UPath
 
-from ncore_convert.storage import is_local, precondition_failed
+from ncore_convert.paths import is_local
+from ncore_convert.storage import precondition_failed
 
 #: How often a run refreshes the claims it holds (seconds; NCORE_CONVERT_HEARTBEAT_S overrides).
 HEARTBEAT_S = float(os.environ.get("NCORE_CONVERT_HEARTBEAT_S", "15"))

@@ -17,7 +17,6 @@ from upath import UPath
 
 from ncore_convert.run.pool import JobPool, Progress
 from ncore_convert.run.runner import LogResult, LogTask, RunControl, Summary, convert_one
-from ncore_convert.sources import objects
 
 #: Where logs run (``--executor``): this machine's worker processes, or an existing Ray cluster.
 ExecutorKind = Literal["local", "ray"]
@@ -98,10 +97,7 @@ class LocalExecutor:
 
 def _convert_on_node(task: LogTask, output_root: UPath, log_id: str) -> LogResult:
     """Ray task: one whole log on a cluster node (no progress bars there)."""
-    try:
-        return convert_one(output_root, log_id, partial(_log_as_one_job, task), show_progress=False)
-    finally:
-        objects.remove_spool()  # this task's own spool: the files kept for the log's later jobs
+    return convert_one(output_root, log_id, partial(_log_as_one_job, task), show_progress=False)
 
 
 def _check_reachable(address: str, timeout_s: float = 10.0) -> None:

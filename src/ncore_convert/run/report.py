@@ -21,8 +21,9 @@ from datetime import UTC, datetime
 
 from upath import UPath
 
+from ncore_convert.paths import is_local
 from ncore_convert.run.claims import writer_tag
-from ncore_convert.storage import flush_to_disk, is_local, precondition_failed
+from ncore_convert.storage import flush_to_disk, precondition_failed
 
 REPORT_NAME = "conversion-report.json"
 #: Conditional writes of the report on object storage tried before giving up.
@@ -79,6 +80,7 @@ class RunReport:
             "warnings": result.warnings,
             "error": None if result.ok else {"file": result.error_file, "reason": result.error},
             "validation": result.summary.validation if result.summary is not None else result.validation,
+            "reads": getattr(result.summary, "reads", None) or None,  # input requests and bytes (converted logs)
             "fingerprint": self.fingerprint,
             "finished": now_iso(),
         }

@@ -31,12 +31,12 @@ from upath import UPath
 
 from ncore_convert.contract import SAFE_NAME
 from ncore_convert.errors import SourceError, UsageError, ValidationFailed
+from ncore_convert.paths import is_local
 from ncore_convert.run.claims import STAGING_PREFIX, Claims, writer_tag
 from ncore_convert.run.pool import Progress
 from ncore_convert.run.report import REPORT_NAME, RunReport
 from ncore_convert.run.stop import deferred
-from ncore_convert.sources import objects
-from ncore_convert.storage import flush_to_disk, is_local, publish, remove_tree
+from ncore_convert.storage import flush_to_disk, publish, remove_tree
 
 
 class Summary(Protocol):
@@ -231,6 +231,16 @@ def _failure(log_id: str, err: Exception, output: UPath) -> LogResult:
     return result
 
 
+def _input_bytes(result: LogResult, input_dir: Callable[[str], UPath] | None) -> int:
+    """A log's input bytes: from the listings its conversion made (a remote input: no request
+    more), else (local input) from its folder on disk; 0 when unknown."""
+    listed = (getattr(result.summary, "reads", None) or {}).get("listed_bytes", 0)
+    if listed or input_dir is None:
+        return int(listed or 0)
+    folder = input_dir(result.log_id)
+    return tree_bytes(folder) if is_local(folder) else 0
+
+
 def tree_bytes(path: UPath) -> int:
     """Total size of the files under ``path`` (0 if it does not exist)."""
     if not path.exists():
@@ -313,13 +323,11 @@ def run_logs(
         def finish(result: LogResult, lines: list[str]) -> None:
             say(lines)
             if result.recorded:
-                input_bytes = tree_bytes(input_dir(result.log_id)) if input_dir else 0
+                input_bytes = _input_bytes(result, input_dir)
                 output_bytes = tree_bytes(output_root / result.log_id) if result.ok else 0
                 report.record(result, input_bytes, output_bytes)
                 counts["skipped" if result.skipped else ("ok" if result.ok else "failed")] += 1
             claims.release(result.log_id)  # after the report holds it: another run re-reads it
-            if input_dir:
-                objects.release(input_dir(result.log_id))  # the files kept for its later jobs
             overall.set_postfix(counts, refresh=False)
             overall.update(1)
             results.append(result)

@@ -49,6 +49,7 @@ class _State:
     def __init__(self) -> None:
         self.deferring: tuple[threading.Event, list[str]] | None = None
         self.farewell: Callable[[str], list[str]] = _default_farewell
+        self.cleanups: list[Callable[[], object]] = []  #: what :func:`end` removes (the run's spool)
 
 
 _state = _State()
@@ -63,6 +64,13 @@ def install() -> None:
         import ctypes
 
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_CHILD_SUBREAPER, 1)
+
+
+def at_end(step: Callable[[], object]) -> Callable[[], None]:
+    """Have :func:`end` call ``step`` (removing what the run keeps on local disk) if the process
+    ends while it is registered; returns the function that unregisters it."""
+    _state.cleanups.append(step)
+    return lambda: _state.cleanups.remove(step) if step in _state.cleanups else None
 
 
 def set_farewell(lines: Callable[[str], list[str]]) -> None:
@@ -151,18 +159,12 @@ def _loaded(name: str, attribute: str):
 
 
 def _clean_up() -> None:
-    """What the run holds outside its processes: a publish's multipart uploads under way, and the
-    run's readers (their spools of fetched files). Each only if its module is loaded."""
-    for module, function in CLEAN_UP:
-        if callable(step := _loaded(module, function)):
-            _attempt(step)
-
-
-#: Module-level functions :func:`end` calls if their module is loaded (``(module, function)``).
-CLEAN_UP = (
-    ("ncore_convert.storage", "abort_uploads_in_flight"),  # a publish to a bucket: no multipart upload left
-    ("ncore_convert.sources.objects", "remove_spool"),  # the fetched files the run kept for its logs' later jobs
-)
+    """What the run holds outside its processes: a publish's multipart uploads under way (if the
+    output module is loaded), and what the run registered (:func:`at_end`: its spool of fetched files)."""
+    if callable(step := _loaded("ncore_convert.storage", "abort_uploads_in_flight")):
+        _attempt(step)  # a publish to a bucket: no multipart upload left
+    for step in list(_state.cleanups):
+        _attempt(step)
 
 
 def _refuse(*args, **kwargs) -> NoReturn:

@@ -6,7 +6,7 @@ line that names a credential problem.
   written with the caller's credentials. The option lives in the root path's storage options, so
   it reaches the workers and Ray tasks with the path, and stays out of the conversion's
   fingerprint (the dataset options).
-- S3 input gets a connection pool as large as the reader's read-ahead (``objects.MAX_AHEAD``; aiobotocore
+- S3 input gets a connection pool as large as the reader's read-ahead (``reader.MAX_AHEAD``; aiobotocore
   allows 10 connections by default), so files fetched ahead are in flight together.
 - :func:`access_problem` turns the errors of a missing, refused or expired credential into one
   line naming the fix: no credentials (name ``--anonymous``), invalid or expired credentials, a
@@ -22,8 +22,8 @@ import urllib.request
 
 from upath import UPath
 
-from ncore_convert.sources.objects import MAX_AHEAD
-from ncore_convert.storage import is_local
+from ncore_convert.paths import is_local
+from ncore_convert.sources.reader import MAX_AHEAD
 
 #: error codes of credentials the store does not accept
 INVALID_CODES = {

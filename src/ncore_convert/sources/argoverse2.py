@@ -23,9 +23,10 @@ import pyarrow.feather as feather
 from upath import UPath
 
 from ncore_convert.errors import SourceError
-from ncore_convert.sources import objects
-from ncore_convert.sources.files import check_safe_names, jpeg_defect, list_folders, read_bytes, unreadable
-from ncore_convert.storage import is_local
+from ncore_convert.paths import is_local
+from ncore_convert.sources.checks import check_safe_names, jpeg_defect
+from ncore_convert.sources.reader import Reader, reading
+from ncore_convert.sources.store import ObjectInfo, unreadable
 from ncore_convert.transforms.geometry import se3_from_quat_wxyz
 
 SPLITS = ("train", "val", "test")
@@ -72,13 +73,14 @@ def read_table(
     schema: pa.Schema,
     columns: list[str] | None = None,
     data: bytes | None = None,
-    listing: dict[str, objects.ObjectInfo] | None = None,
+    listing: dict[str, ObjectInfo] | None = None,
+    reader: Reader | None = None,
 ) -> pa.Table:
     """Read a feather file and check that it has the columns and types of ``schema``.
 
-    ``data``: the file's bytes, already fetched (:mod:`sources.objects`). Without them, a local file
-    is memory-mapped and a remote one (s3://, ...) fetched whole in one request, checked against
-    its folder's ``listing`` entry and kept for the log's later readers.
+    ``data``: the file's bytes, already fetched (:mod:`sources.reader`). Without them, a local file
+    is memory-mapped and a remote one (s3://, ...) fetched whole in one request by ``reader``,
+    checked against its folder's ``listing`` entry and kept for the log's later readers.
     """
     path = UPath(path)
     wanted = columns or schema.names
@@ -86,7 +88,10 @@ def read_table(
         if data is None and is_local(path):
             table = feather.read_table(path.path, columns=wanted, memory_map=True, use_threads=False)
         else:
-            source = pa.BufferReader(data if data is not None else objects.fetch(path, listing, keep=True))
+            if data is None:
+                with reading(reader) as r:
+                    data = r.read(path, listing, keep=True)
+            source = pa.BufferReader(data)
             table = feather.read_table(source, columns=wanted, use_threads=False)
         table.validate(full=True)  # a damaged body must not reach numpy as garbage offsets
     except (FileNotFoundError, PermissionError) as err:
@@ -134,9 +139,7 @@ def poses_from_table(path: UPath, table: pa.Table) -> np.ndarray:
     return se3_from_quat_wxyz(quat, t).reshape(-1, 4, 4)
 
 
-# ----------------------------------------------------------------------------------------------
 # Dataset layout
-# ----------------------------------------------------------------------------------------------
 
 
 def log_dir(root: UPath, split: str | None, log_id: str) -> UPath:
@@ -144,12 +147,13 @@ def log_dir(root: UPath, split: str | None, log_id: str) -> UPath:
     return root / log_id if split is None else root / split / log_id
 
 
-def list_log_ids(root: UPath, split: str) -> list[str]:
-    """Log ids (directory names) under ``<root>/<split>``, sorted."""
+def list_log_ids(root: UPath, split: str, reader: Reader | None = None) -> list[str]:
+    """Log ids (directory names) under ``<root>/<split>``, sorted (one listing)."""
     split_dir = root / split
-    if not split_dir.is_dir():
-        raise SourceError(split_dir, "split directory not found")
-    return list_folders(split_dir, "log folder")
+    with reading(reader) as r:
+        if not r.is_folder(split_dir):
+            raise SourceError(split_dir, "split directory not found")
+        return r.folder_names(split_dir, "log folder")
 
 
 def poses_path(log_dir: UPath) -> UPath:
@@ -172,11 +176,15 @@ def image_path(log_dir: UPath, camera: str, timestamp_ns: int) -> UPath:
     return log_dir / "sensors" / "cameras" / camera / f"{timestamp_ns}.jpg"
 
 
-def read_jpeg(log_dir: UPath, camera: str, timestamp_ns: int, data: bytes | None = None) -> bytes:
-    """The encoded bytes of one image (``data``: already fetched), checked to be a JPEG
-    (SourceError naming the file if not)."""
+def read_jpeg(
+    log_dir: UPath, camera: str, timestamp_ns: int, data: bytes | None = None, reader: Reader | None = None
+) -> bytes:
+    """The encoded bytes of one image (``data``: already fetched; else read by ``reader``), checked
+    to be a JPEG (SourceError naming the file if not)."""
     path = image_path(log_dir, camera, timestamp_ns)
-    data = read_bytes(path) if data is None else data
+    if data is None:
+        with reading(reader) as r:
+            data = r.read(path)
     if (defect := jpeg_defect(data)) is not None:
         raise SourceError(path, defect)
     return data
@@ -197,13 +205,15 @@ def decode_jpeg(path: UPath, data: bytes, reduction: int, mode: str) -> np.ndarr
 
 
 def _timestamps_from_stems(
-    directory: UPath, suffix: str, listing: dict[str, objects.ObjectInfo] | None = None
+    directory: UPath, suffix: str, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
 ) -> np.ndarray:
     """The timestamps in the file names ``<timestamp_ns><suffix>`` of a folder (int64, sorted; empty
     without the folder). A remote folder is listed once, and its files' sizes and ETags are added
     to ``listing``."""
     stamps = []
-    for name in objects.file_names(directory, listing):
+    with reading(reader) as r:
+        names = r.file_names(directory, listing)
+    for name in names:
         if name.endswith(suffix):
             stem = name[: -len(suffix)]
             if not stem.isdigit():
@@ -212,27 +222,27 @@ def _timestamps_from_stems(
     return np.sort(np.array(stamps, dtype=np.int64))
 
 
-def list_sweep_timestamps_ns(log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None) -> np.ndarray:
+def list_sweep_timestamps_ns(
+    log_dir: UPath, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
+) -> np.ndarray:
     """Sweep reference timestamps (ns, int64, sorted) from ``sensors/lidar/*.feather`` (a remote
     folder's sizes and ETags added to ``listing``)."""
-    return _timestamps_from_stems(log_dir / "sensors" / "lidar", ".feather", listing)
+    return _timestamps_from_stems(log_dir / "sensors" / "lidar", ".feather", listing, reader)
 
 
 def list_image_timestamps_ns(
-    log_dir: UPath, camera: str, listing: dict[str, objects.ObjectInfo] | None = None
+    log_dir: UPath, camera: str, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
 ) -> np.ndarray:
     """Image timestamps (ns, int64, sorted) of one camera; empty if the camera folder is absent (a
     remote folder's sizes and ETags added to ``listing``)."""
-    return _timestamps_from_stems(log_dir / "sensors" / "cameras" / camera, ".jpg", listing)
+    return _timestamps_from_stems(log_dir / "sensors" / "cameras" / camera, ".jpg", listing, reader)
 
 
-# ----------------------------------------------------------------------------------------------
 # Tables
-# ----------------------------------------------------------------------------------------------
 
 
 def read_ego_poses(
-    log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None
+    log_dir: UPath, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ego poses from ``city_SE3_egovehicle.feather`` (av2's ``city_SE3_ego``); ``listing``: the
     log folder's (a remote file is checked against it).
@@ -242,7 +252,7 @@ def read_ego_poses(
         T_ego_city: float64 [N,4,4], maps ego-frame points to the city frame.
     """
     path = poses_path(log_dir)
-    table = read_table(path, POSES_SCHEMA, listing=listing)
+    table = read_table(path, POSES_SCHEMA, listing=listing, reader=reader)
     if table.num_rows < 2:
         raise SourceError(path, f"needs at least 2 poses, has {table.num_rows}")
     timestamps_ns = column(table, "timestamp_ns")
@@ -264,12 +274,12 @@ def _check_increasing(path: UPath, timestamps_ns: np.ndarray) -> None:
 
 
 def read_sensor_extrinsics(
-    log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None
+    log_dir: UPath, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
 ) -> dict[str, np.ndarray]:
     """Static extrinsics by sensor name: ``T_sensor_ego`` (av2's ``ego_SE3_sensor``), float64 [4,4],
     maps sensor-frame points to the ego frame."""
     path = extrinsics_path(log_dir)
-    table = read_table(path, EXTRINSICS_SCHEMA, listing=listing)
+    table = read_table(path, EXTRINSICS_SCHEMA, listing=listing, reader=reader)
     names = table.column("sensor_name").to_pylist()
     _check_sensor_names(path, names)
     return dict(zip(names, poses_from_table(path, table), strict=True))
@@ -299,11 +309,11 @@ class CameraIntrinsics:
 
 
 def read_intrinsics(
-    log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None
+    log_dir: UPath, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
 ) -> dict[str, CameraIntrinsics]:
     """Camera intrinsics by camera name from ``calibration/intrinsics.feather``."""
     path = intrinsics_path(log_dir)
-    rows = read_table(path, INTRINSICS_SCHEMA, listing=listing).to_pylist()
+    rows = read_table(path, INTRINSICS_SCHEMA, listing=listing, reader=reader).to_pylist()
     _check_sensor_names(path, [row["sensor_name"] for row in rows])
     out = {}
     for row in rows:
@@ -347,14 +357,20 @@ class Sweep:
         return len(self.laser_number)
 
 
-def read_sweep(log_dir: UPath, timestamp_ns: int, with_offsets: bool = True, data: bytes | None = None) -> Sweep:
+def read_sweep(
+    log_dir: UPath,
+    timestamp_ns: int,
+    with_offsets: bool = True,
+    data: bytes | None = None,
+    reader: Reader | None = None,
+) -> Sweep:
     """Read one sweep (without ``offset_ns``: a TbV sweep, which has no such column); ``data``: its
-    file's bytes, already fetched.
+    file's bytes, already fetched (else read by ``reader``).
 
     Raises SourceError on a bad schema or laser_number outside 0..63."""
     path = sweep_path(log_dir, timestamp_ns)
     columns = None if with_offsets else [n for n in LIDAR_SCHEMA.names if n != "offset_ns"]
-    table = read_table(path, LIDAR_SCHEMA, columns=columns, data=data)
+    table = read_table(path, LIDAR_SCHEMA, columns=columns, data=data, reader=reader)
     # float16 is exact in float32; column-major keeps per-axis math contiguous
     xyz = np.empty((table.num_rows, 3), dtype=np.float32, order="F")
     for k, c in enumerate(("x", "y", "z")):
@@ -372,33 +388,40 @@ def read_sweeps(
     log_dir: UPath,
     timestamps_ns: Iterable[int],
     with_offsets: bool = True,
-    listing: dict[str, objects.ObjectInfo] | None = None,
+    listing: dict[str, ObjectInfo] | None = None,
     keep: bool = True,
+    reader: Reader | None = None,
 ) -> Iterator[Sweep]:
-    """:func:`read_sweep` of each sweep in turn, the files fetched ahead (:func:`objects.read_ahead`;
+    """:func:`read_sweep` of each sweep in turn, the files fetched ahead (:meth:`Reader.read_ahead`;
     ``keep``: spooled, as other jobs of the log read the sweeps again)."""
     stamps = [int(t) for t in timestamps_ns]
-    fetched = objects.read_ahead([sweep_path(log_dir, t) for t in stamps], listing, keep)
-    for t, (_, data) in zip(stamps, fetched, strict=True):
-        if isinstance(data, SourceError):
-            raise data
-        yield read_sweep(log_dir, t, with_offsets, data)
+    with reading(reader) as r:
+        fetched = r.read_ahead([sweep_path(log_dir, t) for t in stamps], listing, keep)
+        for t, (_, data) in zip(stamps, fetched, strict=True):
+            if isinstance(data, SourceError):
+                raise data
+            yield read_sweep(log_dir, t, with_offsets, data)
 
 
 def read_images(
     log_dir: UPath,
     camera: str,
     timestamps_ns: Iterable[int],
-    listing: dict[str, objects.ObjectInfo] | None = None,
+    listing: dict[str, ObjectInfo] | None = None,
     keep: bool = False,
+    reader: Reader | None = None,
 ) -> Iterator[tuple[UPath, bytes | SourceError]]:
-    """Each image's bytes in turn, fetched ahead (:func:`objects.read_ahead`; ``keep``: spooled for
+    """Each image's bytes in turn, fetched ahead (:meth:`Reader.read_ahead`; ``keep``: spooled for
     the camera's copy job), or its SourceError."""
-    return objects.read_ahead([image_path(log_dir, camera, int(t)) for t in timestamps_ns], listing, keep)
+    with reading(reader) as r:
+        yield from r.read_ahead([image_path(log_dir, camera, int(t)) for t in timestamps_ns], listing, keep)
 
 
 def count_sweep_points(
-    log_dir: UPath, timestamps_ns: Iterable[int], listing: dict[str, objects.ObjectInfo] | None = None
+    log_dir: UPath,
+    timestamps_ns: Iterable[int],
+    listing: dict[str, ObjectInfo] | None = None,
+    reader: Reader | None = None,
 ) -> int:
     """Rows of the sweep files (their ``laser_number`` column only is read; remote files are fetched
     ahead, checked against their ``listing`` entries)."""
@@ -406,21 +429,22 @@ def count_sweep_points(
     if is_local(log_dir):
         return sum(read_table(path, LIDAR_SCHEMA, columns=["laser_number"]).num_rows for path in paths)
     rows = 0
-    for path, data in objects.read_ahead(paths, listing):
-        if isinstance(data, SourceError):
-            raise data
-        rows += read_table(path, LIDAR_SCHEMA, columns=["laser_number"], data=data).num_rows
+    with reading(reader) as r:
+        for path, data in r.read_ahead(paths, listing):
+            if isinstance(data, SourceError):
+                raise data
+            rows += read_table(path, LIDAR_SCHEMA, columns=["laser_number"], data=data).num_rows
     return rows
 
 
 def read_sweep_offset_range_ns(
-    log_dir: UPath, timestamp_ns: int, listing: dict[str, objects.ObjectInfo] | None = None
+    log_dir: UPath, timestamp_ns: int, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
 ) -> tuple[int, int]:
     """(min, max) of a sweep's ``offset_ns`` column without converting the points (a remote file is
     fetched whole, checked against its ``listing`` entry)."""
     path = sweep_path(log_dir, timestamp_ns)
-    data = None if is_local(path) else objects.fetch(path, listing, keep=True)
-    offsets = column(read_table(path, LIDAR_SCHEMA, columns=["offset_ns"], data=data), "offset_ns")
+    table = read_table(path, LIDAR_SCHEMA, columns=["offset_ns"], listing=listing, reader=reader)
+    offsets = column(table, "offset_ns")
     if offsets.size == 0:
         return 0, 0
     return int(offsets.min()), int(offsets.max())

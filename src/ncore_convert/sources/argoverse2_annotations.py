@@ -11,7 +11,8 @@ from upath import UPath
 
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources import objects
+from ncore_convert.sources.reader import Reader, reading
+from ncore_convert.sources.store import ObjectInfo
 
 
 @dataclass(frozen=True)
@@ -46,14 +47,17 @@ class Annotations:
         )
 
 
-def read_annotations(log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None) -> Annotations | None:
+def read_annotations(
+    log_dir: UPath, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
+) -> Annotations | None:
     """Annotations from ``annotations.feather``, or None when the log has none (test split, TbV);
     ``listing``: the log folder's (a remote file is then found and checked by it)."""
     path = log_dir / "annotations.feather"
-    if not objects.exists(path, listing):
-        return None
+    with reading(reader) as r:
+        if not r.exists(path, listing):
+            return None
     names = [n for n in av2.ANNOTATIONS_SCHEMA.names if n != "num_interior_pts"]
-    table = av2.read_table(path, av2.ANNOTATIONS_SCHEMA, columns=names, listing=listing)
+    table = av2.read_table(path, av2.ANNOTATIONS_SCHEMA, columns=names, listing=listing, reader=reader)
     dims = np.stack([av2.column(table, c) for c in ("length_m", "width_m", "height_m")], axis=1)
     if np.any(~np.isfinite(dims)) or np.any(dims <= 0):
         raise SourceError(path, "cuboid with non-finite or non-positive dimensions")
@@ -92,14 +96,17 @@ class InteriorPoints:
         return InteriorPoints(self.timestamps_ns[rows], [self.track_uuids[i] for i in rows], self.counts[rows])
 
 
-def read_interior_points(log_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None) -> InteriorPoints | None:
+def read_interior_points(
+    log_dir: UPath, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
+) -> InteriorPoints | None:
     """The annotations' point counts, or None when the log has no ``annotations.feather``;
     ``listing``: the log folder's."""
     path = log_dir / "annotations.feather"
-    if not objects.exists(path, listing):
-        return None
+    with reading(reader) as r:
+        if not r.exists(path, listing):
+            return None
     names = ["timestamp_ns", "track_uuid", "num_interior_pts"]
-    table = av2.read_table(path, av2.ANNOTATIONS_SCHEMA, columns=names, listing=listing)
+    table = av2.read_table(path, av2.ANNOTATIONS_SCHEMA, columns=names, listing=listing, reader=reader)
     return InteriorPoints(
         av2.column(table, "timestamp_ns"), table.column("track_uuid").to_pylist(), av2.column(table, "num_interior_pts")
     )

@@ -10,14 +10,17 @@ import PIL.Image
 from upath import UPath
 
 from ncore_convert.errors import UsageError
-from ncore_convert.sources.files import read_bytes
+from ncore_convert.sources.reader import Reader, reading
 
 #: Image modes a binary mask may have: 1-bit, or 8-bit grey with at most one non-zero value.
 MASK_MODES = ("1", "L")
 
 
-def read_mask_folder(folder: UPath, camera_sizes: dict[str, tuple[int, int]]) -> dict[str, bytes]:
-    """The PNG bytes of every ``<camera_id>.png`` in ``folder``, checked against the cameras.
+def read_mask_folder(
+    folder: UPath, camera_sizes: dict[str, tuple[int, int]], reader: Reader | None = None
+) -> dict[str, bytes]:
+    """The PNG bytes of every ``<camera_id>.png`` in ``folder`` (one listing, one read per file,
+    through ``reader``), checked against the cameras.
 
     Args:
         camera_sizes: camera id -> (width, height) of the cameras being converted.
@@ -30,13 +33,14 @@ def read_mask_folder(folder: UPath, camera_sizes: dict[str, tuple[int, int]]) ->
     """
     folder = UPath(folder)
     out = {}
-    for path in sorted(folder.iterdir(), key=lambda p: p.name):
-        if not path.name.endswith(".png"):
-            continue
+    with reading(reader) as r:
+        listing: dict = {}
+        names = sorted(name for name in r.file_names(folder, listing) if name.endswith(".png"))
+        files = [(folder / name, r.read(folder / name, listing)) for name in names]
+    for path, data in files:
         camera = path.name[: -len(".png")]
         if camera not in camera_sizes:
             raise UsageError(f"{path}: no camera {camera!r} in this log (cameras: {', '.join(sorted(camera_sizes))})")
-        data = read_bytes(path)
         try:
             with PIL.Image.open(io.BytesIO(data), formats=["PNG"]) as image:
                 mode, size, pixels = image.mode, image.size, np.asarray(image)

@@ -18,9 +18,10 @@ import yaml
 from upath import UPath
 
 from ncore_convert.errors import SourceError
-from ncore_convert.sources import objects
-from ncore_convert.sources.files import list_folders, png_defect, read_bytes
+from ncore_convert.sources.checks import png_defect
 from ncore_convert.sources.pcd import read_pcd_with_header, red_from_rgb
+from ncore_convert.sources.reader import Reader, reading
+from ncore_convert.sources.store import ObjectInfo
 
 SPLITS = {
     "opv2v": ("train", "validate", "test", "test_culvercity"),
@@ -53,16 +54,21 @@ _Loader.add_implicit_resolver(
 )
 
 
-def load_yaml(path: UPath) -> dict:
-    """Parse a YAML mapping safely; SourceError naming the file if it is unreadable or not a mapping."""
-    return parse_yaml(read_bytes(UPath(path)), path)
+def load_yaml(path: UPath, reader: Reader | None = None) -> dict:
+    """Parse a YAML mapping safely (read by ``reader``); SourceError naming the file if it is
+    unreadable or not a mapping."""
+    with reading(reader) as r:
+        return parse_yaml(r.read(UPath(path)), path)
 
 
-def read_text(path: UPath, data: bytes | None = None) -> str:
-    """A file's UTF-8 text (what OpenCOOD's YAML files are; ``data``: its bytes, already fetched);
-    SourceError naming it otherwise."""
+def read_text(path: UPath, data: bytes | None = None, reader: Reader | None = None) -> str:
+    """A file's UTF-8 text (what OpenCOOD's YAML files are; ``data``: its bytes, already fetched,
+    else read by ``reader``); SourceError naming it otherwise."""
+    if data is None:
+        with reading(reader) as r:
+            data = r.read(UPath(path))
     try:
-        return (read_bytes(UPath(path)) if data is None else data).decode("utf-8")
+        return data.decode("utf-8")
     except UnicodeDecodeError as err:
         raise SourceError(path, f"not UTF-8 text ({err.reason} at byte {err.start})") from None
 
@@ -93,19 +99,21 @@ def scenario_dir(root: UPath, split: str, scenario: str) -> UPath:
     return UPath(root) / split / scenario
 
 
-def list_scenarios(root: UPath, split: str) -> list[str]:
+def list_scenarios(root: UPath, split: str, reader: Reader | None = None) -> list[str]:
     """Sorted scenario folder names of a split (SourceError if the split folder is missing)."""
     split_dir = UPath(root) / split
-    if not split_dir.is_dir():
-        raise SourceError(split_dir, "split folder not found")
-    return list_folders(split_dir, "scenario folder")
+    with reading(reader) as r:
+        if not r.is_folder(split_dir):
+            raise SourceError(split_dir, "split folder not found")
+        return r.folder_names(split_dir, "scenario folder")
 
 
-def list_agents(scenario_dir: UPath) -> list[str]:
-    """Agent folder names (CARLA actor ids as strings), sorted numerically."""
-    if not scenario_dir.is_dir():
-        raise SourceError(scenario_dir, "scenario folder not found")
-    names = [p.name for p in scenario_dir.iterdir() if p.is_dir() and not p.name.startswith(".")]
+def list_agents(scenario_dir: UPath, reader: Reader | None = None) -> list[str]:
+    """Agent folder names (CARLA actor ids as strings), sorted numerically (one listing)."""
+    with reading(reader) as r:
+        if not r.is_folder(scenario_dir):
+            raise SourceError(scenario_dir, "scenario folder not found")
+        names = r.folder_names(scenario_dir, None)  # actor ids, checked below
     bad = [n for n in names if not _AGENT.match(n)]
     if bad:
         raise SourceError(scenario_dir / bad[0], "agent folder names must be integer actor ids")
@@ -128,10 +136,13 @@ def opencood_ego(agent_ids: list[str]) -> str:
     return opencood_order(agent_ids)[0]
 
 
-def list_frame_keys(agent_dir: UPath, listing: dict[str, objects.ObjectInfo] | None = None) -> list[str]:
+def list_frame_keys(
+    agent_dir: UPath, listing: dict[str, ObjectInfo] | None = None, reader: Reader | None = None
+) -> list[str]:
     """Frame keys of an agent: the stems of ``<key>.yaml`` (``*_additional.yaml`` and others skipped);
     a remote folder is listed once, its files' sizes and ETags added to ``listing``."""
-    names = objects.file_names(agent_dir, listing)
+    with reading(reader) as r:
+        names = r.file_names(agent_dir, listing)
     stems = (name[: -len(".yaml")] for name in names if name.endswith(".yaml"))
     return sorted((stem for stem in stems if _KEY.match(stem)), key=int)
 
@@ -169,13 +180,15 @@ def protocol_path(scenario_dir: UPath) -> UPath:
     return UPath(scenario_dir) / "data_protocol.yaml"
 
 
-def read_protocol(scenario_dir: UPath) -> Protocol:
-    """Read ``data_protocol.yaml`` (SourceError naming it without a plausible tick); a scenario without
-    one gets :data:`DEFAULT_TICK_S` and no lidar blocks (``text`` None)."""
+def read_protocol(scenario_dir: UPath, reader: Reader | None = None) -> Protocol:
+    """Read ``data_protocol.yaml`` (SourceError naming it without a plausible tick; its existence
+    from the scenario folder's listing, never a HEAD); a scenario without one gets
+    :data:`DEFAULT_TICK_S` and no lidar blocks (``text`` None)."""
     path = protocol_path(scenario_dir)
-    if not path.exists():
-        return Protocol(DEFAULT_TICK_S, {})
-    text = read_text(path)
+    with reading(reader) as r:
+        if not r.exists(path):
+            return Protocol(DEFAULT_TICK_S, {})
+        text = read_text(path, reader=r)
     protocol = parse_yaml(text, path)
     try:
         dt = float(protocol["world"]["fixed_delta_seconds"])
@@ -280,11 +293,11 @@ def yaml_path(agent_dir: UPath, key: str) -> UPath:
     return agent_dir / f"{key}.yaml"
 
 
-def read_agent_frame(agent_dir: UPath, key: str, raw: bytes | None = None) -> AgentFrame:
-    """Read ``<agent_dir>/<key>.yaml`` (``raw``: its bytes, already fetched; SourceError naming the
-    file on a missing key or bad value)."""
+def read_agent_frame(agent_dir: UPath, key: str, raw: bytes | None = None, reader: Reader | None = None) -> AgentFrame:
+    """Read ``<agent_dir>/<key>.yaml`` (``raw``: its bytes, already fetched, else read by ``reader``;
+    SourceError naming the file on a missing key or bad value)."""
     path = yaml_path(agent_dir, key)
-    data = load_yaml(path) if raw is None else parse_yaml(raw, path)
+    data = load_yaml(path, reader) if raw is None else parse_yaml(raw, path)
     cords, intrinsic = {}, {}
     for index in range(len(CAMERAS)):
         entry = data.get(f"camera{index}")
@@ -313,20 +326,23 @@ def camera_path(agent_dir: UPath, key: str, index: int) -> UPath:
     return agent_dir / f"{key}_camera{index}.png"
 
 
-def read_png(agent_dir: UPath, key: str, index: int, data: bytes | None = None) -> bytes:
-    """The encoded bytes of ``<key>_camera<index>.png`` (``data``: already fetched), checked to be a
-    complete PNG (SourceError naming the file if it is missing, unreadable, not a PNG or cut short)."""
+def read_png(agent_dir: UPath, key: str, index: int, data: bytes | None = None, reader: Reader | None = None) -> bytes:
+    """The encoded bytes of ``<key>_camera<index>.png`` (``data``: already fetched, else read by
+    ``reader``), checked to be a complete PNG (SourceError naming the file if it is missing,
+    unreadable, not a PNG or cut short)."""
     path = camera_path(agent_dir, key, index)
-    data = read_bytes(path) if data is None else data
+    if data is None:
+        with reading(reader) as r:
+            data = r.read(path)
     if (defect := png_defect(data)) is not None:
         raise SourceError(path, defect)
     return data
 
 
-def fetch_png(agent_dir: UPath, key: str, index: int, listing: dict | None) -> bytes:
+def fetch_png(agent_dir: UPath, key: str, index: int, listing: dict | None, reader: Reader) -> bytes:
     """:func:`read_png`, the file fetched by its folder's ``listing`` entry and kept for the
-    scenario's later jobs (:func:`objects.fetch`)."""
-    return read_png(agent_dir, key, index, objects.fetch(camera_path(agent_dir, key, index), listing, keep=True))
+    scenario's later jobs (:meth:`Reader.read`)."""
+    return read_png(agent_dir, key, index, reader.read(camera_path(agent_dir, key, index), listing, keep=True))
 
 
 def decode_png_rgb(data: bytes) -> np.ndarray:
@@ -360,11 +376,11 @@ class Sweep:
         return f"x y z {self.field} {'binary' if self.binary else 'ascii'}"
 
 
-def read_points(agent_dir: UPath, key: str, data: bytes | None = None) -> Sweep:
-    """``<key>.pcd``: x, y, z and the intensity (``data``: its bytes, already fetched; SourceError
-    naming the file if it lacks them)."""
+def read_points(agent_dir: UPath, key: str, data: bytes | None = None, reader: Reader | None = None) -> Sweep:
+    """``<key>.pcd``: x, y, z and the intensity (``data``: its bytes, already fetched, else read by
+    ``reader``; SourceError naming the file if it lacks them)."""
     path = pcd_path(agent_dir, key)
-    header, columns = read_pcd_with_header(path, data)
+    header, columns = read_pcd_with_header(path, data, reader)
     missing = [f for f in ("x", "y", "z") if f not in columns]
     field = next((f for f in PCD_INTENSITY_FIELDS if f in columns), None)
     if missing or field is None:
@@ -382,10 +398,10 @@ def read_points(agent_dir: UPath, key: str, data: bytes | None = None) -> Sweep:
     return Sweep(xyz, intensity, field, header.data == "binary")
 
 
-def fetch_points(agent_dir: UPath, key: str, listing: dict | None) -> Sweep:
+def fetch_points(agent_dir: UPath, key: str, listing: dict | None, reader: Reader) -> Sweep:
     """:func:`read_points`, the file fetched by its folder's ``listing`` entry and kept for the
-    scenario's later jobs (:func:`objects.fetch`)."""
-    return read_points(agent_dir, key, objects.fetch(pcd_path(agent_dir, key), listing, keep=True))
+    scenario's later jobs (:meth:`Reader.read`)."""
+    return read_points(agent_dir, key, reader.read(pcd_path(agent_dir, key), listing, keep=True))
 
 
 def png_size(data: bytes) -> tuple[int, int]:

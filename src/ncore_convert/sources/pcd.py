@@ -18,7 +18,7 @@ import pyarrow.csv as pa_csv
 from upath import UPath
 
 from ncore_convert.errors import SourceError
-from ncore_convert.sources.files import read_bytes
+from ncore_convert.sources.reader import Reader, reading
 
 _TYPES = {
     ("F", 4): np.float32,
@@ -85,9 +85,11 @@ def _header_lines(path: UPath, raw: bytes) -> tuple[list[bytes], int]:
             raise SourceError(path, "PCD header has no DATA line in its first 64 lines")
 
 
-def read_pcd_header(path: UPath) -> PcdHeader:
-    """Only the header of a PCD file (its first 64 KiB are read): fields, types and point count."""
-    head = read_bytes(UPath(path), HEADER_BYTES)
+def read_pcd_header(path: UPath, reader: Reader | None = None) -> PcdHeader:
+    """Only the header of a PCD file (its first 64 KiB are read: one ranged GET remotely, through
+    ``reader``): fields, types and point count."""
+    with reading(reader) as r:
+        head = r.read(UPath(path), max_bytes=HEADER_BYTES)
     return _parse_header(path, _header_lines(path, head)[0])
 
 
@@ -100,9 +102,15 @@ def read_pcd(path: UPath) -> dict[str, np.ndarray]:
     return read_pcd_with_header(path)[1]
 
 
-def read_pcd_with_header(path: UPath, data: bytes | None = None) -> tuple[PcdHeader, dict[str, np.ndarray]]:
-    """:func:`read_pcd` and the file's header; ``data``: the file's bytes, already fetched."""
-    raw = read_bytes(UPath(path)) if data is None else data
+def read_pcd_with_header(
+    path: UPath, data: bytes | None = None, reader: Reader | None = None
+) -> tuple[PcdHeader, dict[str, np.ndarray]]:
+    """:func:`read_pcd` and the file's header; ``data``: the file's bytes, already fetched (else
+    read by ``reader``)."""
+    raw = data
+    if raw is None:
+        with reading(reader) as r:
+            raw = r.read(UPath(path))
     lines, offset = _header_lines(path, raw)
     header = _parse_header(path, lines)
     body = raw[offset:]

@@ -14,11 +14,12 @@ from __future__ import annotations
 from upath import UPath
 
 from ncore_convert.errors import SourceError
-from ncore_convert.sources.files import list_folders
+from ncore_convert.sources.reader import Reader, reading
 
 
-def list_log_ids(root: UPath) -> list[str]:
-    """Log ids (directory names) directly under the TbV root, sorted."""
-    if not root.is_dir():
-        raise SourceError(root, "TbV root directory not found")
-    return list_folders(root, "log folder")
+def list_log_ids(root: UPath, reader: Reader | None = None) -> list[str]:
+    """Log ids (directory names) directly under the TbV root, sorted (one listing)."""
+    with reading(reader) as r:
+        if not r.is_folder(root):
+            raise SourceError(root, "TbV root directory not found")
+        return r.folder_names(root, "log folder")

@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert import contract
+from ncore_convert.sources.reader import Reader
 from ncore_convert.transforms.lidar.rays import EXACT_DISTANCE_STEPS
 from ncore_convert.validate.cuboids import CuboidColumns, check_cuboids, read_cuboids
 from ncore_convert.validate.labels import check_camera_labels, held_boxes
@@ -346,7 +347,10 @@ def lidar_checks_job(sequence_json: UPath, lidar_id: str, progress=None) -> tupl
 
 
 def validate_sequence(
-    sequence_json: UPath, source_root: UPath | None = None, run_jobs: RunJobs | None = None
+    sequence_json: UPath,
+    source_root: UPath | None = None,
+    run_jobs: RunJobs | None = None,
+    reader: Reader | None = None,
 ) -> Report:
     """Open a sequence (its ``<sequence_id>.json``) with the default instance names and check it;
     with ``source_root`` (the converter's --root-dir), also compare it with the source. With
@@ -391,5 +395,5 @@ def validate_sequence(
             sequence.keep_points(points)
         report.checks += cameras.checks
     if source_root is not None:
-        compare_with_source(report, sequence, source_root, cuboids)
+        compare_with_source(report, sequence, source_root, cuboids, reader)
     return report

@@ -18,9 +18,9 @@ from ncore_convert import contract
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
-from ncore_convert.sources import objects
 from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.pcd import read_pcd_header
+from ncore_convert.sources.reader import Reader, reading
 from ncore_convert.transforms.timebase import floor_us, in_window
 from ncore_convert.validate.cuboids import CuboidColumns
 from ncore_convert.validate.poses import lever_arm_m, sensor_poses
@@ -49,18 +49,22 @@ BOX_EPSILONS = 16
 BOX_TOLERANCE = BOX_EPSILONS * float(np.finfo(np.float64).eps)  #: of a value of magnitude <= 1
 
 
-def compare_with_source(report: Report, sequence: OpenSequence, source_root: UPath, cuboids: CuboidColumns) -> None:
-    """Add the ``source:`` checks of one sequence (read from ``source_root``, the converter's --root-dir;
-    ``cuboids``: the sequence's cuboid observations)."""
+def compare_with_source(
+    report: Report, sequence: OpenSequence, source_root: UPath, cuboids: CuboidColumns, reader: Reader | None = None
+) -> None:
+    """Add the ``source:`` checks of one sequence (read from ``source_root``, the converter's --root-dir,
+    through ``reader``: the log's, whose spool holds what its conversion kept; ``cuboids``: the
+    sequence's cuboid observations)."""
     meta = sequence.loader.generic_meta_data
     dataset = meta.get(contract.SOURCE_DATASET)
     try:
-        if dataset in contract.ARGOVERSE2_DATASETS:
-            _compare_av2(report, sequence, UPath(source_root), meta, cuboids)
-        elif dataset in contract.OPENCOOD_DATASETS:
-            _compare_opencood(report, sequence, UPath(source_root), meta, len(cuboids))
-        else:
-            report.add("source: dataset known", False, f"source_dataset {dataset!r} is not one this tool converts")
+        with reading(reader) as r:
+            if dataset in contract.ARGOVERSE2_DATASETS:
+                _compare_av2(report, sequence, UPath(source_root), meta, cuboids, r)
+            elif dataset in contract.OPENCOOD_DATASETS:
+                _compare_opencood(report, sequence, UPath(source_root), meta, len(cuboids), r)
+            else:
+                report.add("source: dataset known", False, f"source_dataset {dataset!r} is not one this tool converts")
     except SourceError as err:
         report.add("source: readable", False, str(err))
 
@@ -80,11 +84,11 @@ def _accounted(report: Report, what: str, converted: int, skipped: dict[str, str
     )
 
 
-def _left_out(report: Report, sensor_id: str, record: dict, paths: list[UPath], listing: dict) -> None:
+def _left_out(report: Report, sensor_id: str, record: dict, paths: list[UPath], listing: dict, reader: Reader) -> None:
     """A sensor the converter left out for unreadable frames declares every source file it has
     (``contract.SENSORS_NOT_WRITTEN``); one left out for another reason (no calibration) is reported."""
     declared = {UPath(f).name for f in record.get("files", {})}
-    present = [p.name for p in paths if objects.exists(p, listing)]
+    present = [p.name for p in paths if reader.exists(p, listing)]
     undeclared = [name for name in present if name not in declared] if declared else []
     report.add(
         f"source: {sensor_id} not written, every file declared",
@@ -115,16 +119,18 @@ def _in_window_ns(timestamps_ns: np.ndarray, window_us: tuple[int, int] | None) 
     return timestamps_ns if window_us is None else timestamps_ns[in_window(floor_us(timestamps_ns), window_us)]
 
 
-def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict, cuboids: CuboidColumns) -> None:
+def _compare_av2(
+    report: Report, sequence: OpenSequence, root: UPath, meta: dict, cuboids: CuboidColumns, reader: Reader
+) -> None:
     loader = sequence.loader
     log_dir = av2.log_dir(root, meta.get(contract.AV2_SPLIT), meta[contract.AV2_LOG_ID])
-    if not log_dir.is_dir():
+    if not reader.is_folder(log_dir):
         report.add("source: log found", False, f"{log_dir}: not a directory")
         return
     options = meta.get(contract.CONVERTER, {}).get("options", {})
     window_us = _window(meta)
-    files = objects.list_folder(log_dir)  # remote sizes and ETags: fetched bytes are checked against them
-    sweeps = _in_window_ns(av2.list_sweep_timestamps_ns(log_dir, files), window_us)
+    files = reader.list_folder(log_dir)  # remote sizes and ETags: fetched bytes are checked against them
+    sweeps = _in_window_ns(av2.list_sweep_timestamps_ns(log_dir, files, reader), window_us)
     for lidar_id in sorted(loader.lidar_ids):
         _count(
             report, f"{lidar_id} frames (one per sweep)", loader.get_lidar_sensor(lidar_id).frames_count, len(sweeps)
@@ -133,26 +139,26 @@ def _compare_av2(report: Report, sequence: OpenSequence, root: UPath, meta: dict
         lidar_meta = sequence.sensor_meta()
         not_stored = sum(sum(lidar_meta[u][contract.POINTS_NOT_STORED].values()) for u in av2.LIDARS)
         stored = sum(_stored_points(loader, u) for u in av2.LIDARS)
-        source = av2.count_sweep_points(log_dir, sweeps, files)
+        source = av2.count_sweep_points(log_dir, sweeps, files, reader)
         report.add(
             "source: lidar points",
             stored + not_stored == source,
             f"{stored} stored + {not_stored} not representable, {source} in the source",
         )
     cameras_dir = log_dir / "sensors" / "cameras"
-    in_source = sorted(p.name for p in cameras_dir.iterdir() if p.is_dir()) if cameras_dir.is_dir() else []
+    in_source = reader.folder_names(cameras_dir, "camera folder")
     for camera in in_source:
-        images = len(_in_window_ns(av2.list_image_timestamps_ns(log_dir, camera), window_us))
+        images = len(_in_window_ns(av2.list_image_timestamps_ns(log_dir, camera, reader=reader), window_us))
         if camera in loader.camera_ids:
             _count(report, f"{camera} images", loader.get_camera_sensor(camera).frames_count, images)
         elif images and _camera_selected(options, camera):
             report.add(f"source: {camera} images", False, f"0 converted, {images} in the source")
-    interior = av2_annotations.read_interior_points(log_dir, files)
+    interior = av2_annotations.read_interior_points(log_dir, files, reader)
     if interior is not None and window_us is not None:
         interior = interior.subset(in_window(floor_us(interior.timestamps_ns), window_us))
     _count(report, "cuboids", len(cuboids), 0 if interior is None else len(interior.counts))
     if interior is not None:
-        annotations = av2_annotations.read_annotations(log_dir, files)
+        annotations = av2_annotations.read_annotations(log_dir, files, reader)
         if window_us is not None:
             annotations = annotations.subset(in_window(floor_us(annotations.timestamps_ns), window_us))
         _boxes_as_annotated(report, cuboids, annotations)
@@ -274,17 +280,19 @@ def _frame_starting_at(loader: SequenceLoaderV4, lidar_id: str, start_us: int) -
     return int(index[0]) if len(index) else None
 
 
-def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta: dict, n_cuboids: int) -> None:
+def _compare_opencood(
+    report: Report, sequence: OpenSequence, root: UPath, meta: dict, n_cuboids: int, reader: Reader
+) -> None:
     loader = sequence.loader
     scenario_dir = ocd.scenario_dir(root, meta[contract.OPENCOOD_SPLIT], meta[contract.SCENARIO])
-    if not scenario_dir.is_dir():
+    if not reader.is_folder(scenario_dir):
         report.add("source: scenario found", False, f"{scenario_dir}: not a directory")
         return
     options = meta.get(contract.CONVERTER, {}).get("options", {})
     agents = list(meta[contract.AGENTS])
     prefixed = len(agents) > 1 or options.get("layout") == "scenario"
     files: dict = {}  # remote files' sizes and ETags: existence is read from the listings
-    keys = {a: ocd.list_frame_keys(scenario_dir / a, files) for a in ocd.list_agents(scenario_dir)}
+    keys = {a: ocd.list_frame_keys(scenario_dir / a, files, reader) for a in ocd.list_agents(scenario_dir, reader)}
     if (window_us := _window(meta)) is not None:
         dt_s = meta["carla_fixed_delta_seconds"]
         keys = {
@@ -297,9 +305,11 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
         prefix = contract.agent_prefix(agent) if prefixed else ""
         agent_dir = scenario_dir / agent
         lidar_id = prefix + ocd.LIDAR
-        read_keys = [k for k in keys[agent] if _vehicle_ids(agent_dir, k, files) is not None]  # readable YAMLs
+        read_keys = [k for k in keys[agent] if _vehicle_ids(agent_dir, k, files, reader) is not None]  # readable YAMLs
         if lidar_id in left_out:
-            _left_out(report, lidar_id, left_out[lidar_id], [ocd.pcd_path(agent_dir, k) for k in read_keys], files)
+            _left_out(
+                report, lidar_id, left_out[lidar_id], [ocd.pcd_path(agent_dir, k) for k in read_keys], files, reader
+            )
         elif lidar_id in loader.lidar_ids:
             lidar = loader.get_lidar_sensor(lidar_id)
             skipped = sensor_meta[lidar_id].get(contract.SKIPPED_FRAMES, {})
@@ -309,7 +319,9 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
                 for i in range(lidar.frames_count)
             )
             stored = _stored_points(loader, lidar_id)
-            source = sum(read_pcd_header(ocd.pcd_path(agent_dir, k)).points for k in keys[agent] if k not in skipped)
+            source = sum(
+                read_pcd_header(ocd.pcd_path(agent_dir, k), reader).points for k in keys[agent] if k not in skipped
+            )
             report.add(
                 f"source: {lidar_id} points",
                 stored + not_stored == source,
@@ -323,22 +335,22 @@ def _compare_opencood(report: Report, sequence: OpenSequence, root: UPath, meta:
                 _accounted(report, f"{prefix}{camera} images", converted, skipped, len(keys[agent]))
             elif prefix + camera in left_out:
                 paths = [ocd.camera_path(agent_dir, k, index) for k in read_keys]
-                _left_out(report, prefix + camera, left_out[prefix + camera], paths, files)
+                _left_out(report, prefix + camera, left_out[prefix + camera], paths, files, reader)
             elif _camera_selected(options, camera):
-                if images := sum(objects.exists(ocd.camera_path(agent_dir, k, index), files) for k in keys[agent]):
+                if images := sum(reader.exists(ocd.camera_path(agent_dir, k, index), files) for k in keys[agent]):
                     report.add(f"source: {prefix}{camera} images", False, f"0 converted, {images} in the source")
     reference = next((a for a in agents if meta[contract.AGENTS][a].get("opencood_ego")), agents[0])
-    readable = [k for k in keys[reference] if _vehicle_ids(scenario_dir / reference, k, files) is not None]
-    labels = sum(len(_labelled(scenario_dir, keys, key, files)) for key in readable)  # the reference's frames
+    readable = [k for k in keys[reference] if _vehicle_ids(scenario_dir / reference, k, files, reader) is not None]
+    labels = sum(len(_labelled(scenario_dir, keys, key, files, reader)) for key in readable)  # the reference's frames
     _count(report, "cuboids (every agent's labels per frame, plus the CAVs)", n_cuboids, labels)
 
 
-def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str, listing: dict) -> set[int]:
+def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str, listing: dict, reader: Reader) -> set[int]:
     """Actor ids at one frame key: every agent's labelled vehicles and the CAVs themselves (an agent
     whose YAML is unreadable adds nothing, as in the converter, which skipped and declared it)."""
     ids: set[int] = set()
     for agent, agent_keys in keys.items():
-        if key in agent_keys and (vehicles := _vehicle_ids(scenario_dir / agent, key, listing)) is not None:
+        if key in agent_keys and (vehicles := _vehicle_ids(scenario_dir / agent, key, listing, reader)) is not None:
             ids.update(vehicles)
             if not ocd.is_infrastructure(agent):
                 ids.add(int(agent))
@@ -348,7 +360,7 @@ def _labelled(scenario_dir: UPath, keys: dict[str, list[str]], key: str, listing
 _VEHICLES: dict[tuple[str, str], frozenset[int] | None] = {}  #: (agent folder, key) -> its YAML's vehicles
 
 
-def _vehicle_ids(agent_dir: UPath, key: str, listing: dict) -> frozenset[int] | None:
+def _vehicle_ids(agent_dir: UPath, key: str, listing: dict, reader: Reader) -> frozenset[int] | None:
     """The vehicles one agent's YAML labels, None if it is unreadable (kept: every agent's sequence
     of a scenario needs them all; a remote YAML is fetched by its ``listing`` entry, or taken from
     the run's spool)."""
@@ -357,7 +369,7 @@ def _vehicle_ids(agent_dir: UPath, key: str, listing: dict) -> frozenset[int] | 
         if len(_VEHICLES) > 8192:
             _VEHICLES.clear()
         try:
-            raw = objects.fetch(ocd.yaml_path(agent_dir, key), listing)
+            raw = reader.read(ocd.yaml_path(agent_dir, key), listing)
             _VEHICLES[cache_key] = frozenset(ocd.read_agent_frame(agent_dir, key, raw).vehicles.actor_ids.tolist())
         except SourceError:
             _VEHICLES[cache_key] = None

@@ -10,23 +10,29 @@ from upath import UPath
 
 from ncore_convert.contract import MANIFEST
 from ncore_convert.errors import ValidationFailed
+from ncore_convert.sources.reader import Reader, reading
 from ncore_convert.validate.coregister import check_coregistration
 from ncore_convert.validate.report import Report, summarise
 from ncore_convert.validate.sequence import RunJobs, validate_sequence
 
 
 def validate_tree(
-    path: UPath, source_root: UPath | None = None, relative_to: UPath | None = None, run_jobs: RunJobs | None = None
+    path: UPath,
+    source_root: UPath | None = None,
+    relative_to: UPath | None = None,
+    run_jobs: RunJobs | None = None,
+    reader: Reader | None = None,
 ) -> list[Report]:
     """Validate a sequence meta, or every sequence and cooperative scenario (``scenario.json``:
     co-registration of its agents) below a folder (a ``scenario.json`` stands for its folder).
     Reports name their file relative to ``relative_to`` when given. With ``run_jobs`` (the
     converter's idle worker pool), each sequence's lidar frames are checked in the workers while
-    the other checks run here."""
+    the other checks run here. The source is read through ``reader`` (one made for the call if None)."""
     path = UPath(path)
     if path.name == MANIFEST:  # a cooperative scenario's manifest: the scenario's folder
         path = path.parent
-    reports = [validate_sequence(meta, source_root, run_jobs) for meta in find_sequences(path)]
+    with reading(reader) as r:
+        reports = [validate_sequence(meta, source_root, run_jobs, r) for meta in find_sequences(path)]
     if path.is_dir():
         reports += [check_coregistration(m) for m in sorted(path.rglob(MANIFEST), key=str) if _visible(m, path)]
     if relative_to is not None:
@@ -56,13 +62,22 @@ def _is_sequence_meta(path: UPath) -> bool:
     return isinstance(data, dict) and "sequence_id" in data and "component_stores" in data
 
 
-def convert_and_validate(task, sequence_dir: UPath, log_id: str, *, source_root: UPath | None = None, **kwargs):
+def convert_and_validate(
+    task, sequence_dir: UPath, log_id: str, *, source_root: UPath | None = None, reader: Reader | None = None, **kwargs
+):
     """A log task followed by :func:`validate_tree` of its output (with the source counts when
-    ``source_root`` is given). Raises ValidationFailed, so the log is not published, on any failure."""
-    summary = task(sequence_dir, log_id, **kwargs)
-    started = time.perf_counter()
-    run_jobs = kwargs["pool"].run if kwargs.get("pool") is not None else None  # the log's workers, idle now
-    record = summarise(validate_tree(sequence_dir, source_root, relative_to=sequence_dir, run_jobs=run_jobs))
+    ``source_root`` is given), both reading through the log's ``reader`` (one made for the call if
+    None). Raises ValidationFailed, so the log is not published, on any failure."""
+    with reading(reader) as log_reader:
+        summary = task(sequence_dir, log_id, reader=log_reader, **kwargs)
+        started = time.perf_counter()
+        run_jobs = kwargs["pool"].run if kwargs.get("pool") is not None else None  # the log's workers, idle now
+        reports = validate_tree(
+            sequence_dir, source_root, relative_to=sequence_dir, run_jobs=run_jobs, reader=log_reader
+        )
+        if reader is None:  # this call's own reader: its requests are the log's (else its owner adds them)
+            summary.reads = log_reader.counts.plus(summary.reads)
+    record = summarise(reports)
     record["seconds"] = round(time.perf_counter() - started, 3)
     if not record["ok"]:
         raise ValidationFailed(

@@ -15,7 +15,7 @@ from ncore_convert.converters.argoverse2.masks import reduced_size, reduction
 from ncore_convert.converters.argoverse2.plan import LogPlan
 from ncore_convert.converters.argoverse2.views import camera_views, usable_pixels
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources import objects
+from ncore_convert.sources.reader import Reader
 from ncore_convert.transforms.camera.colours import DYNAMIC_DT_US, ColourFrame, point_colours
 from ncore_convert.transforms.timebase import NS_PER_US
 
@@ -35,8 +35,8 @@ COLOURS_TAKEN_FROM = (
 class SweepColours:
     """The cameras of one log as colour sources (see the module docstring)."""
 
-    def __init__(self, plan: LogPlan) -> None:
-        self._plan = plan
+    def __init__(self, plan: LogPlan, reader: Reader) -> None:
+        self._plan, self._reader = plan, reader
         self._cameras = {}
         for cam in plan.camera_ids:
             full = plan.cameras[cam].pinhole
@@ -47,7 +47,7 @@ class SweepColours:
     def _read(self, cam: str, timestamp_ns: int) -> np.ndarray:
         inputs = self._plan.inputs
         path = av2.image_path(inputs.log_dir, cam, timestamp_ns)
-        return av2.decode_jpeg(path, objects.fetch(path, inputs.files), self._cameras[cam][0], "RGB")
+        return av2.decode_jpeg(path, self._reader.read(path, inputs.files), self._cameras[cam][0], "RGB")
 
     def frames(self, t_lo_us: int, t_hi_us: int) -> list[ColourFrame]:
         """Every camera frame from ``t_lo_us - FRAME_MARGIN_US`` to ``t_hi_us + FRAME_MARGIN_US``."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from upath import UPath
@@ -28,7 +28,7 @@ from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
 from ncore_convert.sources import argoverse2_map as av2_map
-from ncore_convert.sources import objects
+from ncore_convert.sources.reader import Reader, reading
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
 from ncore_convert.transforms.lidar.frames import (
     LidarFrame,
@@ -111,7 +111,9 @@ def _open_writer(plan: LogPlan, output_dir: UPath, base: bool) -> SequenceWriter
     )
 
 
-def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None]) -> None:
+def _write_base(
+    plan: LogPlan, writer: SequenceWriter, result: JobResult, progress: Callable[[int], None], reader: Reader
+) -> None:
     """Poses (trajectory, world_global, sensor extrinsics), camera and lidar models, masks and cuboids."""
     inputs = plan.inputs
     writer.store_trajectory(plan.T_rig_world.timestamps_us, plan.T_rig_world.poses, plan.T_world_world_global)
@@ -133,13 +135,13 @@ def _write_base(plan: LogPlan, writer: SequenceWriter, result: JobResult, progre
         cuboids = None
         writer.store_cuboids(None)
     if plan.options.maps:
-        _store_map(inputs.log_dir, writer, result)
+        _store_map(inputs.log_dir, writer, result, reader)
     result.cuboids = 0 if cuboids is None else len(cuboids)
 
 
-def _store_map(log_dir: UPath, writer: SequenceWriter, result: JobResult) -> None:
+def _store_map(log_dir: UPath, writer: SequenceWriter, result: JobResult, reader: Reader) -> None:
     """The log's HD map, as stored, in the city frame (= world_global), or a warning without one."""
-    log_map = av2_map.read_log_map(log_dir)
+    log_map = av2_map.read_log_map(log_dir, reader)
     if log_map is None:
         result.warnings.append(f"{log_dir / 'map'}: no map folder; no HD map written")
         return
@@ -162,26 +164,31 @@ def _store_map(log_dir: UPath, writer: SequenceWriter, result: JobResult) -> Non
     result.maps = 1
 
 
-def _frames(plan: LogPlan) -> Iterator[tuple[int, LidarFrame, dict[str, LidarGeometry], np.ndarray]]:
+def _frames(plan: LogPlan, reader: Reader) -> Iterator[tuple[int, LidarFrame, dict[str, LidarGeometry], np.ndarray]]:
     """Each sweep of the log, one at a time: read, its points' own times, split by unit and how each
     unit's rays are made (:func:`sweep_frame`): (its timestamp ns, the frame, the units' geometry, every
     row's ``laser_number``)."""
     calibration = plan.lidar_calibration
     T_sensor_rig = {unit: plan.inputs.T_sensor_ego[unit] for unit in plan.lidar_ids}
     inputs = plan.inputs
-    for sweep in av2.read_sweeps(inputs.log_dir, plan.sweep_timestamps_ns, not plan.options.tbv, inputs.files):
+    sweeps = av2.read_sweeps(
+        inputs.log_dir, plan.sweep_timestamps_ns, not plan.options.tbv, inputs.files, reader=reader
+    )
+    for sweep in sweeps:
         sweep_ns = sweep.timestamp_ns
         times_ns = sweep_times_ns(sweep, calibration, plan.T_rig_world, T_sensor_rig)  # once, for everything
         frame, geometry = sweep_frame(sweep, times_ns, calibration, plan.T_rig_world, T_sensor_rig)
         yield int(sweep_ns), frame, geometry, sweep.laser_number
 
 
-def _sweeps(plan: LogPlan, colours: SweepColours | None, motion: bool = False) -> Iterator[tuple[int, dict, PointData]]:
+def _sweeps(
+    plan: LogPlan, reader: Reader, colours: SweepColours | None, motion: bool = False
+) -> Iterator[tuple[int, dict, PointData]]:
     """Each sweep of the log, one at a time (:func:`_frames`), its rays, model elements and per-point
     data assigned (``lidar_frames.lidar_frame``): (its timestamp ns, the units' rays, the point data).
     ``motion``: with what the lidar itself saw move (``plan.dynamic_source`` lidar or both; the
     frames are held a few sweeps for it, :func:`motion.with_motion`)."""
-    frames = _frames(plan)
+    frames = _frames(plan, reader)
     boxes = plan.stored_flag_boxes if motion else plan.dynamic_boxes  # the label jobs keep the annotated movers
     colouring = None if colours is None else colours.colours
     if not (motion and plan.moves_from_lidar):
@@ -197,12 +204,17 @@ def _sweeps(plan: LogPlan, colours: SweepColours | None, motion: bool = False) -
 
 
 def _write_lidars(
-    plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult, progress: Callable[[int], None]
+    plan: LogPlan,
+    writer: SequenceWriter,
+    job: WriteJob,
+    result: JobResult,
+    progress: Callable[[int], None],
+    reader: Reader,
 ) -> None:
     """Stream sweeps one at a time (:func:`_sweeps`) and store them. Memory stays flat."""
     started = time.perf_counter()
     calibration = plan.lidar_calibration
-    colours = SweepColours(plan) if plan.options.lidar_rgb and plan.camera_ids else None
+    colours = SweepColours(plan, reader) if plan.options.lidar_rgb and plan.camera_ids else None
     flag_meta = point_data_notes(
         plan.stored_flag_boxes,
         "TbV has no cuboids" if plan.options.tbv else "the log has no annotations",
@@ -218,7 +230,7 @@ def _write_lidars(
         )
         for unit in plan.lidar_ids
     }
-    for sweep_ns, units, data in _sweeps(plan, colours, motion=True):
+    for sweep_ns, units, data in _sweeps(plan, reader, colours, motion=True):
         result.dynamic_flag_seconds += data.flag_seconds
         result.colour_seconds += data.colour_seconds
         for unit, unit_rays in units.items():
@@ -243,7 +255,7 @@ def _write_lidars(
     result.lidar_seconds = time.perf_counter() - started
 
 
-def _write_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult) -> None:
+def _write_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: JobResult, reader: Reader) -> None:
     """The camera labels ``job.label_ids`` (every kind of some cameras) in a job of their own: the
     sweeps streamed again (:func:`_sweeps`, not stored: the lidars' job stores them), each camera frame
     labelled from the sweep nearest it."""
@@ -253,7 +265,7 @@ def _write_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: 
         if any(contract.camera_label_id(k, cam) in job.label_ids for k in plan.label_kinds)
     ]
     labeller = FrameLabeller(plan, writer, cameras)
-    for _, _, data in _sweeps(plan, None, motion=plan.label_movers_from_lidar):
+    for _, _, data in _sweeps(plan, reader, None, motion=plan.label_movers_from_lidar):
         labeller.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic, data.spacing_m, data.unknown)
     labeller.finish()
     result.camera_labels += labeller.labels
@@ -261,13 +273,13 @@ def _write_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: 
 
 
 def _write_camera(
-    plan: LogPlan, writer: SequenceWriter, cam: str, result: JobResult, progress: Callable[[int], None]
+    plan: LogPlan, writer: SequenceWriter, cam: str, result: JobResult, progress: Callable[[int], None], reader: Reader
 ) -> None:
     """Copy every JPEG as-is into its camera component, with frame times [t, t] (global shutter)."""
     started = time.perf_counter()
     stream = writer.add_camera(cam, _camera_meta(plan.inputs.intrinsics[cam], plan.cameras[cam], plan.ego_masks[cam]))
     stamps_ns = plan.inputs.image_timestamps_ns[cam]
-    images = av2.read_images(plan.inputs.log_dir, cam, stamps_ns, plan.inputs.files)
+    images = av2.read_images(plan.inputs.log_dir, cam, stamps_ns, plan.inputs.files, reader=reader)
     for image_ns, (_, data) in zip(stamps_ns.tolist(), images, strict=True):
         if isinstance(data, SourceError):
             raise data
@@ -279,23 +291,25 @@ def _write_camera(
 
 
 def write_part(plan: LogPlan, output_dir: UPath, jobs: list[WriteJob], progress: Callable[[int], None]) -> JobResult:
-    """Write the jobs of one independent part (see :func:`log_jobs`) with one writer; runs in a worker."""
-    result, not_kept = JobResult(), objects.COUNTS.not_kept
-    with warnings_kept(result.warnings):
+    """Write the jobs of one independent part (see :func:`log_jobs`) with one writer; runs in a
+    worker, reading with a reader of its own that shares the log's spool (its counts in the result)."""
+    result = JobResult()
+    with warnings_kept(result.warnings), Reader(plan.inputs.reading) as reader:
         writer = _open_writer(plan, output_dir, base=BASE_JOB in jobs)
         for job in jobs:
             if job.base:
-                _write_base(plan, writer, result, progress)
+                _write_base(plan, writer, result, progress, reader)
             elif not job.sensor_ids:
-                _write_labels(plan, writer, job, result)
+                _write_labels(plan, writer, job, result, reader)
             elif job.sensor_ids == tuple(plan.lidar_ids):
-                _write_lidars(plan, writer, job, result, progress)
+                _write_lidars(plan, writer, job, result, progress, reader)
             else:
                 (cam,) = job.sensor_ids
-                _write_camera(plan, writer, cam, result, progress)
+                _write_camera(plan, writer, cam, result, progress, reader)
         result.meta = writer.finalize(with_meta=plan.options.sequence_meta)
-    if (line := objects.not_kept_since(not_kept)) is not None:
-        result.warnings.append(line)
+        if (line := reader.not_kept_warning()) is not None:
+            result.warnings.append(line)
+        result.reads = asdict(reader.counts)
     return result
 
 
@@ -349,18 +363,35 @@ def convert_log(
     options: Argoverse2Options,
     pool: JobPool | None = None,
     progress: Progress | None = None,
+    reader: Reader | None = None,
 ) -> LogSummary:
     """Convert one AV2 log into ``output_dir`` (which becomes the sequence directory).
 
     Args:
         pool: worker processes for the log's independent store parts; None writes them in this process.
         progress: told the number of frames (sweeps + images) to write, then each written frame.
+        reader: the log's reader (its owner closes it: the run's log task); None: one for this call.
     """
+    with reading(reader) as log_reader:
+        summary = _convert_log(root_dir, output_dir, log_id, options, pool, progress, log_reader)
+        if reader is None:  # this call's own reader: its requests are the log's (else its owner adds them)
+            summary.reads = log_reader.counts.plus(summary.reads)
+    return summary
+
+
+def _convert_log(
+    root_dir: UPath,
+    output_dir: UPath,
+    log_id: str,
+    options: Argoverse2Options,
+    pool: JobPool | None,
+    progress: Progress | None,
+    reader: Reader,
+) -> LogSummary:
     started = time.perf_counter()
     progress = progress or Progress()
-    not_kept = objects.COUNTS.not_kept
-    plan = plan_log(root_dir, log_id, options, pool.run if pool else None)
-    if (line := objects.not_kept_since(not_kept)) is not None:
+    plan = plan_log(root_dir, log_id, options, pool.run if pool else None, reader)
+    if (line := reader.not_kept_warning()) is not None:
         plan.warnings.append(line)
     progress.total(plan.n_frames)
     parts = log_jobs(plan, pool.workers if pool else 1)
@@ -373,7 +404,7 @@ def convert_log(
 
     if options.sequence_meta:
         write_sequence_meta(output_dir, log_id, [r.meta for r in results if r.meta is not None])
-    summary = LogSummary(log_id=log_id, warnings=list(plan.warnings))
+    summary = LogSummary(log_id=log_id, warnings=list(plan.warnings))  # reads: the parts' (workers')
     if plan.lidar_calibration is not None:
         summary.lidar_model_seconds = max(plan.lidar_calibration.model_seconds.values(), default=0.0)
     for result in results:

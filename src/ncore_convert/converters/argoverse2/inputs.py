@@ -14,7 +14,8 @@ from upath import UPath
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
-from ncore_convert.sources import objects
+from ncore_convert.sources.reader import Reader, ReadSettings
+from ncore_convert.sources.store import ObjectInfo
 from ncore_convert.transforms.geometry import Trajectory, invert_se3
 from ncore_convert.transforms.lidar import timing as lidar_timing
 from ncore_convert.transforms.timebase import NS_PER_US, ceil_us, floor_us
@@ -35,27 +36,30 @@ class LogInputs:
     sweep_timestamps_ns: np.ndarray
     image_timestamps_ns: dict[str, np.ndarray]
     annotations: av2_annotations.Annotations | None
-    files: dict[str, objects.ObjectInfo]  #: remote sweeps' and images' sizes and ETags, from their folders' listings
+    files: dict[str, ObjectInfo]  #: remote sweeps' and images' sizes and ETags, from their folders' listings
+    reading: ReadSettings  #: for the readers of the log's jobs (``Reader.shared`` of the log's reader)
 
 
 def read_log_inputs(
-    log_dir: UPath, camera_ids: list[str], intrinsics: dict[str, av2.CameraIntrinsics] | None = None
+    log_dir: UPath, camera_ids: list[str], reader: Reader, intrinsics: dict[str, av2.CameraIntrinsics] | None = None
 ) -> LogInputs:
-    """Read a log's small inputs; ``intrinsics``: already read (TbV reads them to pick the cameras)."""
+    """Read a log's small inputs through the log's ``reader``; ``intrinsics``: already read (TbV
+    reads them to pick the cameras)."""
     # remote sizes and ETags, every file read checked against them: the log folder's and the
     # calibration's listings here; the sweeps' and images' folders add theirs
-    files = {**objects.list_folder(log_dir), **objects.list_folder(log_dir / "calibration")}
-    pose_timestamps_ns, T_ego_city = av2.read_ego_poses(log_dir, files)
+    files = {**reader.list_folder(log_dir), **reader.list_folder(log_dir / "calibration")}
+    pose_timestamps_ns, T_ego_city = av2.read_ego_poses(log_dir, files, reader)
     return LogInputs(
         log_dir=log_dir,
         pose_timestamps_ns=pose_timestamps_ns,
         T_ego_city=T_ego_city,
-        T_sensor_ego=av2.read_sensor_extrinsics(log_dir, files),
-        intrinsics=intrinsics if intrinsics is not None else av2.read_intrinsics(log_dir, files),
-        sweep_timestamps_ns=av2.list_sweep_timestamps_ns(log_dir, files),
-        image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam, files) for cam in camera_ids},
-        annotations=av2_annotations.read_annotations(log_dir, files),
+        T_sensor_ego=av2.read_sensor_extrinsics(log_dir, files, reader),
+        intrinsics=intrinsics if intrinsics is not None else av2.read_intrinsics(log_dir, files, reader),
+        sweep_timestamps_ns=av2.list_sweep_timestamps_ns(log_dir, files, reader),
+        image_timestamps_ns={cam: av2.list_image_timestamps_ns(log_dir, cam, files, reader) for cam in camera_ids},
+        annotations=av2_annotations.read_annotations(log_dir, files, reader),
         files=files,
+        reading=reader.shared(),
     )
 
 
@@ -121,7 +125,7 @@ def _check_pose_gaps(path: UPath, pose_timestamps_us: np.ndarray, needed_us: tup
 
 
 def sensor_time_range_us(
-    inputs: LogInputs, camera_ids: list[str], with_lidar: bool, with_offsets: bool
+    inputs: LogInputs, camera_ids: list[str], with_lidar: bool, with_offsets: bool, reader: Reader
 ) -> tuple[int, int]:
     """Inclusive µs range the trajectory must cover: lidar points at their exact ns times (so the
     end rounds up), camera frames and cuboids at their stored (floored) µs times.
@@ -136,7 +140,7 @@ def sensor_time_range_us(
         hi.append(ceil_us(int(inputs.sweep_timestamps_ns[-1]) + int(lidar_timing.SWEEP_SPAN_MS[1] * 1e6)))
     elif with_lidar:
         for sweep_ns in {int(inputs.sweep_timestamps_ns[0]), int(inputs.sweep_timestamps_ns[-1])}:
-            first_ns, last_ns = av2.read_sweep_offset_range_ns(inputs.log_dir, sweep_ns, inputs.files)
+            first_ns, last_ns = av2.read_sweep_offset_range_ns(inputs.log_dir, sweep_ns, inputs.files, reader)
             lo.append(floor_us(sweep_ns + min(first_ns, 0)))
             hi.append(ceil_us(sweep_ns + last_ns))
     for cam in camera_ids:

@@ -16,7 +16,8 @@ from upath import UPath
 
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources import objects
+from ncore_convert.sources.reader import Reader
+from ncore_convert.sources.store import ObjectInfo
 from ncore_convert.transforms.geometry import Trajectory
 from ncore_convert.transforms.lidar import timing as lidar_timing
 from ncore_convert.transforms.lidar import vlp32c
@@ -96,11 +97,12 @@ def read_covered_sweeps(
     timestamps_ns: list[int],
     T_rig_world: Trajectory,
     with_offsets: bool,
-    listing: dict[str, objects.ObjectInfo] | None = None,
+    listing: dict[str, ObjectInfo] | None = None,
+    reader: Reader | None = None,
 ) -> list[av2.Sweep]:
     """Read sweeps (fetched ahead); with offset_ns, check that the trajectory covers all their point
     times (SourceError if not). Reconstructed times are checked when they are computed."""
-    sweeps = list(av2.read_sweeps(log_dir, timestamps_ns, with_offsets, listing))
+    sweeps = list(av2.read_sweeps(log_dir, timestamps_ns, with_offsets, listing, reader=reader))
     if with_offsets:
         for sweep in sweeps:
             _check_covered(sweep, sweep.timestamp_ns + sweep.offset_ns.astype(np.int64), T_rig_world)
@@ -155,7 +157,8 @@ def calibrate_lidars(
     T_sensor_rig: dict[str, np.ndarray],
     model_units: list[str],
     timing: TriggerTiming | None = None,
-    listing: dict[str, objects.ObjectInfo] | None = None,
+    listing: dict[str, ObjectInfo] | None = None,
+    reader: Reader | None = None,
 ) -> LidarCalibration:
     """Decide the unit split, then derive the structured model of each unit in ``model_units``.
 
@@ -166,7 +169,7 @@ def calibrate_lidars(
     """
     picks = spread_indices(len(sweep_timestamps_ns), CALIBRATION_SWEEPS)
     stamps = [int(sweep_timestamps_ns[i]) for i in picks]
-    sweeps = read_covered_sweeps(log_dir, stamps, T_rig_world, timing is None, listing)
+    sweeps = read_covered_sweeps(log_dir, stamps, T_rig_world, timing is None, listing, reader)
     knots = _unit_knots(sweeps, T_rig_world, T_sensor_rig, timing) if timing is not None else {}
     spread: dict[tuple[str, str], float] = {}
     halves: dict[tuple[str, str], list] = {}

@@ -12,7 +12,8 @@ import math
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from functools import partial
 
 import numpy as np
 import PIL.Image
@@ -21,8 +22,9 @@ from upath import UPath
 from ncore_convert.errors import SourceError
 from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources import objects
 from ncore_convert.sources.masks import read_mask_folder
+from ncore_convert.sources.reader import Reader, ReadSettings
+from ncore_convert.sources.store import ObjectInfo
 from ncore_convert.transforms.camera import ego_mask
 from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.sampling import spread_indices
@@ -94,10 +96,11 @@ def _estimate(
     T_camera_ego: np.ndarray,
     box: ego_mask.EgoBox,
     require_agreement: bool = True,
-    listing: dict[str, objects.ObjectInfo] | None = None,
+    listing: dict[str, ObjectInfo] | None = None,
+    reader: Reader | None = None,
 ) -> EgoMask:
-    """One camera's estimate; ``require_agreement``: as in ``ego_mask.estimate`` (False only to
-    measure the agreement test)."""
+    """One camera's estimate (its images read by ``reader``); ``require_agreement``: as in
+    ``ego_mask.estimate`` (False only to measure the agreement test)."""
     scale = reduction(pinhole)
     width, height = reduced_size(pinhole)
     prior = _prior((height, width), pinhole, T_camera_ego, box)
@@ -124,7 +127,9 @@ def _estimate(
     def decoded(indices: np.ndarray) -> np.ndarray:
         # fetched ahead, decoded in two threads (decoding frees the GIL), so that the log's last
         # camera, alone on the workers, still uses two cores for it
-        fetched = av2.read_images(log_dir, camera, stamps_ns[indices], listing, keep=True)  # the copy job reads them
+        fetched = av2.read_images(
+            log_dir, camera, stamps_ns[indices], listing, keep=True, reader=reader
+        )  # copied later
         with ThreadPoolExecutor(2) as threads:
             return np.stack(list(threads.map(grey, fetched)))
 
@@ -169,9 +174,11 @@ def _estimate(
     return EgoMask(meta, reduced=result.mask)
 
 
-def _estimate_job(*args, progress=None) -> EgoMask:
-    """:func:`_estimate` as a ``JobPool`` job (which passes a progress callback: no frames written here)."""
-    return _estimate(*args)
+def _estimate_job(*args, reading: ReadSettings, progress=None) -> tuple[EgoMask, dict]:
+    """:func:`_estimate` as a ``JobPool`` job (which passes a progress callback: no frames written
+    here), with a reader of its own for the log (``reading``), and that reader's counts."""
+    with Reader(reading) as reader:
+        return _estimate(*args, reader=reader), asdict(reader.counts)
 
 
 def _agreement(camera: str, meta: dict) -> str:
@@ -187,7 +194,8 @@ def plan_ego_masks(
     warnings: list[str],
     box: ego_mask.EgoBox,
     run_jobs: Callable[[list[Job]], list] | None = None,
-    listing: dict[str, objects.ObjectInfo] | None = None,
+    listing: dict[str, ObjectInfo] | None = None,
+    reader: Reader | None = None,
 ) -> dict[str, EgoMask]:
     """Every camera's ego mask under ``--ego-masks`` ``option`` (``estimate``, ``none`` or a folder).
 
@@ -197,6 +205,8 @@ def plan_ego_masks(
             see the body (``ego_mask.BodyPrior.must_see``) but gets no mask is always one.
         box: the nominal ego vehicle of the prior.
         listing: the remote images' sizes and ETags (``LogInputs.files``).
+        reader: the log's reader: the estimates read with readers it shares (in other processes
+            too), and their counts are added to its own.
         run_jobs: runs the per-camera estimates (``JobPool.run``: the conversion's worker processes,
             idle while a log is planned); None: threads in this process. The result does not
             depend on it.
@@ -205,20 +215,25 @@ def plan_ego_masks(
         return {cam: EgoMask({"method": "none"}) for cam in cameras}
     if option != "estimate":
         sizes = {cam: pinhole.resolution_px for cam, (_, pinhole, _) in cameras.items()}
-        user = read_mask_folder(UPath(option), sizes)
+        user = read_mask_folder(UPath(option), sizes, reader)
         return {
             cam: EgoMask({"method": "user", "file": f"{cam}.png"}, user_png=user[cam])
             if cam in user
             else EgoMask({"method": "user", "decision": "no file: no mask"})
             for cam in cameras
         }
-    jobs = [(_estimate_job, (log_dir, cam, *inputs, box, True, listing)) for cam, inputs in cameras.items()]
+    reading = reader.shared() if reader is not None else ReadSettings()
+    estimate = partial(_estimate_job, reading=reading)
+    jobs = [(estimate, (log_dir, cam, *inputs, box, True, listing)) for cam, inputs in cameras.items()]
     if run_jobs is None:  # threads: JPEG decoding and most array work free the GIL
         with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
             estimated = list(pool.map(lambda job: job[0](*job[1]), jobs))
     else:
         estimated = run_jobs(jobs)
-    masks = dict(zip(cameras, estimated, strict=True))
+    if reader is not None:
+        for _, counts in estimated:
+            reader.counts.add(counts)
+    masks = dict(zip(cameras, (mask for mask, _ in estimated), strict=True))
     fallbacks: dict[str, list[str]] = {}
     for cam, mask in masks.items():
         decision = mask.meta["decision"]

@@ -27,7 +27,7 @@ from ncore_convert.converters.common import ConsumerOptions, select_sensors
 from ncore_convert.errors import SourceError, UsageError, warnings_kept
 from ncore_convert.run.pool import Job
 from ncore_convert.sources import argoverse2 as av2
-from ncore_convert.sources.files import require_folder
+from ncore_convert.sources.reader import Reader, reading
 from ncore_convert.transforms.camera.ego_mask import EgoBox
 from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.geometry import Trajectory
@@ -170,14 +170,19 @@ class LogPlan:
 
 
 def plan_log(
-    root_dir: UPath, log_id: str, options: Argoverse2Options, run_jobs: Callable[[list[Job]], list] | None = None
+    root_dir: UPath,
+    log_id: str,
+    options: Argoverse2Options,
+    run_jobs: Callable[[list[Job]], list] | None = None,
+    reader: Reader | None = None,
 ) -> LogPlan:
-    """Read a log's small inputs, check them, and make the per-log decisions (trajectory, unit split);
-    ``run_jobs`` runs the ego-mask estimates (``plan_ego_masks``), in the background of the rest.
-    An error raised here carries the warnings so far (``errors.warnings_kept``)."""
+    """Read a log's small inputs through the log's ``reader`` (one made for the plan if None), check
+    them, and make the per-log decisions (trajectory, unit split); ``run_jobs`` runs the ego-mask
+    estimates (``plan_ego_masks``), in the background of the rest. An error raised here carries the
+    warnings so far (``errors.warnings_kept``)."""
     warnings: list[str] = []
-    with warnings_kept(warnings):
-        return _plan_log(root_dir, log_id, options, run_jobs, warnings)
+    with warnings_kept(warnings), reading(reader) as log_reader:
+        return _plan_log(root_dir, log_id, options, run_jobs, warnings, log_reader)
 
 
 def _plan_log(
@@ -186,20 +191,21 @@ def _plan_log(
     options: Argoverse2Options,
     run_jobs: Callable[[list[Job]], list] | None,
     warnings: list[str],
+    reader: Reader,
 ) -> LogPlan:
     log_dir = options.log_dir(root_dir, log_id)
-    require_folder(log_dir, "log directory")
+    reader.require_folder(log_dir, "log directory")
     lidar_ids = select_sensors(options.lidar_ids, av2.LIDARS, "lidar")
     intrinsics = None
     if options.tbv:  # the cameras are those of the log's calibration
-        intrinsics = av2.read_intrinsics(log_dir)
+        intrinsics = av2.read_intrinsics(log_dir, reader=reader)
         try:
             camera_ids = select_sensors(options.camera_ids, tuple(intrinsics), "camera")
         except ValueError as err:
             raise SourceError(av2.intrinsics_path(log_dir), str(err)) from None
     else:
         camera_ids = select_sensors(options.camera_ids, av2.CAMERAS, "camera")
-    inputs = read_log_inputs(log_dir, camera_ids, intrinsics)
+    inputs = read_log_inputs(log_dir, camera_ids, reader, intrinsics)
 
     for sensor in av2.LIDARS + tuple(camera_ids):
         if sensor not in inputs.T_sensor_ego:
@@ -245,8 +251,9 @@ def _plan_log(
             EgoBox(*options.ego_box_m),
             run_jobs,
             inputs.files,
+            reader,
         )
-        plan = _plan_rest(log_dir, log_id, options, inputs, camera_ids, lidar_ids, window_us, warnings)
+        plan = _plan_rest(log_dir, log_id, options, inputs, camera_ids, lidar_ids, window_us, warnings, reader)
         ego_masks = masks.result()
     warnings.extend(mask_warnings)
     return replace(plan, ego_masks=ego_masks)
@@ -261,9 +268,10 @@ def _plan_rest(
     lidar_ids: list[str],
     window_us: tuple[int, int] | None,
     warnings: list[str],
+    reader: Reader,
 ) -> LogPlan:
     """The plan's decisions after the sensors and the window (all but the ego masks)."""
-    needed_us = sensor_time_range_us(inputs, camera_ids, bool(lidar_ids), not options.tbv)
+    needed_us = sensor_time_range_us(inputs, camera_ids, bool(lidar_ids), not options.tbv, reader)
     T_rig_world, T_world_city = ego_trajectory(inputs, needed_us, warnings, cut=window_us is not None)
     T_world_world_global, world_global_meta = consumer.world_global(
         T_world_city, options.world_global_mode, "the Argoverse 2 city frame"
@@ -274,7 +282,7 @@ def _plan_rest(
         model_units = lidar_ids if options.lidar_model_source == "empirical" else []
         timing = _trigger_timing(inputs) if options.tbv else None
         lidar_calibration = calibrate_lidars(
-            log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig, model_units, timing, inputs.files
+            log_dir, inputs.sweep_timestamps_ns, T_rig_world, T_lidar_rig, model_units, timing, inputs.files, reader
         )
         split = lidar_calibration.unit_split
         if split.margin < UNIT_DECISION_MIN_MARGIN:

@@ -6,7 +6,7 @@ written last.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from functools import partial
 
 import numpy as np
@@ -22,8 +22,8 @@ from ncore_convert.converters.opencood.plan import plan_scenario
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, Names, OpenCoodOptions, ScenarioPlan
 from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
-from ncore_convert.sources import objects
 from ncore_convert.sources import opencood as src
+from ncore_convert.sources.reader import Reader, reading
 from ncore_convert.transforms import carla
 from ncore_convert.transforms.camera.colours import ColourFrame, point_colours
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3
@@ -120,7 +120,9 @@ COLOURS_TAKEN_FROM = (
 )
 
 
-def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t_us: int) -> list[ColourFrame]:
+def _colour_frames(
+    plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t_us: int, reader: Reader
+) -> list[ColourFrame]:
     """The agent's camera images of tick ``key`` (frame index ``frame``) as colour sources: every
     point and picture of a CARLA tick is taken at the tick, and so are the tick's labelled vehicles
     (the agent's own excepted), solid occluders. An unreadable image is left out (the camera stream
@@ -129,7 +131,7 @@ def _colour_frames(plan: ScenarioPlan, agent: AgentPlan, frame: int, key: str, t
     out = []
     for cam in agent.camera_ids:
         try:
-            data = src.fetch_png(agent.agent_dir, key, agent.camera_index[cam], agent.files)
+            data = src.fetch_png(agent.agent_dir, key, agent.camera_index[cam], agent.files, reader)
         except SourceError:
             continue
         view = camera_view(agent, frame, t_us, cam, T_box, half)
@@ -158,12 +160,12 @@ def _label_kinds(plan: ScenarioPlan, agent: AgentPlan) -> tuple[str, ...]:
     return tuple(kind for kind in plan.options.camera_labels if kind != "depth" or agent.lidar_ids)
 
 
-def _pictured(agent: AgentPlan, key: str) -> list[str]:
+def _pictured(agent: AgentPlan, key: str, reader: Reader) -> list[str]:
     """The agent's cameras whose picture of tick ``key`` is readable (those get a frame, and labels)."""
     out = []
     for cam in agent.camera_ids:
         try:
-            src.fetch_png(agent.agent_dir, key, agent.camera_index[cam], agent.files)
+            src.fetch_png(agent.agent_dir, key, agent.camera_index[cam], agent.files, reader)
         except SourceError:
             continue
         out.append(cam)
@@ -177,6 +179,7 @@ def _write_sensors(
     names: Names,
     counts: Counts,
     progress: Progress,
+    reader: Reader,
     labeller: TickLabeller | None = None,
 ) -> None:
     """Stream the agent's lidar frames and images, one frame at a time; skip (and report) missing
@@ -213,7 +216,7 @@ def _write_sensors(
         paths = [
             p for key in agent.keys for p in (src.pcd_path(agent.agent_dir, key), src.yaml_path(agent.agent_dir, key))
         ]
-        fetched = objects.read_ahead(paths, agent.files, keep=True)  # each tick's PCD and YAML, in turn
+        fetched = reader.read_ahead(paths, agent.files, keep=True)  # each tick's PCD and YAML, in turn
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             (_, pcd), (yaml_file, yaml) = next(fetched), next(fetched)
             try:
@@ -226,7 +229,7 @@ def _write_sensors(
                 counts.warnings.append(f"{err}; lidar frame skipped")
                 skipped[key] = err.cause
                 if depth or boxes:  # the tick's pictures still get labels (depth: empty), saying why
-                    pictured = _pictured(agent, key)
+                    pictured = _pictured(agent, key, reader)
                     if depth:
                         labeller.store_depth(frame, key, int(t_us), pictured, None, f"lidar frame: {err}")
                     for cam in pictured if boxes else ():
@@ -244,10 +247,10 @@ def _write_sensors(
             )
             colouring = None
             if coloured:
-                colouring = partial(point_colours, frames=_colour_frames(plan, agent, frame, key, int(t_us)))
+                colouring = partial(point_colours, frames=_colour_frames(plan, agent, frame, key, int(t_us), reader))
             stored, points = lidar_frame(lidar_frame_in, {src.LIDAR: geometry}, plan.dynamic_boxes, colouring)
             if depth or boxes:
-                pictured = _pictured(agent, key)
+                pictured = _pictured(agent, key, reader)
                 if depth:
                     labeller.store_depth(frame, key, int(t_us), pictured, points)
                 for cam in pictured if boxes else ():
@@ -290,7 +293,7 @@ def _write_sensors(
         skipped = {}
         paths = [src.camera_path(agent.agent_dir, key, index) for key in agent.keys]
         # kept when the lidar job (labels, colours) reads the pictures too
-        fetched = objects.read_ahead(paths, agent.files, keep=bool(boxes or plan.options.lidar_rgb))
+        fetched = reader.read_ahead(paths, agent.files, keep=bool(boxes or plan.options.lidar_rgb))
         for frame, (key, t_us, (_, image)) in enumerate(zip(agent.keys, agent.timestamps_us, fetched, strict=True)):
             try:
                 if isinstance(image, SourceError):
@@ -309,17 +312,25 @@ def _write_sensors(
 
 
 def _write(plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id: str, progress: Progress) -> Counts:
-    """One sequence holding ``agent_ids`` (one agent, or all of them prefixed), written by one writer."""
-    counts, not_kept = Counts(), objects.COUNTS.not_kept
-    with warnings_kept(counts.warnings):
-        _write_sequence(plan, agent_ids, out_dir, sequence_id, progress, counts)
-    if (line := objects.not_kept_since(not_kept)) is not None:
-        counts.warnings.append(line)
+    """One sequence holding ``agent_ids`` (one agent, or all of them prefixed), written by one writer
+    (runs in a worker, reading with a reader of its own that shares the scenario's spool)."""
+    counts = Counts()
+    with warnings_kept(counts.warnings), Reader(plan.reading) as reader:
+        _write_sequence(plan, agent_ids, out_dir, sequence_id, progress, counts, reader)
+        if (line := reader.not_kept_warning()) is not None:
+            counts.warnings.append(line)
+        counts.reads = asdict(reader.counts)
     return counts
 
 
 def _write_sequence(
-    plan: ScenarioPlan, agent_ids: list[str], out_dir: UPath, sequence_id: str, progress: Progress, counts: Counts
+    plan: ScenarioPlan,
+    agent_ids: list[str],
+    out_dir: UPath,
+    sequence_id: str,
+    progress: Progress,
+    counts: Counts,
+    reader: Reader,
 ) -> Counts:
     agents = [plan.agents[a] for a in agent_ids]
     prefixed = len(agent_ids) > 1 or plan.options.layout == "scenario"
@@ -361,7 +372,7 @@ def _write_sequence(
         labeller = None
         if label_kinds[agent.agent_id] and agent.camera_ids:
             labeller = TickLabeller(plan, agent, label_kinds[agent.agent_id], writer, name.sensor)
-        _write_sensors(writer, plan, agent, name, counts, progress, labeller)
+        _write_sensors(writer, plan, agent, name, counts, progress, reader, labeller)
         if labeller is not None:
             labeller.finish()
             counts.camera_labels += labeller.labels
@@ -389,6 +400,7 @@ def convert_scenario(
     options: OpenCoodOptions,
     pool: JobPool | None = None,
     progress: Progress | None = None,
+    reader: Reader | None = None,
 ) -> ScenarioSummary:
     """Convert one scenario into ``output_dir``: a sequence per agent in ``<agent_id>/`` (or one
     sequence, ``--layout scenario``) and ``scenario.json``, written last.
@@ -396,10 +408,27 @@ def convert_scenario(
     Args:
         pool: worker processes for the agents' sequences; None writes them in this process.
         progress: told the number of frames (lidar frames + images) to write, then each written frame.
+        reader: the scenario's reader (its owner closes it: the run's task); None: one for this call.
     """
+    with reading(reader) as scenario_reader:
+        summary = _convert_scenario(root_dir, output_dir, scenario, options, pool, progress, scenario_reader)
+        if reader is None:  # this call's own reader: its requests are the scenario's (else its owner adds them)
+            summary.reads = scenario_reader.counts.plus(summary.reads)
+    return summary
+
+
+def _convert_scenario(
+    root_dir: UPath,
+    output_dir: UPath,
+    scenario: str,
+    options: OpenCoodOptions,
+    pool: JobPool | None,
+    progress: Progress | None,
+    reader: Reader,
+) -> ScenarioSummary:
     started = time.perf_counter()
     progress = progress or Progress()
-    plan = plan_scenario(root_dir, scenario, options)
+    plan = plan_scenario(root_dir, scenario, options, reader)
     progress.total(sum(a.n_frames for a in plan.agents.values()))
     output_dir.mkdir(parents=True, exist_ok=True)
     if options.layout == "scenario":

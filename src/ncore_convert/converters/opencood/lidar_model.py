@@ -11,6 +11,7 @@ import numpy as np
 from ncore_convert.converters.opencood.records import AgentPlan, OpenCoodOptions
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import opencood as src
+from ncore_convert.sources.reader import Reader
 from ncore_convert.transforms import carla
 from ncore_convert.transforms.lidar import carla as carla_lidar
 from ncore_convert.transforms.lidar.rays import MIN_RANGE_M
@@ -26,7 +27,12 @@ COLUMN_TOLERANCE = 0.25
 
 
 def with_lidar_model(
-    agent: AgentPlan, protocol: src.Protocol, options: OpenCoodOptions, scenario: str, warnings: list[str]
+    agent: AgentPlan,
+    protocol: src.Protocol,
+    options: OpenCoodOptions,
+    scenario: str,
+    warnings: list[str],
+    reader: Reader,
 ) -> AgentPlan:
     """The agent's lidar model: from its protocol block (the CAVs', or its infrastructure unit's)
     when a few of its frames fit it; else, when the block is missing, unusable or disagrees with the
@@ -36,7 +42,7 @@ def with_lidar_model(
         return agent
     if options.lidar_model_source == "none":
         return replace(agent, lidar_model_meta={"lidar_model_source": "none"})
-    directions = _model_frames(agent)
+    directions = _model_frames(agent, reader)
     if not directions:
         return _no_model(agent, scenario, "no readable lidar frame to derive it from", warnings)
     block = protocol.lidar_of(agent.agent_id)
@@ -78,13 +84,13 @@ def with_lidar_model(
     return _modelled(agent, found, measured.fit, "points", len(directions), extra)
 
 
-def _model_frames(agent: AgentPlan) -> list[np.ndarray]:
+def _model_frames(agent: AgentPlan, reader: Reader) -> list[np.ndarray]:
     """Unit rays (right-handed lidar frame, [N,3]) of a few of the agent's frames (unreadable ones
     are left out here and reported when the frame is written)."""
     directions = []
     for key in [agent.keys[i] for i in spread_indices(len(agent.keys), MODEL_FRAMES)]:
         try:
-            sweep = src.fetch_points(agent.agent_dir, key, agent.files)
+            sweep = src.fetch_points(agent.agent_dir, key, agent.files, reader)
         except SourceError:
             continue
         xyz = carla.points_right_handed(sweep.xyz_m.astype(np.float64))

@@ -25,9 +25,9 @@ from ncore_convert.converters.opencood.lidar_model import with_lidar_model
 from ncore_convert.converters.opencood.noise import AgentNoise, opencood_loaded, plan_noise
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, Boxes, OpenCoodOptions, ScenarioPlan
 from ncore_convert.errors import SourceError, UsageError, warnings_kept
-from ncore_convert.sources import objects
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.files import require_folder
+from ncore_convert.sources.reader import Reader, reading
+from ncore_convert.sources.store import key as object_key
 from ncore_convert.transforms import carla
 from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.geometry import invert_se3, rigid_mean
@@ -54,12 +54,12 @@ def _files_text(damaged: dict[str, str]) -> str:
 
 
 def _read_frames(
-    agent_dir: UPath, keys: list[str], warnings: list[str], skipped: dict[str, str], listing: dict
+    agent_dir: UPath, keys: list[str], warnings: list[str], skipped: dict[str, str], listing: dict, reader: Reader
 ) -> list[src.AgentFrame]:
     """The readable frames (fetched ahead, and kept for the lidar job, which stores their text); an
     unreadable YAML is a warning and ``skipped[key]`` (its cause)."""
     frames = []
-    fetched = objects.read_ahead([src.yaml_path(agent_dir, key) for key in keys], listing, keep=True)
+    fetched = reader.read_ahead([src.yaml_path(agent_dir, key) for key in keys], listing, keep=True)
     for key, (_, data) in zip(keys, fetched, strict=True):
         try:
             if isinstance(data, SourceError):
@@ -121,11 +121,12 @@ def plan_agent(
     warnings: list[str],
     skipped_keys: dict[str, str] | None = None,
     listing: dict | None = None,
+    reader: Reader | None = None,
 ) -> AgentPlan:
     """Trajectory and calibration of one agent from its frames (at least two); ``skipped_keys``:
     the keys whose YAML could not be read, with the cause; ``listing``: the remote files' sizes
     and ETags (the first readable lidar frame and image are fetched by it and kept)."""
-    listing = {k: v for k, v in (listing or {}).items() if k.startswith(objects.key(agent_dir) + "/")}
+    listing = {k: v for k, v in (listing or {}).items() if k.startswith(object_key(agent_dir) + "/")}
     keys = [f.path.stem for f in frames]
     lidar_pose_carla = np.array([f.lidar_pose for f in frames], dtype=np.float64)
     T_lidar_world_global = carla.right_handed_pose(lidar_pose_carla)
@@ -139,7 +140,7 @@ def plan_agent(
     T_sensor_rig = {src.LIDAR: T_lidar_rig}
     intrinsics, camera_index, not_written = {}, {}, {}
     if lidar_ids:  # a lidar is written only if one of its frames reads
-        first, damaged = _first_readable([partial(src.fetch_points, agent_dir, key, listing) for key in keys])
+        first, damaged = _first_readable([partial(src.fetch_points, agent_dir, key, listing, reader) for key in keys])
         if first is None:
             not_written[src.LIDAR] = _left_out(agent_dir, src.LIDAR, "lidar frame", damaged, warnings)
             lidar_ids = []
@@ -150,7 +151,9 @@ def plan_agent(
             warnings.append(f"{agent_dir}: no calibration for camera{index} ({cam}); camera not written")
             not_written[cam] = {"reason": f"no frame YAML calibrates camera{index}", "files": {}}
             continue
-        first, damaged = _first_readable([partial(src.fetch_png, agent_dir, keys[i], index, listing) for i in with_cam])
+        first, damaged = _first_readable(
+            [partial(src.fetch_png, agent_dir, keys[i], index, listing, reader) for i in with_cam]
+        )
         if first is None:
             not_written[cam] = _left_out(agent_dir, f"camera{index} ({cam})", "image", damaged, warnings)
             continue
@@ -232,22 +235,27 @@ def merge_boxes(frames: dict[str, list[src.AgentFrame]], warnings: list[str]) ->
     return out
 
 
-def plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions) -> ScenarioPlan:
-    """Read a scenario's YAMLs once; decide every agent's trajectory, calibration and the labels. An
-    error raised here carries the warnings so far (``errors.warnings_kept``)."""
+def plan_scenario(
+    root_dir: UPath, scenario: str, options: OpenCoodOptions, reader: Reader | None = None
+) -> ScenarioPlan:
+    """Read a scenario's YAMLs once through the scenario's ``reader`` (one made for the plan if
+    None); decide every agent's trajectory, calibration and the labels. An error raised here carries
+    the warnings so far (``errors.warnings_kept``)."""
     warnings: list[str] = []
-    with warnings_kept(warnings):
-        return _plan_scenario(root_dir, scenario, options, warnings)
+    with warnings_kept(warnings), reading(reader) as scenario_reader:
+        return _plan_scenario(root_dir, scenario, options, warnings, scenario_reader)
 
 
-def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, warnings: list[str]) -> ScenarioPlan:
+def _plan_scenario(
+    root_dir: UPath, scenario: str, options: OpenCoodOptions, warnings: list[str], reader: Reader
+) -> ScenarioPlan:
     scenario_dir = options.scenario_dir(root_dir, scenario)
-    require_folder(scenario_dir, "scenario folder")
-    protocol = src.read_protocol(scenario_dir)
+    reader.require_folder(scenario_dir, "scenario folder")
+    protocol = src.read_protocol(scenario_dir, reader)
     dt_s = protocol.fixed_delta_seconds
-    folders = src.list_agents(scenario_dir)
+    folders = src.list_agents(scenario_dir, reader)
     files: dict = {}  # the remote agent folders' sizes and ETags, from one listing each
-    keys = {a: src.list_frame_keys(scenario_dir / a, files) for a in folders}
+    keys = {a: src.list_frame_keys(scenario_dir / a, files, reader) for a in folders}
     all_keys = sorted(set().union(*keys.values()), key=int)
     if not all_keys:
         raise SourceError(scenario_dir, "no frame YAMLs (<key>.yaml) in any agent folder")
@@ -268,7 +276,7 @@ def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, war
                 " skipped for this agent"
             )
         skipped_keys[agent] = {}
-        agent_frames = _read_frames(scenario_dir / agent, keys[agent], warnings, skipped_keys[agent], files)
+        agent_frames = _read_frames(scenario_dir / agent, keys[agent], warnings, skipped_keys[agent], files, reader)
         if not agent_frames:
             warnings.append(f"{scenario_dir / agent}: no readable frame; agent not written")
             continue
@@ -276,7 +284,8 @@ def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, war
     if not frames:
         raise SourceError(scenario_dir, "no agent has a readable frame")
     agents = {
-        a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a], files) for a, f in frames.items()
+        a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a], files, reader)
+        for a, f in frames.items()
     }
     left_out = {a: {"agent": _unread_yamls(scenario_dir / a, skipped_keys[a])} for a in folders if a not in frames}
     for agent_id, agent in list(agents.items()):
@@ -290,7 +299,7 @@ def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, war
             next(iter(damaged), scenario_dir),
             f"no agent has a sensor with a readable frame (damaged: {_files_text(damaged)})",
         )
-    agents = {a: with_lidar_model(agent, protocol, options, scenario, warnings) for a, agent in agents.items()}
+    agents = {a: with_lidar_model(agent, protocol, options, scenario, warnings, reader) for a, agent in agents.items()}
     ego = src.opencood_ego(folders)
     ego_times_us = src.key_timestamps_us(keys[ego], dt_s)
     noise = {s.name: plan_noise(s, scenario, agents, folders, keys[ego], ego_times_us) for s in options.noise}
@@ -322,6 +331,7 @@ def _plan_scenario(root_dir: UPath, scenario: str, options: OpenCoodOptions, war
         warnings=warnings,
         noise=noise,
         agents_not_written=left_out,
+        reading=reader.shared(),
     )
     try:
         window_us = consumer.clip_window(options, [a.timestamps_us for a in agents.values()])

@@ -14,6 +14,7 @@ from ncore_convert.converters import consumer
 from ncore_convert.converters.common import ConsumerOptions
 from ncore_convert.converters.opencood.noise import AgentNoise
 from ncore_convert.sources import opencood as src
+from ncore_convert.sources.reader import ReadSettings
 from ncore_convert.transforms.geometry import ONE_TICK_STEP_US, one_tick_trajectory
 from ncore_convert.transforms.lidar.model import SpinningLidarModel
 from ncore_convert.transforms.noise import NoiseSetting
@@ -136,6 +137,7 @@ class ScenarioPlan:
     agents_not_written: dict[str, dict] = field(default_factory=dict)
     cuboid_labels: consumer.CuboidLabels | None = None  #: class names, label source, dynamic tracks
     dynamic_boxes: DynamicBoxes | None = None  #: the dynamic tracks' boxes in world_global
+    reading: ReadSettings = field(default_factory=ReadSettings)  #: for the readers of the scenario's jobs
 
     def sequence_id(self, agent_id: str) -> str:
         return f"{self.scenario}_agent{agent_id}"
