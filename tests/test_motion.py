@@ -26,6 +26,7 @@ from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
 from ncore_convert.converters.argoverse2.convert import _sweeps as label_sweeps
 from ncore_convert.converters.argoverse2.plan import plan_log
 from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources.reader import Reader
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 from ncore_convert.synth.raycast import cast_rays
 from ncore_convert.transforms.lidar import free_space, motion_window, vlp32c
@@ -280,9 +281,10 @@ def test_both_keeps_every_annotated_mover_and_never_flags_a_standing_track(tmp_p
     # `lidar` they would otherwise take every point as static: stale movers in the depth labels)
     options = Argoverse2Options(split="val", dynamic_source="lidar", ego_masks="none")
     plan = plan_log(UPath(tmp_path / "src"), truth.log_id, options)
-    for k, (_, _, data) in enumerate(label_sweeps(plan, None)):
-        annotated_flags = np.concatenate([flags["annotations"][k][u] for u in (0, 1)]) == 1
-        assert np.array_equal(data.dynamic, annotated_flags)
+    with Reader(plan.inputs.reading) as reader:
+        for k, (_, _, data) in enumerate(label_sweeps(plan, reader, None)):
+            annotated_flags = np.concatenate([flags["annotations"][k][u] for u in (0, 1)]) == 1
+            assert np.array_equal(data.dynamic, annotated_flags)
 
 
 def test_no_point_of_a_standing_track_is_flagged_on_the_real_sample(av2_sample_root, tmp_path):

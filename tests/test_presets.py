@@ -35,9 +35,9 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.cli import cli
+from ncore_convert.contract import PRESET_DEFAULTS
 from ncore_convert.converters.argoverse2.convert import convert_log
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options
-from ncore_convert.converters.common import PRESET_DEFAULTS
 from ncore_convert.converters.opencood.records import OpenCoodOptions
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 

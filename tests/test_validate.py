@@ -444,8 +444,8 @@ def test_a_log_failing_validation_is_not_published_and_its_failures_are_reported
         edit_store(Path(sequence_dir.path), flip_up_lidar)
         return summary
 
-    def plain(sequence_dir, log_id, progress=None):
-        return convert_log(UPath(tmp_path / "src"), sequence_dir, log_id, options)
+    def plain(sequence_dir, log_id, progress=None, reader=None):
+        return convert_log(UPath(tmp_path / "src"), sequence_dir, log_id, options, reader=reader)
 
     out = UPath(tmp_path / "out")
     report = RunReport(out, {"name": "test"})

@@ -14,6 +14,7 @@ from upath import UPath
 
 from ncore_convert.contract import (
     CAMERA_LABEL_KINDS,
+    PRESET_DEFAULTS,
     CameraModel,
     ClassNames,
     CuboidLabelSource,
@@ -24,7 +25,6 @@ from ncore_convert.contract import (
     StoreType,
     WorldGlobalMode,
 )
-from ncore_convert.converters.common import PRESET_DEFAULTS
 from ncore_convert.errors import SourceError
 from ncore_convert.sources import access
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS

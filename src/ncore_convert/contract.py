@@ -35,6 +35,13 @@ PRESETS: dict[str, dict[str, object]] = {
     "nurec": {"camera_model": "opencv-pinhole", "world_global_mode": "identity", "lidar_rgb": True},
     "instant-nurec": {"camera_model": "ftheta", "cuboid_label_source": "autolabel"},
 }
+#: The consumer options a preset may set, and their values under none (``converters.common.ConsumerOptions``).
+PRESET_DEFAULTS: dict[str, object] = {
+    "camera_model": "ideal-pinhole",
+    "cuboid_label_source": "auto",
+    "world_global_mode": "localized",
+    "lidar_rgb": False,
+}
 
 # --- dataset ids: the sequence metadata's ``source_dataset`` ---
 ARGOVERSE2_SENSOR = "argoverse2-sensor"

@@ -9,7 +9,15 @@ from typing import Any
 
 from upath import UPath
 
-from ncore_convert.contract import PRESETS, CameraModel, ClassNames, CuboidLabelSource, Preset, WorldGlobalMode
+from ncore_convert.contract import (
+    PRESET_DEFAULTS,
+    PRESETS,
+    CameraModel,
+    ClassNames,
+    CuboidLabelSource,
+    Preset,
+    WorldGlobalMode,
+)
 from ncore_convert.sources.reader import Reader, ReadSettings
 from ncore_convert.transforms.lidar.frames import LidarCounts, StoredRays
 
@@ -36,15 +44,6 @@ class Dataset:
     input_dir: Callable[[UPath, Any, str], UPath]
     check_sensors: Callable[[Any], None]
     convert: Callable[..., Any]
-
-
-#: The consumer options a preset may set (``contract.PRESETS``), and their values under none.
-PRESET_DEFAULTS: dict[str, object] = {
-    "camera_model": "ideal-pinhole",
-    "cuboid_label_source": "auto",
-    "world_global_mode": "localized",
-    "lidar_rgb": False,
-}
 
 
 @dataclass(frozen=True, kw_only=True)
