@@ -8,8 +8,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import socket
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -179,8 +181,8 @@ def test_a_silent_metadata_service_is_named(s3_env, bucket_log, tmp_path):
 
 
 def test_a_cooperative_scenario_from_the_bucket_converts_as_locally(s3_env, tmp_path):
-    """OPV2V from the bucket: no HEAD, each object fetched whole once (the PCDs' header read again
-    by validation's point counts, a ranged GET of its first 64 KiB), and the local output."""
+    """OPV2V from the bucket: no HEAD, each object fetched whole once (validation's point counts
+    read the PCDs' headers from the spooled copies), the source's bytes once, and the local output."""
     import s3fs
 
     synth = ["synth", "opv2v", "--out", str(tmp_path / "src"), "--frames", "3", "--cavs", "2"]
@@ -211,8 +213,8 @@ def test_a_cooperative_scenario_from_the_bucket_converts_as_locally(s3_env, tmp_
         assert proxy.counts["HEAD"] == 0, sorted(p for k, p in proxy.keys if k == "HEAD")[:5]
         gets = {path: n for (kind, path), n in proxy.keys.items() if kind == "GET"}
         assert sorted(gets) == sorted(f"/cooperative/opv2v/{name}" for name in files)
-        twice = {path for path, n in gets.items() if n == 2}
-        assert max(gets.values()) <= 2 and all(path.endswith(".pcd") for path in twice), sorted(twice)[:3]
+        assert set(gets.values()) == {1}, sorted(p for p, n in gets.items() if n > 1)[:3]
+        assert proxy.bytes_out == sum((tmp_path / "src" / name).stat().st_size for name in files)
     assert hashes(tmp_path / "out") == hashes(tmp_path / "local")
 
 
@@ -294,3 +296,76 @@ def test_a_folder_of_more_than_a_thousand_objects_is_listed_whole(s3_env):
         assert proxy.counts == {"LIST": 2}, proxy.counts
     assert len(listing) == 1100
     assert listing[key(folder / "000013.jpg")].size == 13 % 7 + 1
+
+
+def test_two_logs_sharing_the_workers_count_their_own_requests(s3_env, tmp_path):
+    """Two logs planned at once in one process (fewer logs than workers: their stores share the
+    workers): the report's ``reads`` of each log are its own (every reader of the log added up: one
+    GET per object of its folder, its bytes, its listings' bytes), no HEAD, and the finished run
+    leaves nothing in its temporary folder."""
+    import s3fs
+
+    src = tmp_path / "src"
+    logs = [
+        write_log(UPath(src / "val"), SynthConfig(seconds=0.2, seed=s, camera_fps=5, camera_scale=4)) for s in (44, 45)
+    ]
+    fs = s3fs.S3FileSystem(skip_instance_cache=True)
+    fs.mkdir("pair")
+    fs.put(str(src / "val") + "/", "pair/av2/val/", recursive=True)
+    sizes = {
+        t.log_id: {
+            p.relative_to(src).as_posix(): p.stat().st_size for p in (src / "val" / t.log_id).rglob("*") if p.is_file()
+        }
+        for t in logs
+    }
+    tmpdir = tmp_path / "tmpdir"
+    tmpdir.mkdir()
+    with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
+        env = {**s3_env, "AWS_ENDPOINT_URL": proxy.url, "TMPDIR": str(tmpdir)}
+        command = av2_command("s3://pair/av2", str(tmp_path / "out"), "--workers", "3")
+        run = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env)
+        assert run.returncode == 0, run.stdout + run.stderr
+        assert proxy.counts["HEAD"] == 0
+        gets = {path: n for (kind, path), n in proxy.keys.items() if kind == "GET"}
+    report = json.loads((tmp_path / "out" / "conversion-report.json").read_text())["logs"]
+    for log_id, files in sizes.items():
+        fetched = {path: n for path, n in gets.items() if path.startswith(f"/pair/av2/val/{log_id}/")}
+        assert sorted(fetched) == sorted(f"/pair/av2/{name}" for name in files) and set(fetched.values()) == {1}
+        reads = report[log_id]["reads"]
+        assert (reads["gets"], reads["bytes"]) == (len(files), sum(files.values())), (log_id, reads)
+        assert reads["listed_bytes"] == report[log_id]["input_bytes"] == sum(files.values()), (log_id, reads)
+        assert reads["spool_hits"] > 0 and reads["refetched"] == 0 == reads["not_kept"], (log_id, reads)
+    assert list(tmpdir.iterdir()) == []
+
+
+def test_validation_from_a_bucket_and_a_stopped_run_leave_no_temporary_folder(s3_env, bucket_log, tmp_path):
+    """``validate --source s3://...`` keeps nothing on disk; a run from the bucket stopped while its
+    spool holds fetched files removes the spool and multiprocessing's folder on its way out."""
+    _, _, _, tmp = bucket_log
+    tmpdir = tmp_path / "tmpdir"
+    tmpdir.mkdir()
+    env = {**s3_env, "TMPDIR": str(tmpdir)}
+    command = av2_command("x", "y")[:1]
+    validated = subprocess.run(
+        [*command, "validate", "--source", "s3://datasets/av2", str(tmp / "local")],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert validated.returncode == 0, validated.stdout + validated.stderr
+    assert list(tmpdir.iterdir()) == []
+    run = subprocess.Popen(
+        av2_command("s3://datasets/av2", str(tmp_path / "out"), "--workers", "2"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    deadline = time.monotonic() + 120
+    while not any(p.suffix != ".json" and ".feather." in p.name for p in tmpdir.rglob("*")):  # a spooled sweep
+        assert run.poll() is None and time.monotonic() < deadline, "the run ended before it spooled a file"
+        time.sleep(0.01)
+    run.send_signal(signal.SIGTERM)
+    stdout, stderr = run.communicate(timeout=60)
+    assert run.returncode == 130, stdout + stderr
+    assert list(tmpdir.iterdir()) == []

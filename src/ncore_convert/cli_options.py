@@ -14,12 +14,17 @@ from upath import UPath
 
 from ncore_convert.contract import (
     CAMERA_LABEL_KINDS,
+    EGO_BOX_M,
     PRESET_DEFAULTS,
+    AsyncMode,
     CameraModel,
     ClassNames,
     CuboidLabelSource,
+    GpsDof,
+    GpsProcess,
     Layout,
     LidarModelSource,
+    NoiseModel,
     Preset,
     Profile,
     StoreType,
@@ -29,8 +34,6 @@ from ncore_convert.errors import SourceError
 from ncore_convert.sources import access
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
 from ncore_convert.sources.reader import Reader
-from ncore_convert.transforms.camera.ego_mask import EgoBox
-from ncore_convert.transforms.noise import ASYNC_MODES, DOFS, MODELS, PROCESSES
 
 
 def options(*decorators: Callable) -> Callable:
@@ -211,7 +214,7 @@ def av2_family_options(log_scope: str) -> Callable:
             "--ego-box-m",
             type=float,
             nargs=3,
-            default=EgoBox().dims_m,
+            default=EGO_BOX_M,
             show_default=True,
             metavar="LENGTH WIDTH HEIGHT",
             help="The nominal ego vehicle for the ego-mask prior (metres, around the rear-axle origin):"
@@ -236,10 +239,10 @@ def av2_family_options(log_scope: str) -> Callable:
 # fmt: off
 NOISE_FLAGS = [
     ("--noise-name", "noise_name", "name", str, "the model's name", "Name of the setting these flags make (its poses instance)."),  # noqa: E501
-    ("--noise-model", "noise_model", "model", click.Choice(MODELS), "opencood", "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams."),  # noqa: E501
+    ("--noise-model", "noise_model", "model", click.Choice(get_args(NoiseModel)), "opencood", "'opencood': OpenCOOD's draws exactly; 'realistic': independent per-agent streams."),  # noqa: E501
     ("--noise-seed", "noise_seed", "seed", int, "25, OpenCOOD's test seed", "seed."),
     ("--async/--no-async", "async_", "async", None, "off", "async: add communication delay."),
-    ("--async-mode", "async_mode", "async_mode", click.Choice(ASYNC_MODES), "sim", "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone."),  # noqa: E501
+    ("--async-mode", "async_mode", "async_mode", click.Choice(get_args(AsyncMode)), "sim", "async_mode: 'sim' constant delay, 'real' U(0, overhead) + transmission + backbone."),  # noqa: E501
     ("--async-overhead", "async_overhead", "async_overhead", float, "0", "async_overhead, ms."),
     ("--backbone-delay", "backbone_delay", "backbone_delay", float, "0", "backbone_delay, ms (real mode)."),
     ("--data-size", "data_size", "data_size", float, "0", "data_size, Mb (real mode)."),
@@ -248,11 +251,11 @@ NOISE_FLAGS = [
     ("--xyz-std", "xyz_std", "xyz_std", float, "0", "xyz_std: position error std, m."),
     ("--ryp-std", "ryp_std", "ryp_std", float, "0", "ryp_std: angular error std, deg."),
     ("--max-cav", "max_cav", "max_cav", int, "7", "OpenCOOD's train_params.max_cav (opencood model)."),
-    ("--gps-process", "gps_process", "process", click.Choice(PROCESSES), "white", "realistic: per-frame draws or Gauss-Markov drift."),  # noqa: E501
+    ("--gps-process", "gps_process", "process", click.Choice(get_args(GpsProcess)), "white", "realistic: per-frame draws or Gauss-Markov drift."),  # noqa: E501
     ("--correlation-time-s", "correlation_time_s", "correlation_time_s", float, "10", "realistic: Gauss-Markov correlation time, s."),  # noqa: E501
     ("--bias-xyz-std", "bias_xyz_std", "bias_xyz_std", float, "0", "realistic: std of a constant position bias, m."),
     ("--bias-ryp-std", "bias_ryp_std", "bias_ryp_std", float, "0", "realistic: std of a constant angular bias, deg."),
-    ("--gps-dof", "gps_dof", "dof", click.Choice(DOFS), "6dof", "realistic: perturb all 6 DoF or x, y and yaw."),
+    ("--gps-dof", "gps_dof", "dof", click.Choice(get_args(GpsDof)), "6dof", "realistic: perturb all 6 DoF or x, y and yaw."),  # noqa: E501
     ("--perturb-ego/--no-perturb-ego", "perturb_ego", "perturb_ego", None, "off", "realistic: perturb the OpenCOOD ego too."),  # noqa: E501
 ]
 # fmt: on

@@ -35,6 +35,14 @@ PRESETS: dict[str, dict[str, object]] = {
     "nurec": {"camera_model": "opencv-pinhole", "world_global_mode": "identity", "lidar_rgb": True},
     "instant-nurec": {"camera_model": "ftheta", "cuboid_label_source": "autolabel"},
 }
+#: ``--ego-box-m``'s default: the nominal ego vehicle's (length, width, height) in metres, AV2's car
+#: (a Ford Fusion Hybrid; ``transforms.camera.ego_mask.EgoBox``).
+EGO_BOX_M = (4.9, 1.9, 1.5)
+# --- the noise settings' vocabularies (OpenCOOD's wild_setting; ``transforms.noise``) ---
+NoiseModel = Literal["opencood", "realistic"]
+AsyncMode = Literal["sim", "real"]
+GpsProcess = Literal["white", "gauss_markov"]
+GpsDof = Literal["6dof", "xy_yaw"]
 #: The consumer options a preset may set, and their values under none (``converters.common.ConsumerOptions``).
 PRESET_DEFAULTS: dict[str, object] = {
     "camera_model": "ideal-pinhole",

@@ -160,11 +160,17 @@ def _loaded(name: str, attribute: str):
 
 def _clean_up() -> None:
     """What the run holds outside its processes: a publish's multipart uploads under way (if the
-    output module is loaded), and what the run registered (:func:`at_end`: its spool of fetched files)."""
+    output module is loaded), what the run registered (:func:`at_end`: its spool of fetched files),
+    and multiprocessing's temporary folder (the fork server's socket; its finalizer does not run on
+    this way out)."""
     if callable(step := _loaded("ncore_convert.storage", "abort_uploads_in_flight")):
         _attempt(step)  # a publish to a bucket: no multipart upload left
     for step in list(_state.cleanups):
         _attempt(step)
+    process = _loaded("multiprocessing.process", "current_process")
+    tempdir = process()._config.get("tempdir") if callable(process) else None
+    if tempdir and callable(rmtree := _loaded("shutil", "rmtree")):
+        _attempt(lambda: rmtree(tempdir, ignore_errors=True))
 
 
 def _refuse(*args, **kwargs) -> NoReturn:

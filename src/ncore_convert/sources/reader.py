@@ -247,6 +247,8 @@ class Reader:
         if max_bytes >= 0:
             if is_local(path):
                 return read_local(path, max_bytes)
+            if (kept := self._spooled(path, self._info(path, listing), max_bytes)) is not None:
+                return kept  # a file the log keeps: its head without a request
             data = (
                 asyncio.run_coroutine_threadsafe(get_remote(path, None, max_bytes), path.fs.loop).result()
                 if getattr(path.fs, "async_impl", False)
@@ -362,15 +364,17 @@ class Reader:
         tag = "".join(c for c in (info.etag or "") if c.isalnum()) or f"size{info.size}"
         return self.spool_dir / path.protocol / f"{path.path.lstrip('/')}.{tag}"
 
-    def _spooled(self, path: UPath, info: ObjectInfo | None) -> bytes | None:
+    def _spooled(self, path: UPath, info: ObjectInfo | None, max_bytes: int = -1) -> bytes | None:
+        """The spooled copy of a remote object (its first ``max_bytes``, if given), or None."""
         where = self._spool_path(path, info)
         if where is None:
             return None
         try:
-            data = where.read_bytes()
+            with open(where, "rb") as f:
+                if os.fstat(f.fileno()).st_size != info.size:
+                    return None
+                data = f.read(max_bytes)
         except OSError:
-            return None
-        if len(data) != info.size:
             return None
         with self._lock:
             self.counts.spool_hits += 1

@@ -15,15 +15,14 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import asdict, dataclass
-from typing import Literal, get_args
+from typing import get_args
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-Model = Literal["opencood", "realistic"]
-AsyncMode = Literal["sim", "real"]
-Process = Literal["white", "gauss_markov"]
-Dof = Literal["6dof", "xy_yaw"]
+from ncore_convert.contract import AsyncMode, GpsDof, GpsProcess, NoiseModel
+
+Model, Process, Dof = NoiseModel, GpsProcess, GpsDof
 MODELS, ASYNC_MODES, PROCESSES, DOFS = get_args(Model), get_args(AsyncMode), get_args(Process), get_args(Dof)
 #: Keys only the ``realistic`` model reads.
 REALISTIC_ONLY = ("process", "correlation_time_s", "bias_xyz_std", "bias_ryp_std", "dof", "perturb_ego")

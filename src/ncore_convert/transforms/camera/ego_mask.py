@@ -70,6 +70,7 @@ import numpy as np
 import PIL.Image
 from scipy import ndimage
 
+from ncore_convert.contract import EGO_BOX_M
 from ncore_convert.transforms.camera.ego_cues import Cues, change_energy, cues, mirror_folds, persistent_edges
 from ncore_convert.transforms.camera.models import Pinhole
 from ncore_convert.transforms.objects.boxes import slab_span
@@ -106,9 +107,9 @@ class EgoBox:
     y left, z up). The default is AV2's car (a Ford Fusion Hybrid: about 4.9 x 1.9 x 1.5 m, the
     rear axle ~1.05 m ahead of the rear bumper, the origin ~0.32 m above the road)."""
 
-    length_m: float = 4.9
-    width_m: float = 1.9
-    height_m: float = 1.5
+    length_m: float = EGO_BOX_M[0]
+    width_m: float = EGO_BOX_M[1]
+    height_m: float = EGO_BOX_M[2]
     rear_overhang_m: float = 1.05
     origin_height_m: float = 0.32
 
