@@ -24,10 +24,12 @@ def _rotation_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def brute_force(origins_m, directions, times_s, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """(range [N] with inf for no hit, box index [N], -1 ground/none): every ray against the ground
-    plane and every box (a box placed at each ray's time), one ray at a time."""
+def brute_force(origins_m, directions, times_s, scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(range [N] with inf for no hit, box index [N], -1 ground/none, and each box's own entry range
+    [N,B], inf where the ray misses it): every ray against the ground plane and every box (a box
+    placed at each ray's time), one ray at a time."""
     ranges, which = np.full(len(origins_m), np.inf), np.full(len(origins_m), -1)
+    entries = np.full((len(origins_m), len(scene.boxes)), np.inf)
     shaped = {  # every ray against each shaped box's parts, the box placed at each ray's time
         b: _first_part_entries(
             np.einsum("ni,ij->nj", origins_m - box.center_m(np.asarray(times_s)), box.rotation),
@@ -44,6 +46,7 @@ def brute_force(origins_m, directions, times_s, scene: Scene) -> tuple[np.ndarra
             o_box = (o - box.center_m(np.array([t]))[0]) @ box.rotation
             d_box = d @ box.rotation
             if b in shaped:
+                entries[i, b] = shaped[b][i]
                 if shaped[b][i] < ranges[i]:
                     ranges[i], which[i] = shaped[b][i], b
                 continue
@@ -51,10 +54,12 @@ def brute_force(origins_m, directions, times_s, scene: Scene) -> tuple[np.ndarra
                 t1 = (-box.dims_m / 2 - o_box) / d_box
                 t2 = (box.dims_m / 2 - o_box) / d_box
             near, far = np.max(np.fmin(t1, t2)), np.min(np.fmax(t1, t2))
+            if near <= far and near > 0:
+                entries[i, b] = near
             if near <= far and 0 < near < ranges[i]:
                 ranges[i], which[i] = near, b
     ranges[ranges > MAX_RANGE_M] = np.inf
-    return ranges, which
+    return ranges, which, entries
 
 
 def _first_part_entries(o: np.ndarray, d: np.ndarray, shape) -> np.ndarray:
@@ -138,6 +143,10 @@ def test_cast_rays_finds_the_same_first_hit_as_testing_every_box(specs, one_orig
         times = np.sort(rng.uniform(0.0, 0.1, n))
         origins = np.stack([10.0 * times, np.zeros(n), np.full(n, 1.8)], axis=1)
     ranges, _, which = cast_rays(origins, directions, times, scene, MAX_RANGE_M, GROUND_Z_M)
-    expected_ranges, expected_which = brute_force(origins, directions, times, scene)
-    np.testing.assert_array_equal(which, expected_which)
+    expected_ranges, expected_which, entries = brute_force(origins, directions, times, scene)
+    # where two objects are entered at the same range (overlapping boxes), either is the first hit:
+    # the two computations round differently (CI's hypothesis found a car and a bollard sharing a face)
+    other = np.flatnonzero(which != expected_which)
+    tied = (which[other] >= 0) & np.isclose(entries[other, which[other]], expected_ranges[other], rtol=1e-9, atol=0)
+    np.testing.assert_array_equal(which[other[~tied]], expected_which[other[~tied]])
     np.testing.assert_allclose(ranges, expected_ranges, rtol=1e-9)

@@ -257,7 +257,10 @@ class Reader:
             self._count_get(path, data)
             return data
         info = self._info(path, listing)
-        data = self._start(path, info, in_pool=False).result()
+        future, fetched = self._start(path, info, in_pool=False)
+        data = future.result()
+        if fetched:
+            self._count_get(path, data)
         if keep:
             self._keep(path, info, data)
         return data
@@ -282,15 +285,17 @@ class Reader:
                     return
                 info = self._info(path, listing)
                 size = info.size if info is not None else UNKNOWN_SIZE
-                ahead.append((path, info, size, self._start(path, info, in_pool=True)))
+                ahead.append((path, info, size, *self._start(path, info, in_pool=True)))
                 held += size
 
         try:
             fill()
             while ahead:
-                path, info, size, future = ahead.popleft()
+                path, info, size, future, fetched = ahead.popleft()
                 try:
                     result: bytes | SourceError = future.result()
+                    if fetched:  # counted here, where its bytes are taken (not in the loop's thread)
+                        self._count_get(path, result)
                     if keep:
                         self._keep(path, info, result)
                 except SourceError as err:
@@ -299,49 +304,40 @@ class Reader:
                 fill()
                 yield path, result
         finally:
-            for *_, future in ahead:
+            for *_, future, _ in ahead:
                 future.cancel()
 
     def _info(self, path: UPath, listing: dict[str, ObjectInfo] | None) -> ObjectInfo | None:
         name = key(path)
         return (listing or {}).get(name) or self.listed.get(name)
 
-    def _start(self, path: UPath, info: ObjectInfo | None, in_pool: bool) -> concurrent.futures.Future:
+    def _start(self, path: UPath, info: ObjectInfo | None, in_pool: bool) -> tuple[concurrent.futures.Future, bool]:
         """A file's read under way: the spooled copy, a GET on fsspec's loop, or a read in a thread
-        (``in_pool``; local files, and stores without an async interface), else done here."""
+        (``in_pool``; local files, and stores without an async interface), else done here; and
+        whether it is a request (a remote GET, counted when its bytes are taken)."""
         done: concurrent.futures.Future = concurrent.futures.Future()
         if not is_local(path):
             if (data := self._spooled(path, info)) is not None:
                 done.set_result(data)
-                return done
+                return done, False
             if getattr(path.fs, "async_impl", False):
-                future = asyncio.run_coroutine_threadsafe(get_remote(path, info), path.fs.loop)
-                future.add_done_callback(lambda f: self._count_done(path, f))
-                return future
-            read = lambda: self._counted(path, get_remote_sync(path, info))  # noqa: E731
+                return asyncio.run_coroutine_threadsafe(get_remote(path, info), path.fs.loop), True
+            read = lambda: get_remote_sync(path, info)  # noqa: E731
         else:
             read = lambda: checked(path, read_local(path), info)  # noqa: E731
         if in_pool:
-            return self._threads().submit(read)
+            return self._threads().submit(read), not is_local(path)
         try:
             done.set_result(read())
         except SourceError as err:
             done.set_exception(err)
-        return done
+        return done, not is_local(path)
 
     def _threads(self) -> concurrent.futures.ThreadPoolExecutor:
         with self._lock:
             if self._pool is None:
                 self._pool = concurrent.futures.ThreadPoolExecutor(LOCAL_THREADS, thread_name_prefix="read-ahead")
             return self._pool
-
-    def _count_done(self, path: UPath, future: concurrent.futures.Future) -> None:
-        if not future.cancelled() and future.exception() is None:
-            self._count_get(path, future.result())
-
-    def _counted(self, path: UPath, data: bytes) -> bytes:
-        self._count_get(path, data)
-        return data
 
     def _count_get(self, path: UPath, data: bytes) -> None:
         with self._lock:
