@@ -284,7 +284,7 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
 
     stop.set_farewell(partial(last_lines, []))  # a stop before the run loop: no log started
     with _run_reading(obj, root) as reading, obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
-        from ncore_convert.converters.common import read_log
+        from ncore_convert.converters.common import with_reader
         from ncore_convert.run.runner import RunInterrupted, run_logs, shard_logs
         from ncore_convert.validate.tree import convert_and_validate
 
@@ -299,7 +299,7 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
         task = partial(dataset.convert, root, options=options)
         if obj.validate:
             task = partial(convert_and_validate, task, source_root=root)
-        task = partial(read_log, task, reading=reading)  # each log's reader, closed with the log
+        task = partial(with_reader, task, reading=reading)  # each log's reader, closed with the log
         fingerprint = {"name": "ncore-convert", "version": __version__, "command": command}
         fingerprint["options"] = asdict(options)
         try:

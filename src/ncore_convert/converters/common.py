@@ -85,14 +85,23 @@ def select_sensors(requested: tuple[str, ...] | None, known: tuple[str, ...], ki
     return [s for s in known if s in requested]
 
 
-def read_log(task: Callable[..., Any], sequence_dir: UPath, log_id: str, *, reading: ReadSettings, **kwargs) -> Any:
-    """A log task (``Dataset.convert``, or it with its validation) with the log's reader: made for
-    the log (``reading``: the run's settings), handed to the task, and closed when the log ends
-    (which removes what its spool kept). Its requests are added to the summary's (the workers'),
-    its listings' bytes being the remote input's size (``listed_bytes``)."""
-    with Reader(reading) as reader:
-        summary = task(sequence_dir, log_id, reader=reader, **kwargs)
-        summary.reads = reader.counts.plus(summary.reads)
+def with_reader(
+    task: Callable[..., Any],
+    *args: Any,
+    reader: Reader | None = None,
+    reading: ReadSettings | None = None,
+    **kwargs: Any,
+) -> Any:
+    """``task(*args, reader=..., **kwargs)`` (a log or scenario task, or its conversion) reading
+    through ``reader`` (its owner closes it and counts it), or through a reader made for the call
+    (``reading``: the run's settings), closed when the task ends (which removes what its spool kept),
+    whose requests are added to the summary's (the workers'), its listings' bytes being the remote
+    input's size (``listed_bytes``)."""
+    if reader is not None:
+        return task(*args, reader=reader, **kwargs)
+    with Reader(reading) as made:
+        summary = task(*args, reader=made, **kwargs)
+        summary.reads = made.counts.plus(summary.reads)
     return summary
 
 

@@ -22,13 +22,13 @@ from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, s
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.motion import LIDAR_FLAGS, with_motion
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
-from ncore_convert.converters.common import Counts, LidarStore
+from ncore_convert.converters.common import Counts, LidarStore, with_reader
 from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
 from ncore_convert.sources import argoverse2_map as av2_map
-from ncore_convert.sources.reader import Reader, reading
+from ncore_convert.sources.reader import Reader
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
 from ncore_convert.transforms.lidar.frames import (
     LidarFrame,
@@ -372,11 +372,7 @@ def convert_log(
         progress: told the number of frames (sweeps + images) to write, then each written frame.
         reader: the log's reader (its owner closes it: the run's log task); None: one for this call.
     """
-    with reading(reader) as log_reader:
-        summary = _convert_log(root_dir, output_dir, log_id, options, pool, progress, log_reader)
-        if reader is None:  # this call's own reader: its requests are the log's (else its owner adds them)
-            summary.reads = log_reader.counts.plus(summary.reads)
-    return summary
+    return with_reader(_convert_log, root_dir, output_dir, log_id, options, pool, progress, reader=reader)
 
 
 def _convert_log(
@@ -386,6 +382,7 @@ def _convert_log(
     options: Argoverse2Options,
     pool: JobPool | None,
     progress: Progress | None,
+    *,
     reader: Reader,
 ) -> LogSummary:
     started = time.perf_counter()

@@ -14,7 +14,7 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters import consumer
-from ncore_convert.converters.common import Counts, LidarStore
+from ncore_convert.converters.common import Counts, LidarStore, with_reader
 from ncore_convert.converters.opencood.labels import TickLabeller, camera_view, tick_boxes
 from ncore_convert.converters.opencood.meta import generic_meta, manifest
 from ncore_convert.converters.opencood.noise import instance_meta
@@ -23,7 +23,7 @@ from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, 
 from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.reader import Reader, reading
+from ncore_convert.sources.reader import Reader
 from ncore_convert.transforms import carla
 from ncore_convert.transforms.camera.colours import ColourFrame, point_colours
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3
@@ -410,11 +410,7 @@ def convert_scenario(
         progress: told the number of frames (lidar frames + images) to write, then each written frame.
         reader: the scenario's reader (its owner closes it: the run's task); None: one for this call.
     """
-    with reading(reader) as scenario_reader:
-        summary = _convert_scenario(root_dir, output_dir, scenario, options, pool, progress, scenario_reader)
-        if reader is None:  # this call's own reader: its requests are the scenario's (else its owner adds them)
-            summary.reads = scenario_reader.counts.plus(summary.reads)
-    return summary
+    return with_reader(_convert_scenario, root_dir, output_dir, scenario, options, pool, progress, reader=reader)
 
 
 def _convert_scenario(
@@ -424,6 +420,7 @@ def _convert_scenario(
     options: OpenCoodOptions,
     pool: JobPool | None,
     progress: Progress | None,
+    *,
     reader: Reader,
 ) -> ScenarioSummary:
     started = time.perf_counter()
