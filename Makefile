@@ -32,8 +32,9 @@ test: $(STAMP)
 	$(VENV)/bin/ruff check src tests bench
 	$(VENV)/bin/ruff format --check src tests bench
 	# one worker per core; a file's tests stay on one worker (module fixtures built once), the cases
-	# of OWN_SCOPE tests go out one by one, slowest files first (tests/conftest.py)
-	$(PY) -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
+	# of OWN_SCOPE tests go out one by one, slowest files first (tests/conftest.py); the JUnit report
+	# gives the time per file: python bench/suite_table.py build/test-report.xml
+	$(PY) -m pytest -q -n auto --dist loadfile --no-loadscope-reorder --junitxml=build/test-report.xml
 
 bench: $(STAMP)
 	$(PY) bench/bench_argoverse2.py

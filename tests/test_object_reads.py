@@ -8,9 +8,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -298,7 +300,16 @@ def test_a_folder_of_more_than_a_thousand_objects_is_listed_whole(s3_env):
     assert listing[key(folder / "000013.jpg")].size == 13 % 7 + 1
 
 
-def test_two_logs_sharing_the_workers_count_their_own_requests(s3_env, tmp_path):
+@pytest.fixture
+def run_tmpdir():
+    """An empty folder for a run's ``TMPDIR``, with a short path (the fork server's socket lives in it,
+    and a Unix socket's path holds 107 bytes at most)."""
+    folder = Path(tempfile.mkdtemp(prefix="nc-", dir="/tmp"))
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_two_logs_sharing_the_workers_count_their_own_requests(s3_env, tmp_path, run_tmpdir):
     """Two logs planned at once in one process (fewer logs than workers: their stores share the
     workers): the report's ``reads`` of each log are its own (every reader of the log added up: one
     GET per object of its folder, its bytes, its listings' bytes), no HEAD, and the finished run
@@ -318,8 +329,7 @@ def test_two_logs_sharing_the_workers_count_their_own_requests(s3_env, tmp_path)
         }
         for t in logs
     }
-    tmpdir = tmp_path / "tmpdir"
-    tmpdir.mkdir()
+    tmpdir = run_tmpdir
     with LatencyProxy(s3_env["AWS_ENDPOINT_URL"]) as proxy:
         env = {**s3_env, "AWS_ENDPOINT_URL": proxy.url, "TMPDIR": str(tmpdir)}
         command = av2_command("s3://pair/av2", str(tmp_path / "out"), "--workers", "3")
@@ -338,12 +348,11 @@ def test_two_logs_sharing_the_workers_count_their_own_requests(s3_env, tmp_path)
     assert list(tmpdir.iterdir()) == []
 
 
-def test_validation_from_a_bucket_and_a_stopped_run_leave_no_temporary_folder(s3_env, bucket_log, tmp_path):
+def test_validation_from_a_bucket_and_a_stopped_run_leave_no_temporary_folder(s3_env, bucket_log, tmp_path, run_tmpdir):
     """``validate --source s3://...`` keeps nothing on disk; a run from the bucket stopped while its
     spool holds fetched files removes the spool and multiprocessing's folder on its way out."""
     _, _, _, tmp = bucket_log
-    tmpdir = tmp_path / "tmpdir"
-    tmpdir.mkdir()
+    tmpdir = run_tmpdir
     env = {**s3_env, "TMPDIR": str(tmpdir)}
     command = av2_command("x", "y")[:1]
     validated = subprocess.run(

@@ -163,17 +163,7 @@ class Reader:
         reads) and for a remote one that does not exist."""
         if is_local(directory):
             return {}
-        entries = self._list(directory)
-        found = {}
-        for entry in entries:
-            if entry.get("type") == "file":
-                path = UPath(f"{directory.protocol}://{entry['name']}", **directory.storage_options)
-                found[key(path)] = entry_info(entry)
-        with self._lock:
-            self.counts.listed_bytes += sum(info.size for name, info in found.items() if name not in self.listed)
-            self.listed.update(found)
-            self._listed_folders.add(key(directory))
-        return found
+        return self._files_of(directory, self._list(directory))
 
     def file_names(self, directory: UPath, listing: dict[str, ObjectInfo] | None = None) -> list[str]:
         """The names of the files in a folder ([] without it): a local folder's entries, or a remote
@@ -232,9 +222,24 @@ class Reader:
         return name in self.list_folder(path.parent)
 
     def _list(self, directory: UPath) -> list[dict]:
+        """One LIST of a remote folder; its files are remembered (sizes, ETags), whatever it was for."""
         with self._lock:
             self.counts.lists += 1
-        return list_remote(directory)
+        entries = list_remote(directory)
+        self._files_of(directory, entries)
+        return entries
+
+    def _files_of(self, directory: UPath, entries: list[dict]) -> dict[str, ObjectInfo]:
+        found = {}
+        for entry in entries:
+            if entry.get("type") == "file":
+                path = UPath(f"{directory.protocol}://{entry['name']}", **directory.storage_options)
+                found[key(path)] = entry_info(entry)
+        with self._lock:
+            self.counts.listed_bytes += sum(info.size for name, info in found.items() if name not in self.listed)
+            self.listed.update(found)
+            self._listed_folders.add(key(directory))
+        return found
 
     # --- reads ---
     def read(
@@ -247,12 +252,13 @@ class Reader:
         if max_bytes >= 0:
             if is_local(path):
                 return read_local(path, max_bytes)
-            if (kept := self._spooled(path, self._info(path, listing), max_bytes)) is not None:
+            info = self._info(path, listing)
+            if (kept := self._spooled(path, info, max_bytes)) is not None:
                 return kept  # a file the log keeps: its head without a request
-            data = (
-                asyncio.run_coroutine_threadsafe(get_remote(path, None, max_bytes), path.fs.loop).result()
+            data = (  # a ranged GET, conditional on the listing's ETag
+                asyncio.run_coroutine_threadsafe(get_remote(path, info, max_bytes), path.fs.loop).result()
                 if getattr(path.fs, "async_impl", False)
-                else get_remote_sync(path, None, max_bytes)
+                else get_remote_sync(path, info, max_bytes)
             )
             self._count_get(path, data)
             return data
