@@ -349,8 +349,9 @@ def test_two_logs_sharing_the_workers_count_their_own_requests(s3_env, tmp_path,
 
 
 def test_validation_from_a_bucket_and_a_stopped_run_leave_no_temporary_folder(s3_env, bucket_log, tmp_path, run_tmpdir):
-    """``validate --source s3://...`` keeps nothing on disk; a run from the bucket stopped while its
-    spool holds fetched files removes the spool and multiprocessing's folder on its way out."""
+    """``validate --source s3://...`` keeps nothing on disk; a run from the bucket to the bucket,
+    stopped while its spool holds fetched files, removes the spool, the log's staging folder and
+    multiprocessing's folder on its way out."""
     _, _, _, tmp = bucket_log
     tmpdir = run_tmpdir
     env = {**s3_env, "TMPDIR": str(tmpdir)}
@@ -364,7 +365,7 @@ def test_validation_from_a_bucket_and_a_stopped_run_leave_no_temporary_folder(s3
     assert validated.returncode == 0, validated.stdout + validated.stderr
     assert list(tmpdir.iterdir()) == []
     run = subprocess.Popen(
-        av2_command("s3://datasets/av2", str(tmp_path / "out"), "--workers", "2"),
+        av2_command("s3://datasets/av2", "s3://converted/stopped", "--workers", "2"),  # staged under TMPDIR too
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -24,6 +24,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Literal, Protocol
 
 from tqdm import tqdm
@@ -32,6 +33,7 @@ from upath import UPath
 from ncore_convert.contract import SAFE_NAME
 from ncore_convert.errors import SourceError, UsageError, ValidationFailed
 from ncore_convert.paths import is_local
+from ncore_convert.run import stop
 from ncore_convert.run.claims import STAGING_PREFIX, Claims, writer_tag
 from ncore_convert.run.pool import Progress
 from ncore_convert.run.report import REPORT_NAME, RunReport
@@ -161,6 +163,8 @@ def convert_one(
         return LogResult(log_id, False, error=f"{log_id!r} is not a safe output folder name; nothing written")
     final = output_root / log_id
     staging = None if is_local(output_root) else tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{writer_tag()}")
+    # a stop ends the process before this log's cleanup: the staged copy goes with it (the rerun redoes the log)
+    forget_staging = stop.at_end(partial(shutil.rmtree, staging, ignore_errors=True)) if staging else None
     run_tag = f".{control.claims.me.run_id}" if control is not None and control.claims is not None else ""
     work = output_root / f".{log_id}{run_tag}.partial" if staging is None else UPath(staging) / log_id
     if staging is None:  # this run holds the log: unfinished folders of earlier runs go
@@ -197,6 +201,7 @@ def convert_one(
             remove_tree(work)
             if staging is not None:
                 shutil.rmtree(staging, ignore_errors=True)
+                forget_staging()
     result.seconds = time.perf_counter() - started
     return result
 
