@@ -18,7 +18,6 @@ what the killed workers left), prints the run's last lines, and exits 130.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import sys
@@ -27,7 +26,7 @@ import time
 
 TYPE_CHECKING = False  # typing is not imported at run time: the window before install() stays short
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterator
+    from collections.abc import Callable
     from typing import NoReturn
 
 #: The signals that stop a run (Ctrl-C; what Slurm and Kubernetes send before they kill).
@@ -60,7 +59,7 @@ def install() -> None:
     orphans of the process's descendants (PR_SET_CHILD_SUBREAPER), so that :func:`end` finds them."""
     for sig in STOP_SIGNALS:
         signal.signal(sig, _handler)
-    with contextlib.suppress(OSError, AttributeError):
+    with _suppress(OSError, AttributeError):
         import ctypes
 
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_CHILD_SUBREAPER, 1)
@@ -100,22 +99,41 @@ def _farewell_lines(name: str) -> list[str]:
         return _default_farewell(name)
 
 
-@contextlib.contextmanager
-def deferred(event: threading.Event, received: list[str]) -> Iterator[None]:
+class deferred:  # noqa: N801 - used as ``with deferred(event, received):``
     """While the block runs, the first SIGINT/SIGTERM appends its name to ``received`` and sets
     ``event`` (the run ends its logs in flight and records what it published); a second one ends
     the process at once (:func:`end`). Only in the main thread, where Python delivers signals."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {sig: signal.signal(sig, _handler) for sig in STOP_SIGNALS}
-    outer, _state.deferring = _state.deferring, (event, received)
-    try:
-        yield
-    finally:
-        _state.deferring = outer
-        for sig, old in previous.items():
+
+    def __init__(self, event: threading.Event, received: list[str]) -> None:
+        self.event, self.received = event, received
+        self.previous: dict | None = None
+
+    def __enter__(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        self.previous = {sig: signal.signal(sig, _handler) for sig in STOP_SIGNALS}
+        self.outer, _state.deferring = _state.deferring, (self.event, self.received)
+
+    def __exit__(self, *exc) -> None:
+        if self.previous is None:
+            return
+        _state.deferring = self.outer
+        for sig, old in self.previous.items():
             signal.signal(sig, old)
+
+
+class _suppress:  # noqa: N801
+    """``contextlib.suppress``, written here so that the stop module, imported before the handlers
+    are installed, does not import contextlib (4 ms of the window before them)."""
+
+    def __init__(self, *kinds: type[BaseException]) -> None:
+        self.kinds = kinds
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind, value, traceback) -> bool:
+        return kind is not None and issubclass(kind, self.kinds)
 
 
 def end(lines: list[str]) -> NoReturn:
@@ -128,7 +146,7 @@ def end(lines: list[str]) -> NoReturn:
     try:
         for step in (_ignore_signals, _no_new_processes, _flush, _silence_stderr, kill_descendants, _clean_up):
             _attempt(step)
-        with contextlib.suppress(Exception):
+        with _suppress(Exception):
             os.write(sys.stdout.fileno() if sys.stdout else 1, "".join(f"{line}\n" for line in lines).encode())
         _attempt(_await_tracker)
     finally:
@@ -136,7 +154,7 @@ def end(lines: list[str]) -> NoReturn:
 
 
 def _attempt(step: Callable[[], object]) -> None:
-    with contextlib.suppress(Exception):
+    with _suppress(Exception):
         step()
 
 
@@ -148,7 +166,7 @@ def _ignore_signals() -> None:
 
 def _flush() -> None:
     for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):  # a handler may interrupt a print
+        with _suppress(Exception):  # a handler may interrupt a print
             stream.flush()
 
 
@@ -185,13 +203,13 @@ def _no_new_processes() -> None:
         ("multiprocessing.resource_tracker", "_resource_tracker"),
     ):
         if (found := _loaded(module, instance)) is not None:
-            with contextlib.suppress(Exception):
+            with _suppress(Exception):
                 found.ensure_running = _refuse
 
 
 def _silence_stderr() -> None:
     threading.excepthook = lambda args: None
-    with contextlib.suppress(OSError):
+    with _suppress(OSError):
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, 2)
 
@@ -199,7 +217,7 @@ def _silence_stderr() -> None:
 def _live_children() -> dict[int, list[int]]:
     """Every live (not zombie) process by its parent's pid, from ``/proc`` (empty elsewhere)."""
     children: dict[int, list[int]] = {}
-    with contextlib.suppress(OSError):
+    with _suppress(OSError):
         for entry in os.scandir("/proc"):
             if not entry.name.isdigit():
                 continue
@@ -238,14 +256,14 @@ def kill_descendants() -> None:
         if not alive:
             break
         for pid in alive:
-            with contextlib.suppress(OSError):
+            with _suppress(OSError):
                 os.kill(pid, signal.SIGKILL)
         time.sleep(0.005)
     _reap()
 
 
 def _reap() -> None:
-    with contextlib.suppress(ChildProcessError):
+    with _suppress(ChildProcessError):
         while os.waitpid(-1, os.WNOHANG)[0]:
             pass
 
@@ -257,7 +275,7 @@ def _await_tracker() -> None:
     pid, fd = getattr(tracker, "_pid", None), getattr(tracker, "_fd", None)
     if pid is None:
         return
-    with contextlib.suppress(OSError, TypeError):
+    with _suppress(OSError, TypeError):
         os.close(fd)
     deadline = time.monotonic() + TRACKER_WAIT_S
     while time.monotonic() < deadline:
@@ -267,5 +285,5 @@ def _await_tracker() -> None:
         except ChildProcessError:  # not this process's child (or reaped already)
             return
         time.sleep(0.005)
-    with contextlib.suppress(OSError):
+    with _suppress(OSError):
         os.kill(pid, signal.SIGKILL)
