@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import os
 import shutil
 import sys
 import tempfile
@@ -284,8 +285,8 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
 
     stop.set_farewell(partial(last_lines, []))  # a stop before the run loop: no log started
     with _run_reading(obj, root) as reading, obj.make_executor(preload=[DATASET_PACKAGES[command]]) as executor:
-        from ncore_convert.converters.common import with_reader
         from ncore_convert.run.runner import RunInterrupted, run_logs, shard_logs
+        from ncore_convert.sources.reader import with_reader
         from ncore_convert.validate.tree import convert_and_validate
 
         dataset = _dataset(command)
@@ -338,13 +339,28 @@ def _run_reading(obj: GroupOptions, root: UPath) -> Iterator[ReadSettings]:
         yield ReadSettings(budget)
         return
     spool_root = tempfile.mkdtemp(prefix=SPOOL_PREFIX)
-    remove = partial(shutil.rmtree, spool_root, ignore_errors=True)
+    remove = partial(_remove_spool, spool_root)
     forget = stop.at_end(remove)
     try:
         yield ReadSettings(budget, spool_root)
     finally:
         remove()
         forget()
+
+
+def _remove_spool(root: str) -> None:
+    """Remove the run's spool even while threads of a stopping run still keep files: renamed first
+    (a reader then finds no spool to keep into: it makes no parent folder), then removed, again if a
+    file landed in it meanwhile."""
+    gone = f"{root}.removed"
+    try:
+        os.rename(root, gone)
+    except OSError:
+        gone = root
+    for _ in range(3):
+        shutil.rmtree(gone, ignore_errors=True)
+        if not os.path.exists(gone):
+            return
 
 
 def _counts(results: list) -> str:

@@ -18,7 +18,6 @@ from ncore_convert.contract import (
     Preset,
     WorldGlobalMode,
 )
-from ncore_convert.sources.reader import Reader, ReadSettings
 from ncore_convert.transforms.lidar.frames import LidarCounts, StoredRays
 
 
@@ -83,26 +82,6 @@ def select_sensors(requested: tuple[str, ...] | None, known: tuple[str, ...], ki
     if unknown:
         raise ValueError(f"unknown {kind} id(s) {unknown}; known: {list(known)}")
     return [s for s in known if s in requested]
-
-
-def with_reader(
-    task: Callable[..., Any],
-    *args: Any,
-    reader: Reader | None = None,
-    reading: ReadSettings | None = None,
-    **kwargs: Any,
-) -> Any:
-    """``task(*args, reader=..., **kwargs)`` (a log or scenario task, or its conversion) reading
-    through ``reader`` (its owner closes it and counts it), or through a reader made for the call
-    (``reading``: the run's settings), closed when the task ends (which removes what its spool kept),
-    whose requests are added to the summary's (the workers'), its listings' bytes being the remote
-    input's size (``listed_bytes``)."""
-    if reader is not None:
-        return task(*args, reader=reader, **kwargs)
-    with Reader(reading) as made:
-        summary = task(*args, reader=made, **kwargs)
-        summary.reads = made.counts.plus(summary.reads)
-    return summary
 
 
 class Tally:

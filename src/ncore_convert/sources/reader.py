@@ -27,14 +27,16 @@ import asyncio
 import collections
 import concurrent.futures
 import contextlib
+import hashlib
 import os
 import shutil
 import tempfile
 import threading
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Any
 
 from upath import UPath
 
@@ -163,7 +165,7 @@ class Reader:
         reads) and for a remote one that does not exist."""
         if is_local(directory):
             return {}
-        return self._files_of(directory, self._list(directory))
+        return self._list(directory)[1]
 
     def file_names(self, directory: UPath, listing: dict[str, ObjectInfo] | None = None) -> list[str]:
         """The names of the files in a folder ([] without it): a local folder's entries, or a remote
@@ -187,7 +189,8 @@ class Reader:
             except (FileNotFoundError, NotADirectoryError):
                 names = []
         else:
-            names = [e["name"].rstrip("/").rsplit("/", 1)[-1] for e in self._list(directory) if e.get("type") != "file"]
+            entries = self._list(directory)[0]
+            names = [e["name"].rstrip("/").rsplit("/", 1)[-1] for e in entries if e.get("type") != "file"]
         names = sorted(n for n in names if not n.startswith("."))
         if what is not None:
             check_safe_names(directory, names, what)
@@ -198,7 +201,7 @@ class Reader:
         exist only through what is in them)."""
         if is_local(path):
             return os.path.isdir(path.path)
-        return bool(self._list(path))
+        return bool(self._list(path)[0])
 
     def require_folder(self, path: UPath, noun: str) -> None:
         """SourceError unless ``path`` is a folder with something in it (``noun``: "log directory", ...)."""
@@ -207,7 +210,7 @@ class Reader:
                 raise SourceError(path, f"{noun} not found")
             if not any(os.scandir(path.path)):
                 raise SourceError(path, f"empty {noun} (an interrupted download?)")
-        elif not self._list(path):
+        elif not self._list(path)[0]:
             raise SourceError(path, f"{noun} not found")
 
     def exists(self, path: UPath, listing: dict[str, ObjectInfo] | None = None) -> bool:
@@ -221,15 +224,12 @@ class Reader:
             return name in (listing or {}) or name in self.listed
         return name in self.list_folder(path.parent)
 
-    def _list(self, directory: UPath) -> list[dict]:
-        """One LIST of a remote folder; its files are remembered (sizes, ETags), whatever it was for."""
+    def _list(self, directory: UPath) -> tuple[list[dict], dict[str, ObjectInfo]]:
+        """One LIST of a remote folder: its entries, and its files (sizes, ETags), which the reader
+        remembers whatever the listing was for."""
         with self._lock:
             self.counts.lists += 1
         entries = list_remote(directory)
-        self._files_of(directory, entries)
-        return entries
-
-    def _files_of(self, directory: UPath, entries: list[dict]) -> dict[str, ObjectInfo]:
         found = {}
         for entry in entries:
             if entry.get("type") == "file":
@@ -239,7 +239,7 @@ class Reader:
             self.counts.listed_bytes += sum(info.size for name, info in found.items() if name not in self.listed)
             self.listed.update(found)
             self._listed_folders.add(key(directory))
-        return found
+        return entries, found
 
     # --- reads ---
     def read(
@@ -359,12 +359,15 @@ class Reader:
         return Path(self.settings.spool_root) if self.settings.spool_root else self.spool_dir
 
     def _spool_path(self, path: UPath, info: ObjectInfo | None) -> Path | None:
-        """Where a remote object's checked bytes are spooled: its path under the spool folder, with
-        its ETag (None without a listing entry: nothing to check a spooled copy against)."""
+        """Where a remote object's checked bytes are spooled: a file directly in the spool folder,
+        named by a hash of its key, its name and its ETag (None without a listing entry: nothing to
+        check a spooled copy against). Flat, so keeping a file never creates a folder but the
+        reader's own, inside a run's spool that still exists."""
         if info is None or is_local(path):
             return None
         tag = "".join(c for c in (info.etag or "") if c.isalnum()) or f"size{info.size}"
-        return self.spool_dir / path.protocol / f"{path.path.lstrip('/')}.{tag}"
+        digest = hashlib.sha1(key(path).encode(), usedforsecurity=False).hexdigest()[:20]
+        return self.spool_dir / f"{digest}-{path.name}.{tag}"
 
     def _spooled(self, path: UPath, info: ObjectInfo | None, max_bytes: int = -1) -> bytes | None:
         """The spooled copy of a remote object (its first ``max_bytes``, if given), or None."""
@@ -402,8 +405,11 @@ class Reader:
                 return
             self._spool_written += len(data)
             self.counts.spooled += 1
-        where.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=where.parent, prefix=".part-")
+        try:  # never its parents: a run's spool removed (the run stops) is not made again
+            where.parent.mkdir(exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=where.parent, prefix=".part-")
+        except FileNotFoundError:
+            return
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.replace(tmp, where)
@@ -417,3 +423,23 @@ def reading(reader: Reader | None, settings: ReadSettings | None = None) -> Iter
         return
     with Reader(settings) as made:
         yield made
+
+
+def with_reader(
+    task: Callable[..., Any],
+    *args: Any,
+    reader: Reader | None = None,
+    reading: ReadSettings | None = None,
+    **kwargs: Any,
+) -> Any:
+    """``task(*args, reader=..., **kwargs)`` (a log or scenario task, or its conversion) reading
+    through ``reader`` (its owner closes it and counts it), or through a reader made for the call
+    (``reading``: the run's settings), closed when the task ends (which removes what its spool kept),
+    whose requests are added to the summary's (the workers'), its listings' bytes being the remote
+    input's size (``listed_bytes``)."""
+    if reader is not None:
+        return task(*args, reader=reader, **kwargs)
+    with Reader(reading) as made:
+        summary = task(*args, reader=made, **kwargs)
+        summary.reads = made.counts.plus(summary.reads)
+    return summary

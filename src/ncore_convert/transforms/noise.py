@@ -22,8 +22,8 @@ from scipy.spatial.transform import Rotation
 
 from ncore_convert.contract import AsyncMode, GpsDof, GpsProcess, NoiseModel
 
-Model, Process, Dof = NoiseModel, GpsProcess, GpsDof
-MODELS, ASYNC_MODES, PROCESSES, DOFS = get_args(Model), get_args(AsyncMode), get_args(Process), get_args(Dof)
+MODELS, ASYNC_MODES = get_args(NoiseModel), get_args(AsyncMode)
+PROCESSES, DOFS = get_args(GpsProcess), get_args(GpsDof)
 #: Keys only the ``realistic`` model reads.
 REALISTIC_ONLY = ("process", "correlation_time_s", "bias_xyz_std", "bias_ryp_std", "dof", "perturb_ego")
 
@@ -40,7 +40,7 @@ class NoiseSetting:
     """
 
     name: str
-    model: Model = "opencood"
+    model: NoiseModel = "opencood"
     seed: int = 25
     async_: bool = False
     async_mode: AsyncMode = "sim"
@@ -51,11 +51,11 @@ class NoiseSetting:
     loc_err: bool = False
     xyz_std: float = 0.0
     ryp_std: float = 0.0
-    process: Process = "white"
+    process: GpsProcess = "white"
     correlation_time_s: float = 10.0
     bias_xyz_std: float = 0.0
     bias_ryp_std: float = 0.0
-    dof: Dof = "6dof"
+    dof: GpsDof = "6dof"
     perturb_ego: bool = False
     max_cav: int = 7
 

@@ -10,7 +10,7 @@ from upath import UPath
 
 from ncore_convert.contract import MANIFEST
 from ncore_convert.errors import ValidationFailed
-from ncore_convert.sources.reader import Reader, reading
+from ncore_convert.sources.reader import Reader, reading, with_reader
 from ncore_convert.validate.coregister import check_coregistration
 from ncore_convert.validate.report import Report, summarise
 from ncore_convert.validate.sequence import RunJobs, validate_sequence
@@ -68,15 +68,16 @@ def convert_and_validate(
     """A log task followed by :func:`validate_tree` of its output (with the source counts when
     ``source_root`` is given), both reading through the log's ``reader`` (one made for the call if
     None). Raises ValidationFailed, so the log is not published, on any failure."""
-    with reading(reader) as log_reader:
-        summary = task(sequence_dir, log_id, reader=log_reader, **kwargs)
-        started = time.perf_counter()
-        run_jobs = kwargs["pool"].run if kwargs.get("pool") is not None else None  # the log's workers, idle now
-        reports = validate_tree(
-            sequence_dir, source_root, relative_to=sequence_dir, run_jobs=run_jobs, reader=log_reader
-        )
-        if reader is None:  # this call's own reader: its requests are the log's (else its owner adds them)
-            summary.reads = log_reader.counts.plus(summary.reads)
+    return with_reader(_convert_and_validate, task, sequence_dir, log_id, source_root, reader=reader, **kwargs)
+
+
+def _convert_and_validate(
+    task, sequence_dir: UPath, log_id: str, source_root: UPath | None, *, reader: Reader, **kwargs
+):
+    summary = task(sequence_dir, log_id, reader=reader, **kwargs)
+    started = time.perf_counter()
+    run_jobs = kwargs["pool"].run if kwargs.get("pool") is not None else None  # the log's workers, idle now
+    reports = validate_tree(sequence_dir, source_root, relative_to=sequence_dir, run_jobs=run_jobs, reader=reader)
     record = summarise(reports)
     record["seconds"] = round(time.perf_counter() - started, 3)
     if not record["ok"]:

@@ -22,13 +22,13 @@ from ncore_convert.converters.argoverse2.lidar import lidar_meta, sweep_frame, s
 from ncore_convert.converters.argoverse2.masks import EgoMask
 from ncore_convert.converters.argoverse2.motion import LIDAR_FLAGS, with_motion
 from ncore_convert.converters.argoverse2.plan import Argoverse2Options, LogPlan, plan_log
-from ncore_convert.converters.common import Counts, LidarStore, with_reader
+from ncore_convert.converters.common import Counts, LidarStore
 from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources import argoverse2_annotations as av2_annotations
 from ncore_convert.sources import argoverse2_map as av2_map
-from ncore_convert.sources.reader import Reader
+from ncore_convert.sources.reader import Reader, with_reader
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation
 from ncore_convert.transforms.lidar.frames import (
     LidarFrame,

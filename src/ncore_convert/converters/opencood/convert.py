@@ -14,7 +14,7 @@ from upath import UPath
 
 from ncore_convert import contract
 from ncore_convert.converters import consumer
-from ncore_convert.converters.common import Counts, LidarStore, with_reader
+from ncore_convert.converters.common import Counts, LidarStore
 from ncore_convert.converters.opencood.labels import TickLabeller, camera_view, tick_boxes
 from ncore_convert.converters.opencood.meta import generic_meta, manifest
 from ncore_convert.converters.opencood.noise import instance_meta
@@ -23,7 +23,7 @@ from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, 
 from ncore_convert.errors import SourceError, warnings_kept
 from ncore_convert.run.pool import JobPool, Progress, run_inline
 from ncore_convert.sources import opencood as src
-from ncore_convert.sources.reader import Reader
+from ncore_convert.sources.reader import Reader, with_reader
 from ncore_convert.transforms import carla
 from ncore_convert.transforms.camera.colours import ColourFrame, point_colours
 from ncore_convert.transforms.geometry import euler_xyz_from_rotation, invert_se3
