@@ -100,8 +100,10 @@ def render(
     rgb = surface_rgb(box_rgb, index, origins + d * np.where(hit, distance, 0.0)[:, None], hit)
 
     def full(small: np.ndarray) -> np.ndarray:  # each ray's value over its step x step block
-        grid = small.reshape(*rays.shape[:2], *small.shape[1:])
-        return np.repeat(np.repeat(grid, step, axis=0), step, axis=1)[:height, :width]
+        rows, cols = rays.shape[:2]
+        grid = small.reshape(rows, 1, cols, 1, *small.shape[1:])
+        blocks = np.broadcast_to(grid, (rows, step, cols, step, *small.shape[1:]))
+        return blocks.reshape(rows * step, cols * step, *small.shape[1:])[:height, :width]
 
     return full(rgb), full(np.where(hit, index, SKY)) if with_index else None
 
@@ -227,9 +229,10 @@ def cast_rays(
     bounds = [box.bound_m for box in scene.boxes]
     box_reach_m = [float(np.linalg.norm(np.maximum(-lo, hi))) for lo, hi in bounds]  # bounding-sphere radii
     motion_m = [float(np.linalg.norm(box.velocity_mps)) * half_span_s for box in scene.boxes]  # over the rays' times
-    # the rays sorted by azimuth, so that the rays towards a box are contiguous slices
+    # the rays sorted by azimuth, so that the rays towards a box are contiguous slices (a stable
+    # sort: a picture's rows and a lidar's firing order are runs already in order, which it merges)
     azimuth = np.arctan2(directions[:, 1], directions[:, 0])
-    order = np.argsort(azimuth)
+    order = np.argsort(azimuth, kind="stable")
     azimuth_sorted, directions_sorted = azimuth[order], directions[order]
     origins_sorted = origins_m if one_origin else origins_m[order]
     for b, box in enumerate(scene.boxes):
