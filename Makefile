@@ -34,6 +34,9 @@ test: $(STAMP)
 	# one worker per core; a file's tests stay on one worker (module fixtures built once), the cases
 	# of OWN_SCOPE tests go out one by one, slowest files first (tests/conftest.py); the JUnit report
 	# gives the time per file: python bench/suite_table.py build/test-report.xml
+	# the package's bytecode, written once: where PYTHONDONTWRITEBYTECODE is set (as on CI), every
+	# process the tests start (CLI runs, fork servers, Ray workers) would compile it again
+	$(PY) -m compileall -q src
 	$(PY) -m pytest -q -n auto --dist loadfile --no-loadscope-reorder --junitxml=build/test-report.xml
 
 bench: $(STAMP)

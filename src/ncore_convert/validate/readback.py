@@ -141,33 +141,50 @@ def _T_reference_world(loader: SequenceLoaderV4, frame_id: str, t_us: int) -> np
     return sensor_poses(loader, frame_id, "world", np.array([t_us]))[0]
 
 
-def box_point_counts(
-    loader: SequenceLoaderV4, boxes: CuboidColumns, xyz_world_m: np.ndarray, margin_m: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """How many of the points (world, float64 [N,3]) lie inside each box shrunk and grown by its
-    ``margin_m`` (metres [B], 0 without: both are then the exact count;
-    :func:`~ncore_convert.transforms.objects.boxes.count_in_box_band`), int [B] each, and the box
-    centres in world, float64 [B,3]. Each box is tested in float64 in its own reference frame at its
-    reference time (one pose per reference frame and time). A box whose reference frame cannot be
-    posed at its time counts -1 and has a NaN centre."""
-    inner, outer, centres = np.zeros(len(boxes), np.int64), np.zeros(len(boxes), np.int64), np.zeros((len(boxes), 3))
-    margin_m = np.zeros(len(boxes)) if margin_m is None else margin_m
-    R_box_ref = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix() if len(boxes) else np.zeros((0, 3, 3))
+def _reference_poses(loader: SequenceLoaderV4, boxes: CuboidColumns) -> list[tuple[list[int], np.ndarray | None]]:
+    """The boxes grouped by reference frame and time: each group's box indices and that frame's pose
+    in ``world`` then, float64 [4,4] (None: it cannot be posed; the cuboid checks name it)."""
     groups: dict[tuple[str, int], list[int]] = {}
     for k, key in enumerate(zip(boxes.reference_frame_id, boxes.reference_frame_timestamp_us.tolist(), strict=True)):
         groups.setdefault(key, []).append(k)
+    out = []
     for (frame_id, t_us), members in groups.items():
         try:
-            T_ref_world = _T_reference_world(loader, frame_id, t_us)
-        except (KeyError, ValueError, AssertionError):  # the cuboid checks name the unposed reference frame
-            inner[members], outer[members], centres[members] = -1, -1, np.nan
+            out.append((members, _T_reference_world(loader, frame_id, t_us)))
+        except (KeyError, ValueError, AssertionError):
+            out.append((members, None))
+    return out
+
+
+def box_centres_world(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:
+    """The box centres in ``world``, float64 [B,3] (NaN where the reference frame cannot be posed)."""
+    centres = np.full((len(boxes), 3), np.nan)
+    for members, T_ref_world in _reference_poses(loader, boxes):
+        if T_ref_world is not None:
+            centres[members] = boxes.centroid_m[members] @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
+    return centres
+
+
+def box_point_counts(
+    loader: SequenceLoaderV4, boxes: CuboidColumns, xyz_world_m: np.ndarray, margin_m: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """How many of the points (world, float64 [N,3]) lie inside each box shrunk and grown by its
+    ``margin_m`` (metres [B], 0 without: both are then the exact count;
+    :func:`~ncore_convert.transforms.objects.boxes.count_in_box_band`), int [B] each. Each box is
+    tested in float64 in its own reference frame at its reference time (one pose per reference frame
+    and time). A box whose reference frame cannot be posed at its time counts -1."""
+    inner, outer = np.zeros(len(boxes), np.int64), np.zeros(len(boxes), np.int64)
+    margin_m = np.zeros(len(boxes)) if margin_m is None else margin_m
+    R_box_ref = Rotation.from_euler("xyz", boxes.rot_rad).as_matrix() if len(boxes) else np.zeros((0, 3, 3))
+    for members, T_ref_world in _reference_poses(loader, boxes):
+        if T_ref_world is None:
+            inner[members], outer[members] = -1, -1
             continue
         points = PointGrid((xyz_world_m - T_ref_world[:3, 3]) @ T_ref_world[:3, :3])
-        centres[members] = boxes.centroid_m[members] @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
         for k in members:
             half_m = np.asarray(boxes.dim_m[k], dtype=np.float64) / 2
             inner[k], outer[k] = count_in_box_band(points, boxes.centroid_m[k], R_box_ref[k], half_m, margin_m[k])
-    return inner, outer, centres
+    return inner, outer
 
 
 def box_corners_world(loader: SequenceLoaderV4, boxes: CuboidColumns) -> np.ndarray:

@@ -24,6 +24,7 @@ from ncore_convert.validate.labels import check_camera_labels, held_boxes
 from ncore_convert.validate.poses import sensor_poses, world_global_edge
 from ncore_convert.validate.readback import (
     OpenSequence,
+    box_centres_world,
     box_point_counts,
     boxes_at,
     open_failure,
@@ -99,7 +100,9 @@ def _uncovered(loader: SequenceLoaderV4, sensor_id: str, spans_us: np.ndarray) -
 
 def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> tuple[int, int, int]:
     """(near boxes holding a point, near boxes, the most near boxes any of the
-    OCCUPANCY_ALTERNATIVES_DEG holds) over the sampled frames of one lidar."""
+    OCCUPANCY_ALTERNATIVES_DEG holds) over the sampled frames of one lidar. Only the points that
+    can lie in a near box are counted: those within OCCUPANCY_RANGE_M and the largest near box's
+    half diagonal of the lidar (a turn about the lidar keeps each point's distance to it)."""
     loader = sequence.loader
     frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us
     turns = Rotation.from_euler("xyz", OCCUPANCY_ALTERNATIVES_DEG, degrees=True).as_matrix()
@@ -109,17 +112,21 @@ def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) ->
         if not len(boxes):
             continue
         xyz_world, sensor_world = sequence.world_points(lidar_id, i)
-        _, counts, centres = box_point_counts(loader, boxes, xyz_world)
-        is_near = np.linalg.norm(centres - sensor_world, axis=1) <= OCCUPANCY_RANGE_M
+        with np.errstate(invalid="ignore"):  # a box that cannot be posed has a NaN centre: never near
+            is_near = np.linalg.norm(box_centres_world(loader, boxes) - sensor_world, axis=1) <= OCCUPANCY_RANGE_M
         near += int(is_near.sum())
-        held += int((counts[is_near] > 0).sum())
         if not is_near.any():
             continue
+        near_boxes = boxes.rows(is_near)
+        reach_m = OCCUPANCY_RANGE_M + float(np.linalg.norm(near_boxes.dim_m, axis=1).max()) / 2 + 1.0
+        xyz_world = xyz_world[np.linalg.norm(xyz_world - sensor_world, axis=1) <= reach_m]
+        _, counts = box_point_counts(loader, near_boxes, xyz_world)
+        held += int((counts > 0).sum())
         R_sensor_world = sensor_poses(loader, lidar_id, "world", frames_us[i, 1:2])[0][:3, :3]
         for k, turn in enumerate(turns):  # about the lidar, in its own axes
             R_turn_world = R_sensor_world @ turn @ R_sensor_world.T
-            _, turned, _ = box_point_counts(loader, boxes, (xyz_world - sensor_world) @ R_turn_world.T + sensor_world)
-            held_turned[k] += int((turned[is_near] > 0).sum())
+            _, turned = box_point_counts(loader, near_boxes, (xyz_world - sensor_world) @ R_turn_world.T + sensor_world)
+            held_turned[k] += int((turned > 0).sum())
     return held, near, int(held_turned.max())
 
 

@@ -256,7 +256,7 @@ def _interior_points(
             continue
         reach_m = np.linalg.norm(boxes.centroid_m, axis=1) + 0.5 * np.linalg.norm(boxes.dim_m, axis=1) + lever_m
         margin_m = round_trip_margin_m(reach_m, *rig_motion_bounds(loader, int(frames_us[i, 0]), int(frames_us[i, 1])))
-        inner, outer, _ = box_point_counts(loader, boxes, xyz_world, margin_m)
+        inner, outer = box_point_counts(loader, boxes, xyz_world, margin_m)
         expected = np.array([source_points[k] for k in keys])
         bad = (expected < inner) | (expected > outer)
         checked += len(boxes)
