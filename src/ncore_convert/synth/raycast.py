@@ -226,9 +226,15 @@ def cast_rays(
     half_span_s = float(np.ptp(times_s)) / 2
     one_time = half_span_s == 0.0  # a picture's rays: each moving box placed once
     t_mid_s = float(times_s[0]) if one_time else float(np.median(times_s))
+    # every box at once: its bound, bounding-sphere radius, motion over the rays' times, centre then
     bounds = [box.bound_m for box in scene.boxes]
-    box_reach_m = [float(np.linalg.norm(np.maximum(-lo, hi))) for lo, hi in bounds]  # bounding-sphere radii
-    motion_m = [float(np.linalg.norm(box.velocity_mps)) * half_span_s for box in scene.boxes]  # over the rays' times
+    lo_all, hi_all = (np.array([bound[k] for bound in bounds]).reshape(-1, 3) for k in (0, 1))
+    box_reach_m = np.linalg.norm(np.maximum(-lo_all, hi_all), axis=1)
+    velocity_mps = np.array([box.velocity_mps for box in scene.boxes]).reshape(-1, 3)
+    motion_m = np.linalg.norm(velocity_mps, axis=1) * half_span_s
+    span_s = np.array([(box.move_from_s, box.move_until_s) for box in scene.boxes]).reshape(-1, 2)
+    centers_m = np.array([box.center0_m for box in scene.boxes]).reshape(-1, 3)
+    centers_m = centers_m + np.clip(t_mid_s, span_s[:, 0], span_s[:, 1])[:, None] * velocity_mps
     # the rays sorted by azimuth, so that the rays towards a box are contiguous slices (a stable
     # sort: a picture's rows and a lidar's firing order are runs already in order, which it merges)
     azimuth = np.arctan2(directions[:, 1], directions[:, 0])
@@ -239,7 +245,7 @@ def cast_rays(
         # Only rays whose azimuth points at the box can hit it: seen from the origins' centre, the box
         # (at the rays' middle time) lies within a disc of radius r, padded by the spread of the
         # origins and the box's motion over the rays' times.
-        center = box.center_m(t_mid_s)
+        center = centers_m[b]
         r = box_reach_m[b] + spread_m + motion_m[b]
         distance = np.linalg.norm(center[:2] - center_m[:2])
         if distance - r > max_range_m:
