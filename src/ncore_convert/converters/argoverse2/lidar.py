@@ -30,6 +30,7 @@ from ncore_convert.transforms.lidar.rays import (
     beam_elevation_spread_rad,
     decide_unit_split,
     decompensate,
+    rig_motion_columns,
 )
 from ncore_convert.transforms.sampling import spread_indices
 from ncore_convert.transforms.timebase import NS_PER_US
@@ -175,10 +176,13 @@ def calibrate_lidars(
     halves: dict[tuple[str, str], list] = {}
     for k, sweep in enumerate(sweeps):
         for half, low in (("low", True), ("high", False)):
+            motion = None  # with offset_ns, both units' rows of a half share their times: one rig motion
             for unit, T in T_sensor_rig.items():
                 idx, times_ns = unit_rows(sweep, low, T_rig_world, T, knots.get((half, unit)))
                 beam = sweep.laser_number[idx].astype(np.int64) % vlp32c.N_BEAMS
-                xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T)
+                if not knots and motion is None and len(times_ns):
+                    motion = rig_motion_columns(T_rig_world, times_ns, sweep.timestamp_ns)
+                xyz = decompensate(sweep.xyz_ego_m[idx], times_ns, sweep.timestamp_ns, T_rig_world, T, motion)
                 spread[(half, unit)] = spread.get((half, unit), 0.0) + beam_elevation_spread_rad(xyz, beam)
                 halves.setdefault((half, unit), []).append((xyz, beam, (times_ns - sweep.timestamp_ns) * 1e-9, k))
     split = decide_unit_split(spread)

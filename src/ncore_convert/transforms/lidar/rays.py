@@ -41,14 +41,15 @@ def _quat_conj_times(q_wxyz: np.ndarray, p_wxyz: np.ndarray) -> np.ndarray:
     return right @ (q_wxyz * np.array([1.0, -1.0, -1.0, -1.0])[:, None])
 
 
-def _rig_motion_columns(
+def rig_motion_columns(
     T_rig_world: Trajectory, point_times_ns: np.ndarray, ref_time_ns: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rig motion from the reference time to each unique point time.
+    """Rig motion from the reference time to each unique point time (absolute ns, int64 [N]).
 
     Returns R [3,3,U] and d [3,U] with ``p_rig(t_u) = R[:, :, u] p_rig(ref) + d[:, u]``, i.e.
     ``T_rig_world(t_u)^-1 T_rig_world(ref)`` per unique time (float64, column-wise), and the
-    point -> unique-time index [N].
+    point -> unique-time index [N]. :func:`decompensate` takes it for points that share their times
+    (the same rows decompensated into each candidate unit's frame).
     """
     times_ns, inverse = unique_times(point_times_ns)
     quat, t = T_rig_world.interpolate_columns(T_rig_world.relative_seconds(times_ns))
@@ -84,6 +85,7 @@ def decompensate(
     ref_time_ns: int,
     T_rig_world: Trajectory,
     T_sensor_rig: np.ndarray,
+    motion: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Undo ego-motion compensation: rig-frame points at a reference time -> sensor frame at each point's time.
 
@@ -95,13 +97,14 @@ def decompensate(
         ref_time_ns: absolute time the input points are compensated to, nanoseconds.
         T_rig_world: ego trajectory, must cover all times.
         T_sensor_rig: static sensor->rig extrinsic [4,4].
+        motion: :func:`rig_motion_columns` of these times and reference, when already computed.
 
     Returns:
         points in the sensor frame at their own time, [N,3] in the input dtype, metres.
     """
     if len(point_times_ns) == 0:
         return np.zeros((0, 3), dtype=xyz_rig_ref_m.dtype)
-    R, d, inverse = _rig_motion_columns(T_rig_world, point_times_ns, ref_time_ns)
+    R, d, inverse = motion or rig_motion_columns(T_rig_world, point_times_ns, ref_time_ns)
     T_rig_sensor = invert_se3(T_sensor_rig)
     A, a = T_rig_sensor[:3, :3], T_rig_sensor[:3, 3]
     # sensor(t) <- rig(t) <- rig(ref):  A (R p + d) + a ; A is folded in per time with one matrix product
