@@ -47,6 +47,9 @@ EDGE_STEPS = 4
 GAP_FACTOR = 1.5
 OCCUPANCY_RANGE_M = 30.0  #: boxes whose centre is within this range of the lidar are looked at
 OCCUPANCY_MIN_BOXES = 5  #: fewer near boxes than this: the occupancy check is not decisive
+#: Slack of the distance filter before the occupancy counts (metres): far above rounding, so no point
+#: that lies in a near box is left out.
+OCCUPANCY_FILTER_SLACK_M = 1.0
 #: Gross misregistrations the occupancy is compared with (a plausibility heuristic, docs/validation.md):
 #: the frame's points turned about the lidar, in its own axes, by these xyz Euler angles (degrees):
 #: yawed a quarter, half and three quarters round, and upside down.
@@ -118,7 +121,8 @@ def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) ->
         if not is_near.any():
             continue
         near_boxes = boxes.rows(is_near)
-        reach_m = OCCUPANCY_RANGE_M + float(np.linalg.norm(near_boxes.dim_m, axis=1).max()) / 2 + 1.0
+        half_diagonal_m = float(np.linalg.norm(near_boxes.dim_m, axis=1).max()) / 2
+        reach_m = OCCUPANCY_RANGE_M + half_diagonal_m + OCCUPANCY_FILTER_SLACK_M
         xyz_world = xyz_world[np.linalg.norm(xyz_world - sensor_world, axis=1) <= reach_m]
         _, counts = box_point_counts(loader, near_boxes, xyz_world)
         held += int((counts > 0).sum())
