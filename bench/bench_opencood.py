@@ -5,7 +5,7 @@
    (the agents' sequences are the jobs). Prints wall time, agent-frames/s and lidar points/s.
 2. PCD parse rate, in points per second, of ``ncore_convert.sources.pcd.read_pcd`` against
    ``numpy.loadtxt`` on the same ASCII files, interleaved in the same run.
-3. Per real OPV2V frame (the tests' ``opv2v-lidar-sample``, ~56k points): the PCD parse beside
+3. Per real OPV2V frame (the tests' ``opv2v-agent-sample``: 4 frames, ~57k points): the PCD parse beside
    the lidar model's element assignment (nearest laser, nearest azimuth column), and their ratio;
    the rays as the nearest float32 direction and distance beside the bit-exact ones
    (``transforms.lidar.rays.rays.exact_rays``), and the model measured from 3 frames' points (issue 38).
@@ -110,21 +110,22 @@ def model_cost(repeat: int) -> None:
     the nearest float32 direction and distance, the bit-exact rays (issue 38), the model-element
     assignment; and per agent, measuring the model from 3 frames' points (issue 38)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    from conftest import find_opv2v_sample
-    from ncore_convert.transforms.lidar.rays.rays import exact_rays
-    from test_carla_lidar import EXAMPLE_PROTOCOL
+    from conftest import find_opv2v_agent
+    from test_carla_lidar import real_protocol
 
     from ncore_convert.sources.pcd import read_pcd
     from ncore_convert.transforms import carla
-    from ncore_convert.transforms.lidar.rays import carla as carla_lidar
+    from ncore_convert.transforms.lidar import carla as carla_lidar
+    from ncore_convert.transforms.lidar.rays import exact_rays
 
-    spec = carla_lidar.CarlaLidarSpec.from_protocol(EXAMPLE_PROTOCOL, 0.05)
+    protocol = real_protocol()
+    spec = carla_lidar.CarlaLidarSpec.from_protocol(protocol.cav_lidar, protocol.fixed_delta_seconds)
     model = carla_lidar.model(spec, np.pi)
     seconds: dict[str, list[float]] = {"parse": [], "nearest": [], "exact": [], "elements": [], "fit": []}
     points, inexact = [], []
     for _ in range(repeat):
         frames = []
-        for path in sorted(find_opv2v_sample().glob("*.pcd")):
+        for path in sorted(find_opv2v_agent().glob("*.pcd")):
             started = time.perf_counter()
             data = read_pcd(UPath(path))
             parsed = time.perf_counter()
@@ -148,7 +149,7 @@ def model_cost(repeat: int) -> None:
             inexact.append(len(left))
             frames.append(direction.astype(np.float64))
         started = time.perf_counter()
-        carla_lidar.fit_from_points(frames[::2], 0.05, None)
+        carla_lidar.fit_from_points([frames[i] for i in (0, 2, 3)], 0.05, None)  # 3, as the converter reads
         seconds["fit"].append(time.perf_counter() - started)
     ms = {name: statistics.median(s) * 1e3 for name, s in seconds.items()}
     print(

@@ -1,11 +1,10 @@
-"""Depth labels on the five real OPV2V lidar frames (``opv2v-lidar-sample`` of ``tests/samples.toml``): how
-many of the pixels that a real raw point facing the camera shows are labelled.
+"""Depth labels on the real OPV2V agent (``opv2v-agent-sample`` of ``tests/samples.toml``: four ticks,
+its YAMLs, four cameras): how many of the pixels that a real raw point facing the camera shows are
+labelled.
 
-The real frames take the first CAV's place in a synthetic OPV2V scenario (as the held-out test
-does), which is converted with ``--camera-labels depth``. The frames come without their YAMLs, so
-their own vehicles are not annotated: the labelled boxes are the synthetic scenario's, and the
-real vehicles are not told apart from the rest. The figure is therefore over every real point,
-by issue 52's measure (OpenCOOD's projection, independent of the converter):
+The real scenario is converted with ``--camera-labels depth``. The figure is over every real point
+(the real vehicles are not told apart from the rest), by issue 52's measure (OpenCOOD's projection,
+independent of the converter):
 
 - a pixel's nearest raw point **faces the camera**: the normal of its 8 nearest raw points (the
   smallest principal axis) points within 80 degrees of the line back to the camera;
@@ -22,7 +21,6 @@ Run it at both ends of a change to compare kernels:
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -38,7 +36,6 @@ from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.sources.opencood import load_yaml
 from ncore_convert.sources.pcd import read_pcd
 from ncore_convert.synth import carla as synth_carla
-from ncore_convert.synth import opencood as synth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from samples import ensure as real_samples  # noqa: E402  (the manifest's samples, as the tests get them)
@@ -82,27 +79,24 @@ def camera_facing_pixels(points_m: np.ndarray, frame: dict, index: int) -> tuple
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", type=Path, default=None, help="where to write (default: a temporary directory)")
-    parser.add_argument("--sample", type=Path, default=None, help="the real frames (default: the tests' samples cache)")
+    parser.add_argument("--sample", type=Path, default=None, help="the real agent's dataset root (default: the tests')")
     args = parser.parse_args()
-    args.sample = args.sample or real_samples()["opv2v-lidar-sample"]
-    if not (args.sample / "000070.pcd").is_file():
-        sys.exit(f"{args.sample}: the real OPV2V sample is not there")
+    root = args.sample or real_samples()["opv2v-agent-sample"]
+    scenario, agent = "2021_08_18_19_48_05", "1045"
+    agent_dir = root / "validate" / scenario / agent
+    if not (agent_dir / "000070.pcd").is_file():
+        sys.exit(f"{agent_dir}: the real OPV2V sample is not there")
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-real-opv2v-"))
-    config = synth.SynthConfig(frames=5, seed=11, keep_truth=True)
-    (truth,) = synth.write_dataset(UPath(work / "src"), config)
-    agent = next(iter(truth.agents))
-    real = sorted(args.sample.glob("*.pcd"))
-    for path, key in zip(real, truth.keys, strict=True):
-        shutil.copyfile(path, Path(truth.scenario_dir) / agent / f"{key}.pcd")
-    out = work / "out" / truth.scenario
-    options = OpenCoodOptions(config.dataset, "test", camera_labels=("depth",))
-    convert_scenario(UPath(work / "src"), UPath(out), truth.scenario, options)
-    sequence = UPath(out / agent / f"{truth.scenario}_agent{agent}.json")
+    out = work / "out" / scenario
+    options = OpenCoodOptions("opv2v", "validate", camera_labels=("depth",))
+    convert_scenario(UPath(root), UPath(out), scenario, options)
+    keys = sorted(p.stem for p in agent_dir.glob("*.pcd"))
+    sequence = UPath(out / agent / f"{scenario}_agent{agent}.json")
     loader = SequenceLoaderV4(SequenceComponentGroupsReader([sequence]))
     low, high = [], []
-    for position, key in enumerate(truth.keys):
-        frame = load_yaml(UPath(truth.scenario_dir) / agent / f"{key}.yaml")
-        cloud = read_pcd(UPath(truth.scenario_dir) / agent / f"{key}.pcd")
+    for position, key in enumerate(keys):
+        frame = load_yaml(UPath(agent_dir) / f"{key}.yaml")
+        cloud = read_pcd(UPath(agent_dir) / f"{key}.pcd")
         points_m = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
         for index, cam in enumerate(CAMERAS):
             if f"camera{index}" not in frame:
@@ -116,7 +110,7 @@ def main() -> None:
             high.append(labelled[height_m - ground_m > 2.5])
     low, high = np.concatenate(low), np.concatenate(high)
     every = np.r_[low, high]
-    print(f"five real OPV2V frames ({real[0].stem}-{real[-1].stem}) in CAV {agent}'s place, 4 cameras each:")
+    print(f"the real OPV2V agent {agent} of {scenario}, ticks {keys[0]}-{keys[-1]}, 4 cameras each:")
     print(f"  camera-facing, unhidden raw-point pixels labelled: {every.mean():.3f} of {len(every)}")
     print(f"    up to 2.5 m above the road (vehicles, people, furniture): {low.mean():.3f} of {len(low)}")
     print(f"    higher (walls, trees, poles):                             {high.mean():.3f} of {len(high)}")

@@ -95,9 +95,19 @@ def find_av2_sample() -> Path:
     return samples.ensure()["av2-sample"]
 
 
+#: The real OPV2V sample: one agent of one scenario of the validate split, ticks 68-74.
+OPV2V_SAMPLE_SCENARIO, OPV2V_SAMPLE_AGENT, OPV2V_SAMPLE_KEYS = "2021_08_18_19_48_05", "1045", (68, 70, 72, 74)
+
+
 def find_opv2v_sample() -> Path:
-    """The real OPV2V lidar frames' folder (``000070.pcd`` ... ``000078.pcd``), in the samples cache."""
-    return samples.ensure()["opv2v-lidar-sample"]
+    """The real OPV2V sample's dataset root (``<it>/validate/<scenario>/<agent>/000068.pcd`` ...), in
+    the samples cache (tests/samples.py)."""
+    return samples.ensure()["opv2v-agent-sample"]
+
+
+def find_opv2v_agent() -> Path:
+    """The real OPV2V agent's folder: ``000068.pcd`` ... ``000074.pcd``, their YAMLs and camera PNGs."""
+    return find_opv2v_sample() / "validate" / OPV2V_SAMPLE_SCENARIO / OPV2V_SAMPLE_AGENT
 
 
 @pytest.hookimpl(tryfirst=True)

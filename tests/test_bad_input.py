@@ -29,7 +29,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.feather as feather
 import pytest
-from conftest import AV2_SAMPLE_LOG, REPO, find_opv2v_sample
+from conftest import AV2_SAMPLE_LOG, REPO, find_opv2v_agent
 from upath import UPath
 
 from ncore_convert.converters.argoverse2 import Argoverse2Options, convert_log
@@ -249,9 +249,10 @@ def _cut(path: Path, fraction: float) -> Path:
 
 def _real_pcd_cut(scenario: Path) -> Path:
     """A real OPV2V frame in a one-tick vehicle's place, cut to its first 30,000 bytes: the real
-    V2XSet scenario's case (a download that stopped mid-file)."""
+    V2XSet scenario's case (a download that stopped mid-file; here in the 563rd point's intensity,
+    which still reads as a number: the point count gives it away)."""
     path = _frame(scenario, ".pcd", agent=1, key=0)
-    path.write_bytes((find_opv2v_sample() / "000070.pcd").read_bytes()[:30_000])
+    path.write_bytes((find_opv2v_agent() / "000070.pcd").read_bytes()[:30_000])
     return path
 
 
@@ -379,7 +380,10 @@ CASES: dict[str, Case] = {
         "one-tick", lambda s: _cut(_frame(s, ".pcd", agent=1, key=0), 0.3), "warn", "no readable lidar frame of 1"
     ),
     "one-tick-real-pcd-cut": Case(
-        "one-tick", _real_pcd_cut, "warn", "no readable lidar frame of 1 ({at_fault}: PCD body is not 4 numbers"
+        "one-tick",
+        _real_pcd_cut,
+        "warn",
+        "no readable lidar frame of 1 ({at_fault}: PCD body holds 562 points, the header says 57374",
     ),
     "one-tick-truncated-png": Case(
         "one-tick", lambda s: _cut(_frame(s, "_camera0.png", agent=2, key=0), 0.3), "warn", "no readable image of 1"

@@ -9,12 +9,19 @@ synthetic agent's place for that last check.
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import find_opv2v_sample
+from conftest import (
+    OPV2V_SAMPLE_AGENT,
+    OPV2V_SAMPLE_KEYS,
+    OPV2V_SAMPLE_SCENARIO,
+    component_meta,
+    find_opv2v_agent,
+    find_opv2v_sample,
+)
 from ncore.data.v4 import SequenceComponentGroupsReader, SequenceLoaderV4
 from ncore.impl.data.types import LabelSource, LabelType
 from test_opencood_view import opencood_pcd
@@ -32,13 +39,8 @@ KINDS = ("depth", "dynamic", "instance")
 SUBPIXEL = (np.arange(4) + 0.5) / 4
 
 
-def _convert(tmp: Path, config: synth.SynthConfig, real_pcds: bool = False):
+def _convert(tmp: Path, config: synth.SynthConfig):
     (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
-    if real_pcds:  # the real frames in the first agent's place (their keys 000070-000078)
-        real = sorted(find_opv2v_sample().glob("*.pcd"))
-        assert [p.stem for p in real] == truth.keys
-        for path in real:
-            shutil.copyfile(path, Path(truth.scenario_dir) / next(iter(truth.agents)) / path.name)
     out = tmp / "out" / truth.scenario
     options = OpenCoodOptions(config.dataset, "test", camera_labels=KINDS)
     summary = convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario, options)
@@ -255,32 +257,41 @@ def _assert_depth_bounds(smallest, behind, covered, vehicles_bound: float, all_b
     assert np.mean(labelled[on_vehicle]) >= vehicles_bound, np.mean(labelled[on_vehicle])
 
 
-def _opencood_pixels(agent_dir: Path, key: str, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _opencood_pixels(
+    agent_dir: Path, key: str, index: int, slack_px=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The raw PCD points of tick ``key`` in camera ``index``'s picture as OpenCOOD projects them
     (YAML ``extrinsic`` lidar -> camera in UE4 axes; x forward, y right, z up -> OpenCV (y, -z, x);
-    K): pixel column, row (int [K]) and depth z (m, [K]) of the points ahead and inside the image
-    (a point within ``EDGE_PX`` of a pixel edge in each pixel it touches)."""
+    K): pixel column, row (int [K]) and depth z (m, [K]) of the points ahead and inside the image,
+    a point within its slack of a pixel edge in each pixel it may fall in (the slack: ``EDGE_PX``,
+    plus ``slack_px(z)`` px: how far another projection of it may be off); and whether the pixel is
+    the point's beyond that slack (bool [K])."""
     yaml = load_yaml(UPath(agent_dir) / f"{key}.yaml")
     E, K = np.array(yaml[f"camera{index}"]["extrinsic"]), np.array(yaml[f"camera{index}"]["intrinsic"])
     xyz = opencood_pcd(Path(agent_dir) / f"{key}.pcd")[:, :3].astype(np.float64)
     ue4 = xyz @ E[:3, :3].T + E[:3, 3]
     x, y, z = ue4[:, 1], -ue4[:, 2], ue4[:, 0]
     ahead = z > 0.3
-    u = K[0, 0] * x[ahead] / z[ahead] + K[0, 2]
-    v = K[1, 1] * y[ahead] / z[ahead] + K[1, 2]
+    z = z[ahead]
+    u = K[0, 0] * x[ahead] / z + K[0, 2]
+    v = K[1, 1] * y[ahead] / z + K[1, 2]
     # a point on a pixel edge (the synthetic lidar has a column of rays on the optical axis, at
     # u = cx exactly) belongs to the pixels either side: which one is a matter of the last bit
-    u = np.concatenate([u, u + EDGE_PX, u - EDGE_PX, u, u])
-    v = np.concatenate([v, v, v, v + EDGE_PX, v - EDGE_PX])
-    z = np.tile(z[ahead], 5)
-    inside = (u >= 0) & (u < synth_carla.WIDTH) & (v >= 0) & (v < synth_carla.HEIGHT)
-    return u[inside].astype(np.int64), v[inside].astype(np.int64), z[inside]
+    slack = EDGE_PX + (slack_px(z) if slack_px is not None else 0.0)
+    du, dv = (a.reshape(-1) for a in np.meshgrid([0.0, 1.0, -1.0], [0.0, 1.0, -1.0]))  # the point first
+    cols = np.floor(u[None] + du[:, None] * slack).astype(np.int64).reshape(-1)
+    lines = np.floor(v[None] + dv[:, None] * slack).astype(np.int64).reshape(-1)
+    edge = np.minimum.reduce([u - np.floor(u), np.floor(u) + 1 - u, v - np.floor(v), np.floor(v) + 1 - v])
+    sure = np.concatenate([edge > slack, np.zeros(len(u) * (len(du) - 1), bool)])
+    z = np.tile(z, len(du))
+    inside = (cols >= 0) & (cols < synth_carla.WIDTH) & (lines >= 0) & (lines < synth_carla.HEIGHT)
+    return cols[inside], lines[inside], z[inside], sure[inside]
 
 
 def _visible_point_pixels(truth, agent_id: str, key: str, index: int, depth: np.ndarray) -> tuple[np.ndarray, ...]:
     """Whether each pixel hit by a raw point that the camera sees in truth (nothing between the
     camera and the point but 5 cm) is labelled, and whether the pixel shows a vehicle, bool [P] each."""
-    cols, lines, z_m = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
+    cols, lines, z_m, _ = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
     first_z, box = _seen(truth, agent_id, key, index, cols + 0.5, lines + 0.5)
     seen = first_z >= z_m - 0.05 * np.maximum(1.0, z_m / 10.0)  # the pixel centre's ray, not the point's
     pixels, first = np.unique(lines[seen] * synth_carla.WIDTH + cols[seen], return_index=True)
@@ -289,10 +300,11 @@ def _visible_point_pixels(truth, agent_id: str, key: str, index: int, depth: np.
     return depth.reshape(-1)[pixels] > 0, on_vehicle
 
 
-def _held_out(truth, out: Path, agent_id: str) -> tuple[int, int, int]:
-    """The held-out check on one agent: every labelled depth pixel has a raw PCD point projecting
-    there (OpenCOOD's conventions) within ``STORED_DEPTH_M`` of its depth (the storage's 4 mm steps),
-    and that point is the nearest such one.
+def _held_out(truth, out: Path, agent_id: str, slack_px=None) -> tuple[int, int, int]:
+    """The held-out check on one agent: every labelled depth pixel has a raw PCD point that may
+    project there (OpenCOOD's conventions; ``slack_px(cam)``: the slack of :func:`_opencood_pixels`
+    for a camera, None: none) within ``STORED_DEPTH_M`` of its depth (the storage's 4 mm steps), and
+    no point surely in the pixel is nearer.
     Returns (labelled pixels, without such a point, not the nearest)."""
     loader = _loader(out, truth.scenario, agent_id)
     labelled = missing = not_nearest = 0
@@ -300,7 +312,8 @@ def _held_out(truth, out: Path, agent_id: str) -> tuple[int, int, int]:
         for cam, index in _cameras(truth, agent_id, key):
             labels = _labels(loader, cam, LabelType.DEPTH_Z_M)
             depth = labels.get_label(int(labels.label_timestamps_us[truth.keys.index(key)])).get_data()
-            cols, lines, z_m = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index)
+            slack = slack_px(cam) if slack_px is not None else None
+            cols, lines, z_m, sure = _opencood_pixels(Path(truth.scenario_dir) / agent_id, key, index, slack)
             pixel = lines * synth_carla.WIDTH + cols
             label = depth.reshape(-1)[pixel]
             near = np.abs(z_m - label) <= STORED_DEPTH_M
@@ -308,7 +321,7 @@ def _held_out(truth, out: Path, agent_id: str) -> tuple[int, int, int]:
             labelled += len(set_pixels)
             missing += len(np.setdiff1d(set_pixels, pixel[near]))
             nearest = np.full(depth.size, np.inf)
-            np.minimum.at(nearest, pixel, z_m)
+            np.minimum.at(nearest, pixel[sure], z_m[sure])
             not_nearest += int(np.sum(depth.reshape(-1)[set_pixels] > nearest[set_pixels] + STORED_DEPTH_M))
     return labelled, missing, not_nearest
 
@@ -321,13 +334,37 @@ def test_every_depth_pixel_is_the_nearest_raw_point_there(labelled):
         assert labelled_px > 2000 and missing == 0 and not_nearest == 0, (agent_id, labelled_px, missing, not_nearest)
 
 
-def test_real_opv2v_frames_every_depth_pixel_is_the_nearest_raw_point_there(tmp_path):
-    """The five real OPV2V frames in a synthetic agent's place: every labelled depth pixel is the
-    nearest raw point projecting there within ``STORED_DEPTH_M`` (OpenCOOD's projection), and the sequence
-    validates."""
-    config = synth.SynthConfig(dataset="opv2v", frames=5, seed=7, cavs=1, first_key=70, key_step=2, render_step=8)
-    truth, _, out = _convert(tmp_path, config, real_pcds=True)
-    (agent_id,) = truth.agents
-    labelled_px, missing, not_nearest = _held_out(truth, out, agent_id)
-    assert labelled_px > 10_000 and missing == 0 and not_nearest == 0, (labelled_px, missing, not_nearest)
-    assert validate_sequence(UPath(out / agent_id / f"{truth.scenario}_agent{agent_id}.json")).ok
+def test_the_real_agent_every_depth_pixel_is_the_nearest_raw_point_there(tmp_path):
+    """The real OPV2V agent (its YAMLs' camera poses and intrinsics, its PCDs; four cameras at four
+    ticks) converted with every label: every labelled depth pixel is the nearest raw point that may
+    project there within ``STORED_DEPTH_M`` by OpenCOOD's projection (the YAML's ``extrinsic``, per
+    tick; the converter stores each sensor's mean mounting on the vehicle instead), and the sequence
+    validates.
+
+    The slack is what the stored mountings declare: CARLA writes its world poses (at ~600 m here) in
+    float32, so each mounting's per-tick samples spread by up to the metadata's
+    ``max_deviation_m`` / ``_deg`` (0.04-0.08 mm, 0-0.000015 deg here); the lidar's and the camera's
+    together move a point at depth z by up to f * (d_m / z + d_rad) px (0.001-0.03 px). With none, 315 of 206,881
+    labelled pixels had their point within 0.011 px beyond an edge."""
+    from ncore.data.v4 import CameraSensorComponent, LidarSensorComponent
+
+    root = find_opv2v_sample()
+    options = OpenCoodOptions("opv2v", "validate", camera_labels=KINDS)
+    out = tmp_path / OPV2V_SAMPLE_SCENARIO
+    convert_scenario(UPath(root), UPath(out), OPV2V_SAMPLE_SCENARIO, options)
+    loader = _loader(out, OPV2V_SAMPLE_SCENARIO, OPV2V_SAMPLE_AGENT)
+    (lidar_id,) = loader.lidar_ids
+    lidar = component_meta(loader, LidarSensorComponent, lidar_id)["mounting"]
+
+    def slack_px(cam: str):
+        camera = component_meta(loader, CameraSensorComponent, cam)["mounting"]
+        moved_m = lidar["max_deviation_m"] + camera["max_deviation_m"]
+        moved_rad = np.radians(lidar["max_deviation_deg"] + camera["max_deviation_deg"])
+        return lambda z_m: synth_carla.FOCAL_PX * (moved_m / z_m + moved_rad)
+
+    keys = [f"{key:06d}" for key in OPV2V_SAMPLE_KEYS]
+    real = SimpleNamespace(scenario=OPV2V_SAMPLE_SCENARIO, scenario_dir=find_opv2v_agent().parent, keys=keys)
+    labelled_px, missing, not_nearest = _held_out(real, out, OPV2V_SAMPLE_AGENT, slack_px)
+    assert labelled_px > 200_000 and missing == 0 and not_nearest == 0, (labelled_px, missing, not_nearest)
+    sequence = out / OPV2V_SAMPLE_AGENT / f"{OPV2V_SAMPLE_SCENARIO}_agent{OPV2V_SAMPLE_AGENT}.json"
+    assert validate_sequence(UPath(sequence)).ok

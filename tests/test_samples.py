@@ -21,7 +21,7 @@ NAMES = (
     "7fab2350-7eaf-3b7e-a39d-6937a4c1bede___img_Sim2_city.json",
     "000072.pcd",
 )
-NO_LOCAL = {"av2-sample": [], "opv2v-lidar-sample": []}
+NO_LOCAL = {"av2-sample": [], "opv2v-agent-sample": []}
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +150,8 @@ def test_offline_is_one_line_naming_the_mirror_variable(tmp_path, files):
 
 def test_the_manifest_pins_every_file_the_tests_read():
     """Every file of the samples' cache folders is in the manifest with its size (nothing read unlisted),
-    and the AV2 files' origin is av2-api's unit-test data at one commit."""
+    and every file has a public origin at one commit: av2-api's unit-test data for the AV2 log, the
+    COHFF-Occupancy-Process repository's OPV2V example for the OPV2V agent."""
     meta, listed = samples.manifest()
     folders = samples.ensure()
     on_disk = {(name, p.relative_to(folder).as_posix()) for name, folder in folders.items() for p in folder.rglob("*")}
@@ -158,4 +159,9 @@ def test_the_manifest_pins_every_file_the_tests_read():
     assert all((folders[f.sample] / f.path).stat().st_size == f.size for f in listed)
     origins = {f.origin.split("/tests/unit/test_data/sensor/")[0] for f in listed if f.sample == "av2-sample"}
     assert origins == {"https://raw.githubusercontent.com/argoverse/av2-api/b7321d1f71f6ce0ecdd151f4f2b648338c191edd"}
-    assert set(meta) == {"av2-sample", "opv2v-lidar-sample"} and all(m["licence"] for m in meta.values())
+    opv2v = {f.origin.split("/data_example/")[0] for f in listed if f.sample == "opv2v-agent-sample"}
+    assert opv2v == {
+        "https://raw.githubusercontent.com/Studeas/COHFF-Occupancy-Process/c6f909d38cc6b494b7e177dc94191bc58e1a8e3c"
+    }
+    assert all(f.origin.endswith("/" + f.path) for f in listed)
+    assert set(meta) == {"av2-sample", "opv2v-agent-sample"} and all(m["licence"] for m in meta.values())
