@@ -3,7 +3,10 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-DEMO   ?= /tmp/ncore-convert-demo
+# the demo writes inside the clone (ignored by git); make demo DEMO=/some/folder puts it elsewhere
+DEMO   ?= demo-output
+# bash: the demo quotes the paths it prints with printf %q
+SHELL  := /bin/bash
 
 .PHONY: install demo test bench clean
 
@@ -22,10 +25,15 @@ $(STAMP): pyproject.toml constraints.txt
 install: $(STAMP)
 
 demo: $(STAMP)
-	rm -rf $(DEMO)
-	$(VENV)/bin/ncore-convert synth argoverse2 --out $(DEMO)/source/val --seconds 2 --seed 0 --pictures 32
-	$(VENV)/bin/ncore-convert --root-dir $(DEMO)/source --output-dir $(DEMO)/out argoverse2-v4 --split val
-	@echo "demo output: $(DEMO)/out"
+	rm -rf "$(DEMO)"
+	$(VENV)/bin/ncore-convert synth argoverse2 --out "$(DEMO)/source" --seconds 2 --seed 0
+	$(VENV)/bin/ncore-convert --root-dir "$(DEMO)/source" --output-dir "$(DEMO)/out" argoverse2-v4 --split val
+	@# the next command, with absolute paths quoted for the shell (a clone's path may hold a space)
+	@cli="$$(cd "$(VENV)/bin" && pwd)/ncore-convert"; out="$$(cd "$(DEMO)" && pwd)"; \
+	  sequence="$$(ls "$$out"/out/*/*.json | head -n 1)"; \
+	  echo; echo "Converted into $$out/out. Next, draw what was written (lidar on the cameras, a bird's-eye view):"; \
+	  printf '  %q preview %q --out %q\n' "$$cli" "$$sequence" "$$out/preview"; \
+	  echo "(source .venv/bin/activate puts ncore-convert on your PATH; docs/cli.md lists every command)"
 
 test: $(STAMP)
 	# lint and formatting first: both are part of the tests (pyproject.toml [tool.ruff])

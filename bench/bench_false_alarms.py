@@ -80,9 +80,8 @@ def generate(group: dict, root: Path) -> tuple[list[str], list[str]]:
     and its dataset arguments."""
     kind, combo = group["kind"], group["combo"]
     if kind in ("argoverse2", "tbv"):
-        out = root / "val" if kind == "argoverse2" else root
         for seed in group["seeds"]:
-            args = ["synth", kind, "--out", str(out), "--seconds", str(group["seconds"]), "--seed", str(seed)]
+            args = ["synth", kind, "--out", str(root), "--seconds", str(group["seconds"]), "--seed", str(seed)]
             check(run(args + ["--camera-fps", "0", *combo]))
         return (["argoverse2-v4", "--split", "val"] if kind == "argoverse2" else ["tbv-v4"]), []
     args = ["synth", kind, "--out", str(root), "--split", "validate", "--scenarios", str(group["scenarios"])]

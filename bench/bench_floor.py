@@ -1,7 +1,7 @@
 """Benchmark: the library floor, and ours above it (issue 42). Not a test.
 
 The floor is what any converter built on nvidia-ncore pays to write what ours writes. For the 15 s
-synthetic AV2 log (``synth argoverse2 --seconds 15 --seed 2``, as ``bench_speed.py``), ours is run
+synthetic AV2 log (``synth argoverse2 --seconds 15 --seed 2 --pictures 16``, as ``bench_speed.py``), ours is run
 once with ``--no-validate``; everything it wrote (lidar rays with their times, distances,
 intensities, model elements and ``dynamic_flag``; the JPEGs as stored; poses, models, masks,
 cuboids; all metadata) is read back into this process's memory through the library's component

@@ -108,7 +108,7 @@ def main() -> None:
     work = Path(args.work or tempfile.mkdtemp(prefix="bench-object-storage-"))
     src = work / "src"
     if not (src / "val").is_dir():
-        synth = ["synth", "argoverse2", "--out", str(src / "val"), "--seconds", str(args.seconds)]
+        synth = ["synth", "argoverse2", "--out", str(src), "--seconds", str(args.seconds), "--pictures", "16"]
         subprocess.run([str(BIN / "ncore-convert"), *synth, "--seed", str(args.seed)], check=True, capture_output=True)
     files = [p for p in src.rglob("*") if p.is_file()]
     source_bytes = sum(p.stat().st_size for p in files)

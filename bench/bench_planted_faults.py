@@ -70,7 +70,7 @@ def convert(work: Path, seed: int, seconds: float, store: bool) -> tuple[Path, P
     root, out = work / f"src-{seed}", work / f"out-{seed}{'-directory' if store else ''}"
     if not out.exists():
         cli(
-            ["synth", "argoverse2", "--out", str(root / "val"), "--seconds", str(seconds), "--seed", str(seed)]
+            ["synth", "argoverse2", "--out", str(root), "--seconds", str(seconds), "--seed", str(seed)]
             + ["--camera-fps", "0"]
         )
         layout = ["--store-type", "directory", "--profile", "default"] if store else []

@@ -1,6 +1,6 @@
 """Benchmark: what a user's default command costs next to the floor (issue 28). Not a test.
 
-On one synthetic 15 s AV2 log (``synth argoverse2 --seconds 15 --seed 2``: 150 sweeps, 2,790 images),
+On one synthetic 15 s AV2 log (``synth argoverse2 --seconds 15 --seed 2 --pictures 16``: 150 sweeps, 2,790 images),
 whole commands from process start to synced files, interleaved in every round
 (copy, --no-validate, default, validate alone, NCore's own converter, copy, ...):
 - ``cp -r`` of the log plus ``sync`` (the floor);

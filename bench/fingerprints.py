@@ -12,7 +12,8 @@ holds wall-clock times) and of every source file, one line each, sorted.
 
 The AV2 and TbV worlds are pinned to the overlapping traffic the fingerprints were first taken on
 (``synth --overlapping-traffic``; before that option existed, the generator's only world), so
-fingerprints of commits on either side of the generator's ``--clear-paths`` default compare.
+fingerprints of commits on either side of the generator's ``--clear-paths`` default compare; and
+each log is written where the other commits write it, whatever ``--out`` means there.
 """
 
 from __future__ import annotations
@@ -24,9 +25,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-SOURCES = {
-    "av2/val": ["argoverse2", "--seconds", "1.2", "--seed", "5", "--pictures", "32"],
-    "av2r/val": ["argoverse2", "--seconds", "0.4", "--seed", "6", "--camera-fps", "10", "--world", "render"],
+SOURCES = {  #: the AV2 logs are written to <folder>/val
+    "av2": ["argoverse2", "--seconds", "1.2", "--seed", "5", "--pictures", "32"],
+    "av2r": ["argoverse2", "--seconds", "0.4", "--seed", "6", "--camera-fps", "10", "--world", "render"],
     "tbv": ["tbv", "--seconds", "1.2", "--seed", "7", "--pictures", "32"],
     "opv2v": ["opv2v", "--split", "test", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "3"],
     "v2xset": ["v2xset", "--split", "test", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "8"],
@@ -84,10 +85,14 @@ def tree_hashes(root: Path, skip: tuple[str, ...] = ()) -> list[str]:
     ]
 
 
-def pinned_world(cli: str, dataset: str) -> list[str]:
-    """``--overlapping-traffic`` where this commit's ``synth <dataset>`` has it (else its world is that one)."""
+def pinned_world(cli: str, dataset: str, folder: Path) -> list[str]:
+    """``--overlapping-traffic`` where this commit's ``synth <dataset>`` has it (else its world is that
+    one), and where it writes: an AV2 log into ``<folder>/val``, whether ``--out`` is the dataset root
+    (with ``--split``: since issue 73) or the split folder."""
     help_text = subprocess.run([cli, "synth", dataset, "--help"], check=True, capture_output=True, text=True).stdout
-    return ["--overlapping-traffic"] if "--overlapping-traffic" in help_text else []
+    world = ["--overlapping-traffic"] if "--overlapping-traffic" in help_text else []
+    split_folder = dataset == "argoverse2" and "--split" not in help_text
+    return [*world, "--out", str(folder / "val" if split_folder else folder)]
 
 
 def main() -> None:
@@ -99,8 +104,8 @@ def main() -> None:
     shutil.rmtree(sources, ignore_errors=True)
     shutil.rmtree(outputs, ignore_errors=True)
     for folder, synth in SOURCES.items():
-        world = pinned_world(cli, synth[0])
-        subprocess.run([cli, "synth", *synth, *world, "--out", str(sources / folder)], check=True, capture_output=True)
+        pinned = pinned_world(cli, synth[0], sources / folder)
+        subprocess.run([cli, "synth", *synth, *pinned], check=True, capture_output=True)
     for name, (source, command) in CONVERSIONS.items():
         run = [cli, "--no-progress", "--workers", "2", "--root-dir", str(sources / source), "--output-dir"]
         subprocess.run([*run, str(outputs / name), *command], check=True, capture_output=True)

@@ -195,7 +195,8 @@ def test_three_good_logs_and_one_damaged_give_three_sequences_and_one_failure(tm
 def test_synth_command_writes_a_log(tmp_path):
     result = run("synth", "argoverse2", "--out", str(tmp_path), "--seconds", "0.2", "--camera-fps", "0")
     assert result.exit_code == 0, result.output
-    (log_dir,) = list(tmp_path.iterdir())
+    assert [p.name for p in tmp_path.iterdir()] == ["val"]  # --out is the dataset root, the split below it
+    (log_dir,) = list((tmp_path / "val").iterdir())
     assert len(av2.list_sweep_timestamps_ns(UPath(log_dir))) == 2
     assert np.all(np.diff(av2.read_ego_poses(UPath(log_dir))[0]) > 0)
 

@@ -34,14 +34,13 @@ AV2_SYNTH = [
 ]
 V2XSET_SYNTH = ["v2xset", "--frames", "4", "--cavs", "2", "--lidar-columns", "64", "--seed", "8", "--render-step", "8"]
 V2XSET_NOISE = ["--loc-err", "--xyz-std", "1", "--ryp-std", "2", "--async", "--async-overhead", "100"]
-#: case -> (synth arguments, split folder, dataset command, its arguments); the "consumer" cases set
+#: case -> (synth arguments, dataset command, its arguments); the "consumer" cases set
 #: every consumer option away from its default.
 SYNTH = {
-    "argoverse2-v4": (AV2_SYNTH, "val", "argoverse2-v4", ["--split", "val"]),
-    "v2xset-v4": (V2XSET_SYNTH, "", "v2xset-v4", ["--split", "test", *V2XSET_NOISE]),
+    "argoverse2-v4": (AV2_SYNTH, "argoverse2-v4", ["--split", "val"]),
+    "v2xset-v4": (V2XSET_SYNTH, "v2xset-v4", ["--split", "test", *V2XSET_NOISE]),
     "argoverse2-v4 consumer": (
         AV2_SYNTH,
-        "val",
         "argoverse2-v4",
         [
             "--split",
@@ -62,7 +61,6 @@ SYNTH = {
     ),
     "v2xset-v4 consumer": (
         V2XSET_SYNTH,
-        "",
         "v2xset-v4",
         [
             "--split",
@@ -100,10 +98,10 @@ def sources(tmp_path_factory):
     """Synthesise each source once (by its synth arguments): its --root-dir."""
     roots: dict[tuple[str, ...], Path] = {}
 
-    def source(synth_args: list[str], split_folder: str) -> Path:
+    def source(synth_args: list[str]) -> Path:
         if tuple(synth_args) not in roots:
             root = tmp_path_factory.mktemp("determinism-src")
-            assert run_cli("synth", *synth_args, "--out", str(root / split_folder)).returncode == 0
+            assert run_cli("synth", *synth_args, "--out", str(root)).returncode == 0
             roots[tuple(synth_args)] = root
         return roots[tuple(synth_args)]
 
@@ -112,9 +110,9 @@ def sources(tmp_path_factory):
 
 @pytest.mark.parametrize("case", list(SYNTH))
 def test_two_runs_write_identical_sequences(case, tmp_path, sources):
-    synth_args, split_folder, command, command_args = SYNTH[case]
+    synth_args, command, command_args = SYNTH[case]
     cli = str(BIN / "ncore-convert")
-    source_root = sources(synth_args, split_folder)
+    source_root = sources(synth_args)
     outputs = []
     for run, workers in (("a", "1"), ("b", "2")):
         out = tmp_path / run

@@ -134,3 +134,48 @@ def test_no_cursor_escapes_without_a_terminal(tmp_path):
     assert "1 converted, 0 skipped, 0 failed" in log
     bars = _convert(tmp_path, "--progress")  # asked for explicitly: the bars are drawn
     assert "\r" in bars or "\x1b[" in bars, repr(bars)
+
+
+#: The README's names of the dataset commands (its "commands" column).
+DATASET_COMMANDS = {"AV2": "argoverse2-v4", "TbV": "tbv-v4", "OPV2V": "opv2v-v4", "V2XSet": "v2xset-v4"}
+
+
+def _readme_dataset_options() -> list[tuple[list[str], set[str], str]]:
+    """The README's "Dataset options" table: per row, its options, the commands it names and the
+    row's commands cell."""
+    text = (REPO / "README.md").read_text()
+    table = text.split("Dataset options:", 1)[1].split("\n\n", 2)[1]
+    rows = []
+    for line in table.splitlines()[2:]:
+        option_cell, commands_cell = (cell.strip() for cell in line.strip("|").split(" | ")[:2])
+        groups = [g.strip() for g in commands_cell.split("(")[0].split(" / ")]
+        for options_text, group in zip(option_cell.split(" / "), groups * len(option_cell.split(" / ")), strict=False):
+            options = re.findall(r"`(--[a-z-]+)", options_text)
+            if group.startswith("all but"):
+                named = set(DATASET_COMMANDS.values()) - set(re.findall(r"`([a-z0-9-]+)`", group))
+            elif group == "all":
+                named = set(DATASET_COMMANDS.values())
+            else:
+                named = {DATASET_COMMANDS[name.strip()] for name in group.split(",")}
+            rows.append((options, named, commands_cell))
+    return rows
+
+
+def test_each_dataset_command_offers_what_the_readme_table_says():
+    """Each option of the README's dataset-options table is offered by exactly the commands its
+    row names, and ``--camera-labels`` offers per command the kinds the row gives (TbV: no
+    ``instance``, which needs cuboids)."""
+    rows = _readme_dataset_options()
+    assert len(rows) >= 20
+    offered = {name: option_strings(cli.commands[name]) for name in DATASET_COMMANDS.values()}
+    for options, named, cell in rows:
+        for option in options:
+            having = {name for name, spelled in offered.items() if option in spelled}
+            assert having == named, f"README says {option} is for {cell}; --help offers it in {sorted(having)}"
+    (labels_cell,) = [cell for options, _, cell in rows if "--camera-labels" in options]
+    tbv_kinds = re.search(r"TbV: ([^)]*)\)", labels_cell).group(1)
+    expected = {name: "depth,dynamic,instance" for name in DATASET_COMMANDS.values()}
+    expected["tbv-v4"] = ",".join(re.findall(r"`([a-z]+)`", tbv_kinds))
+    for name, kinds in expected.items():
+        help_text = CliRunner().invoke(cli, [name, "--help"]).output
+        assert re.search(rf"--camera-labels {kinds}\s", help_text), (name, kinds)

@@ -8,6 +8,8 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from matplotlib.axes import Axes
+from matplotlib.collections import LineCollection
 from matplotlib.path import Path as PolyPath
 from PIL import Image
 from scipy.spatial import ConvexHull
@@ -18,6 +20,7 @@ from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
 from ncore_convert.preview import preview_scenario, preview_sequence
 from ncore_convert.sources import argoverse2 as av2
 from ncore_convert.sources.noise_config import make_setting
+from ncore_convert.sources.opencood import load_yaml
 from ncore_convert.synth.opencood import SynthConfig as OpenCoodConfig
 from ncore_convert.synth.opencood import write_dataset
 
@@ -116,6 +119,21 @@ def test_preview_writes_readable_pngs_for_every_camera_and_the_bev(synth_log, pr
     assert ranges.min() > 0 and np.all(np.isfinite(ranges))
 
 
+def test_camera_titles_name_the_lidar_frame_of_the_file_names(synth_log, tmp_path, monkeypatch):
+    """Each camera picture is the camera's frame nearest the lidar frame of the file name
+    (``_f0005_``); its title says both."""
+    titles: list[str] = []
+    set_title = Axes.set_title
+    monkeypatch.setattr(
+        Axes, "set_title", lambda ax, label, *a, **k: titles.append(label) or set_title(ax, label, *a, **k)
+    )
+    (meta,) = synth_log.seq_dir.glob("*.json")
+    written = preview_sequence(UPath(meta), UPath(tmp_path), frame=5)
+    assert all("_f0005_" in p.png.name for p in written.cameras)
+    cameras = [t for t in titles if "bird's-eye" not in t]
+    assert len(cameras) >= len(written.cameras) and all("(at lidar frame 5)" in t for t in cameras), cameras
+
+
 def test_cooperative_preview_and_the_command(tmp_path):
     config = OpenCoodConfig(dataset="v2xset", frames=4, seed=6, cavs=2, infrastructure=True, lidar_columns=180)
     (truth,) = write_dataset(UPath(tmp_path / "src"), config)
@@ -127,9 +145,24 @@ def test_cooperative_preview_and_the_command(tmp_path):
         truth.scenario,
         OpenCoodOptions(dataset="v2xset", split=config.split, noise=(noise,)),
     )
-    png = preview_scenario(UPath(out / "scenario.json"), UPath(tmp_path / "png"))
+    drawn: list[int] = []  # footprints per line collection: one per agent and panel
+    add_collection = Axes.add_collection
+
+    def count(ax, collection, **kwargs):
+        if isinstance(collection, LineCollection):
+            drawn.append(len(collection.get_segments()))
+        return add_collection(ax, collection, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Axes, "add_collection", count)
+        png = preview_scenario(UPath(out / "scenario.json"), UPath(tmp_path / "png"))
     with Image.open(str(png)) as image:
         assert image.size[0] > 1.8 * image.size[1]  # ground truth and the noisy instance side by side
+    # every agent's cuboids in both panels: at least the vehicles its YAML labels at the shown tick
+    # (the middle of the ticks all agents share) plus the CAVs' own boxes
+    key = truth.keys[len(truth.keys) // 2]
+    labelled = [len(load_yaml(UPath(truth.scenario_dir) / a / f"{key}.yaml")["vehicles"]) for a in sorted(truth.agents)]
+    assert len(drawn) == 2 * len(truth.agents) and min(drawn) >= min(labelled) > 0, (drawn, labelled)
     manifest = json.loads((out / "scenario.json").read_text())
     sequence = out / manifest["agents"][0]["sequence"]
     result = CliRunner().invoke(cli, ["preview", str(sequence), "--out", str(tmp_path / "cmd"), "--frame", "1"])

@@ -27,6 +27,7 @@ from upath import UPath
 from ncore_convert import __version__
 from ncore_convert.cli_options import (
     NOISE_FLAGS,
+    TBV_NO_LABEL,
     av2_family_options,
     noise_settings,
     off_flag,
@@ -40,7 +41,6 @@ from ncore_convert.cli_tools import (
     synth,
     validate_command,
 )
-from ncore_convert.contract import BOX_LABEL_KINDS
 from ncore_convert.errors import SourceError
 from ncore_convert.paths import is_local
 from ncore_convert.run import stop
@@ -398,18 +398,13 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, **options):
 
 
 @cli.command("tbv-v4")
-@av2_family_options("under the root")
+@av2_family_options("under the root", tbv=True)
 @click.pass_obj
 def tbv_v4(obj: GroupOptions, log_ids, **options):
     """Argoverse 2 TbV (<root>/<log_id>) to NCore V4; per-point times reconstructed (no offset_ns)."""
-    from_boxes = [kind for kind in options["camera_labels"] if kind in BOX_LABEL_KINDS]
-    if "dynamic" in from_boxes and options["dynamic_source"] in (None, "lidar", "both"):
-        from_boxes.remove("dynamic")  # from the movers the lidar itself finds
-    if from_boxes:
-        lidar = " (dynamic: from the lidar's movers, without --dynamic-source annotations)"
+    if "dynamic" in options["camera_labels"] and options["dynamic_source"] == "annotations":
         raise click.BadParameter(
-            f"{', '.join(from_boxes)}: made from the annotated boxes, and TbV has no cuboids"
-            + (lidar if "dynamic" in from_boxes else ""),
+            f"dynamic: {TBV_NO_LABEL} (dynamic: from the lidar's movers, without --dynamic-source annotations)",
             param_hint="--camera-labels",
         )
     _convert(obj, "tbv-v4", log_ids, split=None, **options)

@@ -158,34 +158,50 @@ def _ego_masks_option(ctx, param, value: str) -> str:
     raise click.BadParameter(f"{value!r} is neither 'estimate', 'none' nor a folder of <camera_id>.png masks")
 
 
-def _camera_labels_option(ctx, param, value: str | None) -> tuple[str, ...]:
-    kinds = tuple(dict.fromkeys(k.strip() for k in (value or "").split(",") if k.strip()))
-    for kind in kinds:
-        if kind not in CAMERA_LABEL_KINDS:
-            raise click.BadParameter(f"unknown camera label {kind!r} (available: {', '.join(CAMERA_LABEL_KINDS)})")
-    return kinds
+#: The camera labels TbV can have: no cuboids, so no instances; its ``dynamic`` masks come from
+#: what the lidar saw move. Why the others are not offered:
+TBV_LABEL_KINDS = ("depth", "dynamic")
+TBV_NO_LABEL = "made from the annotated boxes, and TbV has no cuboids"
 
 
-#: ``--camera-labels``, on every dataset command.
-camera_labels_option = click.option(
-    "--camera-labels",
-    type=str,
-    default=None,
-    callback=_camera_labels_option,
-    metavar="depth,dynamic,instance",
-    show_default="none",
-    help="Image-aligned labels per camera frame, in NCore's camera-labels component"
-    " (comma-separated): 'depth' -> depth.z@<camera>, the z-depth (m) of the nearest lidar point"
-    " the camera sees in each pixel, 0 where none (needs the lidars); 'dynamic' ->"
-    " mask.dynamic@<camera>, 1 where a moving object shows; 'instance' ->"
-    " segmentation.instance@<camera>, the per-sequence instance index of the object each pixel"
-    " shows, 0 where none (both need cuboids: not TbV; each object is its box cut to where the"
-    " lidar points show it).",
-)
+def camera_labels_option(kinds: tuple[str, ...] = CAMERA_LABEL_KINDS, why_not: str = "") -> Callable:
+    """``--camera-labels``, offering ``kinds`` (TbV: :data:`TBV_LABEL_KINDS`); ``why_not``: why the
+    other kinds cannot be made here."""
+
+    def parse(ctx, param, value: str | None) -> tuple[str, ...]:
+        chosen = tuple(dict.fromkeys(k.strip() for k in (value or "").split(",") if k.strip()))
+        for kind in chosen:
+            if kind not in CAMERA_LABEL_KINDS:
+                raise click.BadParameter(f"unknown camera label {kind!r} (available: {', '.join(kinds)})")
+            if kind not in kinds:
+                raise click.BadParameter(f"{kind}: {why_not} (available: {', '.join(kinds)})")
+        return chosen
+
+    meaning = {
+        "depth": "'depth' -> depth.z@<camera>, the z-depth (m) of the nearest lidar point the camera sees in"
+        " each pixel, 0 where none (needs the lidars)",
+        "dynamic": "'dynamic' -> mask.dynamic@<camera>, 1 where a moving object shows"
+        + (" (from the objects the lidar saw move: TbV has no cuboids)" if "instance" not in kinds else ""),
+        "instance": "'instance' -> segmentation.instance@<camera>, the per-sequence instance index of the"
+        " object each pixel shows, 0 where none (from the cuboids; each object is its box cut to where the"
+        " lidar points show it)",
+    }
+    return click.option(
+        "--camera-labels",
+        type=str,
+        default=None,
+        callback=parse,
+        metavar=",".join(kinds),
+        show_default="none",
+        help="Image-aligned labels per camera frame, in NCore's camera-labels component (comma-separated): "
+        + "; ".join(meaning[k] for k in kinds)
+        + ".",
+    )
 
 
-def av2_family_options(log_scope: str) -> Callable:
-    """Options shared by the Argoverse 2 Sensor and TbV commands."""
+def av2_family_options(log_scope: str, tbv: bool = False) -> Callable:
+    """Options shared by the Argoverse 2 Sensor and TbV commands (``tbv``: the TbV command's, whose
+    logs have no cuboids)."""
     return options(
         click.option(
             "--log-id",
@@ -221,7 +237,7 @@ def av2_family_options(log_scope: str) -> Callable:
             " where the body can be in each camera, and which cameras must see it.",
         ),
         lidar_model_source_option,
-        camera_labels_option,
+        camera_labels_option(TBV_LABEL_KINDS, TBV_NO_LABEL) if tbv else camera_labels_option(),
         click.option(
             "--dynamic-source",
             type=click.Choice(["annotations", "lidar", "both"]),
@@ -321,7 +337,7 @@ def opencood_options(dataset: str) -> Callable:
         store_options,
         consumer_options,
         noise_options,
-        camera_labels_option,
+        camera_labels_option(),
     )
 
 

@@ -11,6 +11,7 @@ from upath import UPath
 
 from ncore_convert.cli_options import off_flag, open_input, options
 from ncore_convert.contract import MANIFEST
+from ncore_convert.sources.argoverse2 import SPLITS as AV2_SPLITS
 from ncore_convert.sources.opencood import SPLITS as OPENCOOD_SPLITS
 
 
@@ -186,6 +187,11 @@ def object_options() -> Callable:
     )
 
 
+#: ``synth argoverse2|tbv``'s pictures per camera: as many as the ego-mask estimator samples, so a
+#: default log (2 s at 20 fps: 40 images per camera) gets its masks and converts without a warning.
+SYNTH_PICTURES = 32
+
+
 def synth_log_options(out_help: str, max_seconds: float | None) -> Callable:
     """The options of ``synth argoverse2`` and ``synth tbv`` (the log and its camera pictures)."""
     return options(
@@ -210,9 +216,10 @@ def synth_log_options(out_help: str, max_seconds: float | None) -> Callable:
         click.option(
             "--pictures",
             type=click.IntRange(min=1),
-            default=16,
+            default=SYNTH_PICTURES,
             help="Distinct pictures per camera that its images cycle through (the ego-mask estimator samples"
-            " 32 images per camera).",
+            " 32 images per camera and needs 24 distinct ones: fewer, and a log converts without ego masks,"
+            " with a warning).",
         ),
         click.option(
             "--shadows/--no-shadows",
@@ -258,18 +265,20 @@ def synth_log_options(out_help: str, max_seconds: float | None) -> Callable:
     )
 
 
-def _synth_log(out_dir: str, **config) -> None:
-    """Write one synthetic AV2 or TbV log (``config``: ``synth.argoverse2.SynthConfig``'s fields)."""
+def _synth_log(out_dir: str, split: str | None = None, **config) -> None:
+    """Write one synthetic AV2 log into ``<out_dir>/<split>``, or a TbV log (no split) into
+    ``out_dir`` (``config``: ``synth.argoverse2.SynthConfig``'s fields)."""
     from ncore_convert.synth.argoverse2 import SynthConfig, write_log
 
-    truth = write_log(UPath(out_dir), SynthConfig(**config))
+    truth = write_log(UPath(out_dir) / split if split else UPath(out_dir), SynthConfig(**config))
     cuboids = "" if config.get("tbv") else f", {truth.n_cuboids} cuboids"
     points = sum(len(s.offset_ns) for s in truth.sweeps)
     click.echo(f"wrote {truth.log_dir}: {len(truth.sweeps)} sweeps, {points} points, {truth.n_images} images{cuboids}")
 
 
 @synth.command("argoverse2")
-@synth_log_options("Split folder to write the log into.", max_seconds=None)
+@synth_log_options("Dataset root: writes <out>/<split>/<log_id>/... (the --root-dir to convert).", max_seconds=None)
+@click.option("--split", type=click.Choice(AV2_SPLITS), default="val", help="Split folder.")
 @off_flag(
     "--swap-lidar-halves",
     help="Give up_lidar the laser_number half >= 32 (proves the unit decision comes from the data).",
@@ -281,7 +290,7 @@ def synth_argoverse2(**config):
 
 
 @synth.command("tbv")
-@synth_log_options("TbV root to write the log into.", max_seconds=120.0)
+@synth_log_options("Dataset root: writes <out>/<log_id>/... (TbV has no split folders).", max_seconds=120.0)
 def synth_tbv(**config):
     """A synthetic TbV log: flat layout, no offset_ns, 7 ring cameras (6 at half resolution; the ego body
     in three), no annotations."""

@@ -26,8 +26,9 @@ from upath import UPath
 from ncore_convert.contract import DEFAULT_INSTANCE, EGO_MASK
 from ncore_convert.validate.coregister import scenario_lidars
 from ncore_convert.validate.cuboids import CuboidColumns, read_cuboids
-from ncore_convert.validate.poses import sensor_poses
+from ncore_convert.validate.poses import T_world_dataset_global, sensor_poses
 from ncore_convert.validate.readback import (
+    OpenSequence,
     box_corners_world,
     boxes_at,
     open_sequence,
@@ -101,8 +102,22 @@ def _title(loader: SequenceLoaderV4, what: str, t_us: int) -> str:
     return f"{loader.sequence_id}  |  {what}  |  t = {t_us} µs"
 
 
-def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_m: np.ndarray, png: UPath):
-    """The camera image with the projected lidar points coloured by range; returns a CameraProjection."""
+def _camera_frame(camera_id: str, frame: int, lidar_frame: int | None) -> str:
+    """A camera frame as the titles name it: with the lidar frame whose time it shows (the ``f<N>``
+    of the file names), when it is a preview's."""
+    return f"{camera_id} frame {frame}" + (f" (at lidar frame {lidar_frame})" if lidar_frame is not None else "")
+
+
+def draw_camera(
+    loader: SequenceLoaderV4,
+    camera_id: str,
+    frame: int,
+    xyz_world_m: np.ndarray,
+    png: UPath,
+    lidar_frame: int | None = None,
+):
+    """The camera image with the projected lidar points coloured by range; returns a CameraProjection.
+    ``lidar_frame``: the lidar frame the points are of (named in the title)."""
     camera = loader.get_camera_sensor(camera_id)
     image = camera.get_frame_image_array(frame)
     pixels, index = project_into_camera(loader, camera_id, frame, xyz_world_m)
@@ -138,7 +153,7 @@ def draw_camera(loader: SequenceLoaderV4, camera_id: str, frame: int, xyz_world_
         if hasattr(handle, "set_sizes"):  # the lidar dots
             handle.set_sizes([20])
     fig.colorbar(dots, cax=fig.add_axes((0.91, 0.05, 0.02, 0.89)), label="range from the camera (m)")
-    ax.set_title(_title(loader, f"{camera_id} frame {frame}", int(frame_us[1])), fontsize=10)
+    ax.set_title(_title(loader, _camera_frame(camera_id, frame, lidar_frame), int(frame_us[1])), fontsize=10)
     fig.savefig(str(png))
     return CameraProjection(camera_id, frame, int(frame_us[1]), pixels, xyz_world_m[index], range_m, png)
 
@@ -162,7 +177,9 @@ def _label_at(loader: SequenceLoaderV4, camera_id: str, end_us: int, label_type:
     return found[0]
 
 
-def draw_depth_label(loader: SequenceLoaderV4, camera_id: str, frame: int, png: UPath) -> bool:
+def draw_depth_label(
+    loader: SequenceLoaderV4, camera_id: str, frame: int, png: UPath, lidar_frame: int | None = None
+) -> bool:
     """The camera image with its ``depth.z`` label of that frame over it, each labelled pixel
     coloured by its depth on the scale of the lidar projections; False (nothing written) when the
     camera has no depth label at the frame's end time."""
@@ -187,12 +204,15 @@ def draw_depth_label(loader: SequenceLoaderV4, camera_id: str, frame: int, png: 
     )
     fig.colorbar(dots, cax=fig.add_axes((0.91, 0.05, 0.02, 0.89)), label="label depth z (m)")
     name = labels.label_descriptor.default_instance_name
-    ax.set_title(_title(loader, f"{name} frame {frame}: {len(lines)} pixels labelled", end_us), fontsize=10)
+    what = f"{_camera_frame(name, frame, lidar_frame)}: {len(lines)} pixels labelled"
+    ax.set_title(_title(loader, what, end_us), fontsize=10)
     fig.savefig(str(png))
     return True
 
 
-def draw_mask_labels(loader: SequenceLoaderV4, camera_id: str, frame: int, png: UPath) -> bool:
+def draw_mask_labels(
+    loader: SequenceLoaderV4, camera_id: str, frame: int, png: UPath, lidar_frame: int | None = None
+) -> bool:
     """The camera image with its ``segmentation.instance`` label of that frame over it (each
     instance in a colour of its own) and its ``mask.dynamic`` outlined in red; False (nothing
     written) when the camera has neither at the frame's end time."""
@@ -215,7 +235,8 @@ def draw_mask_labels(loader: SequenceLoaderV4, camera_id: str, frame: int, png: 
         if mask.any() and not mask.all():
             ax.contour(mask, levels=[0.5], colors="red", linewidths=1.0)
         what.append(f"dynamic {mask.mean():.1%} of pixels" + (" (movers unknown: all 1)" if mask.all() else ""))
-    ax.set_title(_title(loader, f"{camera_id} masks frame {frame}: {', '.join(what)}", end_us), fontsize=10)
+    title = f"{_camera_frame(camera_id + ' masks', frame, lidar_frame)}: {', '.join(what)}"
+    ax.set_title(_title(loader, title, end_us), fontsize=10)
     fig.savefig(str(png))
     return True
 
@@ -306,12 +327,25 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
     projections, labels, masks = [], [], []
     for camera_id in loader.camera_ids:
         camera_frame = _nearest_frame(loader.get_camera_sensor(camera_id).frames_timestamps_us, t_mid)
-        projections.append(draw_camera(loader, camera_id, camera_frame, xyz, out_dir / f"{stem}_{camera_id}.png"))
-        if draw_depth_label(loader, camera_id, camera_frame, out_dir / f"{stem}_{camera_id}_depth.png"):
+        png = out_dir / f"{stem}_{camera_id}.png"
+        projections.append(draw_camera(loader, camera_id, camera_frame, xyz, png, lidar_frame=frame))
+        if draw_depth_label(loader, camera_id, camera_frame, out_dir / f"{stem}_{camera_id}_depth.png", frame):
             labels.append(out_dir / f"{stem}_{camera_id}_depth.png")
-        if draw_mask_labels(loader, camera_id, camera_frame, out_dir / f"{stem}_{camera_id}_masks.png"):
+        if draw_mask_labels(loader, camera_id, camera_frame, out_dir / f"{stem}_{camera_id}_masks.png", frame):
             masks.append(out_dir / f"{stem}_{camera_id}_masks.png")
     return Preview(out_dir / f"{stem}_bev.png", projections, labels, masks)
+
+
+def _scenario_footprints(sequence: OpenSequence, agent, t_us: int) -> list[np.ndarray]:
+    """The footprints ([5,2] each, ``world_global``) of the cuboids an agent's sequence holds for its
+    lidar frame ending at ``t_us`` (``agent``: a ``validate.coregister`` scenario lidar)."""
+    loader, cuboids = sequence.loader, read_cuboids(sequence.reader)
+    if cuboids is None:
+        return []
+    start_us, end_us = loader.get_lidar_sensor(agent.lidar_id).frames_timestamps_us[agent.frame_ending_at(t_us)]
+    corners = box_corners_world(loader, boxes_at(cuboids, int(start_us), int(end_us)))
+    T_world_global = T_world_dataset_global(loader)
+    return [_footprint(c @ T_world_global[:3, :3].T + T_world_global[:3, 3]) for c in corners]
 
 
 def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = None) -> UPath:
@@ -335,18 +369,22 @@ def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = N
     colours = [f"C{i}" for i in range(10)]
     for panel, instance in enumerate(instances):
         ax = fig.add_subplot(1, len(instances), panel + 1)
-        positions = []
-        loaders: dict[str, SequenceLoaderV4] = {}  # the scenario layout: one sequence for every agent
+        positions, drawn = [], 0
+        sequences: dict[str, OpenSequence] = {}  # the scenario layout: one sequence for every agent
         for k, agent in enumerate(agents):
-            if str(agent.sequence_json) not in loaders:
-                loaders[str(agent.sequence_json)] = open_sequence(agent.sequence_json, instance).loader
-            loader = loaders[str(agent.sequence_json)]
+            if str(agent.sequence_json) not in sequences:
+                sequences[str(agent.sequence_json)] = open_sequence(agent.sequence_json, instance)
+            sequence = sequences[str(agent.sequence_json)]
+            loader = sequence.loader
             xyz, origin = world_points(loader, agent.lidar_id, agent.frame_ending_at(t_us), "world_global")
             ends_us = agent.frame_ends_us().astype(np.uint64)
             track = sensor_poses(loader, agent.lidar_id, "world_global", ends_us)
             colour = colours[k % len(colours)]
             positions.append(origin[:2])
             ax.scatter(xyz[::2, 0], xyz[::2, 1], s=0.2, color=colour, linewidths=0, alpha=0.6)
+            footprints = _scenario_footprints(sequence, agent, t_us)
+            ax.add_collection(LineCollection(footprints, colors=colour, linewidths=0.8))
+            drawn += len(footprints)
             ax.plot(track[:, 0, 3], track[:, 1, 3], "-", color=colour, lw=1.2)
             ax.plot(origin[0], origin[1], "o", color=colour, mec="black", ms=8, label=f"agent {agent.agent_id}")
         centre = np.mean(positions, axis=0)
@@ -357,6 +395,7 @@ def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = N
         ax.set_xlabel("x world_global (m)")
         ax.set_ylabel("y world_global (m)")
         ax.grid(alpha=0.3)
+        ax.plot([], [], "-", color="black", lw=0.8, label=f"cuboids, each agent's ({drawn})")
         ax.legend(loc="upper right", fontsize=8, title="points, trajectory, lidar now")
         label = "ground truth poses" if instance == DEFAULT_INSTANCE else f"noisy poses: {instance}"
         ax.set_title(f"{manifest.scenario}  |  {label}  |  t = {t_us} µs", fontsize=10)
