@@ -120,7 +120,7 @@ def test_no_sequence_meta_writes_no_json(small_root, tmp_path):
     "args,message",
     [
         (["argoverse2-v4", "--split", "val"], "--root-dir is required"),
-        (["--root-dir", "/nonexistent", "--output-dir", "x", "argoverse2-v4", "--split", "val"], "directory not found"),
+        (["--root-dir", "/nonexistent", "--output-dir", "x", "argoverse2-v4", "--split", "val"], "folder not found"),
         (
             ["--root-dir", "{root}", "--output-dir", "x", "argoverse2-v4", "--split", "val", "--log-id", "nope"],
             "not found",
@@ -131,7 +131,7 @@ def test_no_sequence_meta_writes_no_json(small_root, tmp_path):
         ),
         (
             ["--root-dir", "{root}", "--output-dir", "x", "argoverse2-v4", "--split", "train"],
-            "split directory not found",
+            "split folder not found",
         ),
     ],
 )
@@ -201,11 +201,83 @@ def test_synth_command_writes_a_log(tmp_path):
     assert np.all(np.diff(av2.read_ego_poses(UPath(log_dir))[0]) > 0)
 
 
-def test_an_output_that_cannot_be_written_stops_the_run_with_one_line(small_root, tmp_path):
+def test_an_output_folder_that_cannot_be_made_is_a_usage_error(small_root, tmp_path):
+    """A file where the output folder should be, or in its path: exit 2, one error line naming
+    ``--output-dir``, why, and the fix (before issue 73: exit 1, "File exists; run stopped")."""
     root, _ = small_root
+    (tmp_path / "a-file").write_text("a file where the output folder should be")
+    for out in (tmp_path / "a-file", tmp_path / "a-file" / "out"):
+        result = run("--root-dir", str(root), "--output-dir", str(out), "argoverse2-v4", "--split", "val")
+        assert result.exit_code == 2 and "Traceback" not in result.output
+        assert result.output.strip().splitlines()[-1] == (
+            f"Error: --output-dir {out}: the output folder cannot be made (a file is in the way);"
+            " give a folder you can write"
+        )
+
+
+def test_group_options_after_the_dataset_command_have_their_effect(small_root, tmp_path):
+    """Group options given after the dataset command (``--no-validate``, ``--workers``, even the
+    roots, ``--opt=value`` too) are taken as if given before it: the same run, never "No such
+    option" with an unrelated suggestion."""
+    root, truth = small_root
+    before = ["--root-dir", str(root), "--output-dir", str(tmp_path / "a"), "--no-validate", "--workers", "1"]
+    after = ["--root-dir", str(root), f"--output-dir={tmp_path / 'b'}", "--no-validate", "--workers", "1"]
+    for result in (run(*before, "argoverse2-v4", "--split", "val"), run("argoverse2-v4", "--split", "val", *after)):
+        assert result.exit_code == 0, result.output
+        assert f"ok    {truth.log_id}" in result.output and "validated" not in result.output, result.output
+    assert sorted(p.name for p in (tmp_path / "a" / truth.log_id).iterdir()) == sorted(
+        p.name for p in (tmp_path / "b" / truth.log_id).iterdir()
+    )
+
+
+def test_help_says_where_the_group_options_go():
+    """The dataset commands' usage lines and help name the group options; the top-level help says
+    they come first."""
+    top = CliRunner().invoke(cli, ["--help"], prog_name="ncore-convert").output
+    assert "group options: they come before the dataset command" in " ".join(top.split())
+    for command in ("argoverse2-v4", "tbv-v4", "opv2v-v4", "v2xset-v4"):
+        text = " ".join(CliRunner().invoke(cli, [command, "--help"], prog_name="ncore-convert").output.split())
+        assert f"Usage: ncore-convert --root-dir R --output-dir O [GROUP OPTIONS] {command} [OPTIONS]" in text
+        assert all(option in text for option in ("--root-dir", "--output-dir", "--workers")), command
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["split folder as root", "opv2v tree to argoverse2-v4", "av2 tree to opv2v-v4", "unknown log", "output is /proc"],
+)
+def test_a_newcomers_mistake_is_a_usage_error_that_names_the_fix(small_root, tmp_path, case):
+    """Each mistake exits 2 with an error line that says what to give instead, and leaves no
+    output folder: the split folder given as the root (its parent), the real OPV2V agent's tree
+    given to ``argoverse2-v4`` and an AV2 tree to ``opv2v-v4`` (the command to use), an unknown
+    ``--log-id`` (the ids there), an output folder that cannot be made (which option, and why)."""
+    from conftest import find_opv2v_sample
+
+    root, truth = small_root
     out = tmp_path / "out"
-    out.write_text("a file where the output folder should be")
-    result = run("--root-dir", str(root), "--output-dir", str(out), "argoverse2-v4", "--split", "val")
-    assert result.exit_code == 1
-    assert result.output.strip().splitlines()[-1] == f"Error: {out}: File exists; run stopped"
-    assert "Traceback" not in result.output
+    args, fix = {
+        "split folder as root": (
+            [str(root / "val"), str(out), "argoverse2-v4", "--split", "val"],
+            f"it is the split folder itself: give its parent, --root-dir {root}",
+        ),
+        "opv2v tree to argoverse2-v4": (
+            [str(find_opv2v_sample()), str(out), "argoverse2-v4", "--split", "val"],
+            "is an OPV2V/V2XSet root: convert it with opv2v-v4 or v2xset-v4",
+        ),
+        "av2 tree to opv2v-v4": (
+            [str(root), str(out), "opv2v-v4", "--split", "test"],
+            "is an Argoverse 2 Sensor root: convert it with argoverse2-v4",
+        ),
+        "unknown log": (
+            [str(root), str(out), "argoverse2-v4", "--split", "val", "--log-id", "nope"],
+            f"log(s) not found under {root / 'val'}: nope; there: {truth.log_id}",
+        ),
+        "output is /proc": (
+            [str(root), "/proc/self", "argoverse2-v4", "--split", "val"],
+            "--output-dir /proc/self: the output folder cannot be made (No such file or directory)",
+        ),
+    }[case]
+    result = run("--root-dir", args[0], "--output-dir", *args[1:])
+    assert result.exit_code == 2, result.output
+    error = " ".join(result.output.split("Error: ", 1)[1].split())
+    assert fix in error, error
+    assert not out.exists()

@@ -65,7 +65,7 @@ def test_a_log_in_a_bucket_converts_into_a_bucket_as_it_does_locally(s3_env, tmp
 
 def test_a_missing_bucket_prefix_is_a_usage_error(s3_env, tmp_path):
     result = convert(s3_env, "s3://no-such-bucket/av2", str(tmp_path / "out"))
-    assert result.returncode == 2 and "--root-dir s3://no-such-bucket/av2: directory not found" in result.stderr
+    assert result.returncode == 2 and "--root-dir s3://no-such-bucket/av2: folder not found" in result.stderr
 
 
 def _ok_logs(output: str) -> list[str]:

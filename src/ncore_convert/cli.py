@@ -1,8 +1,9 @@
 """Command line: ``ncore-convert [GROUP OPTIONS] COMMAND [OPTIONS]``.
 
 Group options (input/output roots, sensor selection) come before the dataset command, as in the
-NCore converters. Every dataset command builds its options (declared in :mod:`ncore_convert.cli_options`)
-and runs through one path (:func:`_convert`) with the dataset's record (``converters.common.Dataset``),
+NCore converters; given after it, they are moved there (``cli_usage.hoist_group_options``). Every
+dataset command builds its options (declared in :mod:`ncore_convert.cli_options`) and runs through
+one path (:func:`_convert`) with the dataset's record (``converters.common.Dataset``),
 found by the command in ``DATASET_PACKAGES``. The tool commands (:mod:`ncore_convert.cli_tools`:
 ``validate``, ``preview``, ``export-opencood``, ``evaluate-lidar-model``, ``synth``) need no
 ``--root-dir/--output-dir``.
@@ -41,6 +42,7 @@ from ncore_convert.cli_tools import (
     synth,
     validate_command,
 )
+from ncore_convert.cli_usage import ConverterGroup, DatasetCommand, make_output, pick_ids, unit_is_wrong, wrong_root
 from ncore_convert.errors import SourceError
 from ncore_convert.paths import is_local
 from ncore_convert.run import stop
@@ -105,7 +107,7 @@ def _selection(ids: tuple[str, ...], disabled: bool) -> tuple[str, ...] | None:
     return ids or None
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "show_default": True})
+@click.group(cls=ConverterGroup, context_settings={"help_option_names": ["-h", "--help"], "show_default": True})
 @click.version_option(__version__, prog_name="ncore-convert")
 @click.option(
     "--root-dir",
@@ -208,6 +210,10 @@ def cli(
 ):
     """Convert autonomous-driving datasets to NVIDIA NCore V4 sequences.
 
+    The options below are group options: they come before the dataset command, e.g.
+    'ncore-convert --root-dir /data/av2 --output-dir /out --workers 4 argoverse2-v4 --split val'
+    (given after it, they are moved there).
+
     Every dataset command also takes the options that shape the output for its consumers
     (3DGUT, 3DGRT, instant-nurec, NuRec; docs/consumers.md):
 
@@ -254,18 +260,6 @@ def _parse_shard(text: str | None) -> tuple[int, int] | None:
     return index, count
 
 
-def _pick(requested: tuple[str, ...], available: list[str], where: UPath, noun: str) -> list[str]:
-    """The requested logs (or scenarios) in order, all available ones if none are requested."""
-    if requested:
-        unknown = [name for name in requested if name not in available]
-        if unknown:
-            raise click.UsageError(f"{noun}(s) not found under {where}: {', '.join(unknown)}")
-        return list(dict.fromkeys(requested))
-    if not available:
-        raise click.UsageError(f"no {noun}s under {where}")
-    return available
-
-
 def _dataset(command: str):
     """The dataset record of a command (``converters.common.Dataset``), imported on demand: after the
     executor has started, so that its workers import the converter while this process does."""
@@ -295,8 +289,13 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
             dataset.check_sensors(options)
             available = dataset.list_ids(root, options)
         except (ValueError, SourceError) as err:
-            raise click.UsageError(str(err)) from None
-        todo = _pick(requested, available, dataset.ids_dir(root, options), dataset.noun)
+            hint = wrong_root(command, root) if isinstance(err, SourceError) else None
+            raise click.UsageError(f"{err}; {hint}" if hint else str(err)) from None
+        todo = pick_ids(requested, available, dataset.ids_dir(root, options), dataset.noun)
+        if todo and unit_is_wrong(command, dataset.input_dir(root, options, todo[0])):
+            hint = wrong_root(command, root) or f"{dataset.input_dir(root, options, todo[0])} is not a {dataset.noun}"
+            raise click.UsageError(f"{hint} ({command} reads {dataset.ids_dir(root, options)}/<{dataset.noun}>)")
+        make_output(out)
         task = partial(dataset.convert, root, options=options)
         if obj.validate:
             task = partial(convert_and_validate, task, source_root=root)
@@ -388,7 +387,7 @@ def _convert_opencood(obj: GroupOptions, dataset: str, split: str, scenarios: tu
     _convert(obj, f"{dataset}-v4", scenarios, dataset=dataset, split=split, noise=noise, **options)
 
 
-@cli.command("argoverse2-v4")
+@cli.command("argoverse2-v4", cls=DatasetCommand)
 @click.option("--split", type=click.Choice(AV2_SPLITS), required=True, help="Dataset split folder.")
 @av2_family_options("of the split")
 @click.pass_obj
@@ -397,7 +396,7 @@ def argoverse2_v4(obj: GroupOptions, split, log_ids, **options):
     _convert(obj, "argoverse2-v4", log_ids, split=split, **options)
 
 
-@cli.command("tbv-v4")
+@cli.command("tbv-v4", cls=DatasetCommand)
 @av2_family_options("under the root", tbv=True)
 @click.pass_obj
 def tbv_v4(obj: GroupOptions, log_ids, **options):
@@ -410,7 +409,7 @@ def tbv_v4(obj: GroupOptions, log_ids, **options):
     _convert(obj, "tbv-v4", log_ids, split=None, **options)
 
 
-@cli.command("opv2v-v4")
+@cli.command("opv2v-v4", cls=DatasetCommand)
 @opencood_options("opv2v")
 @click.pass_obj
 def opv2v_v4(obj: GroupOptions, split, scenarios, **options):
@@ -418,7 +417,7 @@ def opv2v_v4(obj: GroupOptions, split, scenarios, **options):
     _convert_opencood(obj, "opv2v", split, scenarios, **options)
 
 
-@cli.command("v2xset-v4")
+@cli.command("v2xset-v4", cls=DatasetCommand)
 @opencood_options("v2xset")
 @click.pass_obj
 def v2xset_v4(obj: GroupOptions, split, scenarios, **options):

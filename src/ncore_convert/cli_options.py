@@ -361,5 +361,5 @@ def open_input(url: str, option: str, anonymous: bool) -> UPath:
         cause = str(err).splitlines()[0] if str(err) else ""
         raise AccessError(line or f"{option} {url}: cannot be read ({type(err).__name__}: {cause})") from None
     if not found:
-        raise click.UsageError(f"{option} {url}: directory not found")
+        raise click.UsageError(f"{option} {url}: folder not found")
     return root

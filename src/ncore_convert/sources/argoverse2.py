@@ -152,7 +152,7 @@ def list_log_ids(root: UPath, split: str, reader: Reader | None = None) -> list[
     split_dir = root / split
     with reading(reader) as r:
         if not r.is_folder(split_dir):
-            raise SourceError(split_dir, "split directory not found")
+            raise SourceError(split_dir, "split folder not found")
         return r.folder_names(split_dir, "log folder")
 
 

@@ -21,5 +21,5 @@ def list_log_ids(root: UPath, reader: Reader | None = None) -> list[str]:
     """Log ids (directory names) directly under the TbV root, sorted (one listing)."""
     with reading(reader) as r:
         if not r.is_folder(root):
-            raise SourceError(root, "TbV root directory not found")
+            raise SourceError(root, "TbV root folder not found")
         return r.folder_names(root, "log folder")
