@@ -12,8 +12,9 @@ holds wall-clock times) and of every source file, one line each, sorted.
 
 The AV2 and TbV worlds are pinned to the overlapping traffic the fingerprints were first taken on
 (``synth --overlapping-traffic``; before that option existed, the generator's only world), so
-fingerprints of commits on either side of the generator's ``--clear-paths`` default compare; and
-each log is written where the other commits write it, whatever ``--out`` means there.
+fingerprints of commits on either side of the generator's ``--clear-paths`` default compare; the
+OPV2V and V2XSet YAMLs to the generator's format before issue 73 (``--legacy-format``); and each
+log is written where the other commits write it, whatever ``--out`` means there.
 """
 
 from __future__ import annotations
@@ -86,11 +87,12 @@ def tree_hashes(root: Path, skip: tuple[str, ...] = ()) -> list[str]:
 
 
 def pinned_world(cli: str, dataset: str, folder: Path) -> list[str]:
-    """``--overlapping-traffic`` where this commit's ``synth <dataset>`` has it (else its world is that
-    one), and where it writes: an AV2 log into ``<folder>/val``, whether ``--out`` is the dataset root
-    (with ``--split``: since issue 73) or the split folder."""
+    """``--overlapping-traffic`` and ``--legacy-format`` where this commit's ``synth <dataset>`` has
+    them (else its world and files are those), and where it writes: an AV2 log into
+    ``<folder>/val``, whether ``--out`` is the dataset root (with ``--split``: since issue 73) or the
+    split folder."""
     help_text = subprocess.run([cli, "synth", dataset, "--help"], check=True, capture_output=True, text=True).stdout
-    world = ["--overlapping-traffic"] if "--overlapping-traffic" in help_text else []
+    world = [flag for flag in ("--overlapping-traffic", "--legacy-format") if flag in help_text]
     split_folder = dataset == "argoverse2" and "--split" not in help_text
     return [*world, "--out", str(folder / "val" if split_folder else folder)]
 

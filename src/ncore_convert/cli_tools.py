@@ -341,6 +341,14 @@ def _synth_opencood(dataset: str):
         default=2,
         help="Ray-cast the 800x600 pictures at one ray per N x N pixels (8: 16 times cheaper, blockier).",
     )
+    @click.option(
+        "--legacy-format",
+        "opencda_format",
+        flag_value=False,
+        default=True,
+        help="Write the YAMLs as the generator did before issue 73 (exact doubles, flow style) instead of"
+        " as OpenCDA does (CARLA's float32 values, block style); bench/fingerprints.py pins it.",
+    )
     @object_options()
     def command(
         out_dir,
@@ -354,6 +362,7 @@ def _synth_opencood(dataset: str):
         lidar_dropoff_rate,
         seed,
         render_step,
+        opencda_format,
         shapes,
         close_range,
     ):
@@ -372,6 +381,7 @@ def _synth_opencood(dataset: str):
             render_step=render_step,
             shapes=shapes,
             close_range=close_range,
+            opencda_format=opencda_format,
         )
         for truth in write_dataset(UPath(out_dir), config, scenarios):
             click.echo(f"wrote {truth.scenario_dir}: agents {', '.join(truth.agents)}, {len(truth.keys)} frames")

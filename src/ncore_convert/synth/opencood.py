@@ -18,7 +18,7 @@ a marker: the truth keeps where its centre projects.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import yaml
@@ -96,6 +96,11 @@ class SynthConfig:
     #: a car queued just ahead of the first CAV (0.3-1.0 m from its front camera) and one alongside
     #: it (1-2 m from its side), at its speed
     close_range: bool = False
+    #: the YAMLs as OpenCDA writes them (seen on the real agent, issue 73): CARLA's float32 values
+    #: for every pose, location, angle and size (the camera extrinsics computed from them), block
+    #: style, ``predicted_ego_pos`` with zero roll and pitch and its yaw in [0, 360); False: exact
+    #: doubles in flow style, as the generator wrote them before (``bench/fingerprints.py`` pins it)
+    opencda_format: bool = True
 
     @property
     def n_infrastructure(self) -> int:
@@ -166,12 +171,39 @@ def _lidar_rays(block: dict, dt: float) -> np.ndarray:
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
 
 
-def _yaml(data: dict) -> bytes:
-    return yaml.dump(data, Dumper=getattr(yaml, "CSafeDumper", yaml.SafeDumper), default_flow_style=None).encode()
+def _yaml(data: dict, config: SynthConfig) -> bytes:
+    style = False if config.opencda_format else None  # OpenCDA's: block style
+    return yaml.dump(data, Dumper=getattr(yaml, "CSafeDumper", yaml.SafeDumper), default_flow_style=style).encode()
 
 
 def _floats(values) -> list[float]:
     return [float(v) for v in np.ravel(values)]
+
+
+def _carla(values, config: SynthConfig) -> list[float]:
+    """Values as CARLA hands them to OpenCDA (float32: its transforms, locations, extents), or
+    exact (``config.opencda_format`` False)."""
+    return _floats(np.float32(np.ravel(values)) if config.opencda_format else values)
+
+
+def _carla_pose(pose: np.ndarray, config: SynthConfig) -> np.ndarray:
+    """An actor's [x, y, z, roll, yaw, pitch] as CARLA holds it (float32), or exact."""
+    return pose.astype(np.float32).astype(np.float64) if config.opencda_format else pose
+
+
+def _float32_actor(actor: Actor) -> Actor:
+    """``actor`` with CARLA's float32 sizes (its bounding box's extent and centre)."""
+    rounded = (tuple(float(v) for v in np.float32(values)) for values in (actor.extent_m, actor.center_m))
+    return replace(actor, extent_m=next(rounded), center_m=next(rounded))
+
+
+def _predicted(true_ego: list[float], rng: np.random.Generator, config: SynthConfig) -> list[float]:
+    """``predicted_ego_pos``: the true pose with GPS-like noise on x, y and yaw; as OpenCDA writes it,
+    roll and pitch 0 and the yaw in [0, 360)."""
+    noisy = np.array(true_ego) + rng.normal(0, 0.05, 6) * [1, 1, 0, 0, 1, 0]
+    if config.opencda_format:
+        noisy[[3, 5]], noisy[4] = 0.0, noisy[4] % 360.0
+    return _carla(noisy, config)
 
 
 def _scenario_name(rng: np.random.Generator) -> str:
@@ -238,6 +270,8 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
         free = np.setdiff1d(np.arange(100, 9999), ids)
         close = close_to(cavs[0], CAMERA_MOUNTS[0][0], close_rng.choice(free, 2, replace=False).tolist(), close_rng)
         others = clear_of(others, close, span_s) + close
+    if config.opencda_format:  # CARLA's actors: float32 sizes, the boxes the lidar hits and the YAML labels
+        cavs, others = ([_float32_actor(a) for a in actors] for actors in (cavs, others))
     pillars, buildings = [], []
     for s in np.arange(-40.0, 80.0, 9.0):
         for side in (-1, 1):
@@ -290,11 +324,11 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
     for cav in written["scenario"]["single_cav_list"]:
         cav["sensing"]["perception"]["lidar"] = {**cav["sensing"]["perception"]["lidar"], **dict(config.protocol_lidar)}
     if config.protocol:
-        (scenario_dir / "data_protocol.yaml").write_bytes(_yaml(written))
+        (scenario_dir / "data_protocol.yaml").write_bytes(_yaml(written, config))
 
     for key in keys:
         t_s = int(key) * config.fixed_delta_seconds - tick0
-        vehicle_pose = {c.actor_id: actor_pose(road, c, t_s, True) for c in cavs + others}
+        vehicle_pose = {c.actor_id: _carla_pose(actor_pose(road, c, t_s, True), config) for c in cavs + others}
         T_vehicle = {a: carla_pose_matrix(p) for a, p in vehicle_pose.items()}
         actor_boxes = [actor_box(T_vehicle[c.actor_id], c, "VEHICLE", config.shapes) for c in cavs + others]
         actors = cavs + others
@@ -306,13 +340,13 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                 T_lidar_world[:3, 3] = [position[0], position[1], RSU_LIDAR_HEIGHT_M]
                 T_base_world = T_lidar_world  # camera offsets are added to the RSU (lidar) position
                 pitch, own = RSU_CAMERA_PITCH_DEG, None
-                true_ego = _floats([*position[:2], RSU_LIDAR_HEIGHT_M, 0, 0, 0])
+                true_ego = _carla([*position[:2], RSU_LIDAR_HEIGHT_M, 0, 0, 0], config)
             else:
                 own = int(agent_id)
                 T_base_world = T_vehicle[own]
                 T_lidar_world = T_base_world @ carla_pose_matrix(np.array([*CAV_LIDAR_M, 0, 0, 0]))
                 pitch = 0.0
-                true_ego = _floats(vehicle_pose[own])
+                true_ego = _carla(vehicle_pose[own], config)
             boxes = [b for b, act in zip(actor_boxes, actors, strict=True) if act.actor_id != own]
             box_actor = [act.actor_id for act in actors if act.actor_id != own]
             scene = Scene(None, boxes + pillar_boxes + buildings)
@@ -346,16 +380,17 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                 if act.actor_id in seen:
                     p = vehicle_pose[act.actor_id]
                     vehicles[act.actor_id] = {
-                        "location": _floats(p[:3]),
-                        "angle": _floats(p[3:]),
-                        "center": list(act.center_m),
-                        "extent": list(act.extent_m),
+                        "location": _carla(p[:3], config),
+                        "angle": _carla(p[3:], config),
+                        "center": _carla(act.center_m, config),
+                        "extent": _carla(act.extent_m, config),
                         "speed": float(act.speed_mps * 3.6),
                     }
+            lidar_pose = _carla(carla_pose_list(T_lidar_world), config)
             frame = {
-                "lidar_pose": carla_pose_list(T_lidar_world),
+                "lidar_pose": lidar_pose,
                 "true_ego_pos": true_ego,
-                "predicted_ego_pos": _floats(np.array(true_ego) + rng.normal(0, 0.05, 6) * [1, 1, 0, 0, 1, 0]),
+                "predicted_ego_pos": _predicted(true_ego, rng, config),
                 "ego_speed": 0.0 if infra else 8.0 * 3.6,
                 "vehicles": vehicles,
             }
@@ -372,13 +407,23 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
                 inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < WIDTH) & (uv[:, 1] >= 0) & (uv[:, 1] < HEIGHT)
                 visible = [p for p in np.flatnonzero(inside) if shows_around(shows, uv[p], len(boxes) + p)]
                 markers[index_cam] = {int(p): (float(uv[p, 0]), float(uv[p, 1])) for p in visible}
-                extrinsic = np.linalg.inv(T_cam_world) @ T_lidar_world
+                cords = _carla(carla_pose_list(T_cam_world), config)
+                # lidar -> camera: OpenCDA's, from the poses as written (CARLA's float32 transforms)
+                T_cam, T_lidar = (
+                    (T_cam_world, T_lidar_world)
+                    if not config.opencda_format
+                    else (
+                        carla_pose_matrix(np.array(cords)),
+                        carla_pose_matrix(np.array(lidar_pose)),
+                    )
+                )
+                extrinsic = np.linalg.inv(T_cam) @ T_lidar
                 frame[f"camera{index_cam}"] = {
-                    "cords": carla_pose_list(T_cam_world),
+                    "cords": cords,
                     "intrinsic": [list(r) for r in K],
                     "extrinsic": [_floats(row) for row in extrinsic],
                 }
-            (scenario_dir / agent_id / f"{key}.yaml").write_bytes(_yaml(frame))
+            (scenario_dir / agent_id / f"{key}.yaml").write_bytes(_yaml(frame, config))
             agent_truth = truth.agents[agent_id]
             agent_truth.lidar_pose[key] = frame["lidar_pose"]
             agent_truth.n_points[key] = len(xyz)
