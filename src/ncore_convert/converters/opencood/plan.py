@@ -122,10 +122,13 @@ def plan_agent(
     skipped_keys: dict[str, str] | None = None,
     listing: dict | None = None,
     reader: Reader | None = None,
+    camera_specs: dict[Pinhole, consumer.CameraSpec] | None = None,
 ) -> AgentPlan:
     """Trajectory and calibration of one agent from its frames (at least two); ``skipped_keys``:
     the keys whose YAML could not be read, with the cause; ``listing``: the remote files' sizes
-    and ETags (the first readable lidar frame and image are fetched by it and kept)."""
+    and ETags (the first readable lidar frame and image are fetched by it and kept);
+    ``camera_specs``: the stored form of each pinhole planned so far in the scenario (CARLA's
+    cameras share one; an f-theta fit is made once per pinhole)."""
     listing = {k: v for k, v in (listing or {}).items() if k.startswith(object_key(agent_dir) + "/")}
     keys = [f.path.stem for f in frames]
     lidar_pose_carla = np.array([f.lidar_pose for f in frames], dtype=np.float64)
@@ -167,10 +170,13 @@ def plan_agent(
             warnings.append(f"{agent_dir}: camera{index} intrinsics change between frames; the first is stored")
         intrinsics[cam], camera_index[cam] = (K, size), index
     # CARLA's K puts the principal point at the image centre (W/2, H/2): the pixel-corner convention
-    cameras = {
-        cam: consumer.camera_spec(Pinhole((K[0, 0], K[1, 1]), (K[0, 2], K[1, 2]), size), options.camera_model)
-        for cam, (K, size) in intrinsics.items()
-    }
+    specs = {} if camera_specs is None else camera_specs
+    cameras = {}
+    for cam, (K, size) in intrinsics.items():
+        pinhole = Pinhole((float(K[0, 0]), float(K[1, 1])), (float(K[0, 2]), float(K[1, 2])), tuple(size))
+        if pinhole not in specs:
+            specs[pinhole] = consumer.camera_spec(pinhole, options.camera_model)
+        cameras[cam] = specs[pinhole]
     return AgentPlan(
         agent_id=agent_dir.name,
         agent_dir=agent_dir,
@@ -283,8 +289,9 @@ def _plan_scenario(
         frames[agent] = agent_frames
     if not frames:
         raise SourceError(scenario_dir, "no agent has a readable frame")
+    specs: dict[Pinhole, consumer.CameraSpec] = {}  # one f-theta fit per distinct pinhole of the scenario
     agents = {
-        a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a], files, reader)
+        a: plan_agent(scenario_dir / a, f, options, dt_s, warnings, skipped_keys[a], files, reader, specs)
         for a, f in frames.items()
     }
     left_out = {a: {"agent": _unread_yamls(scenario_dir / a, skipped_keys[a])} for a in folders if a not in frames}
