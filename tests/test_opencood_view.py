@@ -2,7 +2,8 @@
 (``views.opencood``) and written back in OpenCOOD's layout (``export-opencood``), against the raw
 files themselves: the lidar points as OpenCOOD's PCD reader returns them, each frame's YAML and
 ``lidar_pose``, the PNGs, ``data_protocol.yaml``, a noise setting's poses and delays, on synthetic
-OPV2V and V2XSet (CAVs and infrastructure, both layouts) and on the five real OPV2V frames."""
+OPV2V and V2XSet (CAVs and infrastructure, both layouts); the real OPV2V agent's round trip is in
+``test_real_opv2v.py``."""
 
 from __future__ import annotations
 
