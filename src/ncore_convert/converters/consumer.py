@@ -86,9 +86,15 @@ class CameraSpec:
         return out
 
 
-def camera_spec(pinhole: Pinhole, model: CameraModel) -> CameraSpec:
-    """How ``--camera-model`` stores a pinhole camera (the f-theta fit is made here, once per camera)."""
-    return CameraSpec(pinhole, model, fit_ftheta(pinhole) if model == "ftheta" else None)
+def camera_spec(pinhole: Pinhole, model: CameraModel, known: dict[Pinhole, CameraSpec] | None = None) -> CameraSpec:
+    """How ``--camera-model`` stores a pinhole camera (the f-theta fit is made here); ``known``: the
+    specs made so far, by pinhole (cameras that share one share its fit, made once)."""
+    if known is not None and pinhole in known:
+        return known[pinhole]
+    spec = CameraSpec(pinhole, model, fit_ftheta(pinhole) if model == "ftheta" else None)
+    if known is not None:
+        known[pinhole] = spec
+    return spec
 
 
 @dataclass(frozen=True)

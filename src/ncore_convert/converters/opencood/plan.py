@@ -122,13 +122,12 @@ def plan_agent(
     skipped_keys: dict[str, str] | None = None,
     listing: dict | None = None,
     reader: Reader | None = None,
-    camera_specs: dict[Pinhole, consumer.CameraSpec] | None = None,
+    specs: dict[Pinhole, consumer.CameraSpec] | None = None,
 ) -> AgentPlan:
     """Trajectory and calibration of one agent from its frames (at least two); ``skipped_keys``:
     the keys whose YAML could not be read, with the cause; ``listing``: the remote files' sizes
-    and ETags (the first readable lidar frame and image are fetched by it and kept);
-    ``camera_specs``: the stored form of each pinhole planned so far in the scenario (CARLA's
-    cameras share one; an f-theta fit is made once per pinhole)."""
+    and ETags (the first readable lidar frame and image are fetched by it and kept); ``specs``: the
+    scenario's camera specs so far, by pinhole (``consumer.camera_spec``)."""
     listing = {k: v for k, v in (listing or {}).items() if k.startswith(object_key(agent_dir) + "/")}
     keys = [f.path.stem for f in frames]
     lidar_pose_carla = np.array([f.lidar_pose for f in frames], dtype=np.float64)
@@ -170,13 +169,10 @@ def plan_agent(
             warnings.append(f"{agent_dir}: camera{index} intrinsics change between frames; the first is stored")
         intrinsics[cam], camera_index[cam] = (K, size), index
     # CARLA's K puts the principal point at the image centre (W/2, H/2): the pixel-corner convention
-    specs = {} if camera_specs is None else camera_specs
-    cameras = {}
-    for cam, (K, size) in intrinsics.items():
-        pinhole = Pinhole((float(K[0, 0]), float(K[1, 1])), (float(K[0, 2]), float(K[1, 2])), tuple(size))
-        if pinhole not in specs:
-            specs[pinhole] = consumer.camera_spec(pinhole, options.camera_model)
-        cameras[cam] = specs[pinhole]
+    cameras = {
+        cam: consumer.camera_spec(Pinhole((K[0, 0], K[1, 1]), (K[0, 2], K[1, 2]), size), options.camera_model, specs)
+        for cam, (K, size) in intrinsics.items()
+    }
     return AgentPlan(
         agent_id=agent_dir.name,
         agent_dir=agent_dir,
