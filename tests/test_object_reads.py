@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import av2_command
+from conftest import av2_args, av2_command, run_cli
 from latency_proxy import LatencyProxy
 from upath import UPath
 
@@ -59,9 +59,7 @@ def bucket_log(s3_env, tmp_path_factory):
     fs.put(str(tmp / "src" / "val") + "/", "datasets/av2/val/", recursive=True)
     public_read(s3_env["AWS_ENDPOINT_URL"], "datasets")
     files = {str(p.relative_to(tmp / "src")): p.stat().st_size for p in (tmp / "src").rglob("*") if p.is_file()}
-    local = subprocess.run(
-        av2_command(str(tmp / "src"), str(tmp / "local")), capture_output=True, text=True, env=s3_env
-    )
+    local = run_cli(*av2_args(tmp / "src", tmp / "local"))  # no bucket: in this process
     assert local.returncode == 0, local.stdout + local.stderr
     return truth, files, hashes(tmp / "local"), tmp
 

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import av2_command
+from conftest import av2_args, av2_command, run_cli
 from upath import UPath
 
 from ncore_convert.synth.argoverse2 import SynthConfig, write_log
@@ -36,7 +36,7 @@ def test_a_log_in_a_bucket_converts_into_a_bucket_as_it_does_locally(s3_env, tmp
         1 for p in Path(truth.log_dir.path).rglob("*") if p.is_file()
     )
 
-    local = convert(s3_env, str(tmp_path / "src"), str(tmp_path / "out"))
+    local = run_cli(*av2_args(tmp_path / "src", tmp_path / "out"))  # no bucket: in this process
     remote = convert(s3_env, "s3://datasets/av2", "s3://converted/v4", "--workers", "1")
     for result in (local, remote):
         assert result.returncode == 0 and "1 converted, 0 skipped, 0 failed" in result.stdout, result.stderr

@@ -121,13 +121,13 @@ class RayExecutor:
     """
 
     def __init__(self, address: str | None) -> None:
+        if address:  # before Ray's import (seconds): Ray itself retries an unreachable head for minutes
+            _check_reachable(address)
         try:
             import ray
         except ImportError:
             raise ImportError("--executor ray needs Ray: pip install 'ncore-convert[ray]'") from None
         self._ray = ray
-        if address:
-            _check_reachable(address)  # Ray itself retries an unreachable head for minutes
         ray.init(address=address or "auto", log_to_driver=False, logging_level="WARNING")
 
     def __enter__(self) -> RayExecutor:
