@@ -292,8 +292,9 @@ def _convert(obj: GroupOptions, command: str, requested: tuple[str, ...], **opti
             hint = wrong_root(command, root) if isinstance(err, SourceError) else None
             raise click.UsageError(f"{err}; {hint}" if hint else str(err)) from None
         todo = pick_ids(requested, available, dataset.ids_dir(root, options), dataset.noun)
-        if todo and unit_is_wrong(command, dataset.input_dir(root, options, todo[0])):
-            hint = wrong_root(command, root) or f"{dataset.input_dir(root, options, todo[0])} is not a {dataset.noun}"
+        first = dataset.input_dir(root, options, todo[0]) if todo else None
+        if first is not None and unit_is_wrong(command, first):
+            hint = wrong_root(command, root) or f"{first} is not a {dataset.noun}"
             raise click.UsageError(f"{hint} ({command} reads {dataset.ids_dir(root, options)}/<{dataset.noun}>)")
         make_output(out)
         task = partial(dataset.convert, root, options=options)

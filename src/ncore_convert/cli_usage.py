@@ -23,9 +23,8 @@ from upath import UPath
 from ncore_convert.paths import is_local
 from ncore_convert.sources import layout
 
-#: The dataset commands (the ones that read --root-dir and write --output-dir).
+#: The dataset commands whose unit is a scenario (the others' is a log).
 OPENCOOD_COMMANDS = ("opv2v-v4", "v2xset-v4")
-DATASET_COMMANDS = ("argoverse2-v4", "tbv-v4", *OPENCOOD_COMMANDS)
 GROUP_USAGE = "--root-dir R --output-dir O [GROUP OPTIONS]"
 
 
@@ -72,9 +71,9 @@ def hoist_group_options(group: click.Group, ctx: click.Context, args: list[str])
     while at < len(args) and args[at].startswith("-"):  # the group options before the command
         name = args[at].split("=", 1)[0]
         at += 1 + (arity.get(name, 0) if "=" not in args[at] else 0)
-    if at >= len(args) or args[at] not in DATASET_COMMANDS:
+    command = group.commands.get(args[at]) if at < len(args) else None
+    if not isinstance(command, DatasetCommand):
         return args
-    command = group.commands[args[at]]
     own = {o for p in command.params if isinstance(p, click.Option) for o in p.opts + p.secondary_opts}
     moved, kept, k = [], [], at + 1
     while k < len(args):

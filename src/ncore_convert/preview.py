@@ -336,10 +336,9 @@ def preview_sequence(sequence_json: UPath, out_dir: UPath, frame: int | None = N
     return Preview(out_dir / f"{stem}_bev.png", projections, labels, masks)
 
 
-def _scenario_footprints(sequence: OpenSequence, agent, t_us: int) -> list[np.ndarray]:
-    """The footprints ([5,2] each, ``world_global``) of the cuboids an agent's sequence holds for its
+def _scenario_footprints(loader: SequenceLoaderV4, cuboids: CuboidColumns | None, agent, t_us: int) -> list[np.ndarray]:
+    """The footprints ([5,2] each, ``world_global``) of an agent's sequence's ``cuboids`` at its
     lidar frame ending at ``t_us`` (``agent``: a ``validate.coregister`` scenario lidar)."""
-    loader, cuboids = sequence.loader, read_cuboids(sequence.reader)
     if cuboids is None:
         return []
     start_us, end_us = loader.get_lidar_sensor(agent.lidar_id).frames_timestamps_us[agent.frame_ending_at(t_us)]
@@ -367,22 +366,25 @@ def preview_scenario(manifest_path: UPath, out_dir: UPath, frame: int | None = N
     t_us = int(common[frame])
     fig = Figure(figsize=(8 * len(instances), 8.4), dpi=DPI, layout="constrained")
     colours = [f"C{i}" for i in range(10)]
+    cuboids: dict[str, CuboidColumns | None] = {}  # per sequence, whatever its poses instance
     for panel, instance in enumerate(instances):
         ax = fig.add_subplot(1, len(instances), panel + 1)
         positions, drawn = [], 0
         sequences: dict[str, OpenSequence] = {}  # the scenario layout: one sequence for every agent
         for k, agent in enumerate(agents):
-            if str(agent.sequence_json) not in sequences:
-                sequences[str(agent.sequence_json)] = open_sequence(agent.sequence_json, instance)
-            sequence = sequences[str(agent.sequence_json)]
-            loader = sequence.loader
+            key = str(agent.sequence_json)
+            if key not in sequences:
+                sequences[key] = open_sequence(agent.sequence_json, instance)
+            if key not in cuboids:
+                cuboids[key] = read_cuboids(sequences[key].reader)
+            loader = sequences[key].loader
             xyz, origin = world_points(loader, agent.lidar_id, agent.frame_ending_at(t_us), "world_global")
             ends_us = agent.frame_ends_us().astype(np.uint64)
             track = sensor_poses(loader, agent.lidar_id, "world_global", ends_us)
             colour = colours[k % len(colours)]
             positions.append(origin[:2])
             ax.scatter(xyz[::2, 0], xyz[::2, 1], s=0.2, color=colour, linewidths=0, alpha=0.6)
-            footprints = _scenario_footprints(sequence, agent, t_us)
+            footprints = _scenario_footprints(loader, cuboids[key], agent, t_us)
             ax.add_collection(LineCollection(footprints, colors=colour, linewidths=0.8))
             drawn += len(footprints)
             ax.plot(track[:, 0, 3], track[:, 1, 3], "-", color=colour, lw=1.2)

@@ -12,11 +12,10 @@ import re
 
 from upath import UPath
 
+from ncore_convert.sources import argoverse2 as av2
+from ncore_convert.sources import opencood as ocd
 from ncore_convert.sources.reader import Reader, reading
 
-AV2_LOG_FILE = "city_SE3_egovehicle.feather"  #: in every Argoverse 2 (Sensor or TbV) log folder
-OPENCOOD_PROTOCOL = "data_protocol.yaml"  #: in an OPV2V/V2XSet scenario folder (not always)
-_AGENT = re.compile(r"^-?\d+$")
 _TBV_LOG = re.compile(r"__[A-Za-z]+_\d{4}$")  #: TbV log ids end in ``__<Season>_<Year>``
 
 #: What :func:`kind_of` tells apart.
@@ -29,13 +28,15 @@ SCENARIO, SCENARIOS, OPENCOOD_SPLITS = (
 
 
 def _is_av2_log(folder: UPath, r: Reader) -> bool:
-    return AV2_LOG_FILE in r.file_names(folder)
+    """The poses table every Argoverse 2 (Sensor or TbV) log folder holds."""
+    return av2.poses_path(folder).name in r.file_names(folder)
 
 
 def _is_scenario(folder: UPath, r: Reader) -> bool:
-    """Agent folders (integer actor ids) or the scenario's protocol file."""
+    """Agent folders (CARLA actor ids) or the scenario's protocol file (not every scenario has one)."""
     agents = r.folder_names(folder, None)
-    return (bool(agents) and all(_AGENT.match(a) for a in agents)) or OPENCOOD_PROTOCOL in r.file_names(folder)
+    has_protocol = ocd.protocol_path(folder).name in r.file_names(folder)
+    return (bool(agents) and all(ocd.is_agent_id(a) for a in agents)) or has_protocol
 
 
 def kind_of(folder: UPath, reader: Reader | None = None) -> tuple[str | None, str | None]:

@@ -114,12 +114,17 @@ def list_agents(scenario_dir: UPath, reader: Reader | None = None) -> list[str]:
         if not r.is_folder(scenario_dir):
             raise SourceError(scenario_dir, "scenario folder not found")
         names = r.folder_names(scenario_dir, None)  # actor ids, checked below
-    bad = [n for n in names if not _AGENT.match(n)]
+    bad = [n for n in names if not is_agent_id(n)]
     if bad:
         raise SourceError(scenario_dir / bad[0], "agent folder names must be integer actor ids")
     if not names:
         raise SourceError(scenario_dir, "no agent folders")
     return sorted(names, key=int)
+
+
+def is_agent_id(name: str) -> bool:
+    """An agent folder's name: a CARLA actor id (negative: infrastructure)."""
+    return bool(_AGENT.match(name))
 
 
 def opencood_order(agent_ids: list[str]) -> list[str]:

@@ -180,21 +180,19 @@ def _floats(values) -> list[float]:
     return [float(v) for v in np.ravel(values)]
 
 
+def _float32(values) -> np.ndarray:
+    """``values`` as CARLA holds them (float32: its transforms, locations, extents), float64 [...]."""
+    return np.asarray(values, dtype=np.float32).astype(np.float64)
+
+
 def _carla(values, config: SynthConfig) -> list[float]:
-    """Values as CARLA hands them to OpenCDA (float32: its transforms, locations, extents), or
-    exact (``config.opencda_format`` False)."""
-    return _floats(np.float32(np.ravel(values)) if config.opencda_format else values)
-
-
-def _carla_pose(pose: np.ndarray, config: SynthConfig) -> np.ndarray:
-    """An actor's [x, y, z, roll, yaw, pitch] as CARLA holds it (float32), or exact."""
-    return pose.astype(np.float32).astype(np.float64) if config.opencda_format else pose
+    """Values as OpenCDA writes them (:func:`_float32`), or exact (``config.opencda_format`` False)."""
+    return _floats(_float32(values) if config.opencda_format else values)
 
 
 def _float32_actor(actor: Actor) -> Actor:
     """``actor`` with CARLA's float32 sizes (its bounding box's extent and centre)."""
-    rounded = (tuple(float(v) for v in np.float32(values)) for values in (actor.extent_m, actor.center_m))
-    return replace(actor, extent_m=next(rounded), center_m=next(rounded))
+    return replace(actor, extent_m=tuple(_float32(actor.extent_m)), center_m=tuple(_float32(actor.center_m)))
 
 
 def _predicted(true_ego: list[float], rng: np.random.Generator, config: SynthConfig) -> list[float]:
@@ -328,7 +326,9 @@ def write_scenario(split_dir: UPath, config: SynthConfig, scenario_seed: int = 0
 
     for key in keys:
         t_s = int(key) * config.fixed_delta_seconds - tick0
-        vehicle_pose = {c.actor_id: _carla_pose(actor_pose(road, c, t_s, True), config) for c in cavs + others}
+        vehicle_pose = {c.actor_id: actor_pose(road, c, t_s, True) for c in cavs + others}
+        if config.opencda_format:  # CARLA's float32 actor transforms
+            vehicle_pose = {a: _float32(p) for a, p in vehicle_pose.items()}
         T_vehicle = {a: carla_pose_matrix(p) for a, p in vehicle_pose.items()}
         actor_boxes = [actor_box(T_vehicle[c.actor_id], c, "VEHICLE", config.shapes) for c in cavs + others]
         actors = cavs + others
