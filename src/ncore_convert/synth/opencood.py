@@ -197,7 +197,9 @@ def _float32_actor(actor: Actor) -> Actor:
 
 def _predicted(true_ego: list[float], rng: np.random.Generator, config: SynthConfig) -> list[float]:
     """``predicted_ego_pos``: the true pose with GPS-like noise on x, y and yaw; as OpenCDA writes it,
-    roll and pitch 0 and the yaw in [0, 360)."""
+    roll and pitch 0 and the yaw in [0, 360), as the real agent's files have it (the sample in
+    ../shared/reference/opencood.md, another OpenCDA run, has them nonzero and its yaw below -180:
+    the converter reads neither)."""
     noisy = np.array(true_ego) + rng.normal(0, 0.05, 6) * [1, 1, 0, 0, 1, 0]
     if config.opencda_format:
         noisy[[3, 5]], noisy[4] = 0.0, noisy[4] % 360.0
