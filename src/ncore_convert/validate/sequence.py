@@ -2,8 +2,8 @@
 
 Each check is a :class:`~ncore_convert.validate.report.Check` (name, pass/fail, one-line detail).
 Lidar frames are streamed one at a time, so memory does not grow with log length. The
-cuboid-occupancy check, which needs the motion-compensated points of a frame, runs on
-``readback.SAMPLED_FRAMES`` frames spread over the log.
+cuboid-occupancy check (``occupancy``), which needs the motion-compensated points of a frame, runs
+on ``readback.SAMPLED_FRAMES`` frames spread over the log.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from ncore.data.v4 import SequenceLoaderV4
-from scipy.spatial.transform import Rotation
 from upath import UPath
 
 from ncore_convert import contract
@@ -21,15 +20,12 @@ from ncore_convert.sources.reader import Reader
 from ncore_convert.transforms.lidar.rays import EXACT_DISTANCE_STEPS
 from ncore_convert.validate.cuboids import CuboidColumns, check_cuboids, read_cuboids
 from ncore_convert.validate.labels import check_camera_labels, held_boxes
+from ncore_convert.validate.occupancy import check_occupancy
 from ncore_convert.validate.poses import sensor_poses, world_global_edge
 from ncore_convert.validate.readback import (
     OpenSequence,
-    box_centres_world,
-    box_point_counts,
-    boxes_at,
     open_failure,
     open_sequence,
-    sample_frames,
 )
 from ncore_convert.validate.report import Report
 from ncore_convert.validate.source import compare_with_source
@@ -45,18 +41,6 @@ UNIT_TOLERANCE = EXACT_DISTANCE_STEPS * 2.0**-23 + 3 * 2.0**-24
 EDGE_STEPS = 4
 #: A frame interval more than this times the median is a dropped frame; less than 1/this, a shifted one.
 GAP_FACTOR = 1.5
-OCCUPANCY_RANGE_M = 30.0  #: boxes whose centre is within this range of the lidar are looked at
-OCCUPANCY_MIN_BOXES = 5  #: fewer near boxes than this: the occupancy check is not decisive
-#: Slack of the distance filter before the occupancy counts (metres): far above rounding, so no point
-#: that lies in a near box is left out.
-OCCUPANCY_FILTER_SLACK_M = 1.0
-#: Gross misregistrations the occupancy is compared with (a plausibility heuristic, docs/validation.md):
-#: the frame's points turned about the lidar, in its own axes, by these xyz Euler angles (degrees):
-#: yawed a quarter, half and three quarters round, and upside down.
-OCCUPANCY_ALTERNATIVES_DEG = ((0, 0, 90), (0, 0, 180), (0, 0, 270), (180, 0, 0))
-#: The occupancy fails when an alternative holds more near boxes than the stored registration by more
-#: than this many binomial standard deviations (boxes hold points or not, as occlusion decides).
-OCCUPANCY_SIGMAS = 3.0
 
 
 def _regularity(report: Report, name: str, end_us: np.ndarray) -> None:
@@ -99,39 +83,6 @@ def _uncovered(loader: SequenceLoaderV4, sensor_id: str, spans_us: np.ndarray) -
     if _covered(loader, sensor_id, spans_us.ravel()):
         return []
     return [i for i in range(len(spans_us)) if not _covered(loader, sensor_id, spans_us[i])]
-
-
-def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> tuple[int, int, int]:
-    """(near boxes holding a point, near boxes, the most near boxes any of the
-    OCCUPANCY_ALTERNATIVES_DEG holds) over the sampled frames of one lidar. Only the points that
-    can lie in a near box are counted: those within OCCUPANCY_RANGE_M and the largest near box's
-    half diagonal of the lidar (a turn about the lidar keeps each point's distance to it)."""
-    loader = sequence.loader
-    frames_us = loader.get_lidar_sensor(lidar_id).frames_timestamps_us
-    turns = Rotation.from_euler("xyz", OCCUPANCY_ALTERNATIVES_DEG, degrees=True).as_matrix()
-    held, near, held_turned = 0, 0, np.zeros(len(turns), dtype=np.int64)
-    for i in sample_frames(len(frames_us)):
-        boxes = boxes_at(cuboids, int(frames_us[i, 0]), int(frames_us[i, 1]))
-        if not len(boxes):
-            continue
-        xyz_world, sensor_world = sequence.world_points(lidar_id, i)
-        with np.errstate(invalid="ignore"):  # a box that cannot be posed has a NaN centre: never near
-            is_near = np.linalg.norm(box_centres_world(loader, boxes) - sensor_world, axis=1) <= OCCUPANCY_RANGE_M
-        near += int(is_near.sum())
-        if not is_near.any():
-            continue
-        near_boxes = boxes.rows(is_near)
-        half_diagonal_m = float(np.linalg.norm(near_boxes.dim_m, axis=1).max()) / 2
-        reach_m = OCCUPANCY_RANGE_M + half_diagonal_m + OCCUPANCY_FILTER_SLACK_M
-        xyz_world = xyz_world[np.linalg.norm(xyz_world - sensor_world, axis=1) <= reach_m]
-        _, counts = box_point_counts(loader, near_boxes, xyz_world)
-        held += int((counts > 0).sum())
-        R_sensor_world = sensor_poses(loader, lidar_id, "world", frames_us[i, 1:2])[0][:3, :3]
-        for k, turn in enumerate(turns):  # about the lidar, in its own axes
-            R_turn_world = R_sensor_world @ turn @ R_sensor_world.T
-            _, turned = box_point_counts(loader, near_boxes, (xyz_world - sensor_world) @ R_turn_world.T + sensor_world)
-            held_turned[k] += int((turned > 0).sum())
-    return held, near, int(held_turned.max())
 
 
 def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> bool:
@@ -189,22 +140,6 @@ def _check_lidar(report: Report, loader: SequenceLoaderV4, lidar_id: str) -> boo
         f"{len(uncovered)} of {lidar.frames_count} frames uncovered{which}",
     )
     return not uncovered and not unreadable and outside_time == 0  # what motion compensation needs
-
-
-def _check_occupancy(report: Report, sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> None:
-    """A plausibility heuristic: the stored registration fills the near boxes with points at least as
-    well as gross misregistrations do, within OCCUPANCY_SIGMAS binomial standard deviations."""
-    held, near, best_turned = _occupancy(sequence, lidar_id, cuboids)
-    decisive = near >= OCCUPANCY_MIN_BOXES
-    share = (held + best_turned) / (2 * near) if near else 0.0
-    slack = OCCUPANCY_SIGMAS * np.sqrt(near * share * (1 - share))
-    ok = not decisive or best_turned - held <= slack
-    report.add(
-        f"lidar {lidar_id}: cuboids hold points",
-        ok,
-        f"{held} of {near} boxes within {OCCUPANCY_RANGE_M:.0f} m hold a point; turned about the lidar"
-        f" (yaw 90/180/270°, upside down) at most {best_turned}" + ("" if decisive else " (too few boxes to decide)"),
-    )
 
 
 def _check_camera(report: Report, loader: SequenceLoaderV4, camera_id: str, lidar_frames_us: np.ndarray | None) -> None:
@@ -340,7 +275,7 @@ def _lidar_checks(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns)
     the frames allow it, the boxes' occupancy on the sampled frames."""
     part = Report("")
     if _check_lidar(part, sequence.loader, lidar_id) and len(cuboids):
-        _check_occupancy(part, sequence, lidar_id, cuboids)
+        check_occupancy(part, sequence, lidar_id, cuboids)
     _check_dynamic_flag(part, sequence.loader, lidar_id)
     return part.checks
 
