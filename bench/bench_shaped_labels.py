@@ -25,6 +25,7 @@ The figures:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import tempfile
 from pathlib import Path
@@ -35,6 +36,7 @@ from ncore.impl.data.types import LabelType
 from upath import UPath
 
 from ncore_convert.converters.opencood import OpenCoodOptions, convert_scenario
+from ncore_convert.converters.opencood import labels as opencood_labels
 from ncore_convert.sources.opencood import load_yaml
 from ncore_convert.sources.pcd import read_pcd
 from ncore_convert.synth import carla as synth_carla
@@ -50,7 +52,8 @@ from ncore_convert.transforms.lidar import vlp32c
 from ncore_convert.transforms.lidar.model import SpinningLidarModel
 from ncore_convert.transforms.lidar.range_image import RangeImage
 from ncore_convert.transforms.objects.classes import AV2_TO_NCORE
-from ncore_convert.transforms.objects.cores import kind_of
+from ncore_convert.transforms.objects.cores import VEHICLE, kind_of
+from ncore_convert.transforms.objects.track_shapes import TrackShapes
 
 CAMERAS = ("camera_front", "camera_right_rear", "camera_left_rear", "camera_back")
 KINDS = ("depth", "dynamic", "instance")
@@ -89,8 +92,8 @@ def _label(loader, cam: str, label_type: LabelType, position: int):
     return label.get_data(), labels.labels_generic_meta_data
 
 
-def score_scenario(truth, out: Path, tally: dict) -> None:
-    """Add one converted scenario's figures to ``tally``."""
+def score_scenario(truth, out: Path, tally: dict, positions: list[int]) -> None:
+    """Add one converted scenario's figures at ticks ``positions`` (indices) to ``tally``."""
     labelled_now = {
         key: {
             int(a)
@@ -104,7 +107,8 @@ def score_scenario(truth, out: Path, tally: dict) -> None:
         loader = SequenceLoaderV4(
             SequenceComponentGroupsReader([UPath(out / agent_id / f"{truth.scenario}_agent{agent_id}.json")])
         )
-        for position, key in enumerate(truth.keys):
+        for position in positions:
+            key = truth.keys[position]
             for index, cam in enumerate(CAMERAS):
                 depth, _ = _label(loader, cam, LabelType.DEPTH_Z_M, position)
                 # depth: coverage of the truly visible raw points' pixels, on vehicles and overall
@@ -156,54 +160,90 @@ def score_scenario(truth, out: Path, tally: dict) -> None:
 
 AV2_CAMERAS = ("ring_front_center", "ring_front_left", "ring_front_right", "ring_side_left", "ring_side_right")
 T0_NS = 1_000_000_000
-SWEEP_S, CAMERA_S = (0.5, 0.6), 0.55
+SWEEP_S = 0.1  #: a sweep's length; sweep k spans [k, k + 1) sweeps, its cameras at its middle
 
 
-def score_av2_world(seed: int, tally: dict) -> None:
-    """Add the AV2 world of ``seed`` to ``tally`` (see the module docstring)."""
-    scene = make_scene(
-        np.random.default_rng(seed), 2.0, np.random.default_rng([seed, 1]), shapes=True, close_range=True
-    )
-    T_sensor_ego, cams = calibration(camera_scale=2)
+def _av2_sweep(scene, T_sensor_ego: dict, k: int) -> dict:
+    """Sweep ``k`` of both VLP-32C units: the hits (city frame), where each unit was as it measured
+    each one, its lines of sight, which hits are on moving objects, times (µs), spacing (m [N,2])."""
     parts = []
+    window = (T0_NS + round(k * SWEEP_S * 1e9), T0_NS + round((k + 1) * SWEEP_S * 1e9))
     for unit in ("up_lidar", "down_lidar"):
-        window = (T0_NS + round(SWEEP_S[0] * 1e9), T0_NS + round(SWEEP_S[1] * 1e9))
         T = T_sensor_ego[unit]
         parts.append(simulate_unit(unit, window, T0_NS, scene, lambda t_s, T=T: scene.ego.T_ego_city(t_s) @ T))
-    hits = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    hits = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     origins_m = np.concatenate(  # where each unit was as it measured each point
         [
             np.einsum("nij,j->ni", scene.ego.T_ego_city((p["time_ns"] - T0_NS) * 1e-9), T_sensor_ego[unit][:, 3])[:, :3]
             for p, unit in zip(parts, ("up_lidar", "down_lidar"), strict=True)
         ]
     )
-    sight = RangeImage(hits["xyz_city_m"], origins_m)  # where the sweep's lines of sight passed
     moving = np.r_[[bool(np.any(b.velocity_mps)) for b in scene.boxes], False]
-    dynamic = moving[hits["box_index"]]
-    times_us = (hits["time_ns"] - T0_NS) // 1000
     elevations = np.radians(vlp32c.BEAM_ELEVATION_DEG)  # each beam's step, as the converter's model gives it
     model = SpinningLidarModel(
         10.0, "ccw", elevations, np.zeros(32), np.linspace(-np.pi, np.pi, 1800, endpoint=False), np.arange(32)
     )
-    spacing_m = hits["distance_m"][:, None] * model.row_steps_rad()[hits["beam"]]
+    return {
+        "xyz": hits["xyz_city_m"],
+        "origins": origins_m,
+        "sight": RangeImage(hits["xyz_city_m"], origins_m),
+        "dynamic": moving[hits["box_index"]],
+        "times_us": (hits["time_ns"] - T0_NS) // 1000,
+        "spacing": hits["distance_m"][:, None] * model.row_steps_rad()[hits["beam"]],
+        "box_index": hits["box_index"],
+    }
+
+
+def score_av2_log(seed: int, seconds: float, scored: int, tally: dict, whole_track: bool) -> None:
+    """Add the AV2 world of ``seed`` (``seconds`` long, both units) to ``tally``: ``scored`` sweeps
+    spread over the log, each labelled at its middle by five cameras at half size with the label
+    kernel (``transforms.camera.labels``), as the labeller calls it: the annotated vehicles' true
+    boxes as the occluders' and the masks' boxes; with ``whole_track``, a first pass gathers every
+    sweep's evidence of the parked vehicles (``objects.track_shapes``: the labeller pools static
+    tracks only)."""
+    scene = make_scene(
+        np.random.default_rng(seed), seconds, np.random.default_rng([seed, 1]), shapes=True, close_range=True
+    )
+    T_sensor_ego, cams = calibration(camera_scale=2)
     annotated = [k for k, b in enumerate(scene.boxes) if b.annotated]
-    T_box = np.stack([scene.boxes[k].T_box_city(CAMERA_S) for k in annotated])
-    half = np.stack([scene.boxes[k].dims_m / 2 for k in annotated])
     kind = np.array([kind_of(AV2_TO_NCORE[scene.boxes[k].category]) for k in annotated])
+    parked = [i for i, k in enumerate(annotated) if not np.any(scene.boxes[k].velocity_mps) and kind[i] == VEHICLE]
+    n_sweeps = max(1, int(round(seconds / SWEEP_S)))
+    picked = sorted(set(np.linspace(0, n_sweeps - 1, scored).round().astype(int).tolist()))
+    shapes, kept = (TrackShapes() if whole_track else None), {}
+    for k in range(n_sweeps) if whole_track else picked:
+        sweep = _av2_sweep(scene, T_sensor_ego, k)
+        if shapes is not None:
+            t_s = (k + 0.5) * SWEEP_S
+            T_parked = np.stack([scene.boxes[annotated[i]].T_box_city(t_s) for i in parked]).reshape(-1, 4, 4)
+            half = np.array([scene.boxes[annotated[i]].dims_m / 2 for i in parked]).reshape(-1, 3)
+            shapes.gather(parked, T_parked, half, sweep["xyz"], sweep["spacing"], sweep["origins"], sweep["sight"])
+        if k in picked:
+            kept[k] = {key: sweep[key] for key in ("xyz", "origins", "dynamic", "times_us", "spacing", "box_index")}
+            kept[k]["sight"] = sweep["sight"]
+    for k in picked:
+        _score_av2_frame(scene, T_sensor_ego, cams, annotated, kind, kept.pop(k), (k + 0.5) * SWEEP_S, shapes, tally)
+
+
+def _score_av2_frame(scene, T_sensor_ego, cams, annotated, kind, sweep, camera_s, shapes, tally) -> None:
+    """Label the cameras at ``camera_s`` from ``sweep`` (:func:`_av2_sweep`) and score them."""
+    T_box = np.stack([scene.boxes[k].T_box_city(camera_s) for k in annotated])
+    half = np.stack([scene.boxes[k].dims_m / 2 for k in annotated])
     solid = kind >= 0
     velocity = np.stack(  # each box's velocity at the camera's time (the converter's, from its track)
         [
-            scene.boxes[k].velocity_mps * (scene.boxes[k].move_from_s <= CAMERA_S <= scene.boxes[k].move_until_s)
+            scene.boxes[k].velocity_mps * (scene.boxes[k].move_from_s <= camera_s <= scene.boxes[k].move_until_s)
             for k in annotated
         ]
     )
+    xyz_city, dynamic, times_us, spacing_m = sweep["xyz"], sweep["dynamic"], sweep["times_us"], sweep["spacing"]
     for cam in AV2_CAMERAS:
         focal, width, height = cams[cam]
         pinhole = Pinhole((focal, focal), (width / 2, height / 2), (width, height))
-        T_camera_city = scene.ego.T_ego_city(np.array([CAMERA_S]))[0] @ T_sensor_ego[cam]
+        T_camera_city = scene.ego.T_ego_city(np.array([camera_s]))[0] @ T_sensor_ego[cam]
         view = CameraView(
             cam,
-            round(CAMERA_S * 1e6),
+            round(camera_s * 1e6),
             invert_se3(T_camera_city),
             pinhole,
             None,
@@ -212,37 +252,39 @@ def score_av2_world(seed: int, tally: dict) -> None:
             velocity[solid],
             kind[solid],
         )
-        depth = depth_z(view, hits["xyz_city_m"], times_us, dynamic, spacing_m)
+        depth = depth_z(view, xyz_city, times_us, dynamic, spacing_m)
 
         def seen(u, v, T_camera_city=T_camera_city, pinhole=pinhole):
-            return seen_through(scene, T_camera_city, pinhole, CAMERA_S, u, v)
+            return seen_through(scene, T_camera_city, pinhole, camera_s, u, v)
 
-        xyz = hits["xyz_city_m"] @ view.T_world_camera[:3, :3].T + view.T_world_camera[:3, 3]
+        xyz = xyz_city @ view.T_world_camera[:3, :3].T + view.T_world_camera[:3, 3]
         usable = (xyz[:, 2] > 0.3) & (~dynamic | (np.abs(times_us - view.timestamp_us) <= DYNAMIC_DT_US))
         u, v = pinhole.project(np.where(usable[:, None], xyz, 1.0))
         usable &= (u >= 0) & (u < width) & (v >= 0) & (v < height)
         idx = np.flatnonzero(usable)
-        towards = hits["xyz_city_m"][idx] - T_camera_city[:3, 3]
+        towards = xyz_city[idx] - T_camera_city[:3, 3]
         distance = np.linalg.norm(towards, axis=1)
         first_m, _, _ = cast_rays(
             np.broadcast_to(T_camera_city[:3, 3], towards.shape),
             towards / distance[:, None],
-            np.full(len(idx), CAMERA_S),
+            np.full(len(idx), camera_s),
             scene,
             500.0,
         )
         visible = idx[first_m >= distance - 0.05]
         pixel, first = np.unique(v[visible].astype(np.int64) * width + u[visible].astype(np.int64), return_index=True)
         covered = depth.reshape(-1)[pixel] > 0
-        on_object = np.isin(hits["box_index"][visible][first], annotated)
+        on_object = np.isin(sweep["box_index"][visible][first], annotated)
         tally["covered"].append(covered)
         tally["covered_vehicle"].append(covered[on_object])
         ll, cc = np.nonzero(depth)
         du, dv = np.meshgrid(PIXEL_SPAN, PIXEL_SPAN)
         z_true, _ = seen((cc[:, None] + du.reshape(-1)).reshape(-1), (ll[:, None] + dv.reshape(-1)).reshape(-1))
         tally["behind"].append(np.all(depth[ll, cc][:, None] - z_true.reshape(len(ll), -1) > 0.5, axis=1))
-        at_frame = points_at_frame(view, hits["xyz_city_m"], times_us, dynamic, spacing_m, origins_m)
-        ours = box_index(view, T_box, half, kind, *at_frame, sight=sight).index[::2, ::2]
+        at_frame = points_at_frame(view, xyz_city, times_us, dynamic, spacing_m, sweep["origins"])
+        keys = list(range(len(annotated)))
+        picture = box_index(view, T_box, half, kind, *at_frame, {}, keys, sweep["sight"], shapes)
+        ours = picture.index[::2, ::2]
         vv, uu = np.mgrid[0:height:2, 0:width:2] + 0.5
         _, true_box = seen(uu.reshape(-1), vv.reshape(-1))
         to_annotated = np.full(len(scene.boxes) + 1, -1)
@@ -255,7 +297,7 @@ def score_av2_world(seed: int, tally: dict) -> None:
             inter = np.sum(mine & real)
             tally["iou"].append(inter / np.sum(mine | real))
             tally["recall"].append((inter, real.sum()))
-            tally["views"].append((f"av2 {seed}/{cam}", int(k), int(mine.sum()), int(real.sum())))
+            tally["views"].append((f"av2 {camera_s:.2f} s/{cam}", int(k), int(mine.sum()), int(real.sum())))
         moves = np.r_[[bool(np.any(scene.boxes[k].velocity_mps)) for k in annotated], False]
         ours_moving, true_moving = moves[ours], moves[truth]
         tally["dynamic"].append(
@@ -290,39 +332,67 @@ def report(title: str, tally: dict, verbose: bool = False) -> None:
         print(f"  queued car in the front camera: labelled {mine:.3f}, true {real_share:.3f} of the picture")
 
 
+def _tally() -> dict:
+    return {k: [] for k in ("covered", "covered_vehicle", "behind", "iou", "recall", "dynamic", "queued", "views")}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", default="101,102", help="scenario seeds, each run as OPV2V and V2XSet")
-    parser.add_argument("--frames", type=int, default=3)
     parser.add_argument("--av2-seeds", default="5,6,7", help="AV2 world seeds")
+    parser.add_argument("--seconds", type=float, default=4.0, help="each log's and scenario's length")
+    parser.add_argument("--scored", type=int, default=5, help="frames (ticks, sweeps) scored, spread over each log")
     parser.add_argument("--work", type=Path, default=None)
     parser.add_argument("--verbose", action="store_true", help="list the worse half of the object views")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="shaped-labels-"))
-    tally = {k: [] for k in ("covered", "covered_vehicle", "behind", "iou", "recall", "dynamic", "queued", "views")}
+    ticks = max(1, int(round(args.seconds * 10)))
+    modes = {"one sweep": False, "whole track": True}
+    tallies = {mode: _tally() for mode in modes}
     for seed in (int(s) for s in args.seeds.split(",")):
         for dataset in ("opv2v", "v2xset"):
-            tmp = work / f"{dataset}-{seed}"
+            tmp = work / f"{dataset}-{seed}-{ticks}"
             config = synth.SynthConfig(
-                dataset=dataset, frames=args.frames, seed=seed, keep_truth=True, shapes=True, close_range=True
+                dataset=dataset, frames=ticks, seed=seed, keep_truth=True, shapes=True, close_range=True, cavs=3
             )
             (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
-            out = tmp / "out" / truth.scenario
-            convert_scenario(
-                UPath(tmp / "src"), UPath(out), truth.scenario, OpenCoodOptions(dataset, "test", camera_labels=KINDS)
-            )
-            score_scenario(truth, out, tally)
-            print(f"  {dataset} seed {seed}: {len(tally['iou'])} object views so far", flush=True)
-    print("  OPV2V/V2XSet: the label bounds are issue 52's; 'object pixels' are the vehicles'", flush=True)
-    report(f"shaped OPV2V/V2XSet scenarios, seeds {args.seeds}, {args.frames} ticks each:", tally, args.verbose)
-    av2 = {k: [] for k in tally}
-    for seed in (int(s) for s in args.av2_seeds.split(",")):
-        score_av2_world(seed, av2)
-    report(
-        f"shaped AV2 world, seeds {args.av2_seeds}, one sweep, {len(AV2_CAMERAS)} cameras at half size:",
-        av2,
-        args.verbose,
-    )
+            positions = sorted(set(np.linspace(0, ticks - 1, args.scored).round().astype(int).tolist()))
+            for mode, whole_track in modes.items():
+                out = tmp / mode.replace(" ", "-") / truth.scenario
+                options = OpenCoodOptions(dataset, "test", camera_labels=KINDS)
+                with _whole_track(whole_track):
+                    convert_scenario(UPath(tmp / "src"), UPath(out), truth.scenario, options)
+                score_scenario(truth, out, tallies[mode], positions)
+            print(f"  {dataset} seed {seed}: {len(tallies['whole track']['iou'])} object views so far", flush=True)
+    for mode in modes:
+        report(
+            f"shaped OPV2V/V2XSet scenarios ({mode}), seeds {args.seeds}, {ticks} ticks, {args.scored} scored:",
+            tallies[mode],
+            args.verbose,
+        )
+    for mode, whole_track in modes.items():
+        av2 = _tally()
+        for seed in (int(s) for s in args.av2_seeds.split(",")):
+            score_av2_log(seed, args.seconds, args.scored, av2, whole_track)
+        report(
+            f"shaped AV2 world ({mode}), seeds {args.av2_seeds}, {args.seconds:g} s, {args.scored} sweeps scored,"
+            f" {len(AV2_CAMERAS)} cameras at half size:",
+            av2,
+            args.verbose,
+        )
+
+
+@contextlib.contextmanager
+def _whole_track(on: bool):
+    """The OPV2V labeller with its first pass (whole-track shapes) or without (each tick's own
+    evidence, as before issue 74)."""
+    made = opencood_labels.TrackShapes
+    if not on:
+        opencood_labels.TrackShapes = lambda: None
+    try:
+        yield
+    finally:
+        opencood_labels.TrackShapes = made
 
 
 if __name__ == "__main__":

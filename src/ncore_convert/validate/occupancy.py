@@ -17,8 +17,8 @@ from ncore_convert.validate.readback import OpenSequence, box_centres_world, box
 from ncore_convert.validate.report import Report
 
 OCCUPANCY_RANGE_M = 30.0  #: boxes whose centre is within this range of the lidar are looked at
-#: Fewer independent near objects than this (the effective count of :func:`occupancy_verdict`: tracks,
-#: not box-frames, for the same object is near in frame after frame): the occupancy check is not decisive.
+#: Fewer near objects (tracks, not box-frames: the same object is near in frame after frame) than this:
+#: the occupancy check is not decisive (:func:`occupancy_verdict`).
 OCCUPANCY_MIN_OBJECTS = 5
 #: Slack of the distance filter before the occupancy counts (metres): far above rounding, so no point
 #: that lies in a near box is left out.
@@ -90,25 +90,37 @@ def _occupancy(sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) ->
     return Occupancy(per_track(), per_track(held), per_track(turned[:, best]))
 
 
+def _binomial(frames: int, held: int, turned: int) -> tuple[int, float]:
+    """The turned count's excess over the stored one, and its OCCUPANCY_SIGMAS allowance as if each
+    of the ``frames`` near box-frames were an independent draw (p: the pooled share holding a point)."""
+    share = (held + turned) / (2 * frames) if frames else 0.0
+    return turned - held, OCCUPANCY_SIGMAS * float(np.sqrt(frames * share * (1 - share)))
+
+
 def occupancy_verdict(counted: Occupancy) -> tuple[bool, bool, float]:
     """Whether the stored registration fills the near boxes at least as well as the best gross
-    misregistration, within OCCUPANCY_SIGMAS standard deviations: (ok, decisive, slack in boxes).
+    misregistration: (ok, decisive, slack in boxes).
 
-    A box holds a point or not as occlusion decides (share p of the pooled near boxes), but an object
-    is occluded, or not, in frame after frame: a track near in m frames moves the count by up to m at
-    once. So the count's variance is p (1 - p) times the sum of m² over the tracks (the sum of m, the
-    box-frames, only if every frame were a new draw), and the check is decisive when the effective
-    number of independent objects, (sum m)² / sum m², reaches OCCUPANCY_MIN_OBJECTS.
+    The turned count may exceed the stored one by OCCUPANCY_SIGMAS binomial standard deviations of
+    the near box-frames. But an object is occluded, or not, in frame after frame: one car always
+    hidden near the agent is empty in every frame for the stored registration and filled by the
+    turned one's stray points, and moves the count by every frame it is near in, at once. A
+    misregistration empties the boxes of every object alike. So the check refuses only when the
+    excess stays beyond its allowance without the object that adds most to it (a leave-one-out of
+    the objects, not the box-frames), and it decides only with OCCUPANCY_MIN_OBJECTS near objects.
+    The slack returned is the allowance of that second count.
     """
-    near = int(counted.frames.sum())
-    if not near:
+    frames = int(counted.frames.sum())
+    if not frames:
         return True, False, 0.0
-    squares = float(np.sum(counted.frames.astype(np.float64) ** 2))
     held, turned = int(counted.held.sum()), int(counted.turned.sum())
-    share = (held + turned) / (2 * near)
-    slack = OCCUPANCY_SIGMAS * float(np.sqrt(squares * share * (1 - share)))
-    decisive = near**2 / squares >= OCCUPANCY_MIN_OBJECTS
-    return not decisive or turned - held <= slack, decisive, slack
+    excess, slack = _binomial(frames, held, turned)
+    decisive = len(counted.frames) >= OCCUPANCY_MIN_OBJECTS
+    most = int(np.argmax(counted.turned - counted.held))  # the object that adds most to the excess
+    rest = _binomial(
+        frames - int(counted.frames[most]), held - int(counted.held[most]), turned - int(counted.turned[most])
+    )
+    return not decisive or excess <= slack or rest[0] <= rest[1], decisive, rest[1]
 
 
 def check_occupancy(report: Report, sequence: OpenSequence, lidar_id: str, cuboids: CuboidColumns) -> None:

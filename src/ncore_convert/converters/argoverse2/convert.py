@@ -265,6 +265,9 @@ def _write_labels(plan: LogPlan, writer: SequenceWriter, job: WriteJob, result: 
         if any(contract.camera_label_id(k, cam) in job.label_ids for k in plan.label_kinds)
     ]
     labeller = FrameLabeller(plan, writer, cameras)
+    if labeller.shapes is not None:  # a first pass: the static vehicles' shapes from every sweep
+        for _, _, data in _sweeps(plan, reader, None, motion=False):
+            labeller.gather(data.xyz_fixed_m, data.timestamps_us, data.spacing_m)
     for _, _, data in _sweeps(plan, reader, None, motion=plan.label_movers_from_lidar):
         labeller.add_sweep(data.xyz_fixed_m, data.timestamps_us, data.dynamic, data.spacing_m, data.unknown)
     labeller.finish()

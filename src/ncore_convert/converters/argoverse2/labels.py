@@ -43,7 +43,9 @@ from ncore_convert.transforms.camera.visibility import VIEW_MARGIN, in_view
 from ncore_convert.transforms.lidar.free_space import ground_clearance_m
 from ncore_convert.transforms.lidar.range_image import RangeImage
 from ncore_convert.transforms.lidar.vlp32c import SPIN_RATE_HZ
+from ncore_convert.transforms.objects.cores import VEHICLE
 from ncore_convert.transforms.objects.dynamic import HOLD_S
+from ncore_convert.transforms.objects.track_shapes import TrackShapes
 from ncore_convert.transforms.timebase import NS_PER_US, floor_us
 from ncore_convert.writer import CameraLabelStream, SequenceWriter
 
@@ -158,6 +160,7 @@ class FrameLabeller:
         self._first_sweep_us: float | None = None  # the first point time of the first sweep
         self._covers: dict = {}
         self._sight: RangeImage | None = None
+        self.shapes: TrackShapes | None = None  # the static vehicles' shapes from every sweep (gather)
         mounts = [plan.inputs.T_sensor_ego[u][:3, 3] for u in plan.lidar_ids]
         self._lidar_rig_m = np.mean(mounts, axis=0) if mounts else np.zeros(3)  # the units' middle, rig frame
         if self._lidar_movers:
@@ -168,12 +171,33 @@ class FrameLabeller:
             annotated_us = floor_us(plan.inputs.annotations.timestamps_ns)
             self._span_us = (int(annotated_us.min()), int(annotated_us.max()))  # the annotated sweeps' times
             box_meta = {**BOX_GENERATOR, "masks": camera_labels.MASKS_MADE}
+            self.shapes = TrackShapes()
             self._box_meta = {
                 "dynamic": {**box_meta, "value": DYNAMIC_RULE},
                 "instance": {**box_meta, "value": "instance index (0: no box)", "instances": table},
             }
         self.labels = 0
         self.seconds = 0.0
+
+    def gather(self, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, spacing_m: np.ndarray | None = None) -> None:
+        """The first pass, before any :meth:`add_sweep`: one sweep's evidence of the static vehicles'
+        shapes (``PointData.xyz_fixed_m``, ``timestamps_us``, ``spacing_m``; see
+        :mod:`objects.track_shapes`). A static track's one median box pools every sweep; a moving
+        track's annotated boxes jitter against its points and are not pooled."""
+        if self.shapes is None or not len(timestamps_us):
+            return
+        solids = self._plan.solids
+        static = np.flatnonzero(solids.kind[: len(solids.static_T_box_frame)] == VEHICLE)
+        origins = self._lidar_origins(timestamps_us)
+        self.shapes.gather(
+            solids.track_ids[static].tolist(),
+            solids.static_T_box_frame[static],
+            solids.static_half_m[static],
+            xyz_world_m,
+            _spacing_or_widest(xyz_world_m, origins, spacing_m),
+            origins,
+            RangeImage(xyz_world_m, origins),
+        )
 
     def add_sweep(
         self,
@@ -348,7 +372,7 @@ class FrameLabeller:
             if self._sight is None:  # once per sweep: where its lines of sight passed
                 self._sight = RangeImage(self._held[0], self._held[4])
             picture = camera_labels.box_index(
-                view, T_box_world, half_m, kinds, *at_frame, self._covers, keys, self._sight
+                view, T_box_world, half_m, kinds, *at_frame, self._covers, keys, self._sight, self.shapes
             )
             meta = {"sweep_median_time_us": round(self._held[5])}
         instance, dynamic, shown = camera_labels.box_labels(picture, self._instance[tracks], self._dynamic[tracks])

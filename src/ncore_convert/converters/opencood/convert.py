@@ -216,6 +216,8 @@ def _write_sensors(
         paths = [
             p for key in agent.keys for p in (src.pcd_path(agent.agent_dir, key), src.yaml_path(agent.agent_dir, key))
         ]
+        if boxes:  # a first pass: the vehicles' shapes from every tick
+            labeller.gather_ticks(reader)
         fetched = reader.read_ahead(paths, agent.files, keep=True)  # each tick's PCD and YAML, in turn
         for frame, (key, t_us) in enumerate(zip(agent.keys, agent.timestamps_us, strict=True)):
             (_, pcd), (yaml_file, yaml) = next(fetched), next(fetched)

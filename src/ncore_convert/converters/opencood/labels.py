@@ -20,11 +20,16 @@ import numpy as np
 
 from ncore_convert import contract
 from ncore_convert.converters.opencood.records import VEHICLE_CLASS, AgentPlan, ScenarioPlan
+from ncore_convert.errors import SourceError
+from ncore_convert.sources import opencood as src
 from ncore_convert.sources.opencood import LIDAR
 from ncore_convert.transforms.camera import labels as camera_labels
 from ncore_convert.transforms.camera.visibility import CameraView
+from ncore_convert.transforms.carla import points_right_handed
 from ncore_convert.transforms.geometry import invert_se3
 from ncore_convert.transforms.lidar.range_image import RangeImage
+from ncore_convert.transforms.objects.cores import CELL_M
+from ncore_convert.transforms.objects.track_shapes import TrackShapes
 from ncore_convert.writer import CameraLabelStream, SequenceWriter
 
 #: The component metadata of each kind: how the labels were made.
@@ -110,12 +115,49 @@ class TickLabeller:
         }
         self._covers: dict = {}
         self._covers_of = ""  # the tick whose cover maps ``_covers`` holds
+        # the vehicles' shapes from every tick (CARLA's boxes are exact: every track pools; gather)
+        self.shapes = TrackShapes() if set(kinds) & set(contract.BOX_LABEL_KINDS) else None
         self.labels = 0
         self.seconds = 0.0
 
     @property
     def kinds(self) -> set[str]:
         return {kind for kind, _ in self._streams}
+
+    def gather_ticks(self, reader) -> None:
+        """The first pass, before any label: :meth:`gather` every tick's PCD (fetched through
+        ``reader``, kept for the lidar frames that follow; an unreadable one is skipped here and
+        told by them)."""
+        if self.shapes is None:
+            return
+        agent = self._agent
+        pcds = [src.pcd_path(agent.agent_dir, key) for key in agent.keys]
+        fetched = reader.read_ahead(pcds, agent.files, keep=True)
+        for frame, (key, (_, pcd)) in enumerate(zip(agent.keys, fetched, strict=True)):
+            try:
+                if isinstance(pcd, SourceError):
+                    raise pcd
+                self.gather(frame, key, points_right_handed(src.read_points(agent.agent_dir, key, pcd).xyz_m))
+            except SourceError:
+                continue
+
+    def gather(self, frame: int, key: str, xyz_lidar_m: np.ndarray) -> None:
+        """The first pass, before any label: tick ``key``'s (frame index ``frame``) evidence of the
+        vehicles' shapes from the agent's lidar points ``xyz_lidar_m`` (lidar frame, right-handed,
+        [N,3], m; :mod:`objects.track_shapes`). CARLA's boxes are where the actors are at the tick,
+        so every vehicle's boxes pool, moving or not."""
+        if self.shapes is None or not len(xyz_lidar_m):
+            return
+        actors, T_box, half = tick_boxes(self._plan, self._agent, key)
+        T_lidar_world_global = self._agent.T_rig_world_global[frame] @ self._agent.T_sensor_rig[LIDAR]
+        xyz_m = np.asarray(xyz_lidar_m, np.float64) @ T_lidar_world_global[:3, :3].T + T_lidar_world_global[:3, 3]
+        origin_m = T_lidar_world_global[:3, 3]
+        model = self._agent.lidar_model  # its rows' median steps (without one: a cover map's cell, as box_index)
+        if model is None:
+            spacing_m = np.full((len(xyz_m), 2), CELL_M)
+        else:
+            spacing_m = np.linalg.norm(xyz_m - origin_m, axis=1)[:, None] * np.median(model.row_steps_rad(), axis=0)
+        self.shapes.gather(actors.tolist(), T_box, half, xyz_m, spacing_m, origin_m, RangeImage(xyz_m, origin_m))
 
     def store_depth(self, frame: int, key: str, t_us: int, cameras: list[str], points, why_none: str = "") -> None:
         """The depth labels of ``cameras`` (those with a picture) at tick ``key`` (frame index
@@ -165,6 +207,7 @@ class TickLabeller:
                 self._covers,
                 actors.tolist(),
                 self._sight,
+                self.shapes,
             )
             meta = {contract.CARLA_FRAME: int(key)}
         instance_of_box = np.array([self._index[int(a)] for a in actors], dtype=np.int64)

@@ -156,6 +156,7 @@ def box_index(
     covers: dict | None = None,
     keys: list | None = None,
     sight=None,
+    shapes=None,
 ) -> BoxPicture:
     """Which object each pixel of ``view`` shows: the object whose picture holds the pixel, where
     pictures overlap the one whose box is in front (:func:`objects.boxes.first_seen`; of boxes that
@@ -182,6 +183,9 @@ def box_index(
             of one sweep share the maps (the caller empties it for the next sweep).
         sight: where the sweep's lines of sight passed (``sight.passed(places [M,3], fixed frame) ->
             bool [M]``: ``lidar.range_image.RangeImage``); None: nowhere known (no free space cuts).
+        shapes: the vehicles' shapes from every sweep of their tracks
+            (:class:`objects.track_shapes.TrackShapes`, by ``keys``): a box whose track it holds takes
+            its whole-track cover map instead of this sweep's. None: this sweep's only.
     """
     width, height = view.pinhole.resolution_px
     index = np.full((height, width), -1, dtype=np.int32)
@@ -208,13 +212,16 @@ def box_index(
         r0, r1, c0, c1 = rectangles[i].tolist()
         if owner is not None and (kinds is None or kinds[k] == VEHICLE):
             key = None if covers is None or keys is None else keys[k]
-            if key is None or key not in covers:
+            made = None if shapes is None or keys is None else shapes.cover(keys[k], half_m[k])  # whole track
+            if made is None and key is not None:
+                made = covers.get(key)
+            if made is None:  # this sweep's evidence alone
                 own = owner.of_box(k, T_box_world[k], half_m[k])
                 passed = None if sight is None else partial(owner.passed, T_box_world[k])
                 made = cover_map(half_m[k], own.local_m, own.spacing_m, own.origins_m, passed)
                 if key is not None:
                     covers[key] = made
-            top, bottom = made if key is None else covers[key]
+            top, bottom = made
             hit = cover_picture(view, T_box_world[k], half_m[k], top, bottom, (r0, r1, c0, c1))
         else:
             # the ray through pixel (col, row) is x(col) X + y(row) Y + Z in camera axes; in the box's

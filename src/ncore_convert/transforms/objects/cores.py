@@ -109,7 +109,7 @@ def _seen_tops(
         spacing_m: the lidar's spacing between neighbouring returns on them, m.
         margin_m: how far above each own point the top may be, m (scalar or [P]).
     """
-    shape = _cells(half_m)
+    shape = footprint_cells(half_m)
     keep = own_m[:, 2] > floor
     if not keep.any():
         return None
@@ -127,14 +127,14 @@ def _seen_tops(
     return np.where(between, nearest_top, low), nearest_top
 
 
-def _cells(half_m: np.ndarray) -> tuple[int, int]:
+def footprint_cells(half_m: np.ndarray) -> tuple[int, int]:
     """The height map's shape over a box of half sizes ``half_m`` (m): ``CELL_M`` cells along x, y."""
     return max(1, int(np.ceil(2 * float(half_m[0]) / CELL_M))), max(1, int(np.ceil(2 * float(half_m[1]) / CELL_M)))
 
 
 def _cell_centres(half_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The x and y (box axes, m) of every height-map cell's centre, float64 [nx, ny] each."""
-    nx, ny = _cells(half_m)
+    nx, ny = footprint_cells(half_m)
     x_m = (np.arange(nx) + 0.5) * CELL_M - float(half_m[0])
     return np.meshgrid(x_m, (np.arange(ny) + 0.5) * CELL_M - float(half_m[1]), indexing="ij")
 
@@ -278,7 +278,7 @@ def _lines_of_sight(half_m: np.ndarray, own_m: np.ndarray, origins_m: np.ndarray
     ``CELL_M`` cell of its footprint below ``LIFT_M``, before their point's cell (each line sampled
     every half cell of its horizontal run): the street seen under the body, m in the box's axes;
     -inf where none passed. float64 [nx, ny]."""
-    under = np.full(_cells(half_m), -np.inf)
+    under = np.full(footprint_cells(half_m), -np.inf)
     hx, hy, hz = (float(v) for v in half_m)
     inside = (np.abs(own_m[:, 0]) <= hx) & (np.abs(own_m[:, 1]) <= hy)
     to_ground = np.flatnonzero(inside & (own_m[:, 2] < -hz + GROUND_M))

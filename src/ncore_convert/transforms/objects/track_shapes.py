@@ -1,0 +1,189 @@
+"""A vehicle's shape from every sweep of its track, for its camera masks (issue 74).
+
+One sweep sees a parked car's near side; the sweeps before and after see its front, its back, and
+through the gaps beside it. Every sweep of a track lends the track's cover map
+(:func:`cores.cover_map`) two kinds of evidence, in the box's own axes:
+
+- **its own points** (the returns inside the box, within ``OWN_MARGIN_M``), with where the lidar was
+  as it measured them: they show the object's tops and, through the lines of sight to the street
+  under it, its underside. Kept one per ``KEEP_CELL_M`` voxel of the box: memory is bounded by the
+  object's size, not by the log's length.
+- **the places its lines of sight passed through** (:meth:`lidar.range_image.RangeImage.passed`):
+  a voxel grid over the box (the cover map's ``CELL_M`` cells, ``LEVEL_M`` levels) marked where any
+  sweep's line of sight passed. It cuts the generous car shape where one sweep never looked.
+
+Only boxes that do not jitter against their object can pool sweeps: a static track at its one
+median box (``dynamic.static_pose``: a parked car does not move, whatever its annotation's jitter),
+and every box of a simulator's exact ground truth (CARLA: each box is where its actor is at the
+tick). A moving track's annotated boxes are a human's, a few centimetres off from sweep to sweep
+and taken at one time of a 100 ms sweep while the lidar saw the object at another: pooled in those
+boxes, its points would smear it. Such a track keeps its one-sweep map (the caller does not add it).
+
+The frame's own sweep still decides what is there now: the labeller adds its own points, and a
+cell holding one is covered whatever the track says (:func:`cores.cover_map`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ncore_convert.transforms.objects.boxes import PointGrid
+from ncore_convert.transforms.objects.cores import CARVE_STEP_M, CELL_M, cover_map, footprint_cells
+
+OWN_MARGIN_M = 0.1  #: a box's own points are those within this of it (annotation error)
+KEEP_CELL_M = 0.03  #: own points are kept one per voxel of this size (half a cover-map cell)
+LEVEL_M = CARVE_STEP_M  #: the free-space grid's step in height (the cover map's carving step)
+#: A box further than this from where the lidar was gathers no evidence: its returns are centimetres
+#: apart there at best, and its places' lines of sight too sparse to look up.
+REACH_M = 80.0
+
+
+@dataclass
+class _Track:
+    """One track's evidence in its box's axes (see the module docstring)."""
+
+    half_m: np.ndarray
+    passed: np.ndarray  # bool [nx, ny, nz]
+    own_m: list = field(default_factory=list)  # [P,3] arrays
+    spacing_m: list = field(default_factory=list)  # [P,2]
+    origins_m: list = field(default_factory=list)  # [P,3]
+    kept: set = field(default_factory=set)  # the voxels holding a kept own point
+    sweeps: int = 0
+
+
+def _levels(half_m: np.ndarray) -> int:
+    return max(1, int(np.ceil(2 * float(half_m[2]) / LEVEL_M)))
+
+
+def _voxel_centres(half_m: np.ndarray) -> np.ndarray:
+    """The free-space grid's voxel centres in the box's axes, float64 [nx, ny, nz, 3], m."""
+    nx, ny = footprint_cells(half_m)
+    axes = [(np.arange(n) + 0.5) * step - float(h) for n, step, h in ((nx, CELL_M, half_m[0]), (ny, CELL_M, half_m[1]))]
+    z_m = (np.arange(_levels(half_m)) + 0.5) * LEVEL_M - float(half_m[2])
+    return np.stack(np.meshgrid(*axes, z_m, indexing="ij"), axis=-1)
+
+
+class TrackShapes:
+    """The evidence of every gathered track (module docstring), keyed by track; lives as long as
+    one log's (or one agent's) labelling. ``gather`` each sweep first, then label with
+    :meth:`evidence` (the labeller's second pass)."""
+
+    def __init__(self) -> None:
+        self._tracks: dict = {}
+        self._covers: dict = {}  # track -> its cover map, made once every sweep is gathered
+
+    def __contains__(self, key) -> bool:
+        return key in self._tracks
+
+    def gather(
+        self,
+        keys: list,
+        T_box_world: np.ndarray,
+        half_m: np.ndarray,
+        points_m: np.ndarray,
+        spacing_m: np.ndarray,
+        origins_m: np.ndarray,
+        sight,
+    ) -> None:
+        """Add one sweep's evidence of the boxes ``keys`` [K] (hashable), each where its object was as
+        the sweep saw it: box -> fixed frame ``T_box_world`` [K,4,4], half sizes ``half_m`` [K,3], m.
+
+        Args:
+            points_m: the sweep's points, fixed frame, float64 [N,3]; spacing_m: the lidar's spacing
+                between neighbouring returns at each, across and along its rows, [N,2], m.
+            origins_m: where the lidar was as it measured each point, fixed frame, [N,3] or [3].
+            sight: the sweep's lines of sight (``sight.passed(places [M,3], fixed frame) -> bool [M]``).
+        """
+        if not len(keys):
+            return
+        origins = np.broadcast_to(np.asarray(origins_m, np.float64), np.shape(points_m))
+        middle_m = np.median(origins, axis=0) if len(origins) else np.zeros(3)
+        points = PointGrid(points_m)
+        for key, T, half in zip(keys, T_box_world, half_m, strict=True):
+            if not np.isfinite(T).all() or np.linalg.norm(T[:3, 3] - middle_m) > REACH_M:
+                continue
+            track = self._tracks.get(key)
+            if track is None:
+                grid = np.zeros((*footprint_cells(half), _levels(half)), bool)
+                track = self._tracks[key] = _Track(np.array(half, np.float64), grid)
+            elif not np.allclose(track.half_m, half, atol=0.01):  # another size: its voxels are not these
+                continue
+            track.sweeps += 1
+            rows = points.near(T[:3, 3], float(np.linalg.norm(half + OWN_MARGIN_M)))
+            local = (points_m[rows] - T[:3, 3]) @ T[:3, :3]
+            own = np.all(np.abs(local) <= half + OWN_MARGIN_M, axis=1)
+            self._keep(track, local[own], spacing_m[rows[own]], (origins[rows[own]] - T[:3, 3]) @ T[:3, :3])
+            open_ = ~track.passed
+            if open_.any():
+                centres = _voxel_centres(track.half_m)[open_]
+                track.passed[open_] = sight.passed(centres @ T[:3, :3].T + T[:3, 3])
+
+    @staticmethod
+    def _keep(track: _Track, local_m: np.ndarray, spacing_m: np.ndarray, origins_m: np.ndarray) -> None:
+        """Keep the own points ``local_m`` [P,3] (box axes) whose ``KEEP_CELL_M`` voxel holds none yet."""
+        voxels = np.floor((local_m + track.half_m + OWN_MARGIN_M) / KEEP_CELL_M).astype(np.int64)
+        _, first = np.unique(voxels, axis=0, return_index=True)
+        new = [i for i in first.tolist() if tuple(voxels[i]) not in track.kept]
+        if not new:
+            return
+        track.kept.update(tuple(v) for v in voxels[new].tolist())
+        track.own_m.append(local_m[new])
+        track.spacing_m.append(spacing_m[new])
+        track.origins_m.append(origins_m[new])
+
+    def cover(self, key, half_m: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Track ``key``'s :func:`cores.cover_map` from every gathered sweep, for a box of half sizes
+        ``half_m`` ([3], m): (top, bottom) [nx, ny] each; None where no sweep was gathered for it, or
+        for a box of another size. Made once per track."""
+        if key not in self._covers:
+            pooled = self.evidence(key)
+            self._covers[key] = (
+                None
+                if pooled is None
+                else cover_map(pooled.half_m, pooled.own_m, pooled.spacing_m, pooled.origins_m, pooled.passed)
+            )
+        track = self._tracks.get(key)
+        if track is None or not np.allclose(track.half_m, half_m, atol=0.01):
+            return None
+        return self._covers[key]
+
+    def evidence(self, key) -> TrackEvidence | None:
+        """The gathered evidence of track ``key`` (None: none gathered)."""
+        track = self._tracks.get(key)
+        if track is None or not track.sweeps:
+            return None
+        stack = lambda parts, width: np.concatenate(parts) if parts else np.zeros((0, width))  # noqa: E731
+        return TrackEvidence(
+            track.half_m, track.passed, stack(track.own_m, 3), stack(track.spacing_m, 2), stack(track.origins_m, 3)
+        )
+
+
+@dataclass(frozen=True)
+class TrackEvidence:
+    """One track's pooled evidence (:meth:`TrackShapes.evidence`), box axes.
+
+    Attributes:
+        half_m: the box's half sizes the grid is laid on, [3], m.
+        passed_grid: where a line of sight of some sweep passed, bool [nx, ny, nz].
+        own_m: the kept own points, [P,3], m; spacing_m: the lidar's spacing at each, [P,2], m;
+            origins_m: where the lidar was as it measured each, [P,3], m.
+    """
+
+    half_m: np.ndarray
+    passed_grid: np.ndarray
+    own_m: np.ndarray
+    spacing_m: np.ndarray
+    origins_m: np.ndarray
+
+    def passed(self, local_m: np.ndarray) -> np.ndarray:
+        """Which places (box axes, [M,3], m) some sweep's line of sight passed through: their voxel's
+        mark; False outside the box. bool [M]."""
+        shape = self.passed_grid.shape
+        steps = np.array([CELL_M, CELL_M, LEVEL_M])
+        index = np.floor((local_m + self.half_m) / steps).astype(np.int64)
+        inside = np.all((index >= 0) & (index < np.array(shape)), axis=1)
+        out = np.zeros(len(local_m), bool)
+        out[inside] = self.passed_grid[tuple(index[inside].T)]
+        return out
