@@ -5,9 +5,14 @@
   (``synth.shapes``), with a car queued 0.3-1.0 m ahead of the first CAV's front camera and one 1-2 m
   alongside it, converted with ``--camera-labels depth,dynamic,instance``;
 - the AV2 world (shaped cars, pedestrians and cyclists, a car just ahead of the ego and one
-  alongside): both VLP-32C units fire one sweep, and five ring cameras (at half size) label it at
-  the sweep's middle with the label kernel itself (``transforms.camera.labels``), the annotated
-  vehicles' true boxes as the occluders' boxes (AV2's 0.5 m slack) and as the masks' boxes.
+  alongside): both VLP-32C units fire every sweep of the log, and five ring cameras (at half size)
+  label ``--scored`` sweeps spread over it at their middles with the label kernel itself
+  (``transforms.camera.labels``), the annotated vehicles' true boxes as the occluders' boxes (AV2's
+  0.5 m slack) and as the masks' boxes.
+
+Each is run twice, side by side (issue 74): with each frame's own sweep (tick) only, as before,
+and with the vehicles' shapes pooled over their whole tracks (``objects.track_shapes``: the OPV2V
+labeller's first pass; for AV2 the parked vehicles, as the AV2 labeller pools its static tracks).
 
 The figures:
 
@@ -19,7 +24,7 @@ The figures:
   (every second pixel); the pooled recall; the ``mask.dynamic`` IoU and recall against the moving
   vehicles; and the queued car's share of the front camera's picture, labelled and true.
 
-    python bench/bench_shaped_labels.py [--seeds 101,102] [--av2-seeds 5,6,7] [--work DIR]
+    python bench/bench_shaped_labels.py [--seeds 101,102] [--av2-seeds 5,6,7] [--seconds 4] [--scored 5]
 """
 
 from __future__ import annotations

@@ -138,7 +138,10 @@ MASKS_MADE = (
     "each labelled object's box cut where the lidar shows it empty: a vehicle to a height map of its own points"
     " (6 cm cells; its far side mirrored, unseen cells a generous car shape no higher than the lidar's lines of"
     " sight through them; the street under its body between the wheels left out; vans, trucks and buses taller"
-    " than 2 m at full height), any other object to its own points' footprints; a box without own points whole"
+    " than 2 m at full height), any other object to its own points' footprints; a box without own points whole."
+    " A vehicle whose boxes do not jitter against it (a static track at its median box, a simulator's exact"
+    " boxes) from the points and lines of sight of every sweep of its track (objects.track_shapes), any other"
+    " from the frame's own sweep"
 )
 #: A box's own points for its mask (:func:`objects.cores.cover_map`) are those within this of it
 #: (annotation error).
