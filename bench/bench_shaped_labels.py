@@ -358,7 +358,14 @@ def main() -> None:
         for dataset in ("opv2v", "v2xset"):
             tmp = work / f"{dataset}-{seed}-{ticks}"
             config = synth.SynthConfig(
-                dataset=dataset, frames=ticks, seed=seed, keep_truth=True, shapes=True, close_range=True, cavs=3
+                dataset=dataset,
+                frames=ticks,
+                seed=seed,
+                keep_truth=True,
+                shapes=True,
+                close_range=True,
+                cavs=3,
+                render_step=8,  # the pictures are not scored: cheap ones
             )
             (truth,) = synth.write_dataset(UPath(tmp / "src"), config)
             positions = sorted(set(np.linspace(0, ticks - 1, args.scored).round().astype(int).tolist()))

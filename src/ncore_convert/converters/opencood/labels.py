@@ -125,34 +125,39 @@ class TickLabeller:
         return {kind for kind, _ in self._streams}
 
     def gather_ticks(self, reader) -> None:
-        """The first pass, before any label: :meth:`gather` every tick's PCD (fetched through
-        ``reader``, kept for the lidar frames that follow; an unreadable one is skipped here and
-        told by them)."""
+        """The first pass, before any label: :meth:`gather` every tick's PCD of every agent of the
+        scenario with a lidar, this one's first (fetched through ``reader`` and kept: the lidar frames
+        that follow, and the other agents' jobs, read them again; an unreadable one is skipped here
+        and told by its agent's lidar frames). The agents share ``world_global`` and CARLA's ticks: a
+        vehicle between two of them is seen from both sides."""
         if self.shapes is None:
             return
-        agent = self._agent
-        pcds = [src.pcd_path(agent.agent_dir, key) for key in agent.keys]
-        fetched = reader.read_ahead(pcds, agent.files, keep=True)
-        for frame, (key, (_, pcd)) in enumerate(zip(agent.keys, fetched, strict=True)):
-            try:
-                if isinstance(pcd, SourceError):
-                    raise pcd
-                self.gather(frame, key, points_right_handed(src.read_points(agent.agent_dir, key, pcd).xyz_m))
-            except SourceError:
-                continue
+        others = [a for a in self._plan.agents.values() if a.lidar_ids and a.agent_id != self._agent.agent_id]
+        for agent in [self._agent, *others] if self._agent.lidar_ids else others:
+            pcds = [src.pcd_path(agent.agent_dir, key) for key in agent.keys]
+            fetched = reader.read_ahead(pcds, agent.files, keep=True)
+            for frame, (key, (_, pcd)) in enumerate(zip(agent.keys, fetched, strict=True)):
+                try:
+                    if isinstance(pcd, SourceError):
+                        raise pcd
+                    xyz_lidar_m = points_right_handed(src.read_points(agent.agent_dir, key, pcd).xyz_m)
+                except SourceError:
+                    continue
+                self.gather(agent, frame, key, xyz_lidar_m)
 
-    def gather(self, frame: int, key: str, xyz_lidar_m: np.ndarray) -> None:
-        """The first pass, before any label: tick ``key``'s (frame index ``frame``) evidence of the
-        vehicles' shapes from the agent's lidar points ``xyz_lidar_m`` (lidar frame, right-handed,
-        [N,3], m; :mod:`objects.track_shapes`). CARLA's boxes are where the actors are at the tick,
-        so every vehicle's boxes pool, moving or not."""
+    def gather(self, agent: AgentPlan, frame: int, key: str, xyz_lidar_m: np.ndarray) -> None:
+        """Tick ``key``'s (``agent``'s frame index ``frame``) evidence of the vehicles' shapes from
+        ``agent``'s lidar points ``xyz_lidar_m`` (its lidar frame, right-handed, [N,3], m;
+        :mod:`objects.track_shapes`). CARLA's boxes are where the actors are at the tick, so every
+        vehicle's boxes pool, moving or not (``agent``'s own left out: its lidar sees it from
+        inside)."""
         if self.shapes is None or not len(xyz_lidar_m):
             return
-        actors, T_box, half = tick_boxes(self._plan, self._agent, key)
-        T_lidar_world_global = self._agent.T_rig_world_global[frame] @ self._agent.T_sensor_rig[LIDAR]
+        actors, T_box, half = tick_boxes(self._plan, agent, key)
+        T_lidar_world_global = agent.T_rig_world_global[frame] @ agent.T_sensor_rig[LIDAR]
         xyz_m = np.asarray(xyz_lidar_m, np.float64) @ T_lidar_world_global[:3, :3].T + T_lidar_world_global[:3, 3]
         origin_m = T_lidar_world_global[:3, 3]
-        model = self._agent.lidar_model  # its rows' median steps (without one: a cover map's cell, as box_index)
+        model = agent.lidar_model  # its rows' median steps (without one: a cover map's cell, as box_index)
         if model is None:
             spacing_m = np.full((len(xyz_m), 2), CELL_M)
         else:
