@@ -58,6 +58,7 @@ from ncore_convert.transforms.lidar.model import SpinningLidarModel
 from ncore_convert.transforms.lidar.range_image import RangeImage
 from ncore_convert.transforms.objects.classes import AV2_TO_NCORE
 from ncore_convert.transforms.objects.cores import VEHICLE, kind_of
+from ncore_convert.transforms.objects.dynamic import static_pose
 from ncore_convert.transforms.objects.track_shapes import TrackShapes
 
 CAMERAS = ("camera_front", "camera_right_rear", "camera_left_rear", "camera_back")
@@ -153,6 +154,7 @@ def score_scenario(truth, out: Path, tally: dict, positions: list[int]) -> None:
                     inter = np.sum(mine & real)
                     tally["iou"].append(inter / np.sum(mine | real))
                     tally["recall"].append((inter, real.sum()))
+                    tally["missed"].append((np.sum(real & ~mine & (ours_actor >= 0)), np.sum(real & (ours_actor < 0))))
                     tally["views"].append(
                         (f"{truth.scenario}/{agent_id}/{key}/{cam}", int(a), int(mine.sum()), int(real.sum()))
                     )
@@ -202,45 +204,79 @@ def _av2_sweep(scene, T_sensor_ego: dict, k: int) -> dict:
 def score_av2_log(seed: int, seconds: float, scored: int, tally: dict, whole_track: bool) -> None:
     """Add the AV2 world of ``seed`` (``seconds`` long, both units) to ``tally``: ``scored`` sweeps
     spread over the log, each labelled at its middle by five cameras at half size with the label
-    kernel (``transforms.camera.labels``), as the labeller calls it: the annotated vehicles' true
-    boxes as the occluders' and the masks' boxes; with ``whole_track``, a first pass gathers every
-    sweep's evidence of the parked vehicles (``objects.track_shapes``: the labeller pools static
-    tracks only)."""
+    kernel (``transforms.camera.labels``) as the labeller calls it, on the boxes it has: each
+    object's annotated boxes (the generator's jitter), a parked one's median box over the sweeps.
+    With ``whole_track``, a first pass gathers every sweep's evidence of the vehicles
+    (``objects.track_shapes``, as ``FrameLabeller.gather``: the parked ones at their median box, the
+    moving ones along their annotated boxes, registered)."""
     scene = make_scene(
         np.random.default_rng(seed), seconds, np.random.default_rng([seed, 1]), shapes=True, close_range=True
     )
     T_sensor_ego, cams = calibration(camera_scale=2)
     annotated = [k for k, b in enumerate(scene.boxes) if b.annotated]
     kind = np.array([kind_of(AV2_TO_NCORE[scene.boxes[k].category]) for k in annotated])
-    parked = [i for i, k in enumerate(annotated) if not np.any(scene.boxes[k].velocity_mps) and kind[i] == VEHICLE]
     n_sweeps = max(1, int(round(seconds / SWEEP_S)))
+    boxes = _AnnotatedBoxes(scene, annotated, n_sweeps)
     picked = sorted(set(np.linspace(0, n_sweeps - 1, scored).round().astype(int).tolist()))
     shapes, kept = (TrackShapes() if whole_track else None), {}
+    vehicles = np.flatnonzero(kind == VEHICLE)
     for k in range(n_sweeps) if whole_track else picked:
         sweep = _av2_sweep(scene, T_sensor_ego, k)
         if shapes is not None:
             t_s = (k + 0.5) * SWEEP_S
-            T_parked = np.stack([scene.boxes[annotated[i]].T_box_city(t_s) for i in parked]).reshape(-1, 4, 4)
-            half = np.array([scene.boxes[annotated[i]].dims_m / 2 for i in parked]).reshape(-1, 3)
-            shapes.gather(parked, T_parked, half, sweep["xyz"], sweep["spacing"], sweep["origins"], sweep["sight"])
+            T, half, velocity = boxes.at(t_s)
+            shapes.gather(
+                vehicles.tolist(),
+                T[vehicles],
+                half[vehicles],
+                sweep["xyz"],
+                sweep["spacing"],
+                sweep["origins"],
+                sweep["sight"],
+                velocity[vehicles],
+                sweep["times_us"] * 1e-6 - t_s,
+                register=boxes.moves[vehicles],
+                time_us=round(t_s * 1e6),
+            )
         if k in picked:
-            kept[k] = {key: sweep[key] for key in ("xyz", "origins", "dynamic", "times_us", "spacing", "box_index")}
-            kept[k]["sight"] = sweep["sight"]
+            kept[k] = sweep
     for k in picked:
-        _score_av2_frame(scene, T_sensor_ego, cams, annotated, kind, kept.pop(k), (k + 0.5) * SWEEP_S, shapes, tally)
+        _score_av2_frame(
+            scene, T_sensor_ego, cams, annotated, kind, kept.pop(k), (k + 0.5) * SWEEP_S, shapes, tally, boxes
+        )
 
 
-def _score_av2_frame(scene, T_sensor_ego, cams, annotated, kind, sweep, camera_s, shapes, tally) -> None:
-    """Label the cameras at ``camera_s`` from ``sweep`` (:func:`_av2_sweep`) and score them."""
-    T_box = np.stack([scene.boxes[k].T_box_city(camera_s) for k in annotated])
-    half = np.stack([scene.boxes[k].dims_m / 2 for k in annotated])
+class _AnnotatedBoxes:
+    """The boxes the AV2 labeller has of the annotated objects: a moving one's annotated box (jitter
+    included) at any time, a parked one's median annotated box over the sweeps
+    (``dynamic.static_pose``)."""
+
+    def __init__(self, scene, annotated: list[int], n_sweeps: int) -> None:
+        self._scene, self._annotated = scene, annotated
+        self.moves = np.array([bool(np.any(scene.boxes[k].velocity_mps)) for k in annotated])
+        times = (np.arange(n_sweeps) + 0.5) * SWEEP_S
+        self._parked = {}
+        for i, k in enumerate(annotated):
+            if not self.moves[i]:
+                T = np.stack([scene.boxes[k].T_annotated_city(t) for t in times])
+                centre, R, _ = static_pose(T[:, :3, 3], T[:, :3, :3], np.tile(scene.boxes[k].dims_m, (len(T), 1)))
+                self._parked[i] = np.eye(4)
+                self._parked[i][:3, :3], self._parked[i][:3, 3] = R, centre
+
+    def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Box -> city [K,4,4], half sizes [K,3] and velocities [K,3] (m/s) at ``t_s``."""
+        boxes = [self._scene.boxes[k] for k in self._annotated]
+        T = np.stack([self._parked.get(i, b.T_annotated_city(t_s)) for i, b in enumerate(boxes)])
+        half = np.stack([b.dims_m / 2 for b in boxes])
+        velocity = np.stack([b.velocity_mps * (b.move_from_s <= t_s <= b.move_until_s) for b in boxes])
+        return T, half, velocity
+
+
+def _score_av2_frame(scene, T_sensor_ego, cams, annotated, kind, sweep, camera_s, shapes, tally, boxes) -> None:
+    """Label the cameras at ``camera_s`` from ``sweep`` (:func:`_av2_sweep`) with ``boxes``
+    (:class:`_AnnotatedBoxes`) and score them."""
+    T_box, half, velocity = boxes.at(camera_s)
     solid = kind >= 0
-    velocity = np.stack(  # each box's velocity at the camera's time (the converter's, from its track)
-        [
-            scene.boxes[k].velocity_mps * (scene.boxes[k].move_from_s <= camera_s <= scene.boxes[k].move_until_s)
-            for k in annotated
-        ]
-    )
     xyz_city, dynamic, times_us, spacing_m = sweep["xyz"], sweep["dynamic"], sweep["times_us"], sweep["spacing"]
     for cam in AV2_CAMERAS:
         focal, width, height = cams[cam]
@@ -302,6 +338,7 @@ def _score_av2_frame(scene, T_sensor_ego, cams, annotated, kind, sweep, camera_s
             inter = np.sum(mine & real)
             tally["iou"].append(inter / np.sum(mine | real))
             tally["recall"].append((inter, real.sum()))
+            tally["missed"].append((np.sum(real & ~mine & (ours >= 0)), np.sum(real & (ours < 0))))
             tally["views"].append((f"av2 {camera_s:.2f} s/{cam}", int(k), int(mine.sum()), int(real.sum())))
         moves = np.r_[[bool(np.any(scene.boxes[k].velocity_mps)) for k in annotated], False]
         ours_moving, true_moving = moves[ours], moves[truth]
@@ -324,6 +361,11 @@ def report(title: str, tally: dict, verbose: bool = False) -> None:
     short = np.mean(np.array(recalls) < 0.98)
     print(f"  masks: pooled recall {inter / real:.3f} (>= 0.98), views with recall < 0.98: {short:.3f}")
     print(f"  dynamic mask: IoU {dyn[0] / dyn[1]:.3f}, recall {dyn[0] / dyn[2]:.3f}")
+    stolen, empty = np.sum(tally["missed"], axis=0) if tally["missed"] else (0, 0)
+    print(
+        f"  masks: true pixels missed {(stolen + empty) / real:.3f}: shown as another object {stolen / real:.3f},"
+        f" as none {empty / real:.3f}"
+    )
     if verbose:
         order = np.argsort(tally["iou"])
         for i in order[: len(order) // 2]:
@@ -338,7 +380,8 @@ def report(title: str, tally: dict, verbose: bool = False) -> None:
 
 
 def _tally() -> dict:
-    return {k: [] for k in ("covered", "covered_vehicle", "behind", "iou", "recall", "dynamic", "queued", "views")}
+    keys = ("covered", "covered_vehicle", "behind", "iou", "recall", "missed", "dynamic", "queued", "views")
+    return {k: [] for k in keys}
 
 
 def main() -> None:

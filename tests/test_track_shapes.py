@@ -73,7 +73,7 @@ def test_a_parked_cars_far_side_seen_later_tightens_its_mask_and_keeps_it_whole(
     assert pooled is not None
     assert _body_top_covered(pooled[0]) == 1.0 and _body_top_covered(first[0]) == 1.0  # recall kept
     # the box's margin beyond the far flank: the first sweep never looked there, the later one did
-    volume_first, volume_pooled = _covered_volume(*first), _covered_volume(*pooled)
+    volume_first, volume_pooled = _covered_volume(*first), _covered_volume(*pooled[:2])
     assert volume_pooled < volume_first - 0.2, (volume_first, volume_pooled)
     nx, ny = pooled[0].shape
     far_margin = (np.arange(ny) + 0.5) * 0.06 - HALF_M[1] > BODY_M[1] + 0.06

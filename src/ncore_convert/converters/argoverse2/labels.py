@@ -180,23 +180,30 @@ class FrameLabeller:
         self.seconds = 0.0
 
     def gather(self, xyz_world_m: np.ndarray, timestamps_us: np.ndarray, spacing_m: np.ndarray | None = None) -> None:
-        """The first pass, before any :meth:`add_sweep`: one sweep's evidence of the static vehicles'
-        shapes (``PointData.xyz_fixed_m``, ``timestamps_us``, ``spacing_m``; see
-        :mod:`objects.track_shapes`). A static track's one median box pools every sweep; a moving
-        track's annotated boxes jitter against its points and are not pooled."""
+        """The first pass, before any :meth:`add_sweep`: one sweep's evidence of the vehicles' shapes
+        (``PointData.xyz_fixed_m``, ``timestamps_us``, ``spacing_m``; :mod:`objects.track_shapes`). A
+        static track's one median box pools every sweep; a moving track's annotated boxes, at each
+        point's time along the track, pool the sweeps whose points agree once registered to it
+        (annotations jitter by centimetres from sweep to sweep)."""
         if self.shapes is None or not len(timestamps_us):
             return
-        solids = self._plan.solids
-        static = np.flatnonzero(solids.kind[: len(solids.static_T_box_frame)] == VEHICLE)
+        middle_us = int(np.median(timestamps_us))
+        tracks, T_box_world, half_m, velocity_mps = self._plan.solids.moving_at(middle_us)
+        vehicles = np.flatnonzero(self._plan.solids.kind[tracks] == VEHICLE)
+        tracks = tracks[vehicles]
         origins = self._lidar_origins(timestamps_us)
         self.shapes.gather(
-            solids.track_ids[static].tolist(),
-            solids.static_T_box_frame[static],
-            solids.static_half_m[static],
+            self._plan.solids.track_ids[tracks].tolist(),
+            T_box_world[vehicles],
+            half_m[vehicles],
             xyz_world_m,
             _spacing_or_widest(xyz_world_m, origins, spacing_m),
             origins,
             RangeImage(xyz_world_m, origins),
+            velocity_mps[vehicles],
+            (np.asarray(timestamps_us, np.int64) - middle_us) * 1e-6,
+            register=tracks >= len(self._plan.solids.static_T_box_frame),
+            time_us=middle_us,
         )
 
     def add_sweep(

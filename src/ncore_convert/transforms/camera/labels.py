@@ -215,17 +215,22 @@ def box_index(
         r0, r1, c0, c1 = rectangles[i].tolist()
         if owner is not None and (kinds is None or kinds[k] == VEHICLE):
             key = None if covers is None or keys is None else keys[k]
-            made = None if shapes is None or keys is None else shapes.cover(keys[k], half_m[k])  # whole track
-            if made is None and key is not None:
-                made = covers.get(key)
-            if made is None:  # this sweep's evidence alone
-                own = owner.of_box(k, T_box_world[k], half_m[k])
-                passed = None if sight is None else partial(owner.passed, T_box_world[k])
-                made = cover_map(half_m[k], own.local_m, own.spacing_m, own.origins_m, passed)
-                if key is not None:
-                    covers[key] = made
-            top, bottom = made
-            hit = cover_picture(view, T_box_world[k], half_m[k], top, bottom, (r0, r1, c0, c1))
+            T_map_world = T_box_world[k]  # where the cover map lies
+            pooled = None if shapes is None or keys is None else shapes.cover(keys[k], half_m[k], view.timestamp_us)
+            if pooled is not None:  # the whole track's, where the frame's box holds it
+                top, bottom, offset_m = pooled
+                T_map_world = T_box_world[k].copy()
+                T_map_world[:3, 3] -= T_box_world[k, :3, :3] @ offset_m
+            else:
+                made = None if key is None else covers.get(key)
+                if made is None:  # this sweep's evidence alone
+                    own = owner.of_box(k, T_box_world[k], half_m[k])
+                    passed = None if sight is None else partial(owner.passed, T_box_world[k])
+                    made = cover_map(half_m[k], own.local_m, own.spacing_m, own.origins_m, passed)
+                    if key is not None:
+                        covers[key] = made
+                top, bottom = made
+            hit = cover_picture(view, T_map_world, half_m[k], top, bottom, (r0, r1, c0, c1))
         else:
             # the ray through pixel (col, row) is x(col) X + y(row) Y + Z in camera axes; in the box's
             # axes each coordinate is a sum of a column term and a row term

@@ -319,6 +319,15 @@ class SolidBoxes:
         """The boxes at ``t_us`` of the objects with solid parts, the occluders (:mod:`cores`): box ->
         fixed frame [V,4,4], half sizes [V,3], velocity, m/s [V,3] (a moving track's over
         ``VELOCITY_SPAN_US`` around ``t_us``; 0 for a static one) and kind, int [V]."""
+        tracks, T, half, velocity = self.moving_at(t_us)
+        kind = self.kind[tracks]
+        solid = kind >= 0
+        return T[solid], half[solid], velocity[solid], kind[solid]
+
+    def moving_at(self, t_us: int) -> tuple[np.ndarray, ...]:
+        """:meth:`tracks_at` (tracks [K], box -> fixed frame [K,4,4], half sizes [K,3]) and each box's
+        velocity, m/s [K,3]: a moving track's over ``VELOCITY_SPAN_US`` around ``t_us`` (0 where it
+        is not observed on both sides), 0 for a static one."""
         tracks, T, half = self.tracks_at(t_us)
         velocity = np.zeros((len(tracks), 3))
         n_static = len(self.static_T_box_frame)
@@ -329,9 +338,7 @@ class SolidBoxes:
         moving = np.flatnonzero(tracks >= n_static)
         known = np.isin(tracks[moving] - n_static, both)
         velocity[moving[known]] = rate[np.searchsorted(both, tracks[moving[known]] - n_static)]
-        kind = self.kind[tracks]
-        solid = kind >= 0
-        return T[solid], half[solid], velocity[solid], kind[solid]
+        return tracks, T, half, velocity
 
     def tracks_at(self, t_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The boxes at ``t_us``: each one's track (index into ``track_ids``), int [K]; box -> fixed

@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ncore_convert.transforms.objects.boxes import PointGrid
 from ncore_convert.transforms.objects.cores import CARVE_STEP_M, CELL_M, cover_map, footprint_cells
@@ -38,6 +39,15 @@ LEVEL_M = CARVE_STEP_M  #: the free-space grid's step in height (the cover map's
 #: A box further than this from where the lidar was gathers no evidence: its returns are centimetres
 #: apart there at best, and its places' lines of sight too sparse to look up.
 REACH_M = 80.0
+#: A track whose boxes may jitter (annotations) registers each sweep's own points to those pooled so
+#: far before adding them: a translation, from the median offset to the nearest pooled point of the
+#: points within ``PAIR_M`` of one, ``ICP_STEPS`` times; the sweep agrees (and pools) when at least
+#: ``MIN_PAIRS`` and half its points then lie within ``AGREE_M`` of a pooled point (median): about
+#: the returns' spread on a surface and a kept voxel's half size.
+PAIR_M = 0.3
+ICP_STEPS = 6
+MIN_PAIRS = 30
+AGREE_M = 0.04
 
 
 @dataclass
@@ -51,6 +61,9 @@ class _Track:
     origins_m: list = field(default_factory=list)  # [P,3]
     kept: set = field(default_factory=set)  # the voxels holding a kept own point
     sweeps: int = 0
+    #: sweep time (µs) -> where the pooled shape lies in that sweep's box, box axes [3] (m), None where
+    #: the sweep's points did not agree with it (its frames keep their own sweep's map)
+    offsets: dict = field(default_factory=dict)
 
 
 def _levels(half_m: np.ndarray) -> int:
@@ -86,6 +99,10 @@ class TrackShapes:
         spacing_m: np.ndarray,
         origins_m: np.ndarray,
         sight,
+        velocity_mps: np.ndarray | None = None,
+        dt_s: np.ndarray | None = None,
+        register: np.ndarray | None = None,
+        time_us: int = 0,
     ) -> None:
         """Add one sweep's evidence of the boxes ``keys`` [K] (hashable), each where its object was as
         the sweep saw it: box -> fixed frame ``T_box_world`` [K,4,4], half sizes ``half_m`` [K,3], m.
@@ -95,15 +112,28 @@ class TrackShapes:
                 between neighbouring returns at each, across and along its rows, [N,2], m.
             origins_m: where the lidar was as it measured each point, fixed frame, [N,3] or [3].
             sight: the sweep's lines of sight (``sight.passed(places [M,3], fixed frame) -> bool [M]``).
+            velocity_mps: each box's velocity, fixed frame, [K,3], m/s (None: every box still), and
+                dt_s: each point's time less the boxes' time, [N], s: a moving box's own points are
+                found, and kept, where the box was at their times, and its free space looked up
+                where it was at its own points' median time (none without own points: when the
+                lidar looked at it is not known).
+            register: which boxes may jitter against their objects (annotations), bool [K] (None:
+                none): their sweeps are registered to the track's pooled points first, and pool only
+                where they agree (``AGREE_M``); ``time_us``: the sweep's time, which the frames near
+                it find their offset by (:meth:`cover`).
         """
         if not len(keys):
             return
         origins = np.broadcast_to(np.asarray(origins_m, np.float64), np.shape(points_m))
         middle_m = np.median(origins, axis=0) if len(origins) else np.zeros(3)
         points = PointGrid(points_m)
-        for key, T, half in zip(keys, T_box_world, half_m, strict=True):
+        velocity = np.zeros((len(keys), 3)) if velocity_mps is None else np.asarray(velocity_mps, np.float64)
+        span_s = 0.0 if dt_s is None or not len(dt_s) else float(np.max(np.abs(dt_s)))
+        jitters = np.zeros(len(keys), bool) if register is None else np.asarray(register, bool)
+        for key, T, half, v, jittery in zip(keys, T_box_world, half_m, velocity, jitters, strict=True):
             if not np.isfinite(T).all() or np.linalg.norm(T[:3, 3] - middle_m) > REACH_M:
                 continue
+            moving = bool(np.any(v)) and dt_s is not None
             track = self._tracks.get(key)
             if track is None:
                 grid = np.zeros((*footprint_cells(half), _levels(half)), bool)
@@ -111,14 +141,28 @@ class TrackShapes:
             elif not np.allclose(track.half_m, half, atol=0.01):  # another size: its voxels are not these
                 continue
             track.sweeps += 1
-            rows = points.near(T[:3, 3], float(np.linalg.norm(half + OWN_MARGIN_M)))
-            local = (points_m[rows] - T[:3, 3]) @ T[:3, :3]
+            reach_m = float(np.linalg.norm(half + OWN_MARGIN_M)) + (
+                float(np.linalg.norm(v)) * span_s if moving else 0.0
+            )
+            rows = points.near(T[:3, 3], reach_m)
+            shift_m = np.outer(dt_s[rows], v) if moving else np.zeros((len(rows), 3))  # where the box was then
+            local = (points_m[rows] - shift_m - T[:3, 3]) @ T[:3, :3]
             own = np.all(np.abs(local) <= half + OWN_MARGIN_M, axis=1)
-            self._keep(track, local[own], spacing_m[rows[own]], (origins[rows[own]] - T[:3, 3]) @ T[:3, :3])
+            offset_m = np.zeros(3)
+            if jittery:
+                offset_m = _registered(track, local[own])
+                track.offsets[int(time_us)] = offset_m
+                if offset_m is None:  # its points do not agree with the track's: nothing pooled
+                    continue
+            origins_local = (origins[rows[own]] - shift_m[own] - T[:3, 3]) @ T[:3, :3]
+            self._keep(track, local[own] + offset_m, spacing_m[rows[own]], origins_local + offset_m)
+            if moving and not own.any():
+                continue
+            seen_at_m = T[:3, 3] + (float(np.median(dt_s[rows[own]])) * v if moving else 0.0)
             open_ = ~track.passed
-            if open_.any():
-                centres = _voxel_centres(track.half_m)[open_]
-                track.passed[open_] = sight.passed(centres @ T[:3, :3].T + T[:3, 3])
+            if open_.any():  # the pooled voxels where this sweep's box holds them
+                centres = _voxel_centres(track.half_m)[open_] - offset_m
+                track.passed[open_] = sight.passed(centres @ T[:3, :3].T + seen_at_m)
 
     @staticmethod
     def _keep(track: _Track, local_m: np.ndarray, spacing_m: np.ndarray, origins_m: np.ndarray) -> None:
@@ -133,10 +177,12 @@ class TrackShapes:
         track.spacing_m.append(spacing_m[new])
         track.origins_m.append(origins_m[new])
 
-    def cover(self, key, half_m: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Track ``key``'s :func:`cores.cover_map` from every gathered sweep, for a box of half sizes
-        ``half_m`` ([3], m): (top, bottom) [nx, ny] each; None where no sweep was gathered for it, or
-        for a box of another size. Made once per track."""
+    def cover(self, key, half_m: np.ndarray, t_us: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Track ``key``'s :func:`cores.cover_map` from every gathered sweep, for its box of half
+        sizes ``half_m`` ([3], m) at time ``t_us``: (top, bottom) [nx, ny] each, and where the map
+        lies in that box (box axes, [3], m: the registration offset of the sweep nearest ``t_us``;
+        0 for a track that does not register). None where no sweep was gathered for it, for a box of
+        another size, or near a sweep whose points did not agree. Made once per track."""
         if key not in self._covers:
             pooled = self.evidence(key)
             self._covers[key] = (
@@ -145,9 +191,15 @@ class TrackShapes:
                 else cover_map(pooled.half_m, pooled.own_m, pooled.spacing_m, pooled.origins_m, pooled.passed)
             )
         track = self._tracks.get(key)
-        if track is None or not np.allclose(track.half_m, half_m, atol=0.01):
+        if track is None or self._covers[key] is None or not np.allclose(track.half_m, half_m, atol=0.01):
             return None
-        return self._covers[key]
+        offset_m = np.zeros(3)
+        if track.offsets:
+            times = np.array(list(track.offsets))
+            offset_m = track.offsets[int(times[np.argmin(np.abs(times - t_us))])]
+            if offset_m is None:
+                return None
+        return (*self._covers[key], offset_m)
 
     def evidence(self, key) -> TrackEvidence | None:
         """The gathered evidence of track ``key`` (None: none gathered)."""
@@ -158,6 +210,28 @@ class TrackShapes:
         return TrackEvidence(
             track.half_m, track.passed, stack(track.own_m, 3), stack(track.spacing_m, 2), stack(track.origins_m, 3)
         )
+
+
+def _registered(track: _Track, local_m: np.ndarray) -> np.ndarray | None:
+    """Where a sweep's own points ``local_m`` (its box's axes, [P,3], m) lie against the track's pooled
+    points: the offset [3] that moves them onto the pooled ones (0 for the track's first points),
+    None where they do not agree (see ``AGREE_M``)."""
+    if not track.own_m:
+        return np.zeros(3) if len(local_m) else None
+    if len(local_m) < MIN_PAIRS:
+        return None
+    pooled = np.concatenate(track.own_m)
+    tree = cKDTree(pooled)
+    offset = np.zeros(3)
+    for _ in range(ICP_STEPS):
+        distance, nearest = tree.query(local_m + offset, distance_upper_bound=PAIR_M)
+        paired = np.isfinite(distance)
+        if paired.sum() < MIN_PAIRS:
+            return None
+        offset += np.median(pooled[nearest[paired]] - (local_m[paired] + offset), axis=0)
+    distance, _ = tree.query(local_m + offset, distance_upper_bound=PAIR_M)
+    close = distance <= AGREE_M
+    return offset if close.sum() >= MIN_PAIRS and close.mean() >= 0.5 else None
 
 
 @dataclass(frozen=True)
