@@ -40,12 +40,14 @@ LEVEL_M = CARVE_STEP_M  #: the free-space grid's step in height (the cover map's
 #: apart there at best, and its places' lines of sight too sparse to look up.
 REACH_M = 80.0
 #: A track whose boxes may jitter (annotations) registers each sweep's own points to those pooled so
-#: far before adding them: a translation, from the median offset to the nearest pooled point of the
-#: points within ``PAIR_M`` of one, ``ICP_STEPS`` times; the sweep agrees (and pools) when at least
-#: ``MIN_PAIRS`` and half its points then lie within ``AGREE_M`` of a pooled point (median): about
-#: the returns' spread on a surface and a kept voxel's half size.
+#: far before adding them (:func:`_registered`: a translation, point to plane); the sweep agrees (and
+#: pools) when at least ``MIN_PAIRS`` and half its points then lie within ``AGREE_M`` of the pooled
+#: surfaces (about the returns' spread on a surface), its offset no longer than ``PAIR_M`` (an
+#: annotation's error; a fit further off is another surface, not the same one moved).
 PAIR_M = 0.3
-ICP_STEPS = 6
+ICP_STEPS = 8
+NORMAL_NEIGHBOURS = 8
+RIDGE = 1e-4  #: per pair: a direction fixed by fewer than about this share of the pairs' normals stays put
 MIN_PAIRS = 30
 AGREE_M = 0.04
 
@@ -179,9 +181,9 @@ class TrackShapes:
 
     def cover(self, key, half_m: np.ndarray, t_us: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """Track ``key``'s :func:`cores.cover_map` from every gathered sweep, for its box of half
-        sizes ``half_m`` ([3], m) at time ``t_us``: (top, bottom) [nx, ny] each, and where the map
-        lies in that box (box axes, [3], m: the registration offset of the sweep nearest ``t_us``;
-        0 for a track that does not register). None where no sweep was gathered for it, for a box of
+        sizes ``half_m`` ([3], m) at time ``t_us``: (top, bottom) [nx, ny] each, and the registration
+        offset of the sweep nearest ``t_us`` (box axes, [3], m; 0 for a track that does not register):
+        the map lies at minus it in that box. None where no sweep was gathered for it, for a box of
         another size, or near a sweep whose points did not agree. Made once per track."""
         if key not in self._covers:
             pooled = self.evidence(key)
@@ -214,24 +216,38 @@ class TrackShapes:
 
 def _registered(track: _Track, local_m: np.ndarray) -> np.ndarray | None:
     """Where a sweep's own points ``local_m`` (its box's axes, [P,3], m) lie against the track's pooled
-    points: the offset [3] that moves them onto the pooled ones (0 for the track's first points),
-    None where they do not agree (see ``AGREE_M``)."""
+    points: the offset [3] that moves them onto the pooled surfaces (0 for the track's first points),
+    None where they do not agree (see ``AGREE_M``).
+
+    Point to plane: each point is paired with its nearest pooled point within ``PAIR_M``, and the
+    offset is the least-squares shift along the pooled surfaces' normals (each pooled point's from
+    its ``NORMAL_NEIGHBOURS`` nearest: the smallest principal axis), ``ICP_STEPS`` times. A shift
+    along a surface is not seen by it (a flank does not fix a car's length): what no surface fixes
+    stays 0 (``RIDGE`` on the normal equations)."""
     if not track.own_m:
         return np.zeros(3) if len(local_m) else None
-    if len(local_m) < MIN_PAIRS:
-        return None
     pooled = np.concatenate(track.own_m)
+    if len(local_m) < MIN_PAIRS or len(pooled) < NORMAL_NEIGHBOURS:
+        return None
     tree = cKDTree(pooled)
+    _, neighbours = tree.query(pooled, k=NORMAL_NEIGHBOURS)
+    around = pooled[neighbours] - pooled[neighbours].mean(axis=1, keepdims=True)
+    normals = np.linalg.eigh(np.einsum("pki,pkj->pij", around, around))[1][:, :, 0]  # the smallest axis
     offset = np.zeros(3)
-    for _ in range(ICP_STEPS):
+    for _ in range(ICP_STEPS + 1):
         distance, nearest = tree.query(local_m + offset, distance_upper_bound=PAIR_M)
-        paired = np.isfinite(distance)
-        if paired.sum() < MIN_PAIRS:
+        paired = np.flatnonzero(np.isfinite(distance))
+        if len(paired) < MIN_PAIRS:
             return None
-        offset += np.median(pooled[nearest[paired]] - (local_m[paired] + offset), axis=0)
-    distance, _ = tree.query(local_m + offset, distance_upper_bound=PAIR_M)
-    close = distance <= AGREE_M
-    return offset if close.sum() >= MIN_PAIRS and close.mean() >= 0.5 else None
+        n = normals[nearest[paired]]
+        off_plane = np.einsum("ij,ij->i", n, local_m[paired] + offset - pooled[nearest[paired]])
+        if _ == ICP_STEPS:
+            close = np.abs(off_plane) <= AGREE_M
+            agree = close.sum() >= MIN_PAIRS and close.sum() >= 0.5 * len(local_m)
+            return offset if agree and np.linalg.norm(offset) <= PAIR_M else None  # beyond: not a jitter
+        A = n.T @ n + RIDGE * len(paired) * np.eye(3)
+        offset -= np.linalg.solve(A, n.T @ off_plane)
+    return None
 
 
 @dataclass(frozen=True)
