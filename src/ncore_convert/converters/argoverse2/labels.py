@@ -4,8 +4,10 @@
 - ``depth.z@<camera>``: from the lidar points of the sweep nearest the frame in time
   (:func:`ncore_convert.transforms.camera.labels.depth_z`);
 - ``mask.dynamic@<camera>`` and ``segmentation.instance@<camera>``: which annotated object each pixel
-  shows at the frame's time, each box cut to where that sweep's points show its object
-  (:func:`ncore_convert.transforms.camera.labels.box_index`).
+  shows at the frame's time, each box cut to where the lidar shows its object
+  (:func:`ncore_convert.transforms.camera.labels.box_index`): a vehicle from every sweep of its track
+  (a first pass, :meth:`FrameLabeller.gather`; ``objects.track_shapes``), any other object from the
+  sweep nearest the frame.
 
 A frame belongs to the sweep whose middle (the median time of its points) is nearest its own time:
 each sweep's frames are labelled once the next sweep's middle is known, so two sweeps are held at

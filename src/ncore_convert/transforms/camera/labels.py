@@ -139,9 +139,10 @@ MASKS_MADE = (
     " (6 cm cells; its far side mirrored, unseen cells a generous car shape no higher than the lidar's lines of"
     " sight through them; the street under its body between the wheels left out; vans, trucks and buses taller"
     " than 2 m at full height), any other object to its own points' footprints; a box without own points whole."
-    " A vehicle whose boxes do not jitter against it (a static track at its median box, a simulator's exact"
-    " boxes) from the points and lines of sight of every sweep of its track (objects.track_shapes), any other"
-    " from the frame's own sweep"
+    " A vehicle's map is made from the points and lines of sight of every sweep of its track"
+    " (objects.track_shapes): a static track's at its median box, a simulator's exact boxes as they are, an"
+    " annotated moving track's sweeps registered to each other first (only those that agree); near a sweep"
+    " that does not agree, from the frame's own sweep"
 )
 #: A box's own points for its mask (:func:`objects.cores.cover_map`) are those within this of it
 #: (annotation error).

@@ -12,15 +12,19 @@ through the gaps beside it. Every sweep of a track lends the track's cover map
   a voxel grid over the box (the cover map's ``CELL_M`` cells, ``LEVEL_M`` levels) marked where any
   sweep's line of sight passed. It cuts the generous car shape where one sweep never looked.
 
-Only boxes that do not jitter against their object can pool sweeps: a static track at its one
-median box (``dynamic.static_pose``: a parked car does not move, whatever its annotation's jitter),
-and every box of a simulator's exact ground truth (CARLA: each box is where its actor is at the
-tick). A moving track's annotated boxes are a human's, a few centimetres off from sweep to sweep
-and taken at one time of a 100 ms sweep while the lidar saw the object at another: pooled in those
-boxes, its points would smear it. Such a track keeps its one-sweep map (the caller does not add it).
+Which boxes pool, and how:
 
-The frame's own sweep still decides what is there now: the labeller adds its own points, and a
-cell holding one is covered whatever the track says (:func:`cores.cover_map`).
+- a static track at its one median box (``dynamic.static_pose``: a parked car does not move,
+  whatever its annotation's jitter), and every box of a simulator's exact ground truth (CARLA: each
+  box is where its actor is at the tick): as they are;
+- a moving track's annotated boxes: a human's, centimetres off from sweep to sweep, so each sweep's
+  own points are first registered to those pooled so far (:func:`_registered`, a translation, point
+  to plane) and pool only where they agree; a frame's map is moved by its nearest sweep's offset.
+  A moving object's points are taken where its box was at their own times (a 100 ms sweep sees a
+  car at 15 m/s move 1.5 m), and its free space where its box was when the lidar saw it.
+
+Every own point of every pooled sweep covers its cell (:func:`cores.cover_map`): what any sweep saw
+of the object is in every frame's mask (recall first; an opened door is covered all along).
 """
 
 from __future__ import annotations
