@@ -65,7 +65,8 @@ class _Track:
     own_m: list = field(default_factory=list)  # [P,3] arrays
     spacing_m: list = field(default_factory=list)  # [P,2]
     origins_m: list = field(default_factory=list)  # [P,3]
-    kept: set = field(default_factory=set)  # the voxels holding a kept own point
+    kept: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the kept points' voxels, sorted
+    normals: list = field(default_factory=list)  # [P,3] arrays: each kept point's surface normal (registering)
     sweeps: int = 0
     #: sweep time (µs) -> where the pooled shape lies in that sweep's box, box axes [3] (m), None where
     #: the sweep's points did not agree with it (its frames keep their own sweep's map)
@@ -172,13 +173,16 @@ class TrackShapes:
 
     @staticmethod
     def _keep(track: _Track, local_m: np.ndarray, spacing_m: np.ndarray, origins_m: np.ndarray) -> None:
-        """Keep the own points ``local_m`` [P,3] (box axes) whose ``KEEP_CELL_M`` voxel holds none yet."""
-        voxels = np.floor((local_m + track.half_m + OWN_MARGIN_M) / KEEP_CELL_M).astype(np.int64)
-        _, first = np.unique(voxels, axis=0, return_index=True)
-        new = [i for i in first.tolist() if tuple(voxels[i]) not in track.kept]
-        if not new:
+        """Keep the own points ``local_m`` [P,3] (box axes) whose ``KEEP_CELL_M`` voxel holds none yet
+        (a voxel's key: its three indices, 21 bits each)."""
+        index = np.floor((local_m + track.half_m + OWN_MARGIN_M) / KEEP_CELL_M).astype(np.int64)
+        keys = (index[:, 0] << 42) | (index[:, 1] << 21) | index[:, 2]
+        keys, first = np.unique(keys, return_index=True)
+        fresh = ~np.isin(keys, track.kept, assume_unique=True)
+        if not fresh.any():
             return
-        track.kept.update(tuple(v) for v in voxels[new].tolist())
+        new = first[fresh]
+        track.kept = np.union1d(track.kept, keys[fresh])
         track.own_m.append(local_m[new])
         track.spacing_m.append(spacing_m[new])
         track.origins_m.append(origins_m[new])
@@ -234,9 +238,11 @@ def _registered(track: _Track, local_m: np.ndarray) -> np.ndarray | None:
     if len(local_m) < MIN_PAIRS or len(pooled) < NORMAL_NEIGHBOURS:
         return None
     tree = cKDTree(pooled)
-    _, neighbours = tree.query(pooled, k=NORMAL_NEIGHBOURS)
+    done = sum(len(n) for n in track.normals)  # the points kept since the last registration need theirs
+    _, neighbours = tree.query(pooled[done:], k=NORMAL_NEIGHBOURS)
     around = pooled[neighbours] - pooled[neighbours].mean(axis=1, keepdims=True)
-    normals = np.linalg.eigh(np.einsum("pki,pkj->pij", around, around))[1][:, :, 0]  # the smallest axis
+    track.normals.append(np.linalg.eigh(np.einsum("pki,pkj->pij", around, around))[1][:, :, 0])  # smallest axis
+    normals = np.concatenate(track.normals)
     offset = np.zeros(3)
     for _ in range(ICP_STEPS + 1):
         distance, nearest = tree.query(local_m + offset, distance_upper_bound=PAIR_M)
