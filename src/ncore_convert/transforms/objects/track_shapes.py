@@ -40,9 +40,10 @@ from ncore_convert.transforms.objects.cores import CARVE_STEP_M, CELL_M, cover_m
 OWN_MARGIN_M = 0.1  #: a box's own points are those within this of it (annotation error)
 KEEP_CELL_M = 0.03  #: own points are kept one per voxel of this size (half a cover-map cell)
 LEVEL_M = CARVE_STEP_M  #: the free-space grid's step in height (the cover map's carving step)
-#: A box further than this from where the lidar was gathers no evidence: its returns are centimetres
-#: apart there at best, and its places' lines of sight too sparse to look up.
-REACH_M = 80.0
+#: A box further than this from where the lidar was gathers no evidence: a VLP-32C's rows are 0.2-0.7 m
+#: apart there, too sparse to show a car's shape (its frames keep their own sweep's map if no sweep
+#: came nearer).
+REACH_M = 40.0
 #: A track whose boxes may jitter (annotations) registers each sweep's own points to those pooled so
 #: far before adding them (:func:`_registered`: a translation, point to plane); the sweep agrees (and
 #: pools) when at least ``MIN_PAIRS`` and half its points then lie within ``AGREE_M`` of the pooled
@@ -51,6 +52,7 @@ REACH_M = 80.0
 PAIR_M = 0.3
 ICP_STEPS = 8
 NORMAL_NEIGHBOURS = 8
+REGISTERED_POINTS = 400  #: a sweep's own points registered at most
 RIDGE = 1e-4  #: per pair: a direction fixed by fewer than about this share of the pairs' normals stays put
 MIN_PAIRS = 30
 AGREE_M = 0.04
@@ -65,7 +67,7 @@ class _Track:
     own_m: list = field(default_factory=list)  # [P,3] arrays
     spacing_m: list = field(default_factory=list)  # [P,2]
     origins_m: list = field(default_factory=list)  # [P,3]
-    kept: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the kept points' voxels, sorted
+    kept: set = field(default_factory=set)  # the kept points' voxels (keys: :meth:`TrackShapes._keep`)
     normals: list = field(default_factory=list)  # [P,3] arrays: each kept point's surface normal (registering)
     sweeps: int = 0
     #: sweep time (µs) -> where the pooled shape lies in that sweep's box, box axes [3] (m), None where
@@ -166,10 +168,9 @@ class TrackShapes:
             if moving and not own.any():
                 continue
             seen_at_m = T[:3, 3] + (float(np.median(dt_s[rows[own]])) * v if moving else 0.0)
-            open_ = ~track.passed
-            if open_.any():  # the pooled voxels where this sweep's box holds them
-                centres = _voxel_centres(track.half_m)[open_] - offset_m
-                track.passed[open_] = sight.passed(centres @ T[:3, :3].T + seen_at_m)
+            _look_down(
+                track, lambda local_m, T=T, at=seen_at_m, off=offset_m: sight.passed((local_m - off) @ T[:3, :3].T + at)
+            )
 
     @staticmethod
     def _keep(track: _Track, local_m: np.ndarray, spacing_m: np.ndarray, origins_m: np.ndarray) -> None:
@@ -178,11 +179,11 @@ class TrackShapes:
         index = np.floor((local_m + track.half_m + OWN_MARGIN_M) / KEEP_CELL_M).astype(np.int64)
         keys = (index[:, 0] << 42) | (index[:, 1] << 21) | index[:, 2]
         keys, first = np.unique(keys, return_index=True)
-        fresh = ~np.isin(keys, track.kept, assume_unique=True)
-        if not fresh.any():
+        fresh = [i for i, key in enumerate(keys.tolist()) if key not in track.kept]
+        if not fresh:
             return
         new = first[fresh]
-        track.kept = np.union1d(track.kept, keys[fresh])
+        track.kept.update(keys[fresh].tolist())
         track.own_m.append(local_m[new])
         track.spacing_m.append(spacing_m[new])
         track.origins_m.append(origins_m[new])
@@ -222,6 +223,29 @@ class TrackShapes:
         )
 
 
+def _look_down(track: _Track, passed) -> None:
+    """Mark the voxels a sweep's lines of sight passed through, column by column from the top down
+    (``passed(places [M,3], the track's box axes) -> bool [M]``). A cover map's column is cut down to
+    its highest place no line passed through (``cores._carved``): what lies below that place does not
+    change it, so each column looks only at its highest voxel not yet passed, and on down while this
+    sweep passed through it. A place below that voxel counts as not passed (recall first: an
+    overhang the lines of sight passed under stays covered)."""
+    nx, ny, nz = track.passed.shape
+    highest = nz - 1 - np.argmax(~track.passed[:, :, ::-1], axis=2)  # each column's highest voxel not passed
+    highest[track.passed.all(axis=2)] = -1
+    centres = _voxel_centres(track.half_m)
+    columns = np.flatnonzero(highest.reshape(-1) >= 0)
+    while len(columns):
+        i, j = np.unravel_index(columns, (nx, ny))
+        k = highest[i, j]
+        through = passed(centres[i, j, k])
+        if not through.any():
+            return
+        track.passed[i[through], j[through], k[through]] = True
+        highest[i[through], j[through]] -= 1
+        columns = columns[through][highest[i[through], j[through]] >= 0]
+
+
 def _registered(track: _Track, local_m: np.ndarray) -> np.ndarray | None:
     """Where a sweep's own points ``local_m`` (its box's axes, [P,3], m) lie against the track's pooled
     points: the offset [3] that moves them onto the pooled surfaces (0 for the track's first points),
@@ -234,6 +258,8 @@ def _registered(track: _Track, local_m: np.ndarray) -> np.ndarray | None:
     stays 0 (``RIDGE`` on the normal equations)."""
     if not track.own_m:
         return np.zeros(3) if len(local_m) else None
+    if len(local_m) > REGISTERED_POINTS:  # evenly thinned: the fit needs the surfaces, not every return
+        local_m = local_m[np.linspace(0, len(local_m) - 1, REGISTERED_POINTS).astype(np.int64)]
     pooled = np.concatenate(track.own_m)
     if len(local_m) < MIN_PAIRS or len(pooled) < NORMAL_NEIGHBOURS:
         return None
