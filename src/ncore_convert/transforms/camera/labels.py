@@ -31,7 +31,7 @@ from ncore_convert.transforms.camera.visibility import (
     visible_pixels,
 )
 from ncore_convert.transforms.objects.boxes import box_corners, first_seen, slab_span
-from ncore_convert.transforms.objects.cores import CELL_M, VEHICLE, cover_columns, cover_map
+from ncore_convert.transforms.objects.cores import CELL_M, OWN_MARGIN_M, VEHICLE, cover_columns, cover_map
 
 #: A point on a moving object labels only a frame this close to its own time (µs): at 15 m/s the
 #: object moves 7.5 cm in that time.
@@ -144,9 +144,6 @@ MASKS_MADE = (
     " annotated moving track's sweeps registered to each other first (only those that agree); near a sweep"
     " that does not agree, from the frame's own sweep"
 )
-#: A box's own points for its mask (:func:`objects.cores.cover_map`) are those within this of it
-#: (annotation error).
-OWN_MARGIN_M = 0.1
 
 
 def box_index(

@@ -244,6 +244,8 @@ COVER_FLOOR_M = 0.2
 #: within ``WHEEL_IN_M`` of the box's sides.
 WHEEL_X = (0.45, 0.8)
 WHEEL_IN_M = 0.35
+#: A box's own points (its masks' evidence, :func:`cover_map`) are those within this of it (annotation error).
+OWN_MARGIN_M = 0.1
 GROUND_M = 0.15  #: an object's own points this low over its box's floor may be the ground's
 #: ... but for a vehicle's bottom, an own point this far over its box's floor is its body's, not the street's
 LOW_POINT_M = 0.05

@@ -35,9 +35,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ncore_convert.transforms.objects.boxes import PointGrid
-from ncore_convert.transforms.objects.cores import CARVE_STEP_M, CELL_M, cover_map, footprint_cells
+from ncore_convert.transforms.objects.cores import CARVE_STEP_M, CELL_M, OWN_MARGIN_M, cover_map, footprint_cells
 
-OWN_MARGIN_M = 0.1  #: a box's own points are those within this of it (annotation error)
 KEEP_CELL_M = 0.03  #: own points are kept one per voxel of this size (half a cover-map cell)
 LEVEL_M = CARVE_STEP_M  #: the free-space grid's step in height (the cover map's carving step)
 #: A box further than this from where the lidar was gathers no evidence: a VLP-32C's rows are 0.2-0.7 m
@@ -95,9 +94,6 @@ class TrackShapes:
     def __init__(self) -> None:
         self._tracks: dict = {}
         self._covers: dict = {}  # track -> its cover map, made once every sweep is gathered
-
-    def __contains__(self, key) -> bool:
-        return key in self._tracks
 
     def gather(
         self,
